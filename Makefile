@@ -1,0 +1,38 @@
+# metampc: set-up, build, test and run. See README.md.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+ENV := source scripts/env.sh
+PYTEST_ARGS ?=
+RUN_ARGS ?=
+
+.PHONY: help setup build test lint run clean
+
+help:
+	@echo "make run    set up, build and run the default experiment"
+	@echo "make test   set up, build and run every test"
+	@echo "make setup  create/update .venv (idempotent)"
+	@echo "make build  colcon build of src/ into build/ and install/ (incremental)"
+	@echo "make lint   flake8 over src/, scripts/ and test/"
+	@echo "make clean  remove build/, install/ and log/ (keeps .venv)"
+
+setup:
+	@bash scripts/setup.sh
+
+build: setup
+	@$(ENV) && flock .build.lock colcon --log-base log build --base-paths src --symlink-install \
+	  --event-handlers console_direct- --cmake-args -DBUILD_TESTING=OFF -Wno-dev \
+	  | grep -vE '^(Starting|Finished) |local_setup' || true; \
+	  test -f install/metampc_msgs/share/metampc_msgs/package.xml || \
+	  { echo "build failed: see log/latest_build"; exit 1; }
+
+lint: setup
+	@$(ENV) && flake8 src scripts test
+
+test: build
+	@$(ENV) && python -m pytest $(PYTEST_ARGS)
+
+run: build
+	@$(ENV) && python scripts/run_experiment.py $(RUN_ARGS)
+
+clean:
+	rm -rf build install log

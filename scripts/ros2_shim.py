@@ -1,0 +1,133 @@
+#!/usr/bin/env python3
+"""A minimal `ros2` command for machines without ros2cli (ROS 2 Jazzy from PyPI wheels).
+
+Supported verbs (semantics of ros2run / ros2pkg, Jazzy):
+  ros2 run PKG EXE [args...]      run an executable of a package, arguments passed through
+  ros2 pkg list                   every package on AMENT_PREFIX_PATH
+  ros2 pkg executables [PKG]      'PKG EXE' lines, for one package or all
+  ros2 pkg prefix PKG             the install prefix of a package
+
+Lookup rules (as ros2run): the package's prefix is the first entry of AMENT_PREFIX_PATH that has
+share/ament_index/resource_index/packages/PKG; the executable is the one file named EXE that is
+executable under <prefix>/lib/PKG (searched recursively). The exit status of the child is passed
+back. The child runs in a process group of its own and the shim forwards SIGINT and SIGTERM to
+it, so Ctrl-C (or a signal to the shim's process group) reaches the node exactly once; rclpy
+nodes treat a second SIGINT during shutdown as an error.
+"""
+import os
+import signal
+import subprocess
+import sys
+
+MARKER = os.path.join('share', 'ament_index', 'resource_index', 'packages')
+SUPPORTED = 'run, pkg list, pkg executables, pkg prefix'
+
+
+def prefixes():
+    return [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+
+
+def package_prefix(pkg):
+    for prefix in prefixes():
+        if os.path.isfile(os.path.join(prefix, MARKER, pkg)):
+            return prefix
+    return None
+
+
+def all_packages():
+    found = set()
+    for prefix in prefixes():
+        d = os.path.join(prefix, MARKER)
+        if os.path.isdir(d):
+            found.update(n for n in os.listdir(d) if not n.startswith('.'))
+    return sorted(found)
+
+
+def executables(prefix, pkg):
+    base = os.path.join(prefix, 'lib', pkg)
+    paths = []
+    for dirpath, dirnames, filenames in os.walk(base):
+        dirnames[:] = [d for d in dirnames if not d.startswith('.')]
+        for name in filenames:
+            path = os.path.join(dirpath, name)
+            if os.access(path, os.X_OK):
+                paths.append(path)
+    return sorted(paths)
+
+
+def run(pkg, exe, args):
+    prefix = package_prefix(pkg)
+    if prefix is None:
+        print('Package not found', file=sys.stderr)
+        return 1
+    matches = [p for p in executables(prefix, pkg) if os.path.basename(p) == exe]
+    if not matches:
+        print('No executable found', file=sys.stderr)
+        return 1
+    if len(matches) > 1:
+        print('Multiple executables found:', file=sys.stderr)
+        for m in matches:
+            print(f'- {m}', file=sys.stderr)
+        return 1
+    # Handlers first: a signal that comes while the child starts is forwarded once it exists.
+    pending = []
+    child = []
+
+    def forward(signum, _frame):
+        if child and child[0].poll() is None:
+            os.killpg(child[0].pid, signum)
+        elif not child:
+            pending.append(signum)
+
+    signal.signal(signal.SIGINT, forward)
+    signal.signal(signal.SIGTERM, forward)
+    proc = subprocess.Popen([matches[0]] + args, process_group=0)
+    child.append(proc)
+    for signum in pending:
+        os.killpg(proc.pid, signum)
+    rc = proc.wait()
+    # A child killed by a signal: report it as the shell would (128 + signal number).
+    return rc if rc >= 0 else 128 - rc
+
+
+def usage(message):
+    print(f'ros2: {message}\nThis ros2 is metampc\'s minimal shim; supported: {SUPPORTED}.\n'
+          'usage: ros2 run PKG EXE [args...] | ros2 pkg list | ros2 pkg executables [PKG] | '
+          'ros2 pkg prefix PKG', file=sys.stderr)
+    return 2
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ('-h', '--help'):
+        return usage('no verb given' if not argv else 'help')
+    verb, rest = argv[0], argv[1:]
+    if verb == 'run':
+        if len(rest) < 2:
+            return usage('run needs a package and an executable')
+        return run(rest[0], rest[1], rest[2:])
+    if verb == 'pkg' and rest:
+        sub = rest[0]
+        if sub == 'list' and len(rest) == 1:
+            print('\n'.join(all_packages()))
+            return 0
+        if sub in ('executables', 'prefix') and len(rest) <= 2:
+            pkgs = rest[1:] or ([] if sub == 'prefix' else all_packages())
+            if not pkgs:
+                return usage('pkg prefix needs a package')
+            for pkg in pkgs:
+                prefix = package_prefix(pkg)
+                if prefix is None:
+                    print('Package not found', file=sys.stderr)
+                    return 1
+                if sub == 'prefix':
+                    print(prefix)
+                    continue
+                for path in executables(prefix, pkg):
+                    print(pkg, os.path.basename(path))
+            return 0
+    return usage(f'unsupported command: {" ".join(argv)}')
+
+
+if __name__ == '__main__':
+    sys.exit(main())

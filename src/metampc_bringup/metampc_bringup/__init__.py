@@ -1,0 +1,1 @@
+"""Recorder, orchestration and MCAP analysis of metampc runs."""

@@ -1,0 +1,1 @@
+"""Meta-learning (iMAML, MAML, supervised) of the NSSM: cores and the learner node."""

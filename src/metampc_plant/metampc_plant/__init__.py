@@ -1,0 +1,1 @@
+"""Van der Pol plant with uncertain damping: simulator core and the plant node."""

@@ -1,0 +1,70 @@
+"""Seeded excitation inputs for data collection, each within [u_min, u_max].
+
+Every generator returns an array of shape (B, K): K inputs for each of B systems, one per
+sample of length dt. Determinism: the same arguments and seed give the same array.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+KINDS = ('random_hold', 'multisine', 'prbs')
+
+
+@dataclass
+class ExcitationConfig:
+    """Settings of an excitation signal.
+
+    Attributes:
+        kind: 'random_hold' (uniform levels held for hold_s; band-limited to ~1/hold_s Hz),
+            'multisine' (sum of sines with random phases up to f_max_hz) or
+            'prbs' (pseudo-random binary sequence switching at most every hold_s).
+        u_min, u_max: bounds the signal respects.
+        hold_s: hold time of random_hold and prbs, s.
+        f_max_hz: highest frequency of multisine, Hz.
+        n_sines: number of multisine components.
+    """
+
+    kind: str = 'random_hold'
+    u_min: float = -1.0
+    u_max: float = 1.0
+    hold_s: float = 0.5
+    f_max_hz: float = 1.0
+    n_sines: int = 8
+
+    def validate(self) -> None:
+        """Raise ValueError if a setting is out of range."""
+        if self.kind not in KINDS:
+            raise ValueError(f'unknown excitation kind {self.kind!r}; expected one of {KINDS}')
+        if not (np.isfinite(self.u_min) and np.isfinite(self.u_max)) or self.u_min > self.u_max:
+            raise ValueError(f'need finite u_min <= u_max, got [{self.u_min}, {self.u_max}]')
+        if self.hold_s <= 0 or self.f_max_hz <= 0 or self.n_sines < 1:
+            raise ValueError('hold_s, f_max_hz must be > 0 and n_sines >= 1')
+
+
+def excitation(config: ExcitationConfig, batch: int, n_samples: int, dt: float,
+               seed: int) -> np.ndarray:
+    """Generate inputs of shape (batch, n_samples) for sample time dt (s), seeded."""
+    config.validate()
+    if batch < 0 or n_samples < 0 or not dt > 0:
+        raise ValueError(f'need batch, n_samples >= 0 and dt > 0 s, got {batch}, {n_samples}, '
+                         f'{dt}')
+    if n_samples == 0:
+        return np.zeros((batch, 0))
+    rng = np.random.default_rng(seed)
+    lo, hi = config.u_min, config.u_max
+    hold = max(1, int(round(config.hold_s / dt)))
+    n_levels = -(-n_samples // hold)
+    if config.kind == 'random_hold':
+        levels = rng.uniform(lo, hi, size=(batch, n_levels))
+        return np.repeat(levels, hold, axis=1)[:, :n_samples]
+    if config.kind == 'prbs':
+        bits = rng.integers(0, 2, size=(batch, n_levels))
+        return np.repeat(np.where(bits == 1, hi, lo), hold, axis=1)[:, :n_samples].astype(float)
+    t = np.arange(n_samples) * dt
+    freqs = np.linspace(config.f_max_hz / config.n_sines, config.f_max_hz, config.n_sines)
+    phases = rng.uniform(0, 2 * np.pi, size=(batch, config.n_sines, 1))
+    s = np.sin(2 * np.pi * freqs[None, :, None] * t[None, None, :] + phases).sum(axis=1)
+    peak = np.abs(s).max(axis=1, keepdims=True)
+    s = s / np.where(peak > 0, peak, 1.0)
+    # |s| <= 1 exactly, but the affine map can round one ulp past a bound.
+    return np.clip(0.5 * (lo + hi) + 0.5 * (hi - lo) * s, lo, hi)
