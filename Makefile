@@ -19,11 +19,10 @@ setup:
 	@bash scripts/setup.sh
 
 build: setup
-	@$(ENV) && flock .build.lock colcon --log-base log build --base-paths src --symlink-install \
-	  --event-handlers console_direct- --cmake-args -DBUILD_TESTING=OFF -Wno-dev \
-	  | grep -vE '^(Starting|Finished) |local_setup' || true; \
-	  test -f install/metampc_msgs/share/metampc_msgs/package.xml || \
-	  { echo "build failed: see log/latest_build"; exit 1; }
+	@$(ENV) && set -o pipefail && flock .build.lock colcon --log-base log build \
+	  --base-paths src --symlink-install --event-handlers console_direct- \
+	  --cmake-args -DBUILD_TESTING=OFF -Wno-dev 2>&1 \
+	  | { grep -vE '^(Starting|Finished) |local_setup' || true; }
 
 lint: setup
 	@$(ENV) && flake8 src scripts test
