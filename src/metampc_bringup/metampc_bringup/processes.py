@@ -1,0 +1,120 @@
+"""Start ROS 2 nodes as processes with `ros2 run` semantics, and stop every one of them.
+
+Used by the orchestrator and by the tests. Each node starts in a session of its own (`ros2 run`
+then puts the node in a process group of its own inside it), so a SIGINT to the session's
+leader reaches the node once, and SIGKILL can reach every process of the session.
+No rclpy here.
+"""
+import contextlib
+import os
+import signal
+import subprocess
+from typing import Dict, Iterable, List, Optional
+
+
+def ros_args(params: Optional[Dict[str, object]] = None, remaps: Optional[Dict[str, str]] = None,
+             name: Optional[str] = None) -> List[str]:
+    """`--ros-args -p k:=v -r a:=b` arguments; lists become YAML lists, bools true/false."""
+    args = ['--ros-args']
+    for key, value in (params or {}).items():
+        args += ['-p', f'{key}:={_yaml(value)}']
+    for src, dst in (remaps or {}).items():
+        args += ['-r', f'{src}:={dst}']
+    if name:
+        args += ['-r', f'__node:={name}']
+    return args
+
+
+def _yaml(value: object) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (list, tuple)):
+        return '[' + ','.join(_yaml(v) for v in value) + ']'
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'" if value else "''"
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def session_pids(sid: int) -> List[int]:
+    """Pids of every live process in session `sid` (a `ros2 run` and the node it started)."""
+    pids = []
+    for entry in os.listdir('/proc'):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f'/proc/{entry}/stat') as f:
+                fields = f.read().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != 'Z':
+            pids.append(int(entry))
+    return pids
+
+
+class ProcessGroup:
+    """Nodes started for one run or test; `stop_all` stops every one (SIGINT, then SIGKILL)."""
+
+    def __init__(self, log_dir: str, env: Optional[Dict[str, str]] = None):
+        """log_dir: where each process's stdout+stderr go; env: overrides for every process."""
+        self.log_dir = log_dir
+        self.env = dict(env or {})
+        self.procs: List[subprocess.Popen] = []
+
+    def start(self, pkg: str, exe: str, params: Optional[Dict[str, object]] = None,
+              remaps: Optional[Dict[str, str]] = None, name: Optional[str] = None,
+              extra_args: Optional[List[str]] = None, env: Optional[Dict[str, str]] = None,
+              prefix: Iterable[str] = ()) -> subprocess.Popen:
+        """Run `[prefix...] ros2 run pkg exe [extra_args] --ros-args ...`; output to a log file.
+
+        prefix: a command to run it under (e.g. `ip netns exec host1`).
+        """
+        cmd = [*prefix, 'ros2', 'run', pkg, exe, *(extra_args or []),
+               *ros_args(params, remaps, name)]
+        log_path = os.path.join(self.log_dir, f'{name or exe}-{len(self.procs)}.log')
+        with open(log_path, 'w') as log:
+            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True,
+                                    env={**os.environ, **self.env, **(env or {}),
+                                         'PYTHONUNBUFFERED': '1'})
+        proc.log_path = log_path
+        self.procs.append(proc)
+        return proc
+
+    @staticmethod
+    def output(proc: subprocess.Popen) -> str:
+        """Everything the process printed so far."""
+        with open(proc.log_path) as f:
+            return f.read()
+
+    @staticmethod
+    def interrupt(proc: subprocess.Popen, timeout: float = 10.0) -> int:
+        """SIGINT to the process's group (as Ctrl-C does), wait, return the exit code.
+
+        If it is still running after `timeout` s, every process of its session is killed and
+        subprocess.TimeoutExpired is raised.
+        """
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            ProcessGroup.kill(proc)
+            raise
+
+    @staticmethod
+    def kill(proc: subprocess.Popen) -> None:
+        """SIGKILL every process of proc's session (kill -9 of the node and its `ros2 run`)."""
+        for pid in session_pids(proc.pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        proc.wait()
+
+    def stop_all(self, timeout: float = 5.0) -> None:
+        """Stop every process started here, newest first; nothing of theirs is left running."""
+        for proc in reversed(self.procs):
+            if proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError, subprocess.TimeoutExpired):
+                    self.interrupt(proc, timeout=timeout)
+            # Also reaps a node left behind by a `ros2 run` that died first.
+            if proc.poll() is None or session_pids(proc.pid):
+                self.kill(proc)
