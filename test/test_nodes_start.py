@@ -3,7 +3,8 @@ import pytest
 
 from metampc_testing import session_pids
 
-NODES = [('metampc_controller', 'controller'), ('metampc_learner', 'learner')]
+NODES = [('metampc_plant', 'plant'), ('metampc_controller', 'controller'),
+         ('metampc_learner', 'learner')]
 
 
 @pytest.mark.parametrize('pkg,exe', NODES, ids=[exe for _, exe in NODES])

@@ -2,8 +2,7 @@
 
 The node issue fills it in over the cores of this package.
 """
-import rclpy
-from rclpy.executors import ExternalShutdownException
+from metampc_plant.node_main import run_node
 from rclpy.node import Node
 
 
@@ -13,15 +12,5 @@ class ControllerNode(Node):
         self.get_logger().info('controller node up (skeleton)')
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ControllerNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+def main(args=None) -> int:
+    return run_node(ControllerNode, 'controller', args)

@@ -1,4 +1,4 @@
-"""Nonlinear MPC on the true van der Pol model: the yardstick for tracking (not the paper's method).
+"""Nonlinear MPC on the true van der Pol model: the tracking yardstick (not the paper's method).
 
 Same horizon, cost and bounds as the latent MPC of eq. (mpc), but the prediction is the plant's
 own RK4 model (metampc_plant.vanderpol) with the true theta, so its tracking cost is the

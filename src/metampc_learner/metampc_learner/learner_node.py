@@ -2,8 +2,7 @@
 
 The node issue fills it in over the cores of this package.
 """
-import rclpy
-from rclpy.executors import ExternalShutdownException
+from metampc_plant.node_main import run_node
 from rclpy.node import Node
 
 
@@ -13,15 +12,5 @@ class LearnerNode(Node):
         self.get_logger().info('learner node up (skeleton)')
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = LearnerNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+def main(args=None) -> int:
+    return run_node(LearnerNode, 'learner', args)

@@ -7,7 +7,9 @@ Continuous dynamics, with theta the unknown damping::
     y   = x
 
 Sampling: the input is held constant (zero-order hold) over each sample of length ``dt`` s and
-the state is integrated with ``substeps`` classical RK4 steps.
+the state is integrated with ``substeps`` classical RK4 steps. :class:`BatchVdp` steps B
+systems with numpy; :class:`VdpPlant` is its single-system twin on Python floats (the plant
+node's), equal to a batch of one bit for bit.
 
 Index convention (shared with the NSSM and the MPC): ``y_k`` is measured at time ``k*dt``;
 ``u_k`` is the input held over ``((k-1)*dt, k*dt]`` that produced it, so a recorded
@@ -35,7 +37,9 @@ class VdpConfig:
     Attributes:
         theta: damping, dimensionless.
         dt: sample time, s (> 0).
-        substeps: RK4 steps per sample (>= 1).
+        substeps: RK4 steps per sample (>= 1). The default 10 stays within 1e-7 of RK45
+            (rtol 1e-10) over 20 s at dt = 0.05 s for theta in [-1.5, 2] (test_vanderpol);
+            with h**4 scaling that is about 1.5e-6 at dt = 0.1 s (measured: 1.4e-6, theta = 2).
         x0: initial state [x1, x2].
         u_min, u_max: input bounds; inputs are clipped to them.
         process_noise_std: std of a Gaussian added to x2 after each sample (scaled by sqrt(dt)).
@@ -67,8 +71,9 @@ class VdpConfig:
             raise ValueError(f'x0 must be {N_X} finite numbers, got {list(self.x0)}')
         if not (np.isfinite(self.u_min) and np.isfinite(self.u_max)) or self.u_min > self.u_max:
             raise ValueError(f'need finite u_min <= u_max, got [{self.u_min}, {self.u_max}]')
-        if self.process_noise_std < 0 or self.measurement_noise_std < 0:
-            raise ValueError('noise standard deviations must be >= 0')
+        if not (0 <= self.process_noise_std < np.inf and 0 <= self.measurement_noise_std < np.inf):
+            raise ValueError('noise standard deviations must be finite and >= 0, got '
+                             f'{self.process_noise_std}, {self.measurement_noise_std}')
         if not self.state_bound > 0:
             raise ValueError(f'state_bound must be > 0, got {self.state_bound}')
         if self.seed < 0:
@@ -208,9 +213,9 @@ class BatchVdp:
         Non-finite inputs raise ValueError (the node rejects them before this point).
         Diverged systems stay frozen at their last finite state.
         """
-        u, _ = self.saturate(u)
         if not np.all(np.isfinite(u)):
             raise ValueError('inputs must be finite')
+        u, _ = self.saturate(u)
         cfg = self.config
         with np.errstate(over='ignore', invalid='ignore'):
             x_new = rk4_sample(self.x, u, self.theta, cfg.dt, cfg.substeps)
@@ -301,9 +306,9 @@ class VdpPlant:
         Non-finite inputs raise ValueError. A diverged plant stays frozen at its last finite
         state (its step index still advances).
         """
-        u, _ = self.saturate(u)
         if not math.isfinite(u):
-            raise ValueError('inputs must be finite')
+            raise ValueError(f'inputs must be finite, got {u}')
+        u, _ = self.saturate(u)
         cfg = self.config
         x1, x2 = rk4_sample_scalar(self._x1, self._x2, u, self._theta, cfg.dt, cfg.substeps)
         if cfg.process_noise_std > 0:

@@ -1,0 +1,154 @@
+#!/usr/bin/env python3
+"""Benchmark the plant: simulator core speed and lockstep round trips through ROS 2.
+
+Prints ONE JSON line:
+  core_steps_per_s_1        VdpPlant samples/s (one system, RK4 with the default substeps)
+  core_steps_per_s_1000     BatchVdp samples/s for 1000 systems stepped together
+  core_system_steps_per_s_1000   the same times 1000 (system-samples/s)
+  lockstep_round_trips_per_s  y -> u -> y cycles/s between the `plant` node (ros2 run) and a
+                              minimal echo controller process (this script with --echo)
+  lockstep_steps            round trips timed (after a warm-up)
+
+The two processes run in a ROS_DOMAIN_ID of their own (claimed with a lock file, as the test
+sessions do) with discovery on localhost only, and are stopped before the script returns.
+Run from the repository root after `source scripts/env.sh`.
+"""
+import argparse
+import fcntl
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+WARMUP_STEPS = 200
+
+
+def _rate(fn, min_seconds: float) -> float:
+    """Calls of fn per second, over at least min_seconds of wall time."""
+    n, t0 = 0, time.perf_counter()
+    while True:
+        fn()
+        n += 1
+        elapsed = time.perf_counter() - t0
+        if elapsed >= min_seconds:
+            return n / elapsed
+
+
+def bench_core(seconds: float) -> dict:
+    from metampc_plant.vanderpol import BatchVdp, VdpConfig, VdpPlant
+    config = VdpConfig(theta=1.0, dt=0.05, x0=(1.0, 0.0))
+    plant = VdpPlant(config)
+    single = _rate(lambda: plant.step(0.1), seconds)
+    batch = BatchVdp(np.linspace(-0.5, 2.0, 1000), config)
+    u = np.full(1000, 0.1)
+    many = _rate(lambda: batch.step(u), seconds)
+    return {'core_steps_per_s_1': round(single), 'core_steps_per_s_1000': round(many, 1),
+            'core_system_steps_per_s_1000': round(1000 * many)}
+
+
+def claim_domain():
+    """(domain id, held lock file): a ROS_DOMAIN_ID no other metampc session is using."""
+    for domain in range(101, 0, -1):
+        handle = open(os.path.join(tempfile.gettempdir(), f'metampc-ros-domain-{domain}.lock'),
+                      'w')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return domain, handle
+        except OSError:
+            handle.close()
+    raise RuntimeError('no free ROS_DOMAIN_ID in 1..101')
+
+
+def echo(steps: int) -> None:
+    """Minimal controller: answer every y_k with u = 0.1 for step k; time `steps` round trips.
+
+    Prints {"round_trips_per_s": ...} once done and exits.
+    """
+    import rclpy
+    from metampc_msgs.msg import ControlInput, PlantOutput
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)  # as the plant's
+    rclpy.init()
+    node = rclpy.create_node('bench_echo')
+    pub = node.create_publisher(ControlInput, 'u', qos)
+    marks = {}
+
+    def on_y(msg: PlantOutput) -> None:
+        if msg.step in (WARMUP_STEPS, WARMUP_STEPS + steps):
+            marks[msg.step] = time.perf_counter()
+        pub.publish(ControlInput(step=msg.step, u=[0.1]))
+
+    node.create_subscription(PlantOutput, 'y', on_y, qos)
+    while rclpy.ok() and len(marks) < 2:
+        rclpy.spin_once(node, timeout_sec=1.0)
+    elapsed = marks[WARMUP_STEPS + steps] - marks[WARMUP_STEPS]
+    print(json.dumps({'round_trips_per_s': steps / elapsed}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def bench_lockstep(steps: int, timeout: float) -> float:
+    """Round trips/s between `ros2 run metampc_plant plant` and an echo process."""
+    from metampc_bringup.processes import ProcessGroup
+    domain, lock = claim_domain()
+    env = {'ROS_DOMAIN_ID': str(domain), 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    with tempfile.TemporaryDirectory(prefix='bench_plant_') as log_dir:
+        group = ProcessGroup(log_dir, env=env)
+        # input_timeout 0: strict lockstep, so only answered steps are timed.
+        plant = group.start('metampc_plant', 'plant',
+                            params={'dt': 0.05, 'input_timeout': 0.0})
+        child_env = {**os.environ, **env}
+        child_env.pop('ROS_LOCALHOST_ONLY', None)
+        controller = subprocess.Popen([sys.executable, __file__, '--echo', str(steps)],
+                                      env=child_env, stdout=subprocess.PIPE, text=True,
+                                      start_new_session=True)
+        try:
+            out, _ = controller.communicate(timeout=timeout)
+            return json.loads(out.strip().splitlines()[-1])['round_trips_per_s']
+        except (subprocess.TimeoutExpired, IndexError, ValueError, KeyError):
+            raise RuntimeError(f'no lockstep result within {timeout} s; plant log:\n'
+                               + group.output(plant)) from None
+        finally:
+            if controller.poll() is None:
+                controller.send_signal(signal.SIGINT)
+                try:
+                    controller.wait(5.0)
+                except subprocess.TimeoutExpired:
+                    controller.kill()
+                    controller.wait()
+            group.stop_all()
+            lock.close()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--steps', type=int, default=5000, help='lockstep round trips to time')
+    parser.add_argument('--core-seconds', type=float, default=1.0,
+                        help='wall time per core measurement, s')
+    parser.add_argument('--timeout', type=float, default=120.0,
+                        help='give up on the lockstep run after this many s')
+    parser.add_argument('--echo', type=int, metavar='STEPS', help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.echo:
+        echo(args.echo)
+        return 0
+    result = bench_core(args.core_seconds)
+    try:
+        rate = bench_lockstep(args.steps, args.timeout)
+    except RuntimeError as err:
+        print(f'bench_plant: {err}', file=sys.stderr)
+        return 1
+    result['lockstep_round_trips_per_s'] = round(rate, 1)
+    result['lockstep_steps'] = args.steps
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,68 @@
+"""The Jazzy `main()` idiom and parameter declaration, shared by every metampc node.
+
+:func:`run_node` adds to the idiom of ros2/demos (init, spin, shutdown) what a user of
+`ros2 run` expects: a bad argument or parameter is one error line and exit status 2, not a
+traceback, and Ctrl-C is exit status 0 even when it lands while a callback is publishing.
+"""
+from typing import Callable, Dict, Mapping, Optional, Sequence
+
+from metampc_plant.node_params import ParameterError, ParamSpec, Value
+from rcl_interfaces.msg import ParameterDescriptor
+import rclpy
+from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+
+
+def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, Value]:
+    """Declare every parameter of `table` read-only and return their values by name."""
+    for name, spec in table.items():
+        # dynamic_typing: the node's parse function accepts integers for doubles and names
+        # bad types itself, with one clear line.
+        node.declare_parameter(name, spec.default, ParameterDescriptor(
+            description=spec.description, read_only=True, dynamic_typing=True))
+    return {name: node.get_parameter(name).value for name in table}
+
+
+def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[str]] = None,
+             executor: Optional[Callable[[], Executor]] = None) -> int:
+    """Init rclpy, build the node, spin it until Ctrl-C or shutdown; return the exit code.
+
+    Args:
+        make_node: builds the node (may raise ParameterError).
+        name: logger name for the error lines.
+        executor: factory of the executor to spin in (default: rclpy.spin's).
+    """
+    logger = rclpy.logging.get_logger(name)
+    try:
+        rclpy.init(args=args)
+    except _rclpy.RCLError as err:  # e.g. `-p x0:=[1, 0.5]`: YAML lists must be of one type
+        # rcl has logged a generic line already; add what it could not parse.
+        why = str(err).split(', at ')[0].replace('failed to initialize rcl: ', '')
+        logger.error(f'invalid arguments: {why}')
+        return 2
+    node = None
+    try:
+        node = make_node()
+        if executor is None:
+            rclpy.spin(node)
+        else:
+            ex = executor()
+            ex.add_node(node)
+            ex.spin()
+    except ParameterError as err:
+        logger.error(f'invalid parameter: {err}')
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        # rclpy's signal thread shuts the context down while the executor may be taking a
+        # message or a callback publishing (or the node is still being built); those then
+        # fail (RCLError, or pybind11's RuntimeError in take_message): a shutdown, not a crash.
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

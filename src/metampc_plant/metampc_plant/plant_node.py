@@ -1,0 +1,305 @@
+"""The `plant` node: a thin ROS 2 adapter over the van der Pol core (DESIGN.md, section 3).
+
+Interfaces (relative names, so a namespace can wrap them):
+
+* ``y`` (PlantOutput, published, reliable, depth 100): y_k, the input u_k held over
+  (k-1, k] that produced it (after saturation), the step k and the saturated/diverged flags.
+* ``plant_info`` (PlantInfo, published, reliable + transient_local, depth 1: latched): the
+  configuration, the divergence flag and the number of resets; re-sent when those change.
+* ``/clock`` (rosgraph_msgs/Clock, lockstep with ``publish_clock``): the sim time of the last
+  y, so nodes started with ``use_sim_time:=true`` run on the plant's time.
+* ``u`` (ControlInput, subscribed, reliable): the input computed from y_k, held over (k, k+1].
+* ``reset`` (ResetPlant service): new theta and/or x0; the step restarts at 0 and y_0 is sent.
+
+Clock modes:
+
+* lockstep: the plant publishes y_k, then /clock = t_k, and waits for the input whose
+  ``step`` is k. That input is integrated over one sample and y_{k+1} published inside the
+  subscription callback, so a round trip costs the DDS latency plus one RK4 sample, with no
+  polling. Inputs for another step are ignored and counted (stale). Without an answer within
+  ``input_timeout`` s of wall time the plant holds the last input and steps anyway (throttled
+  warning), so a plant alone still moves. y_0 is published once ``y`` has had a subscriber
+  and ``u`` a publisher for GATE_SETTLE_S (or after ``start_timeout``), so a controller
+  started together with the plant answers every step and a seeded run is reproducible.
+* realtime: a steady wall-clock timer at ``rate_hz`` steps the plant with the latest input.
+
+The other nodes of a lockstep run take ``use_sim_time:=true``: their clock is then the plant's
+/clock and only moves when the plant steps. rclpy reads /clock best effort with depth 1, so a
+slow node sees the latest tick, not every tick; a controller that must answer every step is
+best driven by the arrival of y_k (or must check that the y it holds is the newest).
+
+Sim time (lockstep): the n-th y published since start is stamped n * dt, a reset's y_0
+included, so /clock and the stamps advance by exactly dt per message and never go back (a
+backward jump would re-base every sim-time timer of the graph and make the episodes of a
+recording overlap); the step index restarts at 0 with each reset. In realtime the stamps are
+the node clock's time.
+
+Bad inputs (NaN/inf, wrong length) are rejected and counted; the plant holds the previous
+input (in lockstep it still steps, since the input did answer the step). Out-of-bound inputs
+are saturated and flagged on y. A state that leaves the box ``|x|_inf <= state_bound`` or
+turns non-finite is never published: the plant freezes at its last finite state, flags
+``diverged`` on y and plant_info, logs one error and stays so until ``reset``.
+
+Parameters, defaults and ranges: :data:`metampc_plant.plant_params.PARAMETERS`. A bad value
+ends the node with one error line and exit status 2. Stale/rejected/timed-out inputs are
+counted and the counts logged when the node stops.
+"""
+import math
+import sys
+import time
+from array import array
+from typing import Dict, Optional, Tuple
+
+from builtin_interfaces.msg import Time
+from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
+from metampc_msgs.srv import ResetPlant
+from metampc_plant.node_main import declare_parameters, run_node
+from metampc_plant.plant_params import PARAMETERS, parse_params
+from metampc_plant.vanderpol import N_U, N_X, VdpPlant
+import numpy as np
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_msgs.msg import Header
+
+# Deep enough that a recorder a few hundred samples behind a fast lockstep run loses nothing.
+STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+WARN_PERIOD_S = 1.0     # at most one warning of each kind per this wall time
+GATE_PERIOD_S = 0.02    # lockstep start: how often to look for a subscriber and a publisher
+# ...and how long both must have been there: each side of a DDS match completes on its own
+# time, and an answer to y_0 sent before the controller's writer matched our reader is lost.
+GATE_SETTLE_S = 0.1
+COUNTERS = ('stale', 'rejected', 'timeouts')
+
+
+class PlantNode(Node):
+    """ROS 2 front end of one :class:`VdpPlant` (see the module docstring)."""
+
+    def __init__(self):
+        super().__init__('plant')
+        self.cfg = parse_params(declare_parameters(self, PARAMETERS))
+        self.plant = VdpPlant(self.cfg.vdp)
+        self._lockstep = self.cfg.mode == 'lockstep'
+        self._dt_ns = round(self.cfg.vdp.dt * 1e9)
+        self._tick = -1                 # index of the last y published since start
+        self._started = False           # lockstep: y_0 is out and steps are being answered
+        self._held_u = 0.0              # last applied (saturated) input
+        self._requested_u = 0.0         # realtime: latest accepted input, before saturation
+        self._y0 = self.plant.output()  # y_0 of the first episode, drawn before any step
+        self._n_resets = 0
+        self._counts: Dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._last_warn: Dict[str, float] = {}
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._y_msg = PlantOutput()
+        self._clock_msg = ClockMsg()
+
+        self._pub_y = self.create_publisher(PlantOutput, 'y', STREAM_QOS)
+        self._pub_info = self.create_publisher(PlantInfo, 'plant_info', LATCHED_QOS)
+        self._pub_clock = (self.create_publisher(ClockMsg, '/clock', STREAM_QOS)
+                           if self._lockstep and self.cfg.publish_clock else None)
+        self._sub_u = self.create_subscription(ControlInput, 'u', self._on_input, STREAM_QOS)
+        self.create_service(ResetPlant, 'reset', self._on_reset)
+
+        self._timeout_timer = None
+        self._gate_timer = None
+        self._tick_timer = None
+        if self._lockstep:
+            if self.cfg.input_timeout > 0:
+                self._timeout_timer = self.create_timer(
+                    self.cfg.input_timeout, self._on_timeout, clock=self._steady,
+                    autostart=False)
+            self._gate_since = time.monotonic()
+            self._ready_since: Optional[float] = None
+            self._gate_timer = self.create_timer(GATE_PERIOD_S, self._on_gate,
+                                                 clock=self._steady)
+        else:
+            self._tick_timer = self.create_timer(1.0 / self.cfg.rate_hz, self._on_tick,
+                                                 clock=self._steady)
+        self._publish_info()
+        vdp = self.cfg.vdp
+        self.get_logger().info(
+            f'{self.cfg.mode} van der Pol plant: theta={vdp.theta}, dt={vdp.dt} s, '
+            f'x0={list(vdp.x0)}, u in [{vdp.u_min}, {vdp.u_max}]'
+            + (f'; y_0 goes out once y has a subscriber and u a publisher (at the latest '
+               f'after start_timeout = {self.cfg.start_timeout} s)' if self._lockstep
+               else f', {self.cfg.rate_hz} Hz'))
+        if not self._lockstep:
+            self._start()
+
+    # --- time and publication -------------------------------------------------------------
+
+    def _stamp(self) -> Time:
+        """Sim time of the current tick (lockstep) or the node clock's time (realtime)."""
+        if self._lockstep:
+            t_ns = max(self._tick, 0) * self._dt_ns
+            return Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+        return self.get_clock().now().to_msg()
+
+    def _publish_y(self, y: np.ndarray, u_applied: float, saturated: bool) -> None:
+        """Publish y_k (then /clock in lockstep) and restart the input timeout."""
+        self._tick += 1
+        msg = self._y_msg
+        msg.header.stamp = self._stamp()
+        msg.step = self.plant.step_index
+        msg.y = array('d', y)
+        msg.u_applied = array('d', (u_applied,))
+        msg.saturated = saturated
+        msg.diverged = self.plant.diverged
+        self._pub_y.publish(msg)
+        # /clock after y: a sim-time timer woken by this tick then already has y_k in hand.
+        if self._pub_clock is not None:
+            self._clock_msg.clock = msg.header.stamp
+            self._pub_clock.publish(self._clock_msg)
+        if self._timeout_timer is not None:
+            self._timeout_timer.reset()
+
+    def _publish_info(self) -> None:
+        vdp = self.cfg.vdp
+        self._pub_info.publish(PlantInfo(
+            theta=self.plant.theta, dt=vdp.dt, substeps=vdp.substeps, u_min=vdp.u_min,
+            u_max=vdp.u_max, process_noise_std=vdp.process_noise_std,
+            measurement_noise_std=vdp.measurement_noise_std, seed=vdp.seed,
+            clock_mode=self.cfg.mode, rate_hz=0.0 if self._lockstep else self.cfg.rate_hz,
+            state_bound=vdp.state_bound, diverged=self.plant.diverged,
+            n_resets=self._n_resets, header=Header(stamp=self._stamp())))
+
+    def _warn(self, counter: str, text: str) -> None:
+        """Count an event and warn about it, at most once per WARN_PERIOD_S for each kind."""
+        self._counts[counter] += 1
+        now = time.monotonic()
+        if now - self._last_warn.get(counter, -math.inf) >= WARN_PERIOD_S:
+            self._last_warn[counter] = now
+            self.get_logger().warning(f'{text} ({self._counts[counter]} {counter} so far)')
+
+    # --- stepping -----------------------------------------------------------------------
+
+    def _end_gate(self) -> None:
+        """Leave the lockstep start gate (idempotent): from now on inputs answer steps."""
+        if self._gate_timer is not None:
+            self.destroy_timer(self._gate_timer)
+            self._gate_timer = None
+        self._started = True
+
+    def _start(self) -> None:
+        """Publish y_0 of the first episode."""
+        self._end_gate()
+        self._publish_y(self._y0, 0.0, False)
+
+    def _advance(self, u_requested: float) -> None:
+        """Hold u_requested (finite) over one sample, then publish y_{k+1}."""
+        u, saturated = self.plant.saturate(u_requested)
+        was_diverged = self.plant.diverged
+        y = self.plant.step(u)
+        self._held_u = u
+        if self.plant.diverged and not was_diverged:
+            vdp = self.cfg.vdp
+            self.get_logger().error(
+                f'plant diverged at step {self.plant.step_index} (theta={self.plant.theta}): '
+                f'the state left |x|_inf <= {vdp.state_bound} or turned non-finite; holding '
+                'the last finite state until reset')
+            self._publish_info()
+        self._publish_y(y, u, saturated)
+
+    def _check_input(self, values) -> Tuple[Optional[float], str]:
+        """(u, '') for a valid ControlInput.u, else (None, why it was rejected)."""
+        if len(values) != N_U:
+            return None, f'expected {N_U} input value, got {len(values)}'
+        u = float(values[0])
+        if not math.isfinite(u):
+            return None, f'non-finite input {u}'
+        return u, ''
+
+    def _on_input(self, msg: ControlInput) -> None:
+        step = self.plant.step_index
+        if self._lockstep and (not self._started or msg.step != step):
+            self._warn('stale', f'ignored an input for step {msg.step}: waiting for step {step}')
+            return
+        u, why = self._check_input(msg.u)
+        if u is None:
+            self._warn('rejected', f'rejected the input for step {msg.step} ({why}); holding '
+                       f'u = {self._held_u}')
+            if self._lockstep:
+                self._advance(self._held_u)
+            return
+        if self._lockstep:
+            self._advance(u)
+        else:
+            self._requested_u = u
+
+    def _on_timeout(self) -> None:
+        self._warn('timeouts', f'no input for step {self.plant.step_index} within '
+                   f'{self.cfg.input_timeout} s; holding u = {self._held_u}')
+        self._advance(self._held_u)
+
+    def _on_gate(self) -> None:
+        now = time.monotonic()
+        if not (self._pub_y.get_subscription_count() > 0
+                and self._sub_u.get_publisher_count() > 0):
+            self._ready_since = None
+        elif self._ready_since is None:
+            self._ready_since = now
+        settled = self._ready_since is not None and now - self._ready_since >= GATE_SETTLE_S
+        if settled or 0 < self.cfg.start_timeout <= now - self._gate_since:
+            self._start()
+
+    def _on_tick(self) -> None:
+        self._advance(self._requested_u)
+
+    # --- reset --------------------------------------------------------------------------
+
+    def _reset_error(self, theta: float, x0) -> str:
+        """Why a reset request is invalid, or '' if it is fine."""
+        if math.isinf(theta):
+            return f'theta must be finite (NaN keeps the current one), got {theta}'
+        if len(x0) not in (0, N_X):
+            return f'x0 must have {N_X} values (or none to use the parameter), got {len(x0)}'
+        if not all(math.isfinite(v) for v in x0):
+            return f'x0 must be finite, got {list(x0)}'
+        bound = self.cfg.vdp.state_bound
+        if any(abs(v) > bound for v in x0):
+            return f'x0 {list(x0)} lies outside state_bound {bound}'
+        return ''
+
+    def _on_reset(self, request: ResetPlant.Request, response: ResetPlant.Response
+                  ) -> ResetPlant.Response:
+        why = self._reset_error(request.theta, request.x0)
+        if why:
+            response.success, response.message = False, f'reset rejected: {why}'
+            self.get_logger().warning(response.message)
+            return response
+        y0 = self.plant.reset(None if math.isnan(request.theta) else request.theta,
+                              list(request.x0) or None)
+        self._held_u = self._requested_u = 0.0
+        self._n_resets += 1
+        self._publish_info()
+        self._end_gate()  # a reset before the lockstep start starts it
+        self._publish_y(y0, 0.0, False)
+        if self._tick_timer is not None:  # realtime: y_1 one full period after y_0
+            self._tick_timer.reset()
+        response.success = True
+        response.message = (f'reset {self._n_resets}: theta={self.plant.theta}, '
+                            f'x0={self.plant.x.tolist()}')
+        self.get_logger().info(response.message)
+        return response
+
+    def destroy_node(self) -> None:
+        """Destroy the node, then log what was counted over the run."""
+        super().destroy_node()
+        # Logged after destruction on purpose: the node's /rosout publisher is gone then, so
+        # this also works after a SIGINT has already shut the context down.
+        self.get_logger().info(
+            f'stopped at step {self.plant.step_index} after {self._n_resets} reset(s): '
+            + ', '.join(f'{n} {name}' for name, n in self._counts.items()))
+
+
+def main(args=None) -> int:
+    """`ros2 run metampc_plant plant [--ros-args -p name:=value ...]`; returns the exit code."""
+    return run_node(PlantNode, 'plant', args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,292 @@
+"""The `plant` node as a process (`ros2 run metampc_plant plant`) in the session's own domain.
+
+The probe node of the test plays the controller: it answers y_k with a ControlInput for k.
+"""
+import math
+import time
+
+from builtin_interfaces.msg import Time
+from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
+from metampc_msgs.srv import ResetPlant
+import numpy as np
+import pytest
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+from metampc_plant.plant_params import parse_params, ParameterError, PARAMETERS
+from metampc_plant.vanderpol import VdpConfig, VdpPlant
+from metampc_testing import session_pids
+
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+NAN, INF = float('nan'), float('inf')
+
+
+def ns(stamp: Time) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def start_plant(procs, params):
+    return procs.start('metampc_plant', 'plant', params=params)
+
+
+def stop_cleanly(procs, proc) -> str:
+    """SIGINT the plant: exit 0, no traceback, nothing left running; return its output."""
+    code = procs.interrupt(proc)
+    out = procs.output(proc)
+    assert code == 0, out
+    assert 'Traceback' not in out, out
+    assert session_pids(proc.pid) == [], 'a process of the plant outlived ros2 run'
+    return out
+
+
+class Controller:
+    """Probe-side controller: `policy(y_msg)` gives the ControlInputs to send for each y."""
+
+    def __init__(self, probe, policy):
+        self.ys = []
+        self.times = []  # monotonic receive time of each y
+        self.policy = policy
+        self.pub = probe.node.create_publisher(ControlInput, 'u', RELIABLE)
+        probe.node.create_subscription(PlantOutput, 'y', self._on_y, RELIABLE)
+
+    def _on_y(self, msg: PlantOutput) -> None:
+        self.ys.append(msg)
+        self.times.append(time.monotonic())
+        for step, u in self.policy(msg):
+            self.pub.publish(ControlInput(step=step, u=u))
+
+
+def u_of(k: int) -> float:
+    """A deterministic input sequence that exceeds |u| <= 1 now and then."""
+    return 1.3 * math.sin(0.05 * k)
+
+
+def test_lockstep_one_y_per_input_and_bit_exact(procs, probe):
+    n = 500
+    cfg = VdpConfig(theta=0.7, dt=0.05, x0=(0.5, -0.2), process_noise_std=0.05,
+                    measurement_noise_std=0.01, seed=42)
+    clocks, infos = [], []
+    probe.node.create_subscription(Clock, '/clock', lambda m: clocks.append(ns(m.clock)),
+                                   RELIABLE)
+    probe.node.create_subscription(PlantInfo, 'plant_info', infos.append, LATCHED)
+    ctl = Controller(probe, lambda m: [(m.step, [u_of(m.step)])] if m.step < n else [])
+    # A long input_timeout: every step below must have been answered, none timed out.
+    proc = start_plant(procs, {
+        'theta': cfg.theta, 'dt': cfg.dt, 'x0': list(cfg.x0), 'seed': cfg.seed,
+        'process_noise_std': cfg.process_noise_std,
+        'measurement_noise_std': cfg.measurement_noise_std, 'input_timeout': 30.0})
+    probe.wait_for(lambda: len(ctl.ys) > n and clocks and clocks[-1] == n * 50_000_000, 60.0,
+                   f'{n} answered steps')
+    time.sleep(0.3)
+    ys = ctl.ys
+    assert [m.step for m in ys] == list(range(n + 1)), 'one y per answered input, in order'
+    assert [ns(m.header.stamp) for m in ys] == [k * 50_000_000 for k in range(n + 1)]
+    # /clock: y_k's stamp, advancing by exactly dt (the first ticks may precede discovery).
+    assert len(clocks) >= n - 5 and clocks[-1] == n * 50_000_000
+    assert set(np.diff(clocks)) == {50_000_000}
+
+    # Same seed, same inputs: the node reproduces the core bit for bit.
+    plant = VdpPlant(cfg)
+    expected = [plant.output()] + [plant.step(u_of(k)) for k in range(n)]
+    assert np.array_equal(np.array([list(m.y) for m in ys]), np.array(expected))
+    u_expected = [0.0] + [min(max(u_of(k), -1.0), 1.0) for k in range(n)]
+    assert [m.u_applied[0] for m in ys] == u_expected
+    assert [m.saturated for m in ys] == [False] + [abs(u_of(k)) > 1.0 for k in range(n)]
+    assert not any(m.diverged for m in ys)
+
+    info = infos[-1]
+    assert (info.theta, info.dt, info.substeps, info.seed) == (0.7, 0.05, 10, 42)
+    assert (info.clock_mode, info.rate_hz, info.diverged, info.n_resets) == ('lockstep', 0.0,
+                                                                             False, 0)
+    out = stop_cleanly(procs, proc)
+    assert '0 stale, 0 rejected, 0 timeouts' in out, out
+
+
+def test_lockstep_bad_and_stale_inputs_and_timeout(procs, probe):
+    script = {  # y_k -> the inputs sent in reply, in order
+        0: [(5, [0.2]), (0, [0.3])],     # an input for another step is stale: ignored
+        1: [(1, [NAN])],                 # rejected: the previous input (0.3) is held
+        2: [(2, [INF])],
+        3: [(3, [])],                    # wrong length
+        4: [(4, [0.1, 0.2])],
+        5: [(5, [5.0])],                 # saturated to u_max
+        6: [(5, [0.0]), (6, [-3.0])],    # stale (older step), then saturated to u_min
+        7: [],                           # no answer: after input_timeout the input is held
+        8: [(8, [0.25])],
+    }
+    ctl = Controller(probe, lambda m: script.get(m.step, []))
+    proc = start_plant(procs, {'theta': 1.0, 'x0': [1.0, 0.0], 'input_timeout': 0.5})
+    probe.wait_for(lambda: len(ctl.ys) >= 10, 30.0, 'y_9')
+    ys = ctl.ys[:10]
+    assert [m.step for m in ys] == list(range(10))
+    assert [m.u_applied[0] for m in ys[1:]] == [0.3, 0.3, 0.3, 0.3, 0.3, 1.0, -1.0, -1.0, 0.25]
+    assert [m.saturated for m in ys[1:]] == [False] * 5 + [True, True, False, False]
+    assert all(np.isfinite(m.y).all() for m in ctl.ys)
+    assert proc.poll() is None
+    out = stop_cleanly(procs, proc)
+    assert 'ignored an input for step 5: waiting for step 0' in out
+    assert 'rejected the input for step 1 (non-finite input nan)' in out
+    assert 'no input for step 7 within 0.5 s' in out
+    assert '2 stale, 4 rejected' in out, out
+
+
+def test_realtime_rate_and_held_input(procs, probe):
+    rate, window = 50, 5.0
+    ctl = Controller(probe, lambda m: [])
+    # rate_hz as an integer on purpose: numbers are accepted for double parameters.
+    proc = start_plant(procs, {'mode': 'realtime', 'rate_hz': rate, 'dt': 0.02,
+                               'theta': 1.0, 'x0': [1.0, 0.0]})
+    probe.wait_for(lambda: len(ctl.ys) > 5, 30.0, 'realtime samples')
+    ctl.pub.publish(ControlInput(step=0, u=[0.4]))  # the step is irrelevant in realtime
+    time.sleep(0.5)
+    t0 = time.monotonic()
+    time.sleep(1.0)
+    ctl.pub.publish(ControlInput(u=[NAN]))
+    ctl.pub.publish(ControlInput(u=[0.1, 0.2]))
+    time.sleep(window - 1.0 + 0.3)
+    count = sum(t0 <= t < t0 + window for t in ctl.times)
+    assert abs(count - rate * window) <= 0.05 * rate * window, f'{count} samples in {window} s'
+    recent = ctl.ys[-20:]
+    assert all(m.u_applied[0] == 0.4 and not m.saturated for m in recent), 'input held'
+    steps = [m.step for m in ctl.ys]
+    assert steps == list(range(steps[0], steps[0] + len(steps)))
+    assert abs(ns(ctl.ys[-1].header.stamp) / 1e9 - time.time()) < 5.0, 'wall-clock stamps'
+
+    ctl.pub.publish(ControlInput(u=[-7.0]))
+    probe.wait_for(lambda: ctl.ys[-1].saturated and ctl.ys[-1].u_applied[0] == -1.0, 10.0,
+                   'a saturated sample')
+    out = stop_cleanly(procs, proc)
+    assert '0 stale, 2 rejected' in out, out
+
+
+def call(probe, client, theta=NAN, x0=()):
+    future = client.call_async(ResetPlant.Request(theta=theta, x0=list(x0)))
+    probe.wait_for(future.done, 10.0, 'the reset response')
+    return future.result()
+
+
+def test_divergence_flagged_then_reset(procs, probe):
+    phase = {'drive': True}
+
+    def policy(m):
+        # Bang-bang in phase with x2 pumps energy into the theta < 0 plant until it escapes.
+        u = (1.0 if m.y[1] >= 0 else -1.0) if phase['drive'] else 0.0
+        return [(m.step, [u])]
+
+    ctl = Controller(probe, policy)
+    client = probe.node.create_client(ResetPlant, 'reset')
+    proc = start_plant(procs, {'theta': -1.5, 'dt': 0.1, 'x0': [0.5, 0.0],
+                               'state_bound': 10.0, 'input_timeout': 5.0})
+    probe.wait_for(lambda: any(m.diverged for m in ctl.ys), 30.0, 'divergence')
+    first = next(i for i, m in enumerate(ctl.ys) if m.diverged)
+    probe.wait_for(lambda: len(ctl.ys) > first + 5, 10.0, 'samples after divergence')
+    ys = list(ctl.ys)
+    assert all(np.isfinite(m.y).all() and np.abs(m.y).max() <= 10.0 for m in ys)
+    assert all(m.diverged for m in ys[first:]), 'diverged holds until reset'
+    assert all(list(m.y) == list(ys[first - 1].y) for m in ys[first:]), 'frozen, last finite'
+
+    # plant_info is latched: a subscriber that comes now still learns of the divergence.
+    infos = []
+    probe.node.create_subscription(PlantInfo, 'plant_info', infos.append, LATCHED)
+    probe.wait_for(lambda: infos and infos[-1].diverged, 10.0, 'plant_info diverged')
+
+    assert client.wait_for_service(timeout_sec=10.0)
+    for bad in [dict(x0=[1.0, 2.0, 3.0]), dict(x0=[NAN, 0.0]), dict(theta=INF),
+                dict(x0=[20.0, 0.0])]:
+        result = call(probe, client, **bad)
+        assert not result.success and result.message.startswith('reset rejected'), bad
+    assert proc.poll() is None
+
+    phase['drive'] = False
+    n_before = len(ctl.ys)
+    result = call(probe, client, theta=0.5, x0=[0.5, 0.0])
+    assert result.success, result.message
+    probe.wait_for(lambda: any(m.step == 5 and not m.diverged for m in ctl.ys[n_before:]),
+                   10.0, 'the first steps after the reset')
+    after = [m for m in ctl.ys[n_before:] if not m.diverged]
+    assert [m.step for m in after[:6]] == list(range(6))
+    assert list(after[0].y) == [0.5, 0.0] and list(after[0].u_applied) == [0.0]
+    probe.wait_for(lambda: not infos[-1].diverged, 10.0, 'plant_info after the reset')
+    assert (infos[-1].n_resets, infos[-1].theta) == (1, 0.5)
+    out = stop_cleanly(procs, proc)
+    assert out.count('plant diverged at step') == 1, out
+
+
+def test_plant_alone_keeps_stepping_in_a_namespace(procs, probe):
+    # No controller: after start_timeout y_0 goes out anyway and every step times out.
+    # Relative names: in namespace /ns1 the topics are /ns1/y ..., but /clock stays global.
+    ys, clocks = [], []
+    probe.node.create_subscription(PlantOutput, '/ns1/y', ys.append, RELIABLE)
+    probe.node.create_subscription(Clock, '/clock', clocks.append, RELIABLE)
+    proc = procs.start('metampc_plant', 'plant', remaps={'__ns': '/ns1'},
+                       params={'start_timeout': 0.5, 'input_timeout': 0.2})
+    probe.wait_for(lambda: len(ys) >= 5 and clocks, 30.0, 'five samples without a controller')
+    # Discovery may take a few seconds: the probe may join after y_0.
+    steps = [m.step for m in ys]
+    assert steps == list(range(steps[0], steps[0] + len(steps)))
+    assert all(list(m.u_applied) == [0.0] for m in ys)
+    out = stop_cleanly(procs, proc)
+    assert 'no input for step 0 within 0.2 s; holding u = 0.0' in out
+
+
+def test_sigint_while_stepping_fast(procs, probe):
+    # rclpy's signal thread shuts the context down while a callback may be publishing;
+    # the plant must still exit 0 without a traceback.
+    ctl = Controller(probe, lambda m: [(m.step, [0.1])])
+    for _ in range(2):
+        ctl.ys.clear()
+        proc = start_plant(procs, {'input_timeout': 0.0})
+        probe.wait_for(lambda: len(ctl.ys) > 300, 30.0, 'fast lockstep steps')
+        stop_cleanly(procs, proc)
+
+
+BAD_PARAMS = {
+    'dt': ({'dt': -0.1}, 'dt must be > 0'),
+    'substeps': ({'substeps': 0}, 'substeps'),
+    'bounds': ({'u_min': 2.0}, 'u_min <= u_max'),
+    'mode': ({'mode': 'fast'}, 'mode must be one of'),
+    'x0': ({'x0': [1.0]}, 'x0 must be a list of 2'),
+    'rate': ({'rate_hz': -5.0}, 'rate_hz'),
+    'timeout': ({'input_timeout': -1.0}, 'input_timeout'),
+    'type': ({'theta': 'abc'}, 'theta must be a number'),
+    'start': ({'start_timeout': -1}, 'start_timeout'),
+    # Not even parsed by rcl (YAML lists hold one type): rcl logs a generic line first.
+    'yaml': ({'x0': [1, 0.5]}, 'invalid arguments: Couldn\'t parse parameter override rule'),
+}
+
+
+def test_bad_parameters_one_line_and_nonzero_exit(procs):
+    started = {case: start_plant(procs, params) for case, (params, _) in BAD_PARAMS.items()}
+    for case, proc in started.items():
+        code = proc.wait(60.0)
+        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        assert code != 0, case
+        assert len(lines) == (2 if case == 'yaml' else 1), f'{case}: {lines}'
+        assert BAD_PARAMS[case][1] in lines[-1], lines
+        assert case == 'yaml' or 'invalid parameter' in lines[0], lines
+
+
+def _raw(**overrides):
+    values = {name: spec.default for name, spec in PARAMETERS.items()}
+    values.update(overrides)
+    return values
+
+
+def test_parse_params_defaults_and_coercion():
+    cfg = parse_params(_raw())
+    assert cfg.vdp == VdpConfig() and cfg.mode == 'lockstep' and cfg.rate_hz == 1 / cfg.vdp.dt
+    cfg = parse_params(_raw(dt=1, x0=[1, 0], rate_hz=50, mode='realtime', start_timeout=0))
+    assert cfg.vdp.dt == 1.0 and cfg.vdp.x0 == (1.0, 0.0) and cfg.rate_hz == 50.0
+    assert cfg.start_timeout == 0.0 and cfg.input_timeout == 1.0
+
+
+@pytest.mark.parametrize('overrides,match', [
+    ({'substeps': 2.5}, 'substeps must be an integer'), ({'seed': -1}, 'seed'),
+    ({'publish_clock': 1}, 'publish_clock'), ({'x0': [20.0, 0.0]}, 'state_bound'),
+    ({'x0': 'ab'}, 'x0'), ({'input_timeout': INF}, 'input_timeout'),
+    ({'measurement_noise_std': -0.1}, 'noise'), ({'theta': True}, 'theta')])
+def test_parse_params_rejects(overrides, match):
+    with pytest.raises(ParameterError, match=match):
+        parse_params(_raw(**overrides))
