@@ -1,0 +1,141 @@
+"""Terminal cost of the latent MPC: the DARE weight P of eq. (mpc), made consistent.
+
+The paper sizes P for the compact state of eq. (compact) but applies it to the output error, and
+its DARE weighs the input u while the stage cost weighs Delta u. Here the state is augmented with
+the previous input, so that Delta u is the input of a linear system::
+
+    s_k = [z_k; u_k]                           (n_s = n_z + n_u)
+    s_{k+1} = Abar s_k + Bbar du_k + ebar,     du_k = u_{k+1} - u_k
+    Abar = [[A, B], [0, I]],  Bbar = [[B], [I]],  ebar = [e; 0],  Cbar = [C, 0]
+
+(the paper's second block row, y_hat = C z, carries no information of its own). The stage cost
+ytilde' Q ytilde + du' R du is then s' Cbar'Q Cbar s + du' R du around the steady state, and P is
+the stabilising solution of the DARE of the paper for (Abar, Bbar, Qbar, R)::
+
+    P = Abar' P Abar - Abar' P Bbar (R + Bbar' P Bbar)^{-1} Bbar' P Abar + Qbar,
+    Qbar = Cbar' Q Cbar + eps I,   eps = reg * max(||Cbar' Q Cbar||_2, 1e-12)
+
+Cbar' Q Cbar is only positive semi-definite (Q tracks some outputs, and u never appears in y), so
+the eps I term makes (Abar, Qbar^{1/2}) detectable and the DARE well posed; (Abar, Bbar) is
+stabilisable exactly when (A, B) is (PBH test: the extra eigenvalue 1 is always reachable
+through du once rank [A - I, B] = n_z, which stabilisability of (A, B) already demands).
+
+The terminal cost is the DARE value on the deviation from the steady state s_ss that matches the
+terminal reference r_N (the infinite-horizon cost-to-go of the stage cost)::
+
+    (s_N - s_ss)' P (s_N - s_ss),
+    s_ss = argmin ||Q^{1/2} (Cbar s + d - r_N)||^2  s.t.  (A - I) z + B u + e = 0
+
+solved once per model through the pseudo-inverse of its KKT matrix, so s_ss is affine in r_N.
+Fallback, when the DARE fails (exception, non-finite or non-definite P, residual above
+``DARE_RTOL``, closed loop not stable; e.g. a learned pair that is not stabilisable): the
+terminal term is the stage output term ytilde_N' Q ytilde_N, P = Cbar' Q Cbar.
+
+Both cases are stored as least-squares rows, ``T s_N - (M (r_N - d) + m)``, whose squared norm is
+the terminal cost (P = T'T).
+"""
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from metampc_controller.latent_model import LatentModel
+
+# A stabilising DARE solution of a well-posed problem meets ~1e-12; 1e-6 only rejects garbage.
+DARE_RTOL = 1e-6
+
+
+@dataclass
+class TerminalCost:
+    """Terminal weight of eq. (mpc) on s_N = [z_N; u_N].
+
+    Attributes:
+        P: (n_s, n_s) terminal weight (DARE solution, or Cbar' Q Cbar in the fallback).
+        T: (m, n_s) factor with P = T' T (m = n_s, or the number of tracked outputs).
+        M: (m, n_y) map from the terminal reference offset r_N - d to the target of T s_N.
+        m: (m,) constant part of that target.
+        fallback: True when the DARE was unusable and the output weight is used instead.
+        residual: relative DARE residual ||DARE(P)||_F / ||P||_F (nan if no solution).
+        reason: why the fallback was taken ('' otherwise).
+    """
+
+    P: np.ndarray
+    T: np.ndarray
+    M: np.ndarray
+    m: np.ndarray
+    fallback: bool
+    residual: float
+    reason: str
+
+
+def augmented(model: LatentModel) -> tuple:
+    """(Abar (n_s, n_s), Bbar (n_s, n_u), ebar (n_s,), Cbar (n_y, n_s)) of the Delta-u system."""
+    n_z, n_u = model.n_z, model.n_u
+    a_bar = np.block([[model.A, model.B], [np.zeros((n_u, n_z)), np.eye(n_u)]])
+    b_bar = np.vstack([model.B, np.eye(n_u)])
+    e_bar = np.concatenate([model.e, np.zeros(n_u)])
+    c_bar = np.hstack([model.C, np.zeros((model.n_y, n_u))])
+    return a_bar, b_bar, e_bar, c_bar
+
+
+def dare_residual(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray,
+                  p: np.ndarray) -> float:
+    """Relative residual ||A'PA - P - A'PB (R + B'PB)^{-1} B'PA + Q||_F / ||P||_F."""
+    pb = p @ b
+    res = a.T @ p @ a - p - a.T @ pb @ np.linalg.solve(r + b.T @ pb, pb.T @ a) + q
+    return float(np.linalg.norm(res) / max(np.linalg.norm(p), np.finfo(float).tiny))
+
+
+def terminal_cost(model: LatentModel, q: np.ndarray, r: np.ndarray, reg: float) -> TerminalCost:
+    """Terminal cost for output weights q (n_y,) >= 0, Delta-u weights r (n_u,) > 0.
+
+    reg: relative eps of the state-weight regularisation Qbar = Cbar'QCbar + eps I.
+    """
+    a_bar, b_bar, _, c_bar = augmented(model)
+    n_s = a_bar.shape[0]
+    q_out = c_bar.T @ (q[:, None] * c_bar)
+    eps = reg * max(np.linalg.norm(q_out, 2), 1e-12)
+    q_bar = q_out + eps * np.eye(n_s)
+    r_mat = np.diag(r)
+    p, residual, reason = None, float('nan'), ''
+    try:
+        p = scipy.linalg.solve_discrete_are(a_bar, b_bar, q_bar, r_mat)
+    except (np.linalg.LinAlgError, ValueError) as err:
+        reason = f'DARE failed: {err}'
+    if p is not None:
+        p = 0.5 * (p + p.T)
+        if not np.all(np.isfinite(p)):
+            reason = 'DARE solution not finite'
+        else:
+            residual = dare_residual(a_bar, b_bar, q_bar, r_mat, p)
+            gain = np.linalg.solve(r_mat + b_bar.T @ p @ b_bar, b_bar.T @ p @ a_bar)
+            rho = max(abs(np.linalg.eigvals(a_bar - b_bar @ gain)))
+            if residual > DARE_RTOL:
+                reason = f'DARE residual {residual:.2e} > {DARE_RTOL:.0e}'
+            elif rho >= 1.0:
+                reason = f'DARE gain not stabilising (spectral radius {rho:.4f})'
+            elif np.linalg.eigvalsh(p)[0] <= 0.0:
+                reason = 'DARE solution not positive definite'
+    if reason:
+        tracked = q > 0
+        sq = np.sqrt(q[tracked])
+        return TerminalCost(P=q_out, T=sq[:, None] * c_bar[tracked],
+                            M=sq[:, None] * np.eye(len(q))[tracked],
+                            m=np.zeros(int(tracked.sum())), fallback=True, residual=residual,
+                            reason=reason)
+    t_fac = np.linalg.cholesky(p).T
+    s_r, s_e = _steady_state_map(model, q, c_bar)
+    return TerminalCost(P=p, T=t_fac, M=t_fac @ s_r, m=t_fac @ s_e, fallback=False,
+                        residual=residual, reason='')
+
+
+def _steady_state_map(model: LatentModel, q: np.ndarray, c_bar: np.ndarray) -> tuple:
+    """(S_r (n_s, n_y), s_e (n_s,)) with s_ss = S_r (r - d) + s_e, the steady state that best
+    matches the reference r under weights q (KKT of the problem in the module docstring)."""
+    n_z, n_s = model.n_z, c_bar.shape[1]
+    eq = np.hstack([model.A - np.eye(n_z), model.B])
+    kkt = np.block([[c_bar.T @ (q[:, None] * c_bar), eq.T], [eq, np.zeros((n_z, n_z))]])
+    # pinv: when the tracked outputs leave part of the steady state free, any KKT solution is
+    # optimal; stabilisability (checked by the DARE) makes eq full row rank, so one exists.
+    kkt_inv = scipy.linalg.pinv(kkt)
+    return kkt_inv[:n_s, :n_s] @ (c_bar.T * q), -kkt_inv[:n_s, n_s:] @ model.e
