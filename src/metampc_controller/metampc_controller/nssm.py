@@ -1,0 +1,364 @@
+"""Neural state-space model (NSSM) of the paper, eq. (SSM): the MPC's predictive model.
+
+Model, in normalised units (``u_n = (u - u_mean) / u_std``, ``y_n = (y - y_mean) / y_std``)::
+
+    z_t     = f_enc(u_{t-H+1..t}, y_{t-H+1..t})       eq. (z): MLP, ReLU hidden layers
+    z_{t+1} = A z_t + B u_{t+1}                         eq. (z_next)
+    y_hat_t = C z_t                                     eq. (haty)
+
+Index convention (the plant's, see ``metampc_plant.vanderpol``, and the same in training and
+in the MPC): ``u_k`` is the input held over ``((k-1) dt, k dt]`` that produced ``y_k``. The
+encoder reads the last H pairs ``(u_k, y_k)``, k = t-H+1..t, ordered oldest first and flattened
+pair by pair as ``[u_{t-H+1}, y_{t-H+1}, ..., u_t, y_t]``; the rollout predicts
+``y_hat_{t+1..t+T}`` from ``u_{t+1..t+T}``. A training window therefore holds H + T samples
+``(u, y)[t-H+1 .. t+T]``: the first H feed the encoder, the last T are the targets.
+
+Loss (the paper's l_SSM): ``1/T ||Y_{t+1:t+T} - Y_hat_{t+1:t+T}||^2`` (squared error summed
+over the n_y outputs, averaged over the T steps), averaged over the windows of a data set,
+in normalised units.
+
+Parameters are a ``Dict[str, Tensor]`` in the canonical order of :func:`param_shapes`
+(``encoder.<i>.weight``, ``encoder.<i>.bias``, ``A``, ``B``, ``C``), usable with
+``torch.func.functional_call(Nssm(...), params, (u, y))``. :class:`FlatWeights` is the exact
+float32 round trip that the NssmWeights message carries. :class:`NssmPredictor` is the numpy
+view the controller runs at every tick: ``encode`` from physical histories and the
+:class:`LatentModel` in physical units.
+"""
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Tuple
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from metampc_controller.latent_model import LatentModel
+
+Params = Dict[str, torch.Tensor]
+
+
+@dataclass
+class NssmConfig:
+    """Architecture of the NSSM.
+
+    Attributes:
+        n_u: inputs.
+        n_y: outputs.
+        n_z: latent dimension (paper: 5).
+        history: H, samples of (u, y) the encoder reads.
+        hidden: widths of the encoder's ReLU hidden layers (paper: 128, 128).
+        horizon: T, prediction steps of the training loss.
+    """
+
+    n_u: int = 1
+    n_y: int = 2
+    n_z: int = 5
+    history: int = 10
+    hidden: Tuple[int, ...] = (128, 128)
+    horizon: int = 10
+
+    def __post_init__(self):
+        self.hidden = tuple(int(w) for w in self.hidden)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field that is out of range."""
+        for name in ('n_u', 'n_y', 'n_z', 'history', 'horizon'):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+        if any(w < 1 for w in self.hidden):
+            raise ValueError(f'hidden widths must be >= 1, got {self.hidden}')
+
+    @property
+    def window(self) -> int:
+        """Samples in one training window, H + T."""
+        return self.history + self.horizon
+
+
+@dataclass
+class Normalisation:
+    """Affine scaling between physical and normalised units; travels with the model.
+
+    ``u_n = (u - u_mean) / u_std``, ``y_n = (y - y_mean) / y_std``. Arrays of shape (n_u,)
+    and (n_y,), float64, scales > 0.
+    """
+
+    u_mean: np.ndarray
+    u_std: np.ndarray
+    y_mean: np.ndarray
+    y_std: np.ndarray
+
+    def __post_init__(self):
+        for name in ('u_mean', 'u_std', 'y_mean', 'y_std'):
+            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(-1))
+
+    @classmethod
+    def identity(cls, config: NssmConfig) -> 'Normalisation':
+        return cls(np.zeros(config.n_u), np.ones(config.n_u), np.zeros(config.n_y),
+                   np.ones(config.n_y))
+
+    def validate(self, config: NssmConfig) -> None:
+        """Raise ValueError on wrong sizes, non-finite entries or scales <= 0."""
+        for name, n in (('u_mean', config.n_u), ('u_std', config.n_u), ('y_mean', config.n_y),
+                        ('y_std', config.n_y)):
+            value = getattr(self, name)
+            if value.shape != (n,) or not np.all(np.isfinite(value)):
+                raise ValueError(f'{name} must be {n} finite numbers, got {value.tolist()}')
+        if np.any(self.u_std <= 0) or np.any(self.y_std <= 0):
+            raise ValueError('normalisation scales must be > 0')
+
+    def to_dict(self) -> Dict[str, List[float]]:
+        return {name: getattr(self, name).tolist()
+                for name in ('u_mean', 'u_std', 'y_mean', 'y_std')}
+
+    def normalise(self, u: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Physical (..., n_u), (..., n_y) -> normalised, same shapes."""
+        return (u - self.u_mean) / self.u_std, (y - self.y_mean) / self.y_std
+
+    def denormalise_y(self, y_n: np.ndarray) -> np.ndarray:
+        """Normalised outputs (..., n_y) -> physical."""
+        return y_n * self.y_std + self.y_mean
+
+
+def param_shapes(config: NssmConfig) -> 'OrderedDict[str, Tuple[int, ...]]':
+    """Names and shapes of the parameters, in canonical order."""
+    widths = [config.history * (config.n_u + config.n_y), *config.hidden, config.n_z]
+    shapes = OrderedDict()
+    for i, (fan_in, fan_out) in enumerate(zip(widths[:-1], widths[1:])):
+        shapes[f'encoder.{i}.weight'] = (fan_out, fan_in)
+        shapes[f'encoder.{i}.bias'] = (fan_out,)
+    shapes['A'] = (config.n_z, config.n_z)
+    shapes['B'] = (config.n_z, config.n_u)
+    shapes['C'] = (config.n_y, config.n_z)
+    return shapes
+
+
+def init_params(config: NssmConfig, seed: int, dtype: torch.dtype = torch.float32) -> Params:
+    """Random initial parameters, seeded (the global torch RNG is not touched).
+
+    Every entry is uniform in +-1/sqrt(fan_in) (PyTorch's default for linear layers; for a
+    bias the fan-in of its layer): the encoder layers and the matrices A, B, C of the paper.
+    """
+    gen = torch.Generator().manual_seed(int(seed))
+    shapes = param_shapes(config)
+    params = {}
+    for name, shape in shapes.items():
+        weight = name[:-len('bias')] + 'weight' if name.endswith('.bias') else name
+        bound = 1.0 / np.sqrt(shapes[weight][-1])
+        params[name] = ((torch.rand(shape, generator=gen, dtype=torch.float64) * 2 - 1)
+                        * bound).to(dtype)
+    return params
+
+
+class Nssm(nn.Module):
+    """The NSSM of eq. (SSM) with its configuration and normalisation.
+
+    ``forward(u, y)`` works in normalised units on windows of H + T samples (see the module
+    docstring); use it through ``torch.func.functional_call`` with a parameter dict.
+    """
+
+    def __init__(self, config: NssmConfig, norm: Normalisation = None, seed: int = 0,
+                 dtype: torch.dtype = torch.float32):
+        super().__init__()
+        config.validate()
+        self.config = config
+        self.norm = Normalisation.identity(config) if norm is None else norm
+        self.norm.validate(config)
+        init = init_params(config, seed, dtype)
+        self.n_layers = len(config.hidden) + 1
+        self.encoder = nn.ModuleList()
+        for i in range(self.n_layers):
+            layer = nn.Module()
+            layer.weight = nn.Parameter(init[f'encoder.{i}.weight'])
+            layer.bias = nn.Parameter(init[f'encoder.{i}.bias'])
+            self.encoder.append(layer)
+        self.A = nn.Parameter(init['A'])
+        self.B = nn.Parameter(init['B'])
+        self.C = nn.Parameter(init['C'])
+
+    def params(self) -> Params:
+        """Detached copies of the module's parameters, canonical order."""
+        own = dict(self.named_parameters())
+        return {name: own[name].detach().clone() for name in param_shapes(self.config)}
+
+    def encode(self, u_hist: torch.Tensor, y_hist: torch.Tensor) -> torch.Tensor:
+        """Eq. (z): (N, H, n_u), (N, H, n_y) normalised -> z_t (N, n_z)."""
+        h = torch.cat([u_hist, y_hist], dim=-1).flatten(start_dim=-2)
+        for i, layer in enumerate(self.encoder):
+            h = F.linear(h, layer.weight, layer.bias)
+            if i < self.n_layers - 1:
+                h = F.relu(h)
+        return h
+
+    def rollout(self, z: torch.Tensor, u_future: torch.Tensor) -> torch.Tensor:
+        """Eqs. (z_next), (haty): z_t (N, n_z), u_{t+1..t+T} (N, T, n_u) -> y_hat (N, T, n_y).
+
+        Computed in closed form, ``y_hat_{t+k} = C A^k z_t + sum_{j=1..k} C A^{k-j} B u_{t+j}``
+        (free response plus the Markov parameters convolved with the inputs), which equals the
+        step-by-step recursion but costs a few batched products instead of T small ones.
+        """
+        n_t = u_future.shape[-2]
+        powers = torch.eye(self.config.n_z, dtype=self.A.dtype)[None]   # A^0 .. A^(n-1)
+        while powers.shape[0] < n_t + 1:
+            powers = torch.cat([powers, (powers[-1] @ self.A) @ powers], dim=0)
+        c_powers = self.C @ powers[:n_t + 1]                      # C A^k, k = 0..T
+        free = torch.einsum('kyz,...z->...ky', c_powers[1:], z)
+        markov = c_powers[:n_t] @ self.B                          # C A^k B, k = 0..T-1
+        k = torch.arange(n_t)
+        lag = k[:, None] - k[None, :]                             # (k, j) -> k - j
+        toeplitz = markov[lag.clamp(min=0)] * (lag >= 0)[:, :, None, None].to(markov.dtype)
+        return free + torch.einsum('kjyu,...ju->...ky', toeplitz, u_future)
+
+    def forward(self, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Windows (N, H+T, n_u), (N, H+T, n_y) normalised -> y_hat_{t+1..t+T} (N, T, n_y)."""
+        n_h = self.config.history
+        return self.rollout(self.encode(u[..., :n_h, :], y[..., :n_h, :]), u[..., n_h:, :])
+
+    def latent_model(self, params: Mapping[str, torch.Tensor]) -> LatentModel:
+        """The affine latent model in physical units for these parameters."""
+        return latent_model(params, self.norm)
+
+    def predictor(self, params: Mapping[str, torch.Tensor]) -> 'NssmPredictor':
+        """The numpy view for the controller."""
+        return NssmPredictor(self.config, self.norm, params)
+
+
+def prediction_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Tensor,
+                    y: torch.Tensor) -> torch.Tensor:
+    """l_SSM of eq. (SSM) averaged over N windows: u (N, H+T, n_u), y (N, H+T, n_y) normalised.
+
+    Returns a scalar: mean over windows and steps of the squared error summed over outputs.
+    """
+    y_hat = torch.func.functional_call(model, params, (u, y))
+    return (y_hat - y[..., model.config.history:, :]).square().sum(dim=-1).mean()
+
+
+def latent_model(params: Mapping[str, torch.Tensor], norm: Normalisation) -> LatentModel:
+    """Eqs. (z_next), (haty) in physical units (see ``latent_model.py`` for the mapping).
+
+    A = A_n, B = B_n / u_std, e = -B_n (u_mean / u_std), C = diag(y_std) C_n, d = y_mean.
+    """
+    a_n, b_n, c_n = (params[k].detach().cpu().double().numpy() for k in ('A', 'B', 'C'))
+    return LatentModel(A=a_n.copy(), B=b_n / norm.u_std[None, :],
+                       e=-b_n @ (norm.u_mean / norm.u_std), C=norm.y_std[:, None] * c_n,
+                       d=norm.y_mean.copy())
+
+
+@dataclass
+class FlatWeights:
+    """Parameters as the NssmWeights message carries them.
+
+    ``shapes[shape_offsets[i]:shape_offsets[i+1]]`` is the shape of ``names[i]``
+    (len(shape_offsets) = len(names) + 1); ``params`` concatenates the row-major flattened
+    parameters in the order of ``names``, float32.
+    """
+
+    names: List[str]
+    shape_offsets: List[int]
+    shapes: List[int]
+    params: np.ndarray = field(repr=False)
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, torch.Tensor]) -> 'FlatWeights':
+        names = list(params)
+        offsets, shapes = [0], []
+        for name in names:
+            shapes.extend(int(s) for s in params[name].shape)
+            offsets.append(len(shapes))
+        flat = np.concatenate([params[n].detach().cpu().reshape(-1).to(torch.float32).numpy()
+                               for n in names]) if names else np.zeros(0, np.float32)
+        return cls(names, offsets, shapes, flat)
+
+    def shape_of(self, i: int) -> Tuple[int, ...]:
+        return tuple(self.shapes[self.shape_offsets[i]:self.shape_offsets[i + 1]])
+
+    def to_params(self, config: NssmConfig, dtype: torch.dtype = torch.float32) -> Params:
+        """Rebuild the parameter dict; ValueError if it does not fit the architecture."""
+        expected = param_shapes(config)
+        if len(self.shape_offsets) != len(self.names) + 1:
+            raise ValueError('shape_offsets must have one entry more than names')
+        got = {n: self.shape_of(i) for i, n in enumerate(self.names)}
+        if got != dict(expected):
+            raise ValueError(f'weights do not fit the NSSM {config}: got {got}')
+        sizes = [int(np.prod(got[n])) for n in self.names]
+        flat = np.asarray(self.params, dtype=np.float32).reshape(-1)
+        if flat.size != sum(sizes):
+            raise ValueError(f'{flat.size} parameters, shapes need {sum(sizes)}')
+        if not np.all(np.isfinite(flat)):
+            raise ValueError('weights have non-finite entries')
+        chunks = dict(zip(self.names, np.split(flat, np.cumsum(sizes)[:-1])))
+        return {n: torch.from_numpy(chunks[n].copy()).reshape(s).to(dtype)
+                for n, s in expected.items()}
+
+
+class ParamSpec:
+    """Exact round trip between a parameter dict and one flat vector (P,), differentiable.
+
+    Training keeps the weights as one vector so that CG, the proximal term, Adam and vmap
+    over tasks work on plain tensors; :meth:`unflatten` returns views for functional_call.
+    """
+
+    def __init__(self, config: NssmConfig):
+        self.shapes = param_shapes(config)
+        self.sizes = [int(np.prod(s)) for s in self.shapes.values()]
+        self.size = sum(self.sizes)
+
+    def flatten(self, params: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([params[n].reshape(-1) for n in self.shapes])
+
+    def unflatten(self, flat: torch.Tensor) -> Params:
+        chunks = torch.split(flat, self.sizes, dim=-1)
+        return {n: c.reshape(*c.shape[:-1], *s) for (n, s), c in zip(self.shapes.items(), chunks)}
+
+
+class NssmPredictor:
+    """Numpy NSSM for the controller tick: encode physical histories, latent model, predict.
+
+    Args:
+        config, norm: as the model's.
+        params: parameter dict (any float dtype); copied to float64 numpy arrays.
+    """
+
+    def __init__(self, config: NssmConfig, norm: Normalisation,
+                 params: Mapping[str, torch.Tensor]):
+        self.config = config
+        self.norm = norm
+        n_layers = len(config.hidden) + 1
+        self._layers = [(params[f'encoder.{i}.weight'].detach().cpu().double().numpy().copy(),
+                         params[f'encoder.{i}.bias'].detach().cpu().double().numpy().copy())
+                        for i in range(n_layers)]
+        self.latent = latent_model(params, norm)
+
+    def encode(self, u_hist: np.ndarray, y_hist: np.ndarray) -> np.ndarray:
+        """Eq. (z) from physical histories u_{t-H+1..t} (H, n_u), y_{t-H+1..t} (H, n_y).
+
+        Returns z_t, shape (n_z,), float64. Rows are oldest first; row k of u_hist is the
+        input that produced row k of y_hist.
+        """
+        cfg = self.config
+        u_n = (np.asarray(u_hist, dtype=np.float64).reshape(cfg.history, cfg.n_u)
+               - self.norm.u_mean) / self.norm.u_std
+        y_n = (np.asarray(y_hist, dtype=np.float64).reshape(cfg.history, cfg.n_y)
+               - self.norm.y_mean) / self.norm.y_std
+        h = np.concatenate([u_n, y_n], axis=1).reshape(-1)
+        last = len(self._layers) - 1
+        for i, (w, b) in enumerate(self._layers):
+            h = w @ h + b
+            if i < last:
+                np.maximum(h, 0.0, out=h)
+        return h
+
+    def predict(self, u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray
+                ) -> np.ndarray:
+        """Physical y_{t+1..t+K} (K, n_y) from the histories and u_{t+1..t+K} (K, n_u)."""
+        z = self.encode(u_hist, y_hist)
+        u_future = np.asarray(u_future, dtype=np.float64).reshape(-1, self.config.n_u)
+        out = np.empty((u_future.shape[0], self.config.n_y))
+        for k, u in enumerate(u_future):
+            z = self.latent.step(z, u)
+            out[k] = self.latent.output(z)
+        return out
+
+
+__all__ = ['NssmConfig', 'Normalisation', 'Nssm', 'NssmPredictor', 'FlatWeights', 'ParamSpec',
+           'param_shapes', 'init_params', 'prediction_loss', 'latent_model', 'Params']

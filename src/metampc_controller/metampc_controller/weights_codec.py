@@ -1,0 +1,118 @@
+"""NSSM <-> the model fields of an NssmWeights message, as plain arrays (no rclpy, no message).
+
+The learner publishes with :func:`fields_from_weights` and the controller reads with
+:func:`weights_from_fields`; both sides agree on :data:`MODEL_FIELDS`, the fields of
+``metampc_msgs/msg/NssmWeights`` that describe the model (eq. SSM): its dimensions, the
+encoder's hidden widths, the flat float32 parameters (:class:`FlatWeights`) and the
+normalisation. The run information (version, method, stage, losses, seed) is the caller's.
+
+Publishing (the values are typed as the message wants them, so the constructor takes them
+without a per-element conversion of the ~35k parameters)::
+
+    msg = NssmWeights(version=v, method='imaml', stage='adapted',
+                      **fields_from_weights(model.config, model.norm, params))
+
+Reading::
+
+    decoded = weights_from_fields(fields_of(msg))   # WeightsError names what is wrong
+    predictor = NssmPredictor(decoded.config, decoded.norm, decoded.params)
+"""
+from array import array
+from dataclasses import dataclass
+from typing import Any, Dict, Mapping
+
+import numpy as np
+import torch
+
+from metampc_controller.nssm import (FlatWeights, Normalisation, NssmConfig, param_shapes,
+                                     Params)
+
+MODEL_FIELDS = ('n_z', 'n_u', 'n_y', 'history', 'encoder_layers', 'names', 'shape_offsets',
+                'shapes', 'params', 'u_mean', 'u_std', 'y_mean', 'y_std')
+
+
+class WeightsError(ValueError):
+    """The model fields do not describe a usable NSSM; the message is one short reason."""
+
+
+@dataclass
+class DecodedWeights:
+    """An NSSM rebuilt from model fields: architecture, normalisation, float32 parameters."""
+
+    config: NssmConfig
+    norm: Normalisation
+    params: Params
+
+
+def fields_from_weights(config: NssmConfig, norm: Normalisation,
+                        params: Mapping[str, torch.Tensor]) -> Dict[str, Any]:
+    """The model fields of an NssmWeights message for this NSSM.
+
+    Returns a dict keyed by :data:`MODEL_FIELDS`: dimensions as int, ``encoder_layers``,
+    ``shape_offsets`` and ``shapes`` as ``array('I')``, ``names`` as a list of str, ``params``
+    as ``array('f')`` (float32, canonical order of :func:`param_shapes`), the normalisation as
+    ``array('d')``. Raises WeightsError if the parameters do not fit ``config``.
+    """
+    expected = param_shapes(config)
+    got = {name: tuple(params[name].shape) for name in expected if name in params}
+    if got != dict(expected):
+        raise WeightsError(f'parameters do not fit {config}')
+    flat = FlatWeights.from_params({name: params[name] for name in expected})
+    values = array('f')
+    values.frombytes(np.ascontiguousarray(flat.params, dtype=np.float32).tobytes())
+    return {'n_z': int(config.n_z), 'n_u': int(config.n_u), 'n_y': int(config.n_y),
+            'history': int(config.history), 'encoder_layers': array('I', config.hidden),
+            'names': list(flat.names), 'shape_offsets': array('I', flat.shape_offsets),
+            'shapes': array('I', flat.shapes), 'params': values,
+            **{name: array('d', value) for name, value in norm.to_dict().items()}}
+
+
+def fields_of(msg: Any) -> Dict[str, Any]:
+    """The :data:`MODEL_FIELDS` of any object that has them as attributes (e.g. a message)."""
+    return {name: getattr(msg, name) for name in MODEL_FIELDS}
+
+
+def weights_from_fields(fields: Mapping[str, Any]) -> DecodedWeights:
+    """Rebuild and check an NSSM from model fields (sequences of any kind: array, list, numpy).
+
+    Checks: positive dimensions and widths, parameter names and shapes exactly those of the
+    architecture (in any order), the parameter count, finite parameters, normalisation of the
+    right sizes, finite, scales > 0.
+
+    Raises:
+        WeightsError: the first problem found, in one line.
+    """
+    missing = [name for name in MODEL_FIELDS if name not in fields]
+    if missing:
+        raise WeightsError(f'missing fields {missing}')
+    try:
+        config = NssmConfig(n_u=int(fields['n_u']), n_y=int(fields['n_y']),
+                            n_z=int(fields['n_z']), history=int(fields['history']),
+                            hidden=tuple(int(w) for w in fields['encoder_layers']))
+        config.validate()
+        norm = Normalisation(**{name: np.asarray(fields[name], dtype=np.float64)
+                                for name in ('u_mean', 'u_std', 'y_mean', 'y_std')})
+        norm.validate(config)
+    except (TypeError, ValueError) as err:
+        raise WeightsError(str(err)) from None
+    names = [str(n) for n in fields['names']]
+    offsets = [int(o) for o in fields['shape_offsets']]
+    shapes = [int(s) for s in fields['shapes']]
+    if (len(offsets) != len(names) + 1 or offsets[0] != 0 or offsets[-1] != len(shapes)
+            or any(b < a for a, b in zip(offsets, offsets[1:]))):
+        raise WeightsError(f'shape_offsets {offsets} do not index {len(shapes)} shape entries '
+                           f'for {len(names)} names')
+    flat = FlatWeights(names, offsets, shapes, np.asarray(fields['params'], dtype=np.float32))
+    expected = param_shapes(config)
+    got = {name: flat.shape_of(i) for i, name in enumerate(names)}
+    for name, shape in expected.items():
+        if got.get(name) != shape:
+            raise WeightsError(f'{name} has shape {got.get(name)}, the architecture needs '
+                               f'{shape}')
+    if len(names) != len(expected):
+        raise WeightsError(f'unexpected parameters {sorted(set(names) - set(expected))}')
+    try:
+        params = flat.to_params(config)
+    except ValueError as err:  # parameter count, non-finite values
+        raise WeightsError(str(err)) from None
+    return DecodedWeights(config, norm, params)

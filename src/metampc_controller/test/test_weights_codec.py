@@ -1,0 +1,138 @@
+"""NSSM <-> NssmWeights fields (weights_codec) and the hand-built model (manual_model)."""
+from array import array
+import math
+
+from metampc_msgs.msg import NssmWeights
+import numpy as np
+import pytest
+from rclpy.serialization import deserialize_message, serialize_message
+import torch
+
+from metampc_controller.manual_model import linearised_vdp, linearised_vdp_nssm
+from metampc_controller.nssm import init_params, Normalisation, NssmConfig, NssmPredictor
+from metampc_controller.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
+                                              weights_from_fields, WeightsError)
+from metampc_plant.vanderpol import rk4_sample, VdpConfig, VdpPlant
+
+CONFIG = NssmConfig(n_z=5, history=10, hidden=(128, 128))
+NORM = Normalisation([0.1], [0.5], [0.2, -0.1], [1.5, 2.0])
+
+
+def test_message_round_trip_is_exact():
+    params = init_params(CONFIG, seed=4)
+    msg = NssmWeights(version=3, method='imaml', stage='adapted',
+                      **fields_from_weights(CONFIG, NORM, params))
+    wire = deserialize_message(serialize_message(msg), NssmWeights)   # through CDR
+    decoded = weights_from_fields(fields_of(wire))
+    assert decoded.config == CONFIG and decoded.norm.to_dict() == NORM.to_dict()
+    assert list(decoded.params) == list(params)
+    for name, value in params.items():
+        assert decoded.params[name].dtype == torch.float32
+        assert torch.equal(decoded.params[name], value), name
+    assert len(wire.params) == sum(v.numel() for v in params.values()) == 21_165
+
+
+def test_parameters_may_come_in_any_order():
+    params = init_params(CONFIG, seed=1)
+    shuffled = {name: params[name] for name in reversed(list(params))}
+    fields = fields_from_weights(CONFIG, NORM, params)
+    names, offsets, shapes, flat = [], [0], [], []
+    for name, value in shuffled.items():
+        names.append(name)
+        shapes.extend(value.shape)
+        offsets.append(len(shapes))
+        flat.append(value.reshape(-1).numpy())
+    fields.update(names=names, shape_offsets=offsets, shapes=shapes,
+                  params=np.concatenate(flat))
+    decoded = weights_from_fields(fields)
+    assert all(torch.equal(decoded.params[n], params[n]) for n in params)
+
+
+def _fields(**changes):
+    fields = fields_from_weights(CONFIG, NORM, init_params(CONFIG, seed=0))
+    fields = {name: (value.tolist() if isinstance(value, array) else value)
+              for name, value in fields.items()}
+    fields.update(changes)
+    return fields
+
+
+def _with(name, index, value):
+    values = _fields()[name]
+    values[index] = value
+    return {name: values}
+
+
+BAD = {
+    'nan': (_with('params', 11, math.nan), 'non-finite'),
+    'inf': (_with('params', -1, math.inf), 'non-finite'),
+    'shape': (_with('shapes', 0, 129), 'encoder.0.weight has shape (129, 30)'),
+    'count': ({'params': _fields()['params'][:-1]}, '21164 parameters, shapes need 21165'),
+    'offsets': (_with('shape_offsets', 1, 99), 'shape_offsets'),
+    'extra name': ({'names': _fields()['names'] + ['D'],
+                    'shape_offsets': _fields()['shape_offsets'] + [len(_fields()['shapes']) + 1],
+                    'shapes': _fields()['shapes'] + [1]}, "unexpected parameters ['D']"),
+    'missing name': ({'names': _fields()['names'][:-1],
+                      'shape_offsets': _fields()['shape_offsets'][:-1],
+                      'shapes': _fields()['shapes'][:-2]}, 'C has shape None'),
+    'n_z': ({'n_z': 0}, 'n_z must be >= 1'),
+    'std': (_with('y_std', 1, 0.0), 'scales must be > 0'),
+    'mean size': ({'u_mean': [0.0, 0.0]}, 'u_mean must be 1 finite numbers'),
+    'mean nan': (_with('y_mean', 0, math.nan), 'y_mean must be 2 finite numbers'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(BAD))
+def test_bad_fields_are_rejected_with_one_reason(case):
+    changes, reason = BAD[case]
+    with pytest.raises(WeightsError) as err:
+        weights_from_fields(_fields(**changes))
+    assert reason in str(err.value) and '\n' not in str(err.value)
+
+
+def test_missing_fields_and_unfitting_parameters():
+    fields = _fields()
+    del fields['shapes']
+    with pytest.raises(WeightsError, match=r"missing fields \['shapes'\]"):
+        weights_from_fields(fields)
+    assert set(MODEL_FIELDS) <= set(NssmWeights.get_fields_and_field_types())
+    with pytest.raises(WeightsError, match='parameters do not fit'):
+        fields_from_weights(NssmConfig(n_z=4), NORM, init_params(CONFIG, seed=0))
+
+
+@pytest.mark.parametrize('theta', [-0.7, 0.0, 1.3])
+def test_linearisation_is_the_plants_jacobian_at_the_origin(theta):
+    """Central differences of the plant's own RK4 sample at x = 0, u = 0."""
+    a, b = linearised_vdp(theta, 0.1)
+    eps = 1e-6
+    cols = []
+    for dx in (np.array([eps, 0.0, 0.0]), np.array([0.0, eps, 0.0]), np.array([0.0, 0.0, eps])):
+        plus = rk4_sample(dx[None, :2], dx[2:], np.array([theta]), 0.1, 10)[0]
+        minus = rk4_sample(-dx[None, :2], -dx[2:], np.array([theta]), 0.1, 10)[0]
+        cols.append((plus - minus) / (2 * eps))
+    np.testing.assert_allclose(np.column_stack(cols), np.hstack([a, b]), atol=1e-8)
+
+
+@pytest.mark.parametrize('model', [{}, {'n_z': 4, 'hidden': (8, 8), 'history': 5},
+                                   {'hidden': ()}])
+def test_manual_model_encodes_the_last_output_and_predicts_the_linear_plant(model):
+    """theta = 0: the plant is linear and the ZOH model exact (RK4 error ~1e-9 at dt = 0.1),
+    so the predictions match the plant up to the float32 rounding of the parameters."""
+    config, norm, params = linearised_vdp_nssm(0.0, 0.1, **model)
+    predictor = NssmPredictor(config, norm, params)
+    rng = np.random.default_rng(0)
+    h = config.history
+    u_hist, y_hist = rng.uniform(-1, 1, (h, 1)), rng.uniform(-2, 2, (h, 2))
+    z = predictor.encode(u_hist, y_hist)
+    np.testing.assert_allclose(z, np.r_[y_hist[-1], np.zeros(config.n_z - 2)], atol=1e-6)
+    plant = VdpPlant(VdpConfig(theta=0.0, x0=tuple(y_hist[-1])))
+    u_future = rng.uniform(-1, 1, (15, 1))
+    actual = np.array([plant.step(float(u)) for u in u_future[:, 0]])
+    np.testing.assert_allclose(predictor.predict(u_hist, y_hist, u_future), actual, atol=1e-5)
+
+
+def test_manual_model_discretisation_is_exact_for_a_held_input():
+    """The augmented matrix exponential against the closed form of the undamped oscillator."""
+    a, b = linearised_vdp(0.0, 0.3)
+    c, s = math.cos(0.3), math.sin(0.3)
+    np.testing.assert_allclose(a, [[c, s], [-s, c]], atol=1e-14)
+    np.testing.assert_allclose(b[:, 0], [1 - c, s], atol=1e-14)

@@ -1,0 +1,95 @@
+"""Meta-inference (Algorithm 2, eq. infer) and the supervised baseline.
+
+Adaptation: ``steps`` full-batch gradient steps on
+``l_SSM(D_target; psi) + gamma/2 ||psi - omega_inf||^2`` from psi = omega_inf (gamma = 0: the
+paper's plain steps of sec. Simulation). Supervised baseline: the same steps from a random
+initialisation (gamma = 0). Both report the loss on held-out target windows before and after
+every step.
+"""
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import List, Optional
+
+import torch
+
+from metampc_controller.nssm import init_params, Nssm, Params
+from metampc_learner.data import Windows
+from metampc_learner.objective import FlatObjective
+from metampc_learner.progress import Progress, ProgressFn
+
+
+@dataclass
+class AdaptConfig:
+    """Attributes: steps (m), lr (beta_in), gamma (>= 0) of eq. (infer)."""
+
+    steps: int = 20
+    lr: float = 0.05
+    gamma: float = 0.0
+
+    def validate(self) -> None:
+        if self.steps < 0 or not self.lr >= 0 or not self.gamma >= 0:
+            raise ValueError(f'need steps >= 0, lr >= 0, gamma >= 0; got {self}')
+
+
+@dataclass
+class AdaptResult:
+    """Adapted weights omega* and loss curves (normalised units), each of length steps + 1.
+
+    Attributes:
+        params: omega*.
+        train_loss: l_SSM(D_target; psi) before each step and after the last.
+        heldout_loss: l_SSM on the held-out target windows, same indexing.
+        elapsed: wall time, s.
+    """
+
+    params: Params
+    train_loss: List[float] = field(default_factory=list)
+    heldout_loss: List[float] = field(default_factory=list)
+    elapsed: float = 0.0
+
+
+def adapt(model: Nssm, init: Params, train: Windows, heldout: Windows, config: AdaptConfig,
+          progress: Optional[ProgressFn] = None) -> AdaptResult:
+    """Eq. (infer) from `init` (omega_inf) on the target windows `train`.
+
+    Raises:
+        ValueError: no training windows, or a loss turned non-finite.
+    """
+    config.validate()
+    if len(train) == 0:
+        raise ValueError('no target windows to adapt on')
+    objective = FlatObjective(model)
+    anchor = objective.spec.flatten(init).detach()
+    psi = anchor.clone()
+    result = AdaptResult(params={})
+    start = time.monotonic()
+
+    def record():
+        with torch.no_grad():
+            result.train_loss.append(float(objective.loss(psi, train.u, train.y)))
+            result.heldout_loss.append(float(objective.loss(psi, heldout.u, heldout.y))
+                                       if len(heldout) else float('nan'))
+        if not math.isfinite(result.train_loss[-1]):
+            raise ValueError(f'adaptation loss turned non-finite at step '
+                             f'{len(result.train_loss) - 1}')
+
+    record()
+    rate = torch.tensor(config.lr, dtype=psi.dtype)
+    for step in range(1, config.steps + 1):
+        psi, rate = objective.prox_step(psi, anchor, train.u, train.y, rate, config.gamma)
+        record()
+        if progress is not None:
+            progress(Progress(step, config.steps, result.heldout_loss[-1],
+                              time.monotonic() - start))
+    result.params = {k: v.clone() for k, v in objective.spec.unflatten(psi).items()}
+    result.elapsed = time.monotonic() - start
+    return result
+
+
+def supervised(model: Nssm, train: Windows, heldout: Windows, config: AdaptConfig, seed: int,
+               progress: Optional[ProgressFn] = None) -> AdaptResult:
+    """The supervised baseline: the same steps from init_params(seed), gamma = 0."""
+    dtype = next(model.parameters()).dtype
+    return adapt(model, init_params(model.config, seed, dtype), train, heldout,
+                 replace(config, gamma=0.0), progress)

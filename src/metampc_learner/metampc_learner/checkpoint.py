@@ -1,0 +1,47 @@
+"""Save and load a (meta-)model: NSSM config, normalisation, weights and run information.
+
+The file is ``torch.save`` of plain types only (dicts, lists, numbers, strings, tensors), so
+``torch.load(..., weights_only=True)`` reads it.
+"""
+from dataclasses import asdict, dataclass, field
+from typing import Any, Dict
+
+import torch
+
+from metampc_controller.nssm import Normalisation, Nssm, NssmConfig, param_shapes, Params
+
+FORMAT = 'metampc.nssm/1'
+
+
+@dataclass
+class Checkpoint:
+    """A model (config + normalisation), its weights and free-form run information."""
+
+    model: Nssm
+    params: Params
+    info: Dict[str, Any] = field(default_factory=dict)
+
+
+def save_checkpoint(path: str, model: Nssm, params: Params, info: Dict[str, Any] = None
+                    ) -> None:
+    """Write the checkpoint; `info` must hold plain types (e.g. method, seed, losses)."""
+    config = asdict(model.config)
+    config['hidden'] = list(config['hidden'])
+    torch.save({'format': FORMAT, 'config': config, 'norm': model.norm.to_dict(),
+                'params': {k: params[k].detach().cpu().clone() for k in param_shapes(
+                    model.config)},
+                'info': dict(info or {})}, path)
+
+
+def load_checkpoint(path: str) -> Checkpoint:
+    """Read a checkpoint written by save_checkpoint (weights_only load)."""
+    blob = torch.load(path, map_location='cpu', weights_only=True)
+    if blob.get('format') != FORMAT:
+        raise ValueError(f'{path}: not a {FORMAT} checkpoint')
+    config = NssmConfig(**blob['config'])
+    params = blob['params']
+    if {k: tuple(v.shape) for k, v in params.items()} != dict(param_shapes(config)):
+        raise ValueError(f'{path}: weights do not fit {config}')
+    dtype = next(iter(params.values())).dtype
+    model = Nssm(config, Normalisation(**blob['norm']), dtype=dtype)
+    return Checkpoint(model, params, blob['info'])

@@ -1,0 +1,219 @@
+"""Meta-training (Algorithm 1): the outer loop of iMAML, first-order MAML or unrolled MAML.
+
+Each outer step samples B tasks from the source set (with replacement when B exceeds it),
+``windows_per_task`` windows of each task's D_tr and D_test, computes the B per-task
+meta-gradients (imaml.py, maml.py) vectorised with ``torch.func.vmap`` (or a Python loop), and
+applies their mean with Adam (lr beta_out): eq. (outer) for iMAML, eq. (outer_maml) for
+first-order MAML.
+
+Non-finite tasks: a task whose test loss or meta-gradient is non-finite is skipped (left out
+of the mean) and counted; if more than ``max_skip_fraction`` of a batch is skipped for
+``max_bad_steps`` consecutive steps, :class:`MetaTrainingError` names the tasks.
+
+Algorithm 1's online collection: an optional ``collector(task, theta, params_b)`` runs after
+each task's inner loop with its adapted weights omega_b and returns new trajectories of that
+system; they join the task's D_tr / D_test (capped in the source set, oldest dropped).
+
+Determinism: task and window sampling use ``numpy.random.default_rng(seed)``, the initial
+weights ``init_params(config, seed)``; the same seed (and thread count) gives the same weights.
+"""
+import time
+from dataclasses import dataclass, field
+from typing import Callable, List, Optional, Sequence, Set
+
+import numpy as np
+import torch
+from torch.func import vmap
+
+from metampc_controller.nssm import init_params, Nssm, Params
+from metampc_learner.curvature import CURVATURES
+from metampc_learner.data import SourceSet, Trajectory
+from metampc_learner.imaml import ImamlTaskGradient
+from metampc_learner.maml import FirstOrderMamlTaskGradient, UnrolledMamlTaskGradient
+from metampc_learner.objective import FlatObjective
+from metampc_learner.progress import Progress, ProgressFn
+from metampc_learner.task_gradient import TaskGradient
+
+METHODS = ('imaml', 'maml', 'maml_unrolled')
+Collector = Callable[[int, float, Params], Sequence[Trajectory]]
+
+
+class MetaTrainingError(RuntimeError):
+    """Meta-training stopped because too many tasks kept turning non-finite."""
+
+
+@dataclass
+class MetaConfig:
+    """Hyperparameters of meta-training (defaults: the calibration of DESIGN.md sec. 4).
+
+    Attributes:
+        method: 'imaml', 'maml' (first-order) or 'maml_unrolled' (second-order).
+        iterations: outer steps.
+        batch_size: B, tasks per outer step.
+        inner_steps: M.
+        lr_inner: beta_in.
+        lr_outer: beta_out (Adam).
+        gamma: proximal strength of eq. (inner_imaml), > 0 (iMAML only).
+        cg_steps: CG iterations for eq. (cg) (iMAML only).
+        curvature: 'gauss_newton' (default, PSD) or 'hessian' (iMAML only).
+        windows_per_task: windows sampled from each of D_tr and D_test per task and step.
+        vectorise: vmap over the B tasks (True, measured faster) or a Python loop.
+        seed: seed of the initial weights and of task/window sampling.
+        max_skip_fraction: a step is bad when more than this share of its tasks is skipped.
+        max_bad_steps: consecutive bad steps that stop training.
+    """
+
+    method: str = 'imaml'
+    iterations: int = 300
+    batch_size: int = 16
+    inner_steps: int = 10
+    lr_inner: float = 0.05
+    lr_outer: float = 1e-3
+    gamma: float = 1.0
+    cg_steps: int = 5
+    curvature: str = 'gauss_newton'
+    windows_per_task: int = 64
+    vectorise: bool = True
+    seed: int = 0
+    max_skip_fraction: float = 0.5
+    max_bad_steps: int = 3
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field that is out of range."""
+        if self.method not in METHODS:
+            raise ValueError(f'unknown method {self.method!r}; expected one of {METHODS}')
+        if self.curvature not in CURVATURES:
+            raise ValueError(f'unknown curvature {self.curvature!r}; expected {CURVATURES}')
+        for name in ('iterations', 'batch_size', 'windows_per_task', 'max_bad_steps'):
+            if getattr(self, name) < 1:
+                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+        if self.inner_steps < 0 or self.cg_steps < 0 or self.seed < 0:
+            raise ValueError('inner_steps, cg_steps and seed must be >= 0')
+        if not (self.lr_inner >= 0 and self.lr_outer > 0):
+            raise ValueError('need lr_inner >= 0 and lr_outer > 0')
+        if self.method == 'imaml' and not self.gamma > 0:
+            raise ValueError(f'iMAML needs gamma > 0, got {self.gamma}')
+
+
+@dataclass
+class MetaResult:
+    """Outcome of meta-training.
+
+    Attributes:
+        params: the meta-trained weights omega_inf.
+        losses: mean meta-test loss l_SSM(D_test; omega_b) per outer step (normalised units).
+        cg_residuals: mean relative CG residual per outer step (NaN for MAML).
+        skipped: tasks skipped in all.
+        collected_samples: collected samples held in the source set at the end.
+        dropped_samples: collected samples dropped by the cap.
+        elapsed: wall time, s.
+    """
+
+    params: Params
+    losses: List[float] = field(default_factory=list)
+    cg_residuals: List[float] = field(default_factory=list)
+    skipped: int = 0
+    collected_samples: int = 0
+    dropped_samples: int = 0
+    elapsed: float = 0.0
+
+
+def task_gradient_fn(objective: FlatObjective, config: MetaConfig
+                     ) -> Callable[..., TaskGradient]:
+    """The per-task meta-gradient of the configured method."""
+    if config.method == 'imaml':
+        return ImamlTaskGradient(objective, config.inner_steps, config.lr_inner, config.gamma,
+                                 config.cg_steps, config.curvature)
+    if config.method == 'maml':
+        return FirstOrderMamlTaskGradient(objective, config.inner_steps, config.lr_inner)
+    return UnrolledMamlTaskGradient(objective, config.inner_steps, config.lr_inner)
+
+
+def batch_gradient_fn(objective: FlatObjective, config: MetaConfig
+                      ) -> Callable[..., TaskGradient]:
+    """(omega (P,), tr_u, tr_y, te_u, te_y with a leading B) -> TaskGradient batched over B."""
+    task_fn = task_gradient_fn(objective, config)
+    if config.vectorise:
+        return vmap(task_fn, in_dims=(None, 0, 0, 0, 0))
+
+    def loop(omega, tr_u, tr_y, te_u, te_y):
+        outs = [task_fn(omega, *(x[b] for x in (tr_u, tr_y, te_u, te_y)))
+                for b in range(tr_u.shape[0])]
+        return TaskGradient(*(torch.stack(parts) for parts in zip(*outs)))
+
+    return loop
+
+
+def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
+               progress: Optional[ProgressFn] = None, collector: Optional[Collector] = None,
+               init: Optional[Params] = None) -> MetaResult:
+    """Run Algorithm 1 and return omega_inf.
+
+    Args:
+        model: the NSSM (architecture and normalisation; its own weights are not used).
+        source: the tasks (grows when a collector is given).
+        config: hyperparameters.
+        progress: called after every outer step.
+        collector: Algorithm 1's online collection, see the module docstring.
+        init: initial weights; default init_params(model.config, config.seed).
+
+    Raises:
+        MetaTrainingError: too many non-finite tasks for too long.
+    """
+    config.validate()
+    objective = FlatObjective(model)
+    dtype = next(model.parameters()).dtype
+    if init is None:
+        init = init_params(model.config, config.seed, dtype)
+    omega = torch.nn.Parameter(objective.spec.flatten(init).detach().clone())
+    optimiser = torch.optim.Adam([omega], lr=config.lr_outer)
+    batch_fn = batch_gradient_fn(objective, config)
+    rng = np.random.default_rng(config.seed)
+    result = MetaResult(params={})
+    bad_steps = 0
+    bad_tasks: Set[int] = set()
+    start = time.monotonic()
+    for it in range(1, config.iterations + 1):
+        tasks = rng.choice(len(source), size=config.batch_size,
+                           replace=len(source) < config.batch_size)
+        train, test = source.sample(tasks, config.windows_per_task, rng)
+        out = batch_fn(omega.detach(), train.u, train.y, test.u, test.y)
+        ok = torch.isfinite(out.test_loss) & torch.isfinite(out.grad).all(dim=-1)
+        n_bad = int((~ok).sum())
+        result.skipped += n_bad
+        if ok.any():
+            omega.grad = out.grad[ok].mean(dim=0)
+            optimiser.step()
+            optimiser.zero_grad(set_to_none=True)
+        if n_bad > config.max_skip_fraction * config.batch_size:
+            bad_steps += 1
+            bad_tasks.update(int(tasks[b]) for b in torch.nonzero(~ok).flatten().tolist())
+            if bad_steps >= config.max_bad_steps:
+                names = ', '.join(f'{t} (system {source.system_index[t]}, theta='
+                                  f'{source.thetas[t]:.3f})' for t in sorted(bad_tasks))
+                raise MetaTrainingError(
+                    f'{config.method}: more than {config.max_skip_fraction:.0%} of the batch '
+                    f'non-finite for {bad_steps} consecutive steps (up to step {it}); '
+                    f'skipped tasks: {names}')
+        else:
+            bad_steps = 0
+            bad_tasks = set()
+        if collector is not None:
+            for b in torch.nonzero(ok).flatten().tolist():
+                task = int(tasks[b])
+                new = collector(task, source.thetas[task],
+                                objective.spec.unflatten(out.adapted[b].detach().clone()))
+                source.add(task, new)
+        loss = float(out.test_loss[ok].mean()) if ok.any() else float('nan')
+        residual = float(out.cg_residual[ok].mean()) if ok.any() else float('nan')
+        result.losses.append(loss)
+        result.cg_residuals.append(residual)
+        if progress is not None:
+            progress(Progress(it, config.iterations, loss, time.monotonic() - start,
+                              result.skipped, residual))
+    result.params = {k: v.detach().clone()
+                     for k, v in objective.spec.unflatten(omega.detach()).items()}
+    result.collected_samples = source.collected_samples
+    result.dropped_samples = source.dropped_samples
+    result.elapsed = time.monotonic() - start
+    return result

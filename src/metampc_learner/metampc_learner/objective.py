@@ -1,0 +1,74 @@
+"""The NSSM loss as a function of one flat weight vector, and the proximal gradient step.
+
+Shared by the inner loops of iMAML (eq. inner_imaml), MAML (eq. inner, gamma = 0) and
+meta-inference (eq. infer): each is M steps of gradient descent on
+``l_SSM(D; psi) + gamma/2 ||psi - anchor||^2`` from ``psi = anchor``. Written with
+``torch.func.grad`` so that it runs under ``vmap`` over tasks and can be differentiated through
+(unrolled MAML) or not (iMAML, first-order MAML, adaptation: no graph is kept).
+"""
+from typing import Tuple
+
+import torch
+
+from torch.func import grad_and_value
+
+from metampc_controller.nssm import Nssm, ParamSpec, prediction_loss
+
+
+class FlatObjective:
+    """l_SSM of an NSSM over normalised windows, as a function of flat weights (P,).
+
+    Windows: u (N, H+T, n_u), y (N, H+T, n_y); see ``metampc_controller.nssm``.
+    """
+
+    def __init__(self, model: Nssm):
+        self.model = model
+        self.spec = ParamSpec(model.config)
+
+    @property
+    def size(self) -> int:
+        """P, the number of weights."""
+        return self.spec.size
+
+    def predict(self, flat: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """y_hat_{t+1..t+T}, shape (N, T, n_y)."""
+        return torch.func.functional_call(self.model, self.spec.unflatten(flat), (u, y))
+
+    def loss(self, flat: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """l_SSM averaged over the N windows (scalar); see nssm.prediction_loss."""
+        return prediction_loss(self.model, self.spec.unflatten(flat), u, y)
+
+    def n_terms(self, u: torch.Tensor) -> int:
+        """N * T: the loss is the sum of squared residuals divided by this."""
+        return u.shape[-3] * self.model.config.horizon
+
+    def prox_objective(self, psi: torch.Tensor, anchor: torch.Tensor, u: torch.Tensor,
+                       y: torch.Tensor, gamma: float) -> torch.Tensor:
+        """l_SSM(D; psi) + gamma/2 ||psi - anchor||^2 (scalar)."""
+        return self.loss(psi, u, y) + 0.5 * gamma * (psi - anchor).square().sum()
+
+    def prox_step(self, psi: torch.Tensor, anchor: torch.Tensor, u: torch.Tensor,
+                  y: torch.Tensor, rate: torch.Tensor, gamma: float
+                  ) -> Tuple[torch.Tensor, torch.Tensor]:
+        """One safeguarded gradient step on the proximal objective; returns (psi, rate).
+
+        The step psi - rate * grad is taken unless it increases the objective by more than
+        rounding (relative sqrt(eps) of the dtype) or makes it non-finite; then psi is kept and
+        rate is halved, for this task only (no branches, so it vmaps). While rate is below
+        2 / (largest curvature) every step is taken and this is plain gradient descent; the
+        safeguard catches the divergence that a sharp task would otherwise turn into NaN.
+        """
+        g, value = grad_and_value(self.prox_objective)(psi, anchor, u, y, gamma)
+        candidate = psi - rate * g
+        slack = torch.finfo(value.dtype).eps ** 0.5 * value.abs()
+        ok = self.prox_objective(candidate, anchor, u, y, gamma) <= value + slack
+        return torch.where(ok, candidate, psi), torch.where(ok, rate, 0.5 * rate)
+
+    def inner_loop(self, omega: torch.Tensor, u: torch.Tensor, y: torch.Tensor, steps: int,
+                   lr: float, gamma: float) -> torch.Tensor:
+        """Eq. (inner_imaml) (gamma > 0) or eq. (inner) (gamma = 0) by `steps` steps from omega."""
+        psi = omega
+        rate = torch.tensor(lr, dtype=omega.dtype)
+        for _ in range(steps):
+            psi, rate = self.prox_step(psi, omega, u, y, rate, gamma)
+        return psi

@@ -1,0 +1,201 @@
+"""Algorithm 1's online collection: closed-loop source data from the latent MPC, eq. (ub).
+
+After the inner loop of task b (adapted weights omega_b, eq. inner_imaml), the meta-training
+core calls the collector with (task, theta_b, omega_b). The collector turns omega_b into the
+latent model of eq. (SSM) (``Nssm.predictor``: encoder + affine latent model in physical
+units), sets up the latent MPC of eq. (mpc) (``metampc_controller.mpc.LatentMpc``) and runs it
+on the source system theta_b (the plant core, ``VdpPlant``) for bounded episodes with
+exploration noise, eq. (ub)::
+
+    u^b = clip(u^b_* + u^b_0, u_min, u_max),     u^b_0 ~ N(0, Sigma),  Sigma = noise_std^2 I
+
+and returns the trajectories (u^b, y^b) that the core adds to D_source (SourceSet.add, capped).
+
+Episode (index convention of ``metampc_controller.nssm``: u_k was held over (k-1, k] and
+produced y_k): x_0 uniform in [-x0_bound, x0_bound]^2; samples 1..H are driven by the
+source excitation (the encoder needs H pairs before the MPC can run); from t = H on, every
+tick encodes z_t from (u, y)_{t-H+1..t}, solves eq. (mpc) for u_{t+1} with the applied u_t and
+the reference r_{t+1..t+N} (x1 set-points uniform in [-ref_bound, ref_bound], each held
+ref_hold_s), adds the noise and steps the plant. An episode ends after ``warmup +
+episode_samples`` samples or at the first sample that leaves the state box (the plant core
+flags it); only the finite samples before it are returned, so no window spans an escape.
+A model the MPC cannot use (non-finite weights, bad shapes) gives no data for that call.
+
+Pure numpy/torch/osqp, no rclpy. Determinism: episode k of call n for task b draws from
+``numpy.random.default_rng((seed, b, n, k))``.
+"""
+from dataclasses import dataclass, field
+from typing import List
+
+import numpy as np
+import torch
+
+from metampc_controller.mpc import LatentMpc, MpcConfig
+from metampc_controller.nssm import Nssm, Params
+from metampc_learner.data import SourceConfig, Trajectory
+from metampc_plant.excitation import excitation
+from metampc_plant.vanderpol import VdpConfig, VdpPlant
+
+
+@dataclass
+class OnlineCollectionConfig:
+    """Settings of the closed-loop collection of Algorithm 1.
+
+    Attributes:
+        episodes: episodes per call (per task and outer step).
+        episode_samples: closed-loop samples per episode (after the H warm-up samples).
+        noise_std: exploration std of eq. (ub), input units (Sigma = noise_std^2 I).
+        horizon: N of the MPC, samples.
+        q: weight of the tracked output (x1); the other outputs get weight 0.
+        r: Delta-u weight of the MPC.
+        tracked_output: index of the output that follows the reference.
+        ref_bound: set-points uniform in [-ref_bound, ref_bound] (output units).
+        ref_hold_s: time each set-point is held, s.
+        seed: seed of initial states, warm-up inputs, set-points and noise.
+    """
+
+    episodes: int = 1
+    episode_samples: int = 60
+    noise_std: float = 0.2
+    horizon: int = 20
+    q: float = 1.0
+    r: float = 0.05
+    tracked_output: int = 0
+    ref_bound: float = 1.0
+    ref_hold_s: float = 2.0
+    seed: int = 0
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field that is out of range."""
+        for name in ('episodes', 'episode_samples', 'horizon'):
+            if getattr(self, name) < 1:
+                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+        if not (self.noise_std >= 0 and np.isfinite(self.noise_std)):
+            raise ValueError(f'noise_std must be finite and >= 0, got {self.noise_std}')
+        if not (self.q > 0 and self.r > 0 and self.ref_hold_s > 0 and self.ref_bound >= 0):
+            raise ValueError('need q > 0, r > 0, ref_hold_s > 0 and ref_bound >= 0')
+        if self.tracked_output < 0 or self.seed < 0:
+            raise ValueError('tracked_output and seed must be >= 0')
+
+
+@dataclass
+class CollectionStats:
+    """Counters over the collector's life.
+
+    Attributes:
+        calls: collector calls (one per task and outer step).
+        episodes: episodes run.
+        samples: samples returned.
+        escaped: episodes cut short because the state left the box.
+        model_failures: calls without data because the MPC rejected the model.
+        mpc_fallbacks: ticks whose input was the MPC's fallback (shifted previous plan).
+    """
+
+    calls: int = 0
+    episodes: int = 0
+    samples: int = 0
+    escaped: int = 0
+    model_failures: int = 0
+    mpc_fallbacks: int = 0
+
+
+@dataclass
+class OnlineCollector:
+    """Callable ``(task, theta, omega_b) -> [Trajectory]``: the meta-training core's collector.
+
+    Attributes:
+        model: the NSSM being meta-trained (architecture and normalisation; its own weights are
+            not used).
+        config: collection settings.
+        source: simulator settings shared with the source set (dt, substeps, x0_bound,
+            state_bound, excitation with the input bounds).
+        stats: counters, updated by every call.
+    """
+
+    model: Nssm
+    config: OnlineCollectionConfig
+    source: SourceConfig
+    stats: CollectionStats = field(default_factory=CollectionStats)
+
+    def __post_init__(self):
+        self.config.validate()
+        n_y = self.model.config.n_y
+        if self.config.tracked_output >= n_y:
+            raise ValueError(f'tracked_output {self.config.tracked_output} >= n_y = {n_y}')
+        exc = self.source.excitation
+        q = np.zeros(n_y)
+        q[self.config.tracked_output] = self.config.q
+        self._mpc_config = MpcConfig(horizon=self.config.horizon, q=tuple(q), r=self.config.r,
+                                     u_min=exc.u_min, u_max=exc.u_max)
+
+    def __call__(self, task: int, theta: float, params: Params) -> List[Trajectory]:
+        """Run `episodes` closed-loop episodes of source system `task` with omega_b = params."""
+        call = self.stats.calls
+        self.stats.calls += 1
+        mpc = LatentMpc(self._mpc_config)
+        try:
+            if not all(bool(torch.isfinite(v).all()) for v in params.values()):
+                raise ValueError('weights are not finite')
+            predictor = self.model.predictor(params)
+            mpc.set_model(predictor.latent)
+        except (ValueError, np.linalg.LinAlgError):
+            self.stats.model_failures += 1
+            return []
+        out = []
+        for episode in range(self.config.episodes):
+            rng = np.random.default_rng((self.config.seed, task, call, episode))
+            mpc.reset()
+            traj = self._episode(float(theta), predictor, mpc, rng)
+            self.stats.episodes += 1
+            if traj is not None:
+                self.stats.samples += len(traj)
+                out.append(traj)
+        return out
+
+    def _episode(self, theta: float, predictor, mpc: LatentMpc, rng: np.random.Generator):
+        """One bounded episode; the finite samples 1..K as a Trajectory (None if none)."""
+        cfg, src, n_h = self.config, self.source, self.model.config.history
+        exc = src.excitation
+        n_total = n_h + cfg.episode_samples
+        plant = VdpPlant(VdpConfig(theta=theta, dt=src.dt, substeps=src.substeps,
+                                   x0=tuple(rng.uniform(-src.x0_bound, src.x0_bound, 2)),
+                                   u_min=exc.u_min, u_max=exc.u_max,
+                                   state_bound=src.state_bound))
+        warmup = excitation(exc, 1, n_h, src.dt, int(rng.integers(2**31)))[0]
+        ref = self._reference(n_total + cfg.horizon, rng)
+        n_y = self.model.config.n_y
+        u = np.zeros((n_total + 1, 1))          # row k: u_k (row 0 unused: no input yet)
+        y = np.zeros((n_total + 1, n_y))
+        y[0] = plant.output()
+        n = 0
+        for k in range(1, n_total + 1):         # choose u_k from data up to k - 1, step
+            if k <= n_h:
+                u_k = warmup[k - 1]
+            else:
+                t = k - 1
+                z = predictor.encode(u[t - n_h + 1:t + 1], y[t - n_h + 1:t + 1])
+                result = mpc.solve(z, u[t], ref[t + 1:t + 1 + cfg.horizon])
+                self.stats.mpc_fallbacks += int(result.fallback)
+                u_k = result.u[0] + cfg.noise_std * rng.standard_normal()     # eq. (ub)
+            u_k, _ = plant.saturate(u_k)
+            y_k = plant.step(u_k)
+            if plant.diverged:
+                self.stats.escaped += 1
+                break
+            u[k], y[k] = u_k, y_k
+            n = k
+        if n == 0:
+            return None
+        return Trajectory(np.arange(1, n + 1), u[1:n + 1], y[1:n + 1])
+
+    def _reference(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """References r_0..r_{n-1}, shape (n, n_y): piecewise-constant set-points."""
+        cfg = self.config
+        hold = max(1, int(round(cfg.ref_hold_s / self.source.dt)))
+        levels = rng.uniform(-cfg.ref_bound, cfg.ref_bound, size=-(-n // hold))
+        ref = np.zeros((n, self.model.config.n_y))
+        ref[:, cfg.tracked_output] = np.repeat(levels, hold)[:n]
+        return ref
+
+
+__all__ = ['OnlineCollectionConfig', 'CollectionStats', 'OnlineCollector']

@@ -1,0 +1,80 @@
+"""Meta-inference (eq. infer) and the supervised baseline."""
+import numpy as np
+import pytest
+import torch
+
+from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.data import normalisation_from, simulate_target, SourceConfig, Windows
+from metampc_learner.objective import FlatObjective
+
+torch.set_num_threads(1)
+TINY = NssmConfig(history=4, horizon=5, hidden=(16, 16), n_z=3)
+
+
+@pytest.fixture(scope='module')
+def target():
+    config = SourceConfig(episode_samples=100)
+    train = simulate_target(0.6, config, 200, seed=1)
+    held = simulate_target(0.6, config, 100, seed=2)
+    norm = normalisation_from(train)
+    model = Nssm(TINY, norm)
+    return (model, Windows.from_trajectories(train, norm, TINY),
+            Windows.from_trajectories(held, norm, TINY))
+
+
+def _distance(a, b):
+    return float(sum((a[k] - b[k]).square().sum() for k in a).sqrt())
+
+
+def test_adaptation_curves_and_proximal_pull(target):
+    model, train, held = target
+    init = init_params(TINY, 3)
+    plain = adapt(model, init, train, held, AdaptConfig(steps=6, lr=0.05, gamma=0.0))
+    assert len(plain.train_loss) == len(plain.heldout_loss) == 7
+    objective = FlatObjective(model)
+    flat = objective.spec.flatten(init)
+    assert plain.heldout_loss[0] == pytest.approx(float(objective.loss(flat, held.u, held.y)))
+    assert plain.train_loss[-1] < plain.train_loss[0]
+    reports = []
+    again = adapt(model, init, train, held, AdaptConfig(steps=6, lr=0.05), reports.append)
+    assert again.heldout_loss == plain.heldout_loss
+    assert [(r.iteration, r.total) for r in reports] == [(k, 6) for k in range(1, 7)]
+    assert [r.loss for r in reports] == plain.heldout_loss[1:]
+    prox = adapt(model, init, train, held, AdaptConfig(steps=6, lr=0.05, gamma=10.0))
+    assert _distance(prox.params, init) < _distance(plain.params, init)
+    none = adapt(model, init, train, held, AdaptConfig(steps=0))
+    assert all(torch.equal(none.params[k], init[k]) for k in init)
+
+
+def test_supervised_starts_from_the_seeded_random_init(target):
+    model, train, held = target
+    a = supervised(model, train, held, AdaptConfig(steps=2, gamma=5.0), seed=4)
+    b = adapt(model, init_params(TINY, 4), train, held, AdaptConfig(steps=2, gamma=0.0))
+    assert a.heldout_loss == b.heldout_loss
+    assert all(torch.equal(a.params[k], b.params[k]) for k in a.params)
+
+
+def test_a_step_size_too_large_for_the_curvature_is_caught(target):
+    model, train, held = target
+    init = init_params(TINY, 3)
+    objective = FlatObjective(model)
+    flat = objective.spec.flatten(init)
+    plain = flat
+    for _ in range(5):      # plain gradient descent at this step size diverges
+        plain = plain - 5.0 * torch.func.grad(objective.loss)(plain, train.u, train.y)
+    diverged = objective.loss(plain, train.u, train.y)
+    assert not torch.isfinite(diverged) or diverged > 1e3 * objective.loss(flat, train.u, train.y)
+    result = adapt(model, init, train, held, AdaptConfig(steps=15, lr=5.0))
+    assert np.all(np.isfinite(result.train_loss))
+    assert np.all(np.diff(result.train_loss) <= 1e-3 * np.abs(result.train_loss[:-1]))
+    assert result.train_loss[-1] < result.train_loss[0]
+
+
+def test_adapt_refuses_empty_data(target):
+    model, _, held = target
+    empty = Windows(held.u[:0], held.y[:0])
+    with pytest.raises(ValueError, match='no target windows'):
+        adapt(model, init_params(TINY, 0), empty, held, AdaptConfig())
+    with pytest.raises(ValueError):
+        AdaptConfig(steps=-1).validate()

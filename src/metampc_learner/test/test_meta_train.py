@@ -1,0 +1,161 @@
+"""Meta-training loop: determinism, non-finite tasks, progress, Algorithm 1's collector."""
+import numpy as np
+import pytest
+import torch
+
+from metampc_controller.nssm import init_params, NssmConfig, Nssm
+from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
+                                  SourceConfig, SourceData, SourceSet, Trajectory)
+from metampc_learner.meta_train import (meta_train, MetaConfig, MetaTrainingError,
+                                        task_gradient_fn)
+from metampc_learner.objective import FlatObjective
+
+torch.set_num_threads(1)
+pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
+TINY = NssmConfig(history=4, horizon=5, hidden=(16, 16), n_z=3)
+SRC = SourceConfig(n_systems=6, episodes_per_system=1, episode_samples=60, seed=3)
+
+
+def _fast(**kw):
+    base = dict(iterations=3, batch_size=4, inner_steps=3, cg_steps=3, windows_per_task=8)
+    base.update(kw)
+    return MetaConfig(**base)
+
+
+def _source(data=None, max_collected=20000):
+    data = simulate_source(SRC) if data is None else data
+    clean = [t for ts in data.trajectories for t in ts if np.abs(t.y).max() < 100]
+    norm = normalisation_from(clean)
+    return Nssm(TINY, norm), SourceSet(data, norm, TINY, max_collected=max_collected)
+
+
+@pytest.mark.parametrize('method', ['imaml', 'maml', 'maml_unrolled'])
+def test_same_seed_gives_bitwise_the_same_weights(method):
+    runs = []
+    for seed in (7, 7, 8):
+        model, source = _source()
+        runs.append(meta_train(model, source, _fast(method=method, seed=seed)))
+    a, b, c = runs
+    assert all(torch.equal(a.params[k], b.params[k]) for k in a.params)
+    assert a.losses == b.losses
+    assert not torch.equal(a.params['A'], c.params['A'])
+    assert all(np.isfinite(a.losses)) and a.skipped == 0
+
+
+def test_source_simulation_is_seeded():
+    a, b = simulate_source(SRC), simulate_source(SRC)
+    assert np.array_equal(a.thetas, b.thetas)
+    for ta, tb in zip(a.trajectories, b.trajectories):
+        assert all(np.array_equal(x.y, y.y) and np.array_equal(x.u, y.u) for x, y in zip(ta, tb))
+
+
+def _poisoned(n_bad):
+    """Six systems; the first n_bad have outputs so large that the float32 loss overflows."""
+    data = simulate_source(SRC)
+    for i in range(n_bad):
+        t = data.trajectories[i][0]
+        data.trajectories[i] = [Trajectory(t.steps, t.u, t.y * 1e30)]
+    return data
+
+
+def test_non_finite_task_is_skipped_and_counted():
+    model, source = _source(_poisoned(1))
+    reports = []
+    result = meta_train(model, source, _fast(batch_size=6, iterations=4),  # every task, every step
+                        progress=reports.append)
+    assert result.skipped == 4
+    assert [r.skipped for r in reports] == [1, 2, 3, 4]
+    assert all(np.isfinite(result.losses))
+    assert all(torch.isfinite(v).all() for v in result.params.values())
+
+
+def test_outer_step_gets_the_mean_of_the_finite_task_gradients(monkeypatch):
+    """Eq. (outer): the optimiser is handed 1/B' sum of the B' finite tasks' meta-gradients.
+
+    Adam is replaced by a recording SGD (Adam's update is invariant to the gradient's scale, so
+    it would hide a wrong average); the steps are redone by hand with a Python loop over tasks.
+    """
+    given = []
+
+    class RecordingSgd(torch.optim.SGD):
+        def step(self, closure=None):
+            given.append(self.param_groups[0]['params'][0].grad.clone())
+            return super().step(closure)
+
+    monkeypatch.setattr(torch.optim, 'Adam', RecordingSgd)
+    model, source = _source(_poisoned(1))
+    config = _fast(method='imaml', batch_size=6, iterations=2, lr_outer=0.01)
+    result = meta_train(model, source, config)
+    objective = FlatObjective(model)
+    task_fn = task_gradient_fn(objective, config)
+    rng = np.random.default_rng(config.seed)
+    omega = objective.spec.flatten(init_params(TINY, config.seed))
+    for step in range(2):
+        tasks = rng.choice(len(source), size=6, replace=False)
+        train, test = source.sample(tasks, config.windows_per_task, rng)
+        outs = [task_fn(omega, train.u[b], train.y[b], test.u[b], test.y[b]) for b in range(6)]
+        finite = [o.grad for o in outs if torch.isfinite(o.test_loss) and o.grad.isfinite().all()]
+        assert len(finite) == 5
+        mean = torch.stack(finite).mean(dim=0)
+        assert float((given[step] - mean).norm()) <= 1e-4 * float(mean.norm())
+        omega = omega - 0.01 * mean
+    got = objective.spec.flatten(result.params)
+    assert float((got - omega).norm()) <= 1e-5 * float(omega.norm())
+
+
+def test_training_stops_naming_the_tasks_when_most_of_a_batch_keeps_failing():
+    model, source = _source(_poisoned(4))
+    with pytest.raises(MetaTrainingError) as err:
+        meta_train(model, source, _fast(batch_size=6, iterations=10, max_bad_steps=2))
+    message = str(err.value)
+    assert '2 consecutive steps (up to step 2)' in message
+    for i in range(4):
+        assert f'system {i}, theta={source.thetas[i]:.3f}' in message
+    assert 'system 5' not in message
+
+
+def test_progress_reports_every_outer_step():
+    reports = []
+    model, source = _source()
+    result = meta_train(model, source, _fast(iterations=4), progress=reports.append)
+    assert [r.iteration for r in reports] == [1, 2, 3, 4]
+    assert all(r.total == 4 and r.skipped == 0 for r in reports)
+    assert [r.loss for r in reports] == result.losses
+    assert all(np.isfinite(r.cg_residual) and 0 <= r.cg_residual < 1 for r in reports)
+    assert np.all(np.diff([r.elapsed for r in reports]) >= 0)
+    maml = []
+    meta_train(model, source, _fast(iterations=2, method='maml'), progress=maml.append)
+    assert all(np.isnan(r.cg_residual) for r in maml)
+
+
+def test_collector_receives_adapted_weights_and_growth_is_capped():
+    calls = []
+
+    def collector(task, theta, params):
+        calls.append((task, theta, {k: v.shape for k, v in params.items()}))
+        (traj,), _ = simulate_episodes([theta], SourceConfig(episode_samples=30), seed=len(calls))
+        return [] if traj is None else [traj]
+
+    model, source = _source(max_collected=100)
+    result = meta_train(model, source, _fast(iterations=3), collector=collector)
+    assert len(calls) == 3 * 4
+    assert all(shapes == {k: v.shape for k, v in model.params().items()}
+               for _, _, shapes in calls)
+    assert all(theta == source.thetas[task] for task, theta, _ in calls)
+    assert result.collected_samples == source.collected_samples <= 100
+    assert result.collected_samples + result.dropped_samples == 30 * len(calls)
+    assert result.dropped_samples > 0
+
+
+def test_config_validation():
+    for bad in (dict(method='reptile'), dict(curvature='fisher'), dict(gamma=0.0),
+                dict(batch_size=0), dict(lr_outer=0.0)):
+        with pytest.raises(ValueError):
+            MetaConfig(**bad).validate()
+    MetaConfig(method='maml', gamma=0.0).validate()
+
+
+def test_source_set_without_usable_tasks_is_refused():
+    data = SourceData(np.array([0.1]), [[]], escaped=1)
+    with pytest.raises(ValueError, match='no source system'):
+        SourceSet(data, normalisation_from(simulate_source(SRC).trajectories[0]), TINY)
