@@ -1,16 +1,248 @@
-"""The controller node (skeleton: starts, logs and spins).
+"""The `controller` node: a thin ROS 2 adapter over controller_core (DESIGN.md, section 3).
 
-The node issue fills it in over the cores of this package.
+Interfaces (relative names, so a namespace can wrap them):
+
+* ``y`` (PlantOutput, subscribed, reliable): plant samples; y_k with the input u_k held over
+  (k-1, k] that produced it.
+* ``nssm_weights`` (NssmWeights, subscribed, reliable + transient_local, depth 1: latched;
+  planner 'latent_mpc' only): each message is checked and its predictor + QP built on a
+  worker thread, in arrival order, then used from the next tick on; invalid weights are rejected
+  with one log line and ``model_status = 'rejected: <reason>'``, the previous model stays.
+* ``plant_info`` (PlantInfo, subscribed, latched): sample time dt (reference times, the
+  excitation), theta (planner 'nmpc'), bounds and clock mode (checked, warnings only).
+* ``reference`` (std_msgs/Float64MultiArray, subscribed, optional): one set-point per output
+  that replaces the configured reference from the next tick on, until the next message; an
+  empty array returns to the configured reference.
+* ``u`` (ControlInput, published, reliable): the input computed from y_k, with ``step = k``,
+  held over (k, k+1], stamped with y_k's stamp, and the NSSM version that produced it.
+* ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it.
+* ``set_active`` (std_srvs/SetBool): inactive, nothing is published (a lockstep plant waits);
+  activation answers the newest unanswered y at once. The answer ends with
+  ``model version V``: the model of the next tick (0: none).
+
+Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
+plant, rate_hz = 1/dt). Each y is answered exactly once (controller_core.AnswerRule): a tick
+answers the newest unanswered y; without one the tick waits for the next y and runs in its
+callback (rclpy takes /clock best effort with depth 1, on another topic than y, so y_k need
+not be there when the tick of time k dt fires). Reference time is ``step * dt``: each plant
+episode replays the reference from its start.
+
+Parameters, defaults and ranges: :data:`metampc_controller.controller_params.PARAMETERS`.
+A bad value ends the node with one error line and exit status 2. The counts of the run are
+logged when the node stops.
 """
-from metampc_plant.node_main import run_node
+from array import array
+from concurrent.futures import ThreadPoolExecutor
+import math
+import sys
+import time
+from typing import Dict
+
+from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
+from metampc_plant.node_main import declare_parameters, run_node
+import numpy as np
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool
+
+from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
+                                                PlantDescription, TickResult)
+from metampc_controller.controller_params import PARAMETERS, parse_params
+from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
+
+# As the plant's y: deep enough that a recorder a few hundred samples behind loses nothing.
+STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+WARN_PERIOD_S = 1.0     # at most one warning of each kind per this wall time
+COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y')
+
+
+def _doubles(values: np.ndarray) -> array:
+    """A float64 array field value without a per-element conversion."""
+    out = array('d')
+    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return out
 
 
 class ControllerNode(Node):
+    """ROS 2 front end of one :class:`ControllerCore` (see the module docstring)."""
+
     def __init__(self):
         super().__init__('controller')
-        self.get_logger().info('controller node up (skeleton)')
+        self.cfg = parse_params(declare_parameters(self, PARAMETERS))
+        self.core = ControllerCore(self.cfg)
+        self.rule = AnswerRule(self.cfg.active)
+        self._counts: Dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._last_warn: Dict[str, float] = {}
+        self._plant_warnings = set()
+        self._stamp = None              # stamp of the newest y
+        self._u_msg = ControlInput()
+        # Every callback runs on the one executor thread (the core's tick state needs no
+        # lock); building a model (OSQP set-up, the DARE: ~10-100 ms) runs on a worker thread
+        # and is handed over as one reference. A MultiThreadedExecutor with the weights in a
+        # group of their own measured ~1.6x the CPU per sample and fell behind its y queue at
+        # 100 Hz on a loaded 2-core machine (docs/controller.md).
+        self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix='model_builder')
+        self._pub_u = self.create_publisher(ControlInput, 'u', STREAM_QOS)
+        self._pub_status = self.create_publisher(MpcStatus, 'mpc_status', STREAM_QOS)
+        self.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS)
+        self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED_QOS)
+        self.create_subscription(Float64MultiArray, 'reference', self._on_reference,
+                                 COMMAND_QOS)
+        if self.cfg.planner == 'latent_mpc':
+            self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED_QOS)
+        self.create_service(SetBool, 'set_active', self._on_set_active)
+        self.create_timer(1.0 / self.cfg.rate_hz, self._on_timer)
+        mpc = self.cfg.mpc
+        self.get_logger().info(
+            f'{self.cfg.planner} controller at {self.cfg.rate_hz} Hz: N={mpc.horizon}, '
+            f'q={list(mpc.q)}, r={mpc.r}, u in [{mpc.u_min}, {mpc.u_max}], reference '
+            f'{self.cfg.reference_kind}, pre-model input {self.cfg.pre_model_input}'
+            + ('' if self.cfg.active else '; inactive until set_active'))
+
+    def _warn(self, counter: str, text: str) -> None:
+        """Count an event and warn about it, at most once per WARN_PERIOD_S for each kind."""
+        self._counts[counter] += 1
+        now = time.monotonic()
+        if now - self._last_warn.get(counter, -math.inf) >= WARN_PERIOD_S:
+            self._last_warn[counter] = now
+            self.get_logger().warning(f'{text} ({self._counts[counter]} {counter} so far)')
+
+    # --- ticks ----------------------------------------------------------------------------
+
+    def _on_y(self, msg: PlantOutput) -> None:
+        start = time.perf_counter()
+        core = self.core
+        if (len(msg.y) != core.n_y or len(msg.u_applied) != core.n_u
+                or not (np.all(np.isfinite(msg.y)) and np.all(np.isfinite(msg.u_applied)))):
+            self._warn('ignored_y', f'ignored y of step {msg.step}: expected {core.n_y} '
+                       f'finite outputs and {core.n_u} input, got {list(msg.y)}, '
+                       f'{list(msg.u_applied)}')
+            return
+        core.observe(msg.step, msg.u_applied, msg.y)
+        self._stamp = msg.header.stamp
+        if self.rule.on_sample():
+            self._answer(start)
+
+    def _on_timer(self) -> None:
+        if self.rule.on_tick():
+            self._answer(time.perf_counter())
+
+    def _answer(self, start: float) -> None:
+        """Publish the input answering the newest y, then its MpcStatus."""
+        res = self.core.tick()
+        msg = self._u_msg
+        msg.header.stamp = self._stamp
+        msg.step = res.step
+        msg.u = _doubles(res.u)
+        msg.model_version = res.model_version
+        self._pub_u.publish(msg)
+        self.rule.answered()
+        tick_time = time.perf_counter() - start
+        self._publish_status(res, tick_time)
+        self._counts['answered'] += 1
+        self._counts['pre_model'] += res.iterations < 0
+        self._counts['fallbacks'] += res.fallback
+
+    def _publish_status(self, res: TickResult, tick_time: float) -> None:
+        status = MpcStatus(
+            step=res.step, cost=res.cost, solve_time=res.solve_time, tick_time=tick_time,
+            solver_status=res.solver_status, iterations=res.iterations, fallback=res.fallback,
+            terminal_fallback=res.terminal_fallback, model_version=res.model_version,
+            planner=res.planner, model_status=res.model_status, u_plan=_doubles(res.u_plan),
+            y_pred=_doubles(res.y_pred), y_ref=_doubles(res.y_ref))
+        status.header.stamp = self._stamp
+        self._pub_status.publish(status)
+
+    def _on_set_active(self, request: SetBool.Request, response: SetBool.Response
+                       ) -> SetBool.Response:
+        answer_now = self.rule.set_active(request.data)
+        response.success = True
+        response.message = 'active' if request.data else 'inactive: publishing nothing'
+        if answer_now:
+            self._answer(time.perf_counter())
+            response.message += f', answered step {self.core.history.step}'
+        # The orchestrator reads the version to know the model for the next tick is ready.
+        model = self.core.model
+        response.message += f'; model version {model.version if model is not None else 0}'
+        self.get_logger().info(f'set_active: {response.message}')
+        return response
+
+    # --- configuration from other nodes ---------------------------------------------------
+
+    def _on_plant_info(self, msg: PlantInfo) -> None:
+        if not (math.isfinite(msg.theta) and msg.dt > 0 and math.isfinite(msg.dt)):
+            self.get_logger().warning(f'ignored plant_info with theta={msg.theta}, dt={msg.dt}')
+            return
+        warnings = self.core.set_plant(PlantDescription(
+            theta=msg.theta, dt=msg.dt, u_min=msg.u_min, u_max=msg.u_max,
+            lockstep=msg.clock_mode == 'lockstep'))
+        for text in set(warnings) - self._plant_warnings:  # once each, not at every reset
+            self.get_logger().warning(text)
+        self._plant_warnings.update(warnings)
+
+    def _on_reference(self, msg: Float64MultiArray) -> None:
+        error = self.core.set_override(msg.data)
+        if error:
+            self.get_logger().warning(f'ignored reference message: {error}')
+        else:
+            self.get_logger().info(f'reference override: {list(msg.data)}' if len(msg.data)
+                                   else f'reference: back to {self.cfg.reference_kind}')
+
+    def _on_weights(self, msg: NssmWeights) -> None:
+        """Hand the weights to the builder thread (arrival order is kept)."""
+        self._builder.submit(self._build, msg)
+
+    def _build(self, msg: NssmWeights) -> None:
+        """Check and build a model on the builder thread; the next tick uses it."""
+        core = self.core
+        try:
+            bundle = build_model(weights_from_fields(fields_of(msg)), msg.version, msg.method,
+                                 msg.stage, self.cfg.mpc, core.n_u, core.n_y,
+                                 self.cfg.history)
+        except WeightsError as err:
+            self._reject(msg, str(err))
+            return
+        except Exception as err:    # a bug, not bad weights: say so, never lose it silently
+            self._reject(msg, f'{type(err).__name__}: {err}')
+            return
+        core.offer_model(bundle)
+        self._counts['models'] += 1
+        term = bundle.mpc.terminal
+        cfg = bundle.predictor.config
+        self.get_logger().info(
+            f'model version {msg.version} ({msg.method}, {msg.stage}; H={cfg.history}, '
+            f'n_z={cfg.n_z}, encoder {list(cfg.hidden)}) in use from the next tick'
+            + (f'; terminal cost fallback: {term.reason}' if term.fallback else ''))
+
+    def _reject(self, msg: NssmWeights, reason: str) -> None:
+        """Keep the model in use; report the reason in model_status and one log line."""
+        core = self.core
+        core.reject_model(reason)
+        self._counts['rejected_weights'] += 1
+        kept = core.model.version if core.model is not None else 'none'
+        self.get_logger().error(f'rejected weights version {msg.version} ({msg.method}, '
+                                f'{msg.stage}): {reason}; model in use: {kept}')
+
+    def destroy_node(self) -> None:
+        """Destroy the node, then log what was counted over the run."""
+        self._builder.shutdown(wait=False, cancel_futures=True)
+        super().destroy_node()
+        # After destruction on purpose, as the plant does: works after a SIGINT too.
+        step = self.core.history.step
+        self.get_logger().info(
+            ('stopped before any sample: ' if step is None else f'stopped at step {step}: ')
+            + ', '.join(f'{n} {name}' for name, n in self._counts.items()))
 
 
 def main(args=None) -> int:
+    """`ros2 run metampc_controller controller [--ros-args -p name:=value ...]`."""
     return run_node(ControllerNode, 'controller', args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -245,8 +245,13 @@ class LatentMpc:
             self.set_model(self._problem.model)
 
     def reset(self) -> None:
-        """Forget the previous plan (the next fallback holds u_t)."""
+        """Start cold, as on a freshly set-up model: forget the previous plan (the next
+        fallback holds u_t) and OSQP's iterates and adapted rho, so that the next solves
+        depend on their own data only (a new plant episode replays exactly)."""
         self._plan = None
+        pb = self._problem
+        if pb is not None:
+            pb.solver = _setup_solver(pb.P, pb.A, pb.lo, pb.hi, self._config)
 
     def set_model(self, model: LatentModel) -> None:
         """Build the condensed QP and the terminal cost for a model (once per model)."""
@@ -264,10 +269,7 @@ class LatentMpc:
         hess = sp.csc_matrix(np.triu(2.0 * L.T @ L))
         eye = sp.identity(n, format='csc')
         lo, hi = np.tile(u_min, N), np.tile(u_max, N)
-        solver = osqp.OSQP()
-        # q = 0 at set-up: OSQP scales the cost once from (P, q), so the scaling stays
-        # independent of the first tick's data.
-        solver.setup(P=hess, q=np.zeros(n), A=eye, l=lo, u=hi, **cfg.osqp_settings())
+        solver = _setup_solver(hess, eye, lo, hi, cfg)
         self._problem = _Problem(model=model, terminal=term, solver=solver, P=hess, A=eye, L=L,
                                  Gw=np.vstack([-2.0 * L.T @ G, y_w, G]), Yu=y_u, lo=lo, hi=hi)
         # The plan's size changes only with n_u, and then it says nothing about the new inputs.
@@ -338,6 +340,15 @@ class LatentMpc:
         pb = self._problem
         return QpSnapshot(P=pb.P, q=pb.views[3].copy(), A=pb.A, l=pb.lo, u=pb.hi,
                           x_warm=None if self._x_warm is None else self._x_warm.copy())
+
+
+def _setup_solver(P: sp.csc_matrix, A: sp.csc_matrix, lo: np.ndarray, hi: np.ndarray,
+                  config: MpcConfig) -> osqp.OSQP:
+    """A new OSQP instance of the condensed QP. q = 0 at set-up: OSQP scales the cost once from
+    (P, q), so the scaling stays independent of the first tick's data."""
+    solver = osqp.OSQP()
+    solver.setup(P=P, q=np.zeros(P.shape[0]), A=A, l=lo, u=hi, **config.osqp_settings())
+    return solver
 
 
 def _shift(v: np.ndarray, n_u: int) -> np.ndarray:

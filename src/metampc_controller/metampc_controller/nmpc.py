@@ -75,6 +75,10 @@ class Nmpc:
         self.q = np.asarray(config.q, dtype=float).reshape(N_Y)
         self._plan: Optional[np.ndarray] = None
 
+    def reset(self) -> None:
+        """Forget the previous plan: the next solve starts from u_prev held (a new episode)."""
+        self._plan = None
+
     def rollout(self, x0: np.ndarray, plans: np.ndarray) -> np.ndarray:
         """Outputs y_{t+1..t+N} for a batch of input plans (P, N); returns (P, N, n_y)."""
         cfg = self.config

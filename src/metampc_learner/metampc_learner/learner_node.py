@@ -1,16 +1,286 @@
-"""The learner node (skeleton: starts, logs and spins).
+"""The `learner` node: a thin ROS 2 adapter over LearnerSession (DESIGN.md, section 3).
 
-The node issue fills it in over the cores of this package.
+Interfaces (relative names, so a namespace can wrap them):
+
+* ``y`` (PlantOutput, subscribed, reliable, depth 100): target samples (step k, u_applied =
+  u_k, y_k) go to D_target (:class:`TargetBuffer`): the first ``target_buffer_size`` valid
+  samples after buffering (re)starts (at start-up if ``buffer_on_start``).
+* ``plant_info`` (PlantInfo, subscribed, latched): theta, dt and bounds of the target plant,
+  for the ``oracle`` adaptation and the dt check.
+* ``set_buffering`` (std_srvs/SetBool): true clears D_target and (re)starts buffering, false
+  stops it and keeps the samples; the answer says how many samples were cleared or kept.
+* ``meta_train`` (MetaTrain): Algorithm 1 on simulated source systems (``learner_session``);
+  answers when done with the version, the loss curve and the final loss; publishes the
+  meta-model on ``nssm_weights`` (stage 'meta').
+* ``adapt`` (Adapt): eq. (infer) from a meta-model on D_target, or the 'supervised' / 'oracle'
+  baselines; answers with the held-out loss curve; publishes the model (stage 'adapted').
+* ``nssm_weights`` (NssmWeights, published, reliable + transient_local, depth 1: latched): every
+  model the learner makes (and the meta-model of ``meta_model_path`` at start-up), encoded by
+  ``metampc_controller.weights_codec.fields_from_weights``, versions increasing.
+* ``progress`` (TrainingProgress, published, reliable, depth 10): once when a job starts, every
+  ``progress_period`` s of wall time while it runs (the latest step), and once when it ends
+  (phase 'done' or 'failed').
+
+Threads: a MultiThreadedExecutor. The two training services share a reentrant callback group
+and train inside their callback; a second request is served by another thread and answered
+'busy' at once (:class:`JobSlot`). ``y``, ``plant_info`` and ``set_buffering`` have a group of
+their own and the progress heartbeat (steady clock) another, so buffering and answers go on
+while a job trains. Requests that cannot be carried out (busy, bad arguments, no meta-model,
+too few samples) get success=false and a message saying what is missing; they are logged.
+
+Parameters, defaults and ranges: :data:`metampc_learner.learner_params.PARAMETERS`. A bad value
+(or an unreadable ``meta_model_path``) ends the node with one error line and exit status 2.
+On shutdown a running job is cancelled at its next step.
 """
-from metampc_plant.node_main import run_node
+import sys
+import threading
+import traceback
+from typing import Optional
+
+from metampc_msgs.msg import NssmWeights, PlantInfo, PlantOutput, TrainingProgress
+from metampc_msgs.srv import Adapt, MetaTrain
+from metampc_plant.node_main import declare_parameters, run_node
+from metampc_plant.node_params import ParameterError
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
+from std_srvs.srv import SetBool
+import torch
+
+from metampc_controller.weights_codec import fields_from_weights
+from metampc_learner.job_slot import JobCancelled, JobSlot, JobStatus
+from metampc_learner.learner_params import (parse_params, PARAMETERS, resolve_adapt_request,
+                                            resolve_meta_request)
+from metampc_learner.learner_session import (LearnerError, LearnerSession, ModelRecord,
+                                             PlantFacts)
+from metampc_learner.meta_train import MetaTrainingError
+from metampc_learner.target_buffer import TargetBuffer
+
+# As the plant's y: reliable, deep enough that no sample of a fast lockstep run is lost.
+STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+PROGRESS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# One thread trains, one answers a second request 'busy', one buffers y, one beats progress.
+EXECUTOR_THREADS = 4
+# Longest wait at shutdown for a running job to reach its next step and stop, s.
+CANCEL_TIMEOUT_S = 10.0
+# Errors of a request that cannot be carried out (the others are bugs: logged with traceback).
+REQUEST_ERRORS = (LearnerError, MetaTrainingError, ValueError)
 
 
 class LearnerNode(Node):
+    """ROS 2 front end of one :class:`LearnerSession` (see the module docstring)."""
+
     def __init__(self):
         super().__init__('learner')
-        self.get_logger().info('learner node up (skeleton)')
+        self.cfg = parse_params(declare_parameters(self, PARAMETERS))
+        torch.set_num_threads(self.cfg.torch_threads)
+        self.session = LearnerSession(self.cfg)
+        self.buffer = TargetBuffer(self.cfg.target_buffer_size)
+        if not self.cfg.buffer_on_start:
+            self.buffer.freeze()
+        self._plant: Optional[PlantFacts] = None
+        self._slot = JobSlot()
+        self._progress_lock = threading.Lock()
+
+        self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED_QOS)
+        self._pub_progress = self.create_publisher(TrainingProgress, 'progress', PROGRESS_QOS)
+        data = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS, callback_group=data)
+        self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED_QOS,
+                                 callback_group=data)
+        self.create_service(SetBool, 'set_buffering', self._on_set_buffering,
+                            callback_group=data)
+        jobs = ReentrantCallbackGroup()
+        self.create_service(MetaTrain, 'meta_train', self._on_meta_train, callback_group=jobs)
+        self.create_service(Adapt, 'adapt', self._on_adapt, callback_group=jobs)
+        self.create_timer(self.cfg.progress_period, self._on_heartbeat,
+                          callback_group=MutuallyExclusiveCallbackGroup(),
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+        if self.cfg.meta_model_path:
+            try:
+                record = self.session.load_meta(self.cfg.meta_model_path)
+            except LearnerError as err:
+                raise ParameterError(f'meta_model_path: {err}') from None
+            self._publish_weights(record)
+            self.get_logger().info(f'loaded {record.method} meta-model '
+                                   f'{self.cfg.meta_model_path!r}: published as v{record.version}')
+        nssm, src = self.cfg.nssm, self.cfg.source
+        self.get_logger().info(
+            f'learner up: NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.horizon}, encoder '
+            f'{list(nssm.hidden)}; {src.n_systems} source systems; D_target of '
+            f'{self.buffer.capacity} samples, buffering '
+            + ('on' if self.buffer.enabled else 'off until set_buffering true'))
+
+    # --- data -----------------------------------------------------------------------------
+
+    def _on_y(self, msg: PlantOutput) -> None:
+        if self.buffer.add(msg.step, msg.u_applied, msg.y, msg.diverged) and self.buffer.full:
+            self.get_logger().info(f'D_target full: {len(self.buffer)} samples '
+                                   f'({self.buffer.skipped} skipped)')
+
+    def _on_plant_info(self, msg: PlantInfo) -> None:
+        self._plant = PlantFacts(theta=msg.theta, dt=msg.dt, substeps=msg.substeps,
+                                 u_min=msg.u_min, u_max=msg.u_max, state_bound=msg.state_bound)
+
+    def _on_set_buffering(self, request: SetBool.Request, response: SetBool.Response
+                          ) -> SetBool.Response:
+        if request.data:
+            cleared = self.buffer.start()
+            response.message = (f'buffering (re)started: {cleared} samples cleared, keeping '
+                                f'the next {self.buffer.capacity} valid samples')
+        else:
+            self.buffer.freeze()
+            response.message = (f'buffering stopped: {len(self.buffer)} samples kept '
+                                f'({self.buffer.skipped} skipped)')
+        response.success = True
+        self.get_logger().info(response.message)
+        return response
+
+    # --- publication ----------------------------------------------------------------------
+
+    def _publish_weights(self, record: ModelRecord) -> None:
+        model = record.model
+        msg = NssmWeights(version=record.version, method=record.method, stage=record.stage,
+                          train_loss=float(record.train_loss), train_steps=record.train_steps,
+                          train_samples=record.train_samples, seed=record.seed,
+                          **fields_from_weights(model.config, model.norm, record.params))
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub_weights.publish(msg)
+
+    def _publish_progress(self, status: JobStatus) -> None:
+        p = status.progress
+        msg = TrainingProgress(phase=status.phase, method=status.method, iteration=p.iteration,
+                               total=p.total, loss=float(p.loss), elapsed=float(p.elapsed),
+                               skipped_tasks=p.skipped, cg_residual=float(p.cg_residual))
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub_progress.publish(msg)
+
+    def _on_heartbeat(self) -> None:
+        with self._progress_lock:
+            status = self._slot.current()
+            if status is not None:
+                self._publish_progress(status)
+
+    # --- jobs -----------------------------------------------------------------------------
+
+    def _refuse(self, response, message: str):
+        response.success, response.message = False, message
+        self.get_logger().warning(message)
+        return response
+
+    async def _run(self, response, phase: str, method: str, total: int, train):
+        """Run train() as the claimed job; fill response.success/message, return the outcome.
+
+        train() returns (outcome, record, message) or raises one of REQUEST_ERRORS. The job
+        runs synchronously in the calling executor thread (no await on the way). A job
+        cancelled by destroy_node is never answered: the node and its services are being
+        destroyed, and rclpy (Jazzy) has no deferred response, so the callback awaits a
+        future that never completes instead of returning a response to a destroyed service.
+        """
+        with self._progress_lock:
+            self._publish_progress(self._slot.describe(phase, method, total))
+        outcome = None
+        try:
+            outcome, record, message = train()
+        except JobCancelled:
+            self._slot.release(False)
+            await Future()
+        except REQUEST_ERRORS as err:
+            response.success, response.message = False, f'{phase} failed: {err}'
+            self.get_logger().warning(response.message)
+        except Exception as err:  # a bug: say so, keep serving
+            response.success, response.message = False, f'{phase} failed: internal error {err!r}'
+            self.get_logger().error(response.message + '\n' + traceback.format_exc())
+        else:
+            self._publish_weights(record)
+            response.success, response.message = True, message
+            self.get_logger().info(message)
+        with self._progress_lock:
+            final = self._slot.release(outcome is not None)
+            if final is not None:
+                self._publish_progress(final)
+        return outcome
+
+    async def _on_meta_train(self, request: MetaTrain.Request, response: MetaTrain.Response
+                             ) -> MetaTrain.Response:
+        if not self._slot.claim():
+            return self._refuse(response, self._slot.busy_reason())
+        try:
+            config, online = resolve_meta_request(request, self.cfg.meta,
+                                                  self.cfg.online_collection)
+        except ValueError as err:
+            self._slot.release(False)
+            return self._refuse(response, f'meta_train: bad request: {err}')
+
+        def train():
+            out = self.session.meta_train(config, online, self._slot.report)
+            rec = out.record
+            text = (f'{rec.method} meta-model v{rec.version}: {config.iterations} outer steps '
+                    f'(B={config.batch_size}, M={config.inner_steps}, seed {config.seed}) in '
+                    f'{out.elapsed:.1f} s, final meta-test loss {out.final_loss:.4g}, '
+                    f'{out.skipped} tasks skipped')
+            if out.collection is not None:
+                c = out.collection
+                text += (f'; online collection: {c.samples} samples in {c.episodes} episodes '
+                         f'({c.escaped} escaped, {c.model_failures} unusable models), '
+                         f'{out.collected_samples} kept, {out.dropped_samples} dropped by the cap')
+            return out, rec, text
+
+        outcome = await self._run(response, 'meta_train', config.method, config.iterations, train)
+        if outcome is not None:
+            response.model_version = outcome.record.version
+            response.final_loss = float(outcome.final_loss)
+            response.loss_curve = [float(v) for v in outcome.losses]
+        return response
+
+    async def _on_adapt(self, request: Adapt.Request, response: Adapt.Response
+                        ) -> Adapt.Response:
+        if not self._slot.claim():
+            return self._refuse(response, self._slot.busy_reason())
+        try:
+            job = resolve_adapt_request(request, self.cfg.adapt, self.cfg.oracle)
+        except ValueError as err:
+            self._slot.release(False)
+            return self._refuse(response, f'adapt: bad request: {err}')
+
+        def train():
+            out = self.session.adapt(job, self.buffer.snapshot(), self._plant, self._slot.report)
+            rec, curve = out.record, out.result.heldout_loss
+            source = ('samples of simulated target episodes' if rec.method == 'oracle'
+                      else 'buffered target samples')
+            text = (f'{rec.method} model v{rec.version} (stage adapted): {job.steps} steps on '
+                    f'{out.train_samples} {source} in {out.result.elapsed:.1f} s, held-out loss '
+                    f'{curve[0]:.4g} -> {curve[-1]:.4g} on {out.heldout_samples} samples')
+            return out, rec, text
+
+        outcome = await self._run(response, 'adapt', job.method or self.session.latest_meta,
+                                  job.steps, train)
+        if outcome is not None:
+            curve = [float(v) for v in outcome.result.heldout_loss]
+            response.model_version = outcome.record.version
+            response.loss_before, response.loss_after = curve[0], curve[-1]
+            response.loss_curve = curve
+        return response
+
+    def destroy_node(self) -> None:
+        """Cancel a running job, wait for it to stop at its next step, destroy the node."""
+        if not self._slot.cancel(CANCEL_TIMEOUT_S):
+            self.get_logger().warning(f'the running job did not stop within {CANCEL_TIMEOUT_S} s')
+        super().destroy_node()
 
 
 def main(args=None) -> int:
-    return run_node(LearnerNode, 'learner', args)
+    """`ros2 run metampc_learner learner [--ros-args -p name:=value ...]`; the exit code."""
+    return run_node(LearnerNode, 'learner', args,
+                    executor=lambda: MultiThreadedExecutor(num_threads=EXECUTOR_THREADS))
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -4,6 +4,8 @@
 `ros2 run` expects: a bad argument or parameter is one error line and exit status 2, not a
 traceback, and Ctrl-C is exit status 0 even when it lands while a callback is publishing.
 """
+import signal
+import threading
 from typing import Callable, Dict, Mapping, Optional, Sequence
 
 from metampc_plant.node_params import ParameterError, ParamSpec, Value
@@ -24,9 +26,25 @@ def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, 
     return {name: node.get_parameter(name).value for name in table}
 
 
+class _SigintSeen:
+    """Python's part of SIGINT under :func:`run_node`: only note it (no KeyboardInterrupt)."""
+
+    def __init__(self):
+        self.seen = False
+
+    def __call__(self, signum, frame) -> None:
+        self.seen = True
+
+
 def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[str]] = None,
              executor: Optional[Callable[[], Executor]] = None) -> int:
     """Init rclpy, build the node, spin it until Ctrl-C or shutdown; return the exit code.
+
+    Ctrl-C: rclpy's signal handler (installed by rclpy.init) shuts the context down and wakes
+    the executor, which then returns. Python's KeyboardInterrupt on top of that would land
+    anywhere in the main thread, e.g. inside rclpy's Task.__init__, whose half-built object then
+    prints a traceback when it is collected; so the Python-level handler that rclpy chains to
+    only notes the signal (also one that arrives before rclpy.init: the node then exits at once).
 
     Args:
         make_node: builds the node (may raise ParameterError).
@@ -34,6 +52,9 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
         executor: factory of the executor to spin in (default: rclpy.spin's).
     """
     logger = rclpy.logging.get_logger(name)
+    sigint = _SigintSeen()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, sigint)
     try:
         rclpy.init(args=args)
     except _rclpy.RCLError as err:  # e.g. `-p x0:=[1, 0.5]`: YAML lists must be of one type
@@ -41,6 +62,9 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
         why = str(err).split(', at ')[0].replace('failed to initialize rcl: ', '')
         logger.error(f'invalid arguments: {why}')
         return 2
+    if sigint.seen:
+        rclpy.try_shutdown()
+        return 0
     node = None
     try:
         node = make_node()

@@ -1,0 +1,262 @@
+#!/usr/bin/env python3
+"""Latency of the controller's tick, y in -> u out; prints ONE JSON line.
+
+Model: the default NSSM size (encoder 128-128, n_z = 5, H = 10) with the hand-built weights of
+metampc_controller.manual_model (the plant linearised at its theta; a dense matrix product
+costs the same whatever the values), latent MPC with N = 20 on the paper's set-point task,
+|u| <= 1, van der Pol plant core in the loop, dt = 0.1 s, one plant reset per 300 samples
+(the 30 s task). Each run of `ticks` answered samples starts after the model is in use.
+
+core: the controller node object in this process, its callbacks called directly (no spinning,
+no other process): the timer tick, then PlantOutput y_k in -> ControlInput u_k published, then
+MpcStatus published. tick_*: y in -> u out (input checks, history update, encoder, QP (OSQP),
+message conversion, publishing u), as the node measures it for MpcStatus.tick_time;
+callback_*: the whole y callback, MpcStatus included; callback_cpu_p99_us: its thread CPU
+time (excludes preemption by other processes); solve_*: the MPC solve alone.
+
+ros: the same node as its own process (`ros2 run metampc_controller controller`, sim time),
+with this script as the lockstep plant: y_k and /clock out, wait for u_k, step the plant core,
+next y. round_trip_*: publish of y_k to receipt of u_k (two DDS hops plus the tick);
+node_tick_*: the tick time the node reports in MpcStatus for the same steps.
+
+The processes run in a ROS domain of their own (metampc_bringup.domain) and are stopped
+before the script returns. Wall-clock times include preemption by other processes: see the
+load average. Goal: core tick p99 <= 2 ms (wall clock; the CPU time shows what preemption adds).
+
+Usage: python scripts/bench_controller.py [--ticks 2000] [--ros-ticks 1000] [--theta 0.5]
+"""
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+DT = 0.1
+EPISODE = 300       # samples per plant episode: the paper's 30 s task
+
+
+def percentiles(seconds, prefix: str) -> dict:
+    """p50, p99 and max of durations (s) in microseconds."""
+    us = np.asarray(seconds) * 1e6
+    return {f'{prefix}p50_us': round(float(np.percentile(us, 50)), 1),
+            f'{prefix}p99_us': round(float(np.percentile(us, 99)), 1),
+            f'{prefix}max_us': round(float(us.max()), 1)}
+
+
+def model_message(theta: float, version: int = 1):
+    """The default-size hand-built NSSM as an NssmWeights message."""
+    from metampc_msgs.msg import NssmWeights
+
+    from metampc_controller.manual_model import linearised_vdp_nssm
+    from metampc_controller.weights_codec import fields_from_weights
+    config, norm, params = linearised_vdp_nssm(theta, DT, history=10, n_z=5, hidden=(128, 128))
+    return NssmWeights(version=version, method='manual', stage='adapted',
+                       **fields_from_weights(config, norm, params))
+
+
+class PlantLoop:
+    """The plant core as the plant node runs it: y_k messages, a reset every EPISODE samples."""
+
+    def __init__(self, theta: float):
+        from metampc_plant.vanderpol import VdpConfig, VdpPlant
+        self.plant = VdpPlant(VdpConfig(theta=theta, dt=DT))
+        self.u = 0.0            # input held over (k-1, k]
+        self.y = self.plant.output()
+
+    def message(self, stamp_ns: int):
+        from builtin_interfaces.msg import Time
+        from metampc_msgs.msg import PlantOutput
+        msg = PlantOutput(step=self.plant.step_index, y=self.y.tolist(), u_applied=[self.u])
+        msg.header.stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+        return msg
+
+    def advance(self, u: float) -> None:
+        if self.plant.step_index + 1 >= EPISODE:
+            self.y, self.u = self.plant.reset(), 0.0
+        else:
+            self.u = self.plant.saturate(u)[0]
+            self.y = self.plant.step(self.u)
+
+
+def bench_core(ticks: int, theta: float) -> dict:
+    """Drive the node's callbacks in-process (see the module docstring)."""
+    import rclpy
+    from metampc_msgs.msg import ControlInput, MpcStatus
+    from rclpy.executors import SingleThreadedExecutor
+
+    from metampc_controller.controller_node import ControllerNode
+    rclpy.init()
+    rclpy.logging.set_logger_level('controller', rclpy.logging.LoggingSeverity.WARN)
+    node = ControllerNode()
+    # A listener in this process takes the published messages, so publishing serialises and
+    # delivers as in a run; it is spun between ticks, outside the timed calls.
+    listener = rclpy.create_node('bench_listener')
+    got_u, got_status = [], []
+    listener.create_subscription(ControlInput, 'u', got_u.append, 1000)
+    listener.create_subscription(MpcStatus, 'mpc_status', got_status.append, 1000)
+    spin = SingleThreadedExecutor()
+    spin.add_node(listener)
+
+    def spin_until(done, what: str, timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'no {what} within {timeout} s')
+            spin.spin_once(timeout_sec=0.01)
+
+    try:
+        spin_until(lambda: node._pub_u.get_subscription_count()
+                   and node._pub_status.get_subscription_count(), 'listener')
+        node._on_weights(model_message(theta))
+        if node.core.model is None:
+            raise RuntimeError(f'the benchmark model was rejected: {node.core.model_status}')
+        loop = PlantLoop(theta)
+        wall, cpu = [], []
+        for k in range(ticks + 50):            # 50 warm-up ticks
+            msg = loop.message(k * round(DT * 1e9))
+            node._on_timer()                   # the tick of time k dt finds no new y: pending
+            c0, t0 = time.thread_time(), time.perf_counter()
+            node._on_y(msg)                    # y_k in -> u_k and MpcStatus out
+            t1, c1 = time.perf_counter(), time.thread_time()
+            if k >= 50:
+                wall.append(t1 - t0)
+                cpu.append(c1 - c0)
+            loop.advance(node._u_msg.u[0])
+            spin_until(lambda: len(got_status) > k, f'status of tick {k}')
+        status = got_status[50:]
+        if len(status) != ticks or len(got_u) != ticks + 50:
+            raise RuntimeError(f'{len(got_u)} inputs, {len(got_status)} statuses for '
+                               f'{ticks + 50} ticks')
+        solver = [s for s in status if s.iterations >= 0]
+        return {
+            **percentiles([s.tick_time for s in status], 'tick_'),
+            **percentiles(wall, 'callback_'),
+            'callback_cpu_p99_us': round(float(np.percentile(cpu, 99)) * 1e6, 1),
+            **percentiles([s.solve_time for s in status], 'solve_'),
+            'iter_mean': round(float(np.mean([s.iterations for s in solver])), 2),
+            'fallbacks': sum(s.fallback for s in status),
+            'terminal_fallback': bool(status[-1].terminal_fallback),
+            'solver_statuses': sorted({s.solver_status for s in status}),
+        }
+    finally:
+        spin.shutdown()
+        listener.destroy_node()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
+    """The controller as a process, this script as its lockstep plant."""
+    import rclpy
+    from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    from metampc_bringup.processes import ProcessGroup
+    stream = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)   # as the plant's
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    dt_ns = round(DT * 1e9)
+    with tempfile.TemporaryDirectory(prefix='bench_controller_') as log_dir:
+        group = ProcessGroup(log_dir)
+        rclpy.init()
+        node = rclpy.create_node('bench_plant')
+        spin = SingleThreadedExecutor()
+        spin.add_node(node)
+        try:
+            ctl = group.start('metampc_controller', 'controller',
+                              params={'use_sim_time': True, 'rate_hz': 1.0 / DT})
+            pub_y = node.create_publisher(PlantOutput, 'y', stream)
+            pub_clock = node.create_publisher(Clock, '/clock', stream)
+            pub_weights = node.create_publisher(NssmWeights, 'nssm_weights', latched)
+            loop = PlantLoop(theta)
+            sent, rtt, status, state = {}, {}, {}, {'n': 0, 'version': 0}
+
+            def publish_y() -> None:
+                stamp = state['n'] * dt_ns
+                msg = loop.message(stamp)
+                sent[state['n']] = time.perf_counter()
+                pub_y.publish(msg)
+                clock = Clock()
+                clock.clock = msg.header.stamp
+                pub_clock.publish(clock)
+
+            def on_u(msg: ControlInput) -> None:
+                received = time.perf_counter()
+                n = state['n']
+                if msg.step != loop.plant.step_index:
+                    return
+                rtt[n] = (received - sent[n], msg.model_version)
+                state['n'] = n + 1
+                loop.advance(msg.u[0])
+                publish_y()
+
+            def on_status(msg: MpcStatus) -> None:
+                status[(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+                       // dt_ns] = msg
+
+            sub_u = node.create_subscription(ControlInput, 'u', on_u, stream)
+            sub_status = node.create_subscription(MpcStatus, 'mpc_status', on_status, stream)
+            deadline = time.monotonic() + timeout
+
+            def spin_until(done, what: str) -> None:
+                while not done():
+                    if time.monotonic() > deadline or ctl.poll() is not None:
+                        raise RuntimeError(f'no {what} within {timeout} s; controller log:\n'
+                                           + group.output(ctl))
+                    spin.spin_once(timeout_sec=0.1)
+
+            spin_until(lambda: (pub_y.get_subscription_count() and sub_u.get_publisher_count()
+                                and sub_status.get_publisher_count()), 'controller')
+            pub_weights.publish(model_message(theta))
+            publish_y()
+            spin_until(lambda: any(v == 1 for _, v in rtt.values()), 'model in use')
+            first = state['n'] + 50                 # 50 warm-up ticks with the model
+            spin_until(lambda: state['n'] >= first + ticks and all(
+                n in status for n in range(first, first + ticks)), f'{ticks} round trips')
+            steps = range(first, first + ticks)
+            return {**percentiles([rtt[n][0] for n in steps], 'round_trip_'),
+                    **percentiles([status[n].tick_time for n in steps], 'node_tick_'),
+                    'round_trips_per_s': round(ticks / sum(rtt[n][0] for n in steps), 1)}
+        finally:
+            spin.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown()
+            group.stop_all()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--ticks', type=int, default=2000, help='in-process ticks to time')
+    parser.add_argument('--ros-ticks', type=int, default=1000,
+                        help='round trips to time through ROS (0: skip)')
+    parser.add_argument('--theta', type=float, default=0.5, help='plant damping')
+    parser.add_argument('--timeout', type=float, default=180.0,
+                        help='give up on the ROS round trips after this many s')
+    args = parser.parse_args()
+    from metampc_bringup.domain import isolate
+    domain = isolate()
+    out = {'nssm': {'hidden': [128, 128], 'n_z': 5, 'history': 10}, 'horizon': 20,
+           'theta': args.theta, 'ticks': args.ticks, 'ros_ticks': args.ros_ticks,
+           'loadavg_1min_start': round(os.getloadavg()[0], 2)}
+    out['core'] = bench_core(args.ticks, args.theta)
+    if args.ros_ticks:
+        try:
+            out['ros'] = bench_ros(args.ros_ticks, args.theta, args.timeout)
+        except RuntimeError as err:
+            print(f'bench_controller (domain {domain}): {err}', file=sys.stderr)
+            return 1
+    out['loadavg_1min_end'] = round(os.getloadavg()[0], 2)
+    out['goals_met'] = {'core_tick_p99_le_2ms': out['core']['tick_p99_us'] <= 2000.0,
+                        'core_callback_cpu_p99_le_2ms':
+                            out['core']['callback_cpu_p99_us'] <= 2000.0}
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

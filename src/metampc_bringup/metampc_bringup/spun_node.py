@@ -1,0 +1,48 @@
+"""An rclpy node with a context of its own, spun in a background thread.
+
+The orchestrator's client and the tests' probe both are one: the calling thread stays free
+to wait on futures and conditions while callbacks run.
+"""
+import threading
+import time
+from typing import Callable, List
+
+import rclpy
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+
+
+class SpunNode:
+    """`self.node` spun in a daemon thread until :meth:`close`, by a SingleThreadedExecutor
+    (threads=1) or a MultiThreadedExecutor."""
+
+    def __init__(self, name: str, threads: int = 1):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = Node(name, context=self.context)
+        self.executor = (SingleThreadedExecutor(context=self.context) if threads == 1 else
+                         MultiThreadedExecutor(num_threads=threads, context=self.context))
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._thread.start()
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float, what: str,
+                 poll: float = 0.05) -> None:
+        """Poll `predicate` until true; AssertionError naming `what` after `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+            time.sleep(poll)
+
+    def node_names(self) -> List[str]:
+        return [n for n, _ in self.node.get_node_names_and_namespaces()]
+
+    def wait_for_node(self, name: str, timeout: float = 30.0) -> None:
+        self.wait_for(lambda: name in self.node_names(), timeout, f'node {name!r}')
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(timeout=5.0)

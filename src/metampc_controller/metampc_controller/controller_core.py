@@ -1,0 +1,384 @@
+"""What the `controller` node computes, without rclpy: history, answer rule, model, tick.
+
+Index convention (the plant's, the NSSM's and the MPC's): a plant sample of step k carries
+y_k and u_k, the input held over (k-1, k] that produced it. The tick that answers step k
+plans u_{k+1..k+N} from z_k = f_enc(u_{k-H+1..k}, y_{k-H+1..k}) (eq. z), the applied u_k and
+the references at the times (k + 1..k + N) dt since the plant's last reset; u_{k+1} is held
+over (k, k+1].
+
+Pieces, each testable alone:
+
+* :class:`History`: the last H pairs (u_k, y_k) of the current episode.
+* :class:`AnswerRule`: which tick answers which sample (each sample at most once).
+* :class:`PreModelInput`: the input before a model (zero or seeded excitation).
+* :func:`build_model`: checked weights -> NSSM predictor + latent MPC (outside the tick).
+* :class:`ControllerCore`: observe samples, tick -> :class:`TickResult`.
+"""
+from dataclasses import dataclass
+import math
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from metampc_plant.excitation import excitation, ExcitationConfig
+from metampc_plant.vanderpol import N_U
+
+from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
+from metampc_controller.mpc import LatentMpc, MpcConfig
+from metampc_controller.nmpc import Nmpc, NmpcConfig
+from metampc_controller.nssm import NssmPredictor
+from metampc_controller.references import make_reference
+from metampc_controller.weights_codec import DecodedWeights, WeightsError
+
+
+class History:
+    """The last pairs (u_k, y_k) of the current episode, read as the encoder's H rows.
+
+    A new episode starts when the step index does not follow the previous one (it went back:
+    the plant was reset; or it jumped: samples were missed, or the controller started
+    mid-run). Until an episode has H samples, the rows before its first sample repeat that
+    sample. That is exact when the episode starts at rest at an equilibrium held since long,
+    as the experiments do (x0 = [0, 0] with u = 0 is one for the van der Pol plant), and an
+    approximation otherwise.
+
+    Storage: each sample is written twice, at i and i + capacity of a 2 x capacity buffer, so
+    the newest H rows are always one contiguous slice (no copy per tick).
+    """
+
+    def __init__(self, capacity: int, n_u: int, n_y: int):
+        self.capacity = capacity
+        self._u = np.zeros((2 * capacity, n_u))
+        self._y = np.zeros((2 * capacity, n_y))
+        self._pos = 0
+        self.step: Optional[int] = None   # step index of the newest sample
+        self.length = 0                   # samples in the current episode
+
+    def append(self, step: int, u: Sequence[float], y: Sequence[float]) -> bool:
+        """Add sample (u_k, y_k) of step k; True if it starts a new episode."""
+        new_episode = self.step is None or step != self.step + 1
+        if new_episode:
+            self._u[:] = u
+            self._y[:] = y
+            self._pos, self.length = 0, 1
+        else:
+            self._pos = (self._pos + 1) % self.capacity
+            self.length += 1
+            for buf, value in ((self._u, u), (self._y, y)):
+                buf[self._pos] = value
+                buf[self._pos + self.capacity] = value
+        self.step = step
+        return new_episode
+
+    def window(self, h: int) -> Tuple[np.ndarray, np.ndarray]:
+        """(u (h, n_u), y (h, n_y)): the newest h samples, oldest first (read-only views)."""
+        if not 1 <= h <= self.capacity or self.step is None:
+            raise ValueError(f'window of {h} samples from a history of capacity '
+                             f'{self.capacity} with {self.length} samples')
+        end = self._pos + self.capacity + 1
+        return self._u[end - h:end], self._y[end - h:end]
+
+    @property
+    def u(self) -> np.ndarray:
+        """Newest applied input u_k (n_u,)."""
+        return self._u[self._pos]
+
+    @property
+    def y(self) -> np.ndarray:
+        """Newest output y_k (n_y,)."""
+        return self._y[self._pos]
+
+
+class AnswerRule:
+    """Which tick answers which plant sample, so that a lockstep run is deterministic.
+
+    Each sample is answered at most once: a timer tick answers the newest unanswered sample;
+    if there is none, the tick is pending and runs when the next sample arrives. The node
+    starts with a pending tick, so the first sample (y_0 at sim time 0, before the sim-time
+    timer's first period) is answered on arrival. Inactive: nothing is answered; activation
+    answers the newest unanswered sample at once, or the next one on arrival.
+    """
+
+    def __init__(self, active: bool = True):
+        self.active = active
+        self._unanswered = False
+        self._pending = active
+
+    def on_sample(self) -> bool:
+        """A sample arrived; True if it is to be answered now (a tick was pending)."""
+        self._unanswered = True
+        if self.active and self._pending:
+            self._pending = False
+            return True
+        return False
+
+    def on_tick(self) -> bool:
+        """The timer fired; True if the newest sample is to be answered now."""
+        if not self.active:
+            return False
+        if self._unanswered:
+            return True
+        self._pending = True
+        return False
+
+    def answered(self) -> None:
+        """The newest sample has been answered."""
+        self._unanswered = False
+
+    def set_active(self, active: bool) -> bool:
+        """Switch; True if activation answers the newest sample now."""
+        was_active, self.active = self.active, active
+        if not active:
+            self._pending = False
+            return False
+        if was_active:
+            return False
+        if self._unanswered:
+            return True
+        self._pending = True
+        return False
+
+
+class PreModelInput:
+    """The input before any model: 0 clipped into the bounds, or a seeded excitation.
+
+    The excitation value answering step k is sample k of a signal that restarts with every
+    plant reset (like the reference). It is generated in blocks of about BLOCK samples,
+    whole hold periods each, block b from the seed sequence (seed, b): any step is reproducible
+    without generating the ones before it.
+    """
+
+    BLOCK = 1000
+
+    def __init__(self, kind: str, config: ExcitationConfig, seed: int, u_min: float,
+                 u_max: float):
+        self.kind = kind
+        self.config = config
+        self.seed = seed
+        self._zero = min(max(0.0, u_min), u_max)
+        self._key: Optional[Tuple[int, float]] = None
+        self._block = np.zeros(0)
+
+    def value(self, step: int, dt: float) -> float:
+        """The input answering step `step` at sample time dt (s)."""
+        if self.kind == 'zero':
+            return self._zero
+        hold = max(1, int(round(self.config.hold_s / dt)))
+        length = hold * -(-self.BLOCK // hold)
+        block, index = divmod(step, length)
+        if self._key != (block, dt):
+            seed = int(np.random.SeedSequence([self.seed, block]).generate_state(1)[0])
+            self._block = excitation(self.config, 1, length, dt, seed)[0]
+            self._key = (block, dt)
+        return float(self._block[index])
+
+
+@dataclass
+class ModelBundle:
+    """A model ready for the tick: the NSSM predictor and the latent MPC built on it."""
+
+    version: int
+    method: str
+    stage: str
+    predictor: NssmPredictor
+    mpc: LatentMpc
+
+    @property
+    def history(self) -> int:
+        return self.predictor.config.history
+
+
+def build_model(decoded: DecodedWeights, version: int, method: str, stage: str,
+                mpc_config: MpcConfig, n_u: int, n_y: int, history: int = 0) -> ModelBundle:
+    """Check a decoded NSSM against the plant and the controller, then build predictor + QP.
+
+    Runs outside the tick (it sets up OSQP and solves the DARE). history: the H the weights
+    must have (0: any up to MAX_HISTORY).
+
+    Raises:
+        WeightsError: one-line reason (dimensions, history, or a model the MPC rejects).
+    """
+    cfg = decoded.config
+    if (cfg.n_u, cfg.n_y) != (n_u, n_y):
+        raise WeightsError(f'model has n_u = {cfg.n_u}, n_y = {cfg.n_y}; the plant has '
+                           f'{n_u} input(s), {n_y} output(s)')
+    if cfg.history > MAX_HISTORY or (history and cfg.history != history):
+        need = history or f'<= {MAX_HISTORY}'
+        raise WeightsError(f'history H = {cfg.history}, the controller needs {need}')
+    predictor = NssmPredictor(cfg, decoded.norm, decoded.params)
+    mpc = LatentMpc(mpc_config)
+    try:
+        mpc.set_model(predictor.latent)
+    except ValueError as err:
+        raise WeightsError(str(err)) from None
+    return ModelBundle(version, method, stage, predictor, mpc)
+
+
+@dataclass
+class TickResult:
+    """One answer: the input and what the MpcStatus message reports (units as there).
+
+    u: (n_u,) u_{k+1}, finite and within the bounds. u_plan (N, n_u), y_pred (N, n_y):
+    empty (0 rows) when nothing was planned. y_ref: (N, n_y) references of the horizon.
+    """
+
+    step: int
+    u: np.ndarray
+    model_version: int
+    planner: str
+    solver_status: str
+    model_status: str
+    cost: float
+    iterations: int
+    solve_time: float
+    fallback: bool
+    terminal_fallback: bool
+    u_plan: np.ndarray
+    y_pred: np.ndarray
+    y_ref: np.ndarray
+
+
+@dataclass
+class PlantDescription:
+    """What the controller uses of PlantInfo: damping theta, sample time dt (s), bounds."""
+
+    theta: float
+    dt: float
+    u_min: float
+    u_max: float
+    lockstep: bool
+
+
+class ControllerCore:
+    """The controller's state and tick, in physical units (module docstring).
+
+    Threading: everything runs in the node's tick callback group except :meth:`offer_model`
+    and :meth:`reject_model`, which the weights callback calls from another thread; they
+    replace one (model, status) tuple that a tick reads once, so a model is swapped in
+    between ticks and a tick never mixes two models.
+    """
+
+    def __init__(self, config: ControllerConfig):
+        self.config = config
+        self.n_u, self.n_y = N_U, config.n_y
+        self.history = History(MAX_HISTORY, self.n_u, self.n_y)
+        self.pre_model = PreModelInput(config.pre_model_input, config.excitation,
+                                       config.excitation_seed, config.mpc.u_min,
+                                       config.mpc.u_max)
+        self.reference = make_reference(config.reference_kind, **config.reference_params)
+        self.plant: Optional[PlantDescription] = None
+        self._override: Optional[np.ndarray] = None
+        self._nmpc: Optional[Nmpc] = None
+        self._model: Tuple[Optional[ModelBundle], str] = (None, 'none')
+        self._lo, self._hi = config.mpc.u_min, config.mpc.u_max
+
+    # --- inputs from other callbacks ----------------------------------------------------
+
+    @property
+    def model(self) -> Optional[ModelBundle]:
+        return self._model[0]
+
+    @property
+    def model_status(self) -> str:
+        return self._model[1]
+
+    def offer_model(self, bundle: ModelBundle) -> None:
+        """Use this model from the next tick on (any thread)."""
+        self._model = (bundle, 'ok')
+
+    def reject_model(self, reason: str) -> None:
+        """Report rejected weights; the previous model stays in use (any thread)."""
+        self._model = (self._model[0], f'rejected: {reason}')
+
+    @property
+    def dt(self) -> float:
+        """Sample time, s: the plant's, or 1 / rate_hz until plant_info has arrived."""
+        return self.plant.dt if self.plant is not None else 1.0 / self.config.rate_hz
+
+    def set_plant(self, plant: PlantDescription) -> List[str]:
+        """Take the plant's description; returns warnings about disagreeing settings."""
+        cfg = self.config
+        warnings = []
+        if cfg.mpc.u_min < plant.u_min or cfg.mpc.u_max > plant.u_max:
+            warnings.append(f'input bounds [{cfg.mpc.u_min}, {cfg.mpc.u_max}] exceed the '
+                            f"plant's [{plant.u_min}, {plant.u_max}]: the plant will saturate "
+                            'what the MPC plans')
+        if plant.lockstep and cfg.rate_hz * plant.dt < 1.0 - 1e-9:
+            warnings.append(f'rate_hz {cfg.rate_hz} is below the lockstep plant\'s 1/dt = '
+                            f'{1.0 / plant.dt}: steps will wait for input timeouts')
+        if cfg.planner == 'nmpc' and (self.plant is None or (self.plant.theta, self.plant.dt)
+                                      != (plant.theta, plant.dt)):
+            mpc = cfg.mpc
+            self._nmpc = Nmpc(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=float(mpc.r),
+                                         u_min=mpc.u_min, u_max=mpc.u_max, dt=plant.dt),
+                              plant.theta)
+        self.plant = plant
+        return warnings
+
+    def set_override(self, values: Sequence[float]) -> str:
+        """Set-points per output overriding the reference ([] clears); returns an error or ''."""
+        values = np.asarray(values, dtype=float)
+        if values.size == 0:
+            self._override = None
+        elif values.shape != (self.n_y,) or not np.all(np.isfinite(values)):
+            return f'expected {self.n_y} finite set-points (or none), got {values.tolist()}'
+        else:
+            self._override = values
+        return ''
+
+    def observe(self, step: int, u: Sequence[float], y: Sequence[float]) -> bool:
+        """Record plant sample k; True if it starts a new episode.
+
+        A new episode (a plant reset, or a gap in the steps) starts the planners cold, as
+        on a fresh model: what the previous episode left (warm start, OSQP's duals and rho)
+        never reaches it, so a lockstep episode replays exactly whatever the controller
+        answered before it (e.g. a stale sample at activation)."""
+        new_episode = self.history.append(step, u, y)
+        if new_episode:
+            model = self.model
+            for planner in (self._nmpc, model.mpc if model is not None else None):
+                if planner is not None:
+                    planner.reset()
+        return new_episode
+
+    # --- the tick -----------------------------------------------------------------------
+
+    def references(self, step: int) -> np.ndarray:
+        """(N, n_y) references of the horizon of the tick answering `step`."""
+        n = self.config.mpc.horizon
+        if self._override is not None:
+            return np.tile(self._override, (n, 1))
+        return self.reference.evaluate(step * self.dt, self.dt, n)
+
+    def tick(self) -> TickResult:
+        """Answer the newest sample (observe() must have been called at least once)."""
+        step = self.history.step
+        u_prev = self.history.u
+        y_ref = self.references(step)
+        model, model_status = self._model
+        planner = self.config.planner
+        if planner == 'nmpc' and self._nmpc is not None:
+            res = self._nmpc.solve(self.history.y, float(u_prev[0]), y_ref)
+            out = dict(model_version=0, fallback=False, terminal_fallback=False)
+        elif planner == 'latent_mpc' and model is not None:
+            u_hist, y_hist = self.history.window(model.history)
+            res = model.mpc.solve(model.predictor.encode(u_hist, y_hist), u_prev, y_ref)
+            out = dict(model_version=model.version, fallback=res.fallback,
+                       terminal_fallback=res.terminal_fallback)
+        else:
+            res = None
+            out = dict(model_version=0, fallback=False, terminal_fallback=False,
+                       solver_status='no_model' if planner == 'latent_mpc' else 'no_plant_info',
+                       cost=math.nan, iterations=-1, solve_time=0.0,
+                       u=np.full(self.n_u, self.pre_model.value(step, self.dt)),
+                       u_plan=np.zeros((0, self.n_u)), y_pred=np.zeros((0, self.n_y)))
+        if res is not None:
+            out.update(solver_status=res.status, cost=float(res.cost),
+                       iterations=int(res.iterations), solve_time=res.solve_time, u=res.u,
+                       u_plan=res.u_plan, y_pred=res.y_pred)
+        u = np.asarray(out['u'], dtype=float)
+        if not np.all(np.isfinite(u)):    # the planners promise this; the plant must get it
+            u = np.where(np.isfinite(u_prev), u_prev, 0.0)
+            out['fallback'] = True
+        out['u'] = np.clip(u, self._lo, self._hi)
+        return TickResult(step=step, planner=planner, model_status=model_status, y_ref=y_ref,
+                          **out)

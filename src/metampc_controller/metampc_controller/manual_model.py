@@ -1,0 +1,74 @@
+"""A hand-built NSSM: the van der Pol plant linearised at the origin (method 'manual').
+
+Not learned: a known-good model for tests, benchmarks and sanity runs of the controller. With
+``y = x`` (the plant measures its state) the latent state is the last output::
+
+    z_t = [y_t; 0]                  encoder: reads y_t from the last (u, y) pair of the history
+    z_{t+1} = A z_t + B u_{t+1}     A, B: x' = [[0, 1], [-1, theta]] x + [0; 1] u, zero-order
+                                    hold over dt (exact for inputs held over (t, t+1])
+    y_hat_t = C z_t                 C = [I, 0]
+
+Latent states beyond the first n_y are neither driven nor observed and decay with factor
+``extra_decay``. The encoder passes y_t through its ReLU layers as ``relu(y) - relu(-y)``: the
+first hidden layer holds ``[y_1, -y_1, y_2, -y_2, ...]`` in its first 2 n_y units (the other
+units and weights are 0), later hidden layers copy them, the output layer takes the
+differences. The model is exact for a linear plant (theta = 0) and, since the nonlinear term
+``theta x2 (1 - x1^2)`` vanishes at every equilibrium (x2 = 0), it has the plant's steady
+states for any theta. Normalisation: identity.
+"""
+from typing import Sequence, Tuple
+
+import numpy as np
+from scipy.linalg import expm
+import torch
+
+from metampc_controller.nssm import Normalisation, NssmConfig, param_shapes, Params
+
+
+def linearised_vdp(theta: float, dt: float) -> Tuple[np.ndarray, np.ndarray]:
+    """(A (2, 2), B (2, 1)): the van der Pol plant at the origin, discretised with a ZOH."""
+    m = np.zeros((3, 3))
+    m[:2, :2] = [[0.0, 1.0], [-1.0, theta]]
+    m[1, 2] = 1.0
+    phi = expm(m * dt)
+    return phi[:2, :2], phi[:2, 2:]
+
+
+def linearised_vdp_nssm(theta: float, dt: float, history: int = 10, n_z: int = 2,
+                        hidden: Sequence[int] = (4,), extra_decay: float = 0.5
+                        ) -> Tuple[NssmConfig, Normalisation, Params]:
+    """(config, norm, params) of the hand-built NSSM (module docstring), float32 parameters.
+
+    Args:
+        theta: van der Pol damping of the linearisation.
+        dt: sample time, s.
+        history: H; only the last sample is read, the rest has weight 0.
+        n_z: latent dimension, >= 2.
+        hidden: encoder hidden widths, each >= 4.
+        extra_decay: eigenvalue of the latent states beyond the second.
+    """
+    n_u, n_y = 1, 2
+    config = NssmConfig(n_u=n_u, n_y=n_y, n_z=n_z, history=history, hidden=tuple(hidden))
+    config.validate()
+    if n_z < n_y or any(w < 2 * n_y for w in config.hidden):
+        raise ValueError(f'need n_z >= {n_y} and hidden widths >= {2 * n_y}')
+    params = {name: np.zeros(shape) for name, shape in param_shapes(config).items()}
+    last = (history - 1) * (n_u + n_y) + n_u     # index of y_t in the flattened history
+    pass_sign = np.zeros((2 * n_y, n_y))         # [y_1, -y_1, y_2, -y_2, ...] = pass_sign y
+    for j in range(n_y):
+        pass_sign[2 * j, j], pass_sign[2 * j + 1, j] = 1.0, -1.0
+    n_hidden = len(config.hidden)
+    if n_hidden == 0:
+        params['encoder.0.weight'][:n_y, last:last + n_y] = np.eye(n_y)
+    else:
+        params['encoder.0.weight'][:2 * n_y, last:last + n_y] = pass_sign
+        for i in range(1, n_hidden):
+            params[f'encoder.{i}.weight'][:2 * n_y, :2 * n_y] = np.eye(2 * n_y)
+        params[f'encoder.{n_hidden}.weight'][:n_y, :2 * n_y] = pass_sign.T
+    a, b = linearised_vdp(theta, dt)
+    params['A'][:n_y, :n_y] = a
+    params['A'][n_y:, n_y:] = extra_decay * np.eye(n_z - n_y)
+    params['B'][:n_y] = b
+    params['C'][:, :n_y] = np.eye(n_y)
+    return (config, Normalisation.identity(config),
+            {name: torch.from_numpy(value).to(torch.float32) for name, value in params.items()})

@@ -1,0 +1,232 @@
+"""The controller's tick without ROS: history, answer rule, pre-model input, model checks, and
+closed loops of ControllerCore on the plant core, checked against independent answers."""
+from collections import Counter
+import math
+
+import numpy as np
+import pytest
+
+from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
+                                                History, PlantDescription, PreModelInput)
+from metampc_controller.controller_params import ControllerConfig
+from metampc_controller.manual_model import linearised_vdp_nssm
+from metampc_controller.mpc import MpcConfig
+from metampc_controller.weights_codec import DecodedWeights, WeightsError
+from metampc_plant.excitation import ExcitationConfig
+from metampc_plant.vanderpol import VdpConfig, VdpPlant
+
+
+def manual_bundle(version=1, theta=0.5, history=10, mpc=MpcConfig(), **model):
+    return build_model(DecodedWeights(*linearised_vdp_nssm(theta, 0.1, history, **model)),
+                       version, 'manual', 'adapted', mpc, 1, 2)
+
+
+def test_history_window_pads_each_episode_with_its_first_sample():
+    hist = History(capacity=4, n_u=1, n_y=2)
+    samples = {k: ([0.1 * k], [k, -k]) for k in range(10)}
+    for k in range(10):
+        assert hist.append(k, *samples[k]) == (k == 0)
+        u, y = hist.window(3)
+        # The newest three, oldest first; before the third sample the first one repeats.
+        expected = [max(j, 0) for j in range(k - 2, k + 1)]
+        assert u.tolist() == [samples[j][0] for j in expected]
+        assert y.tolist() == [samples[j][1] for j in expected]
+        assert (hist.u.tolist(), hist.y.tolist(), hist.step) == (*samples[k], k)
+    # Step 0 again (a plant reset), a jump (missed samples): new episodes, padded anew.
+    for step in (0, 5):
+        assert hist.append(step, [9.0], [9.0, 9.0])
+        assert hist.window(4)[1].tolist() == [[9.0, 9.0]] * 4 and hist.length == 1
+    with pytest.raises(ValueError):
+        hist.window(5)
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_answer_rule_answers_every_lockstep_sample_once(seed):
+    """The plant publishes y_k only after the answer to y_{k-1}; the controller sees y_k and
+    the timer tick of time k (/clock, another topic) in either order, and set_active may flip
+    anywhere. Every sample must be answered exactly once, by the end of its events or at
+    activation, never before it arrived."""
+    rng = np.random.default_rng(seed)
+    rule = AnswerRule(active=True)
+    answers = Counter()
+    arrived = -1
+
+    def answer():
+        rule.answered()
+        answers[arrived] += 1
+
+    for k in range(300):
+        events = ['sample', 'tick'] if k > 0 else ['sample']   # the first tick is at dt
+        rng.shuffle(events)
+        if rng.random() < 0.2:
+            off = int(rng.integers(0, len(events) + 1))
+            on = int(rng.integers(off, len(events) + 1))
+            events = events[:off] + ['off'] + events[off:on] + ['on'] + events[on:]
+        for event in events:
+            if event == 'sample':
+                arrived = k
+                if rule.on_sample():
+                    answer()
+            elif event == 'tick':
+                if rule.on_tick():
+                    answer()
+            elif event == 'off':
+                assert not rule.set_active(False)
+            elif rule.set_active(True):
+                answer()
+        assert answers[k] == 1, (seed, k, events)
+    assert set(answers.values()) == {1}
+
+
+def test_answer_rule_inactive_from_start_answers_on_activation():
+    rule = AnswerRule(active=False)
+    assert not rule.on_sample() and not rule.on_tick()
+    assert rule.set_active(True)            # y_0 waited: answered at activation
+    rule.answered()
+    assert not rule.set_active(True)        # already active: nothing to do
+    assert not rule.on_tick()               # no new sample: the tick waits for one
+    assert rule.on_sample()
+
+
+def test_pre_model_zero_is_clipped_into_the_bounds():
+    assert PreModelInput('zero', ExcitationConfig(), 0, -1.0, 1.0).value(7, 0.1) == 0.0
+    assert PreModelInput('zero', ExcitationConfig(), 0, 0.2, 1.0).value(7, 0.1) == 0.2
+
+
+def test_pre_model_excitation_holds_is_bounded_seeded_and_random_access():
+    cfg = ExcitationConfig(kind='random_hold', u_min=-0.4, u_max=0.3, hold_s=0.5)
+    seq = PreModelInput('excitation', cfg, 7, -1.0, 1.0)
+    values = np.array([seq.value(k, 0.1) for k in range(2600)])  # 3 blocks of 1000
+    levels = values.reshape(-1, 5)                                # 0.5 s = 5 samples
+    assert np.all(levels == levels[:, :1]), 'held for 5 samples from step 0 on'
+    assert np.all((values >= -0.4) & (values <= 0.3))
+    # Uniform levels: their mean and spread (std of U(-0.4, 0.3) = 0.7/sqrt(12) = 0.202).
+    assert abs(levels[:, 0].mean() + 0.05) < 0.03 and abs(levels[:, 0].std() - 0.202) < 0.02
+    fresh = PreModelInput('excitation', cfg, 7, -1.0, 1.0)
+    assert fresh.value(2503, 0.1) == values[2503] and fresh.value(12, 0.1) == values[12]
+    other = PreModelInput('excitation', cfg, 8, -1.0, 1.0)
+    assert [other.value(k, 0.1) for k in range(0, 50, 5)] != values[:50:5].tolist()
+    # Another sample time: another hold in samples (0.5 s = 10 samples of 0.05 s).
+    fine = np.array([seq.value(k, 0.05) for k in range(40)]).reshape(-1, 10)
+    assert np.all(fine == fine[:, :1]) and len(set(fine[:, 0])) == 4
+
+
+def test_build_model_rejects_models_that_do_not_fit():
+    decoded = DecodedWeights(*linearised_vdp_nssm(0.5, 0.1, history=10))
+    with pytest.raises(WeightsError, match='n_u = 1, n_y = 2; the plant has 1 input'):
+        build_model(decoded, 1, 'manual', 'adapted', MpcConfig(q=(1.0, 0.0, 0.0)), 1, 3)
+    with pytest.raises(WeightsError, match='history H = 10, the controller needs 5'):
+        build_model(decoded, 1, 'manual', 'adapted', MpcConfig(), 1, 2, history=5)
+    bundle = build_model(decoded, 3, 'manual', 'adapted', MpcConfig(), 1, 2, history=10)
+    assert (bundle.version, bundle.history) == (3, 10)
+
+
+def closed_loop(core: ControllerCore, plant: VdpPlant, steps: int, start: int = 0):
+    """Run core against the plant core as the node does; returns the TickResults."""
+    results = []
+    y, u = plant.output(), 0.0
+    for k in range(start, start + steps):
+        core.observe(k, [u], y)
+        res = core.tick()
+        results.append(res)
+        u = float(res.u[0])
+        y = plant.step(u)
+    return results
+
+
+def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
+    """x2 = 0, x1 = r is an equilibrium of the plant iff u = r (x2' = -x1 + u): the loop must
+    settle there, whatever theta, with the hand-built model linearised at the origin."""
+    core = ControllerCore(ControllerConfig(reference_kind='setpoint',
+                                           reference_params={'value': 0.6}))
+    plant = VdpPlant(VdpConfig(theta=0.8))
+    before = closed_loop(core, plant, 3)
+    assert [(r.solver_status, r.iterations, r.u[0]) for r in before] == [('no_model', -1, 0.0)] * 3
+    core.offer_model(manual_bundle(version=2, theta=0.8))
+    results = closed_loop(core, plant, 80, start=3)
+    last = results[-1]
+    assert (last.solver_status, last.model_version, last.model_status) == ('solved', 2, 'ok')
+    np.testing.assert_allclose(plant.output(), [0.6, 0.0], atol=2e-3)
+    assert abs(last.u[0] - 0.6) < 2e-3
+    assert last.u_plan.shape == (20, 1) and last.y_pred.shape == last.y_ref.shape == (20, 2)
+    np.testing.assert_allclose(last.y_pred[:, 0], 0.6, atol=5e-3)  # it plans to stay there
+    assert not any(r.fallback for r in results)
+
+    # Rejected weights: the status says so, the model stays.
+    core.reject_model('non-finite weights')
+    res = closed_loop(core, plant, 1, start=83)[0]
+    assert (res.model_version, res.model_status) == (2, 'rejected: non-finite weights')
+
+
+def test_reference_time_restarts_with_each_episode_and_override():
+    """'paper' reference: x1 = 0.8 until 7.5 s, then -0.5; times are step * dt."""
+    core = ControllerCore(ControllerConfig(mpc=MpcConfig(horizon=2)))
+    core.set_plant(PlantDescription(theta=0.0, dt=0.1, u_min=-1, u_max=1, lockstep=True))
+    plant = VdpPlant(VdpConfig())
+    res = closed_loop(core, plant, 76)
+    assert res[0].y_ref[:, 0].tolist() == [0.8, 0.8]
+    assert res[73].y_ref[:, 0].tolist() == [0.8, -0.5]       # r at 7.4 s and 7.5 s
+    assert closed_loop(core, plant, 1)[0].y_ref[:, 0].tolist() == [0.8, 0.8]  # reset: step 0
+    assert core.set_override([0.25, 0.0]) == ''
+    assert core.references(100).tolist() == [[0.25, 0.0]] * 2
+    assert 'expected 2 finite set-points' in core.set_override([0.1])
+    assert 'expected 2 finite set-points' in core.set_override([math.nan, 0.0])
+    assert core.references(100).tolist() == [[0.25, 0.0]] * 2  # a bad one changes nothing
+    assert core.set_override([]) == '' and core.references(75)[0, 0] == -0.5
+
+
+def test_nmpc_planner_waits_for_plant_info_then_predicts_the_plant():
+    """With plant_info's theta, the NMPC's one-step prediction is the plant's response (same
+    RK4 model, 2 substeps against the plant's 10: ~1e-6 apart); with another theta it is not."""
+    cfg = ControllerConfig(planner='nmpc', mpc=MpcConfig(horizon=10), reference_kind='setpoint',
+                           reference_params={'value': -0.4})
+    core = ControllerCore(cfg)
+    plant = VdpPlant(VdpConfig(theta=1.2, x0=(0.5, 0.5)))
+    assert closed_loop(core, plant, 1)[0].solver_status == 'no_plant_info'
+    warnings = core.set_plant(PlantDescription(theta=1.2, dt=0.1, u_min=-0.5, u_max=0.5,
+                                               lockstep=True))
+    assert len(warnings) == 1 and 'exceed the plant' in warnings[0]
+    for k in range(1, 4):
+        y_before = plant.output()
+        res = closed_loop(core, plant, 1, start=k)[0]
+        assert (res.planner, res.solver_status, res.model_version) == ('nmpc', 'solved', 0)
+        assert (res.iterations > 0 or k > 1) and np.abs(res.u_plan).max() <= 1.0
+        np.testing.assert_allclose(res.y_pred[0], plant.output(), atol=1e-5)
+        assert np.abs(res.y_pred[0] - y_before).max() > 1e-2   # it did move
+    core.set_plant(PlantDescription(theta=0.0, dt=0.1, u_min=-1, u_max=1, lockstep=True))
+    res = closed_loop(core, plant, 1, start=4)[0]
+    assert np.abs(res.y_pred[0] - plant.output()).max() > 1e-4
+
+
+def test_set_plant_warns_about_a_rate_below_the_lockstep_sample_rate():
+    core = ControllerCore(ControllerConfig(rate_hz=5.0))
+    warnings = core.set_plant(PlantDescription(0.0, 0.1, -1.0, 1.0, lockstep=True))
+    assert len(warnings) == 1 and 'below the lockstep' in warnings[0]
+    assert core.set_plant(PlantDescription(0.0, 0.1, -1.0, 1.0, lockstep=False)) == []
+
+
+@pytest.mark.parametrize('planner', ['latent_mpc', 'nmpc'])
+def test_each_episode_starts_cold_whatever_came_before(planner):
+    """An episode replays bit for bit whether the core answered other samples before it (the
+    previous episode, a stale sample at activation) or not: warm starts, OSQP's duals and its
+    adapted rho are reset when a new episode starts. Without the reset the warm-started
+    solves differ within the solver tolerance."""
+    def episode(core):
+        plant = VdpPlant(VdpConfig(theta=0.5, x0=(0.3, -0.2)))
+        return np.array([r.u_plan for r in closed_loop(core, plant, 25)])
+
+    def fresh():
+        cfg = ControllerConfig(planner=planner, mpc=MpcConfig(horizon=10),
+                               reference_kind='setpoint', reference_params={'value': 0.6})
+        core = ControllerCore(cfg)
+        core.set_plant(PlantDescription(theta=0.5, dt=0.1, u_min=-1, u_max=1, lockstep=True))
+        if planner == 'latent_mpc':
+            core.offer_model(manual_bundle(theta=0.5, mpc=cfg.mpc))
+        return core
+
+    reference = episode(fresh())
+    core = fresh()
+    closed_loop(core, VdpPlant(VdpConfig(theta=-0.4, x0=(1.0, 1.0))), 30)   # another episode
+    core.observe(30, [0.7], [0.9, -0.3])                                      # a stale answer
+    core.tick()
+    np.testing.assert_array_equal(episode(core), reference)

@@ -1,0 +1,233 @@
+"""The `controller` node as a process, against the `plant` node in lockstep, in the session's
+own domain. The probe node of the test publishes weights, references and service calls and
+records y, u and mpc_status.
+
+The model the tests send is the hand-built NSSM of metampc_controller.manual_model: the
+van der Pol plant linearised at the origin and discretised, with an encoder that reads the
+last output (z_t = [y_t; 0...]). It has the plant's equilibria, so a set-point is tracked
+without offset for any theta.
+
+Each loop starts the controller first and the plant only once the probe's subscriptions have
+matched the controller's publishers: the probe then hears every input from step 0 on (a
+subscriber that matches late misses the first messages, which would look like unanswered
+steps). It listens to y only from the first input on (see Loop.start), so the ys it hears
+start later. The plant's own counters (stale, rejected, timed-out inputs) are a second
+witness.
+"""
+from collections import Counter
+import math
+import time
+
+from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool
+
+from metampc_controller.manual_model import linearised_vdp_nssm
+from metampc_controller.weights_codec import fields_from_weights
+from metampc_testing import session_pids
+
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# A long input timeout: a step the controller does not answer stalls the run (and the test
+# times out) instead of being covered up by the plant holding its input.
+PLANT = {'theta': 0.5, 'input_timeout': 30.0}
+CONTROLLER = {'use_sim_time': True, 'reference': 'setpoint', 'reference_values': [0.5]}
+
+
+def weights(version: int, theta: float = 0.5, **model) -> NssmWeights:
+    config, norm, params = linearised_vdp_nssm(theta, 0.1, **model)
+    return NssmWeights(version=version, method='manual', stage='adapted',
+                       **fields_from_weights(config, norm, params))
+
+
+class Loop:
+    """Probe side of a closed loop: records y, u and mpc_status; publishes weights."""
+
+    def __init__(self, probe):
+        self.probe = probe
+        self.ys, self.us, self.status = [], [], []
+        node = probe.node
+        self._subs = [node.create_subscription(ControlInput, 'u', self.us.append, RELIABLE),
+                      node.create_subscription(MpcStatus, 'mpc_status', self.status.append,
+                                               RELIABLE)]
+        self.weights = node.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
+
+    def start(self, procs, plant_params: dict, controller_params: dict):
+        """Start the controller, wait until the probe hears it, start the plant, and listen to
+        y once the controller has answered y_0: the plant sends y_0 when y has a subscriber
+        (and u a publisher), and that subscriber must be the controller, not the probe."""
+        ctl = procs.start('metampc_controller', 'controller', params=controller_params)
+        self.probe.wait_for(lambda: all(s.get_publisher_count() > 0 for s in self._subs),
+                            30.0, 'the controller publishers matched')
+        plant = procs.start('metampc_plant', 'plant', params=plant_params)
+        self.probe.wait_for(lambda: self.us, 30.0, 'the answer to y_0')
+        self.probe.node.create_subscription(PlantOutput, 'y', self.ys.append, RELIABLE)
+        return plant, ctl
+
+    def wait_steps(self, n: int, timeout: float = 30.0) -> None:
+        """Until the plant has published n more samples than now."""
+        target = len(self.ys) + n
+        self.probe.wait_for(lambda: len(self.ys) >= target, timeout, f'{n} more samples')
+
+    def wait_tracked(self, value: float, tol: float = 0.02, timeout: float = 60.0) -> None:
+        """Until the last 5 samples have |y_1 - value| < tol."""
+        self.probe.wait_for(lambda: len(self.ys) >= 5 and all(
+            abs(m.y[0] - value) < tol for m in self.ys[-5:]), timeout, f'y_1 at {value}')
+
+    def wait_status(self, predicate, what: str, timeout: float = 30.0) -> MpcStatus:
+        self.probe.wait_for(lambda: self.status and predicate(self.status[-1]), timeout, what)
+        return self.status[-1]
+
+    def inputs(self, steps: int) -> dict:
+        """{k: u_k[0]} for k < steps, once the probe has them (u and y are different topics:
+        y_{k+1} may reach the probe before the u_k it answers)."""
+        def missing():
+            return sorted(set(range(steps)) - {m.step for m in self.us})
+
+        try:
+            self.probe.wait_for(lambda: not missing(), 5.0, f'the inputs of steps < {steps}')
+        except AssertionError as err:
+            raise AssertionError(f'{err}; missing {missing()[:20]}') from None
+        return {m.step: m.u[0] for m in self.us}
+
+    def check_one_answer_per_step(self) -> None:
+        """Every step before the newest y_k answered exactly once (the probe hears every input,
+        see the module docstring), and each y the probe heard applied the input of the step
+        before (the probe's y subscription may match the plant after y_0: the ys heard need
+        only be contiguous)."""
+        ys = list(self.ys)
+        last = ys[-1].step
+        sent = self.inputs(last)
+        us = list(self.us)      # the loop goes on: it may hold answers beyond `last` by now
+        answers = Counter(m.step for m in us)
+        assert all(answers[k] == 1 for k in range(last)), 'each step answered exactly once'
+        # The probe may hear u_k before y_k (other topic), so it waits for the ys to catch up.
+        newest = max(answers)
+        self.probe.wait_for(lambda: self.ys[-1].step >= newest, 5.0,
+                            f'y_{newest} (answered): no answer for a step not yet published')
+        heard = [m.step for m in ys]
+        assert heard == list(range(heard[0], last + 1)), 'one episode, no gap'
+        assert all(y.u_applied[0] == sent[y.step - 1] for y in ys if y.step), 'inputs applied'
+
+
+def stop_cleanly(procs, proc) -> str:
+    code = procs.interrupt(proc)
+    out = procs.output(proc)
+    assert code == 0, out
+    assert 'Traceback' not in out, out
+    assert session_pids(proc.pid) == [], 'a process outlived ros2 run'
+    return out
+
+
+def test_excitation_tracking_swaps_rejections_and_restart(procs, probe):
+    loop = Loop(probe)
+    # input_timeout 1 s: the restart below leaves the step of the stopped controller to it.
+    plant, ctl = loop.start(procs, {**PLANT, 'input_timeout': 1.0},
+                            {**CONTROLLER, 'pre_model_input': 'excitation',
+                             'excitation_amplitude': 0.4, 'excitation_seed': 3})
+    # Before a model: the seeded excitation, within +-0.4, held 0.5 s = 5 samples from step 0.
+    loop.wait_steps(16)
+    u = loop.inputs(15)
+    holds = [{u[k] for k in range(start, start + 5)} for start in (0, 5, 10)]
+    assert all(len(h) == 1 for h in holds) and len(set.union(*holds)) == 3, holds
+    assert all(abs(v) <= 0.4 for v in u.values())
+    assert all(s.model_version == 0 and s.solver_status == 'no_model' and s.iterations == -1
+               and not s.u_plan and len(s.y_ref) == 40 for s in loop.status)
+
+    loop.weights.publish(weights(1))
+    loop.wait_status(lambda s: s.model_version == 1, 'model 1 in use')
+    loop.wait_steps(20)
+
+    # Invalid weights are rejected; model 1 stays in use.
+    bad = weights(2)
+    bad.params[7] = math.nan
+    loop.weights.publish(bad)
+    st = loop.wait_status(lambda s: s.model_status.startswith('rejected'), 'NaN rejected')
+    assert 'non-finite' in st.model_status and st.model_version == 1, st
+    bad = weights(3)
+    bad.shapes[0] += 1
+    loop.weights.publish(bad)
+    st = loop.wait_status(lambda s: 'encoder.0.weight has shape' in s.model_status,
+                          'wrong shapes rejected')
+    assert st.model_status.startswith('rejected: ') and st.model_version == 1, st
+
+    # A model of another architecture is swapped in mid-run without a missed step.
+    loop.weights.publish(weights(4, n_z=4, hidden=(8, 8), history=5))
+    loop.wait_status(lambda s: s.model_version == 4 and s.model_status == 'ok', 'model 4')
+    loop.wait_steps(50)
+
+    loop.check_one_answer_per_step()
+    versions = [m.model_version for m in sorted(loop.us, key=lambda m: m.step)]
+    assert versions == sorted(versions) and versions[-1] == 4 and 1 in versions
+    assert all(abs(m.u[0]) <= 1.0 and math.isfinite(m.u[0]) for m in loop.us)
+    assert abs(loop.ys[-1].y[0] - 0.5) < 0.02 and abs(loop.ys[-1].y[1]) < 0.02, 'tracked'
+    st = loop.status[-1]
+    assert (st.planner, st.solver_status, st.iterations > 0) == ('latent_mpc', 'solved', True)
+    assert len(st.u_plan) == 20 and len(st.y_pred) == len(st.y_ref) == 40
+    assert st.y_ref[0] == 0.5 and st.y_ref[1] == 0.0 and 0 < st.solve_time <= st.tick_time
+
+    # Restarted mid-run, the controller gets the latched model 4 without a new publish.
+    out = stop_cleanly(procs, ctl)
+    assert 'rejected weights version 2' in out and 'rejected weights version 3' in out, out
+    n_before = len(loop.us)
+    ctl = procs.start('metampc_controller', 'controller', params=CONTROLLER)
+    # Its first answers may come before discovery has delivered the latched model.
+    probe.wait_for(lambda: len(loop.us) > n_before + 20 and loop.us[-1].model_version == 4,
+                   30.0, 'inputs with model 4 after the restart')
+    versions = [m.model_version for m in loop.us[n_before:]]
+    assert versions == sorted(versions) and set(versions) <= {0, 4}
+    steps = [m.step for m in loop.us[n_before:]]
+    assert steps == list(range(steps[0], steps[0] + len(steps)))
+    stop_cleanly(procs, ctl)
+    out = stop_cleanly(procs, plant)
+    assert '0 stale, 0 rejected' in out, out
+
+
+def test_nmpc_reference_override_and_set_active(procs, probe):
+    loop = Loop(probe)
+    reference = probe.node.create_publisher(Float64MultiArray, 'reference', RELIABLE)
+    client = probe.node.create_client(SetBool, 'set_active')
+    plant, ctl = loop.start(procs, PLANT, {**CONTROLLER, 'planner': 'nmpc', 'horizon': 10,
+                                           'reference_values': [-0.5]})
+    loop.wait_tracked(-0.5)     # nmpc tracks with the plant_info theta
+    st = loop.status[-1]
+    assert (st.planner, st.model_version, st.model_status) == ('nmpc', 0, 'none')
+    assert len(st.u_plan) == 10 and st.iterations > 0 and st.y_ref[0] == -0.5
+
+    reference.publish(Float64MultiArray(data=[0.3, 0.0]))
+    loop.wait_tracked(0.3)
+    assert loop.status[-1].y_ref[0] == 0.3
+
+    assert client.wait_for_service(timeout_sec=10.0)
+
+    def set_active(value: bool) -> str:
+        future = client.call_async(SetBool.Request(data=value))
+        probe.wait_for(future.done, 10.0, 'set_active response')
+        return future.result().message
+
+    answer = set_active(False)
+    assert answer.startswith('inactive') and 'model version 0' in answer, answer
+    time.sleep(0.3)     # what was under way when the service ran
+    n_u, n_y = len(loop.us), len(loop.ys)
+    time.sleep(1.0)
+    assert len(loop.us) == n_u and len(loop.ys) == n_y, 'inactive: nothing published'
+    waiting = loop.ys[-1].step
+    assert f'answered step {waiting}' in set_active(True)
+    loop.wait_steps(10)
+    loop.check_one_answer_per_step()
+    stop_cleanly(procs, ctl)
+    out = stop_cleanly(procs, plant)
+    assert '0 stale, 0 rejected, 0 timeouts' in out, out
+
+
+def test_bad_parameter_one_line_and_exit_2(procs):
+    # Every range check is tested in-process (test_controller_params.py); this one is the
+    # node's way of reporting any of them.
+    proc = procs.start('metampc_controller', 'controller',
+                       params={'horizon': 0, 'reference': 'setpoint'})
+    code = proc.wait(60.0)
+    lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+    assert code == 2, lines
+    assert len(lines) == 1 and 'invalid parameter: horizon must be >= 1' in lines[0], lines

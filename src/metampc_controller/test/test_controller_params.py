@@ -1,0 +1,93 @@
+"""Parameters of the controller node -> ControllerConfig, and every range check, in-process."""
+import math
+import re
+
+import pytest
+
+from metampc_controller.controller_params import parse_params, PARAMETERS
+from metampc_plant.node_params import ParameterError
+
+
+def values(**changes):
+    """Parameter values as ROS hands them over: the defaults with some changed."""
+    out = {name: spec.default for name, spec in PARAMETERS.items()}
+    out.update(changes)
+    return out
+
+
+def test_defaults_are_the_paper_task_at_10_hz():
+    cfg = parse_params(values())
+    mpc = cfg.mpc
+    assert (cfg.rate_hz, cfg.planner, cfg.n_y, cfg.active, cfg.history) == (
+        10.0, 'latent_mpc', 2, True, 0)
+    assert (mpc.horizon, tuple(mpc.q), mpc.r, mpc.u_min, mpc.u_max) == (20, (1.0, 0.0), 0.05,
+                                                                        -1.0, 1.0)
+    assert cfg.reference_kind == 'paper'
+    assert cfg.reference_params == {'n_y': 2, 'outputs': (0,), 'setpoints': (0.8, -0.5, 0.3, -0.8),
+                                    'segment': 7.5, 'start': 0.0}
+    assert (cfg.pre_model_input, cfg.excitation.kind) == ('zero', 'random_hold')
+
+
+def test_values_are_converted_and_combined():
+    cfg = parse_params(values(rate_hz=50, horizon=10, q=[2, 0.5], u_min=-0.5,
+                              excitation_amplitude=0.8, pre_model_input='excitation',
+                              reference='steps', reference_times=[1, 2.5],
+                              reference_values=[0.5, -0.5], reference_initial=0.1,
+                              reference_outputs=[0, 1], active=False))
+    assert isinstance(cfg.rate_hz, float) and cfg.rate_hz == 50.0   # an integer for a double
+    assert cfg.mpc.horizon == 10 and tuple(cfg.mpc.q) == (2.0, 0.5)
+    # The excitation stays within the input bounds and the amplitude.
+    assert (cfg.excitation.u_min, cfg.excitation.u_max) == (-0.5, 0.8)
+    assert cfg.reference_params == {'n_y': 2, 'outputs': (0, 1), 'initial': 0.1,
+                                    'steps': ((1.0, 0.5), (2.5, -0.5))}
+    assert not cfg.active and cfg.pre_model_input == 'excitation'
+    sine = parse_params(values(reference='sine', reference_period=4.0, reference_amplitude=0.2))
+    assert sine.reference_params['period'] == 4.0 and sine.reference_params['amplitude'] == 0.2
+    setpoint = parse_params(values(reference='setpoint', reference_values=[-0.3]))
+    assert setpoint.reference_params['value'] == -0.3
+    assert parse_params(values(reference='setpoint')).reference_params['value'] == 0.0
+
+
+BAD = {
+    'rate_hz 0': ({'rate_hz': 0.0}, 'rate_hz must be > 0'),
+    'rate_hz inf': ({'rate_hz': math.inf}, 'rate_hz must be finite'),
+    'rate_hz text': ({'rate_hz': 'fast'}, 'rate_hz must be a number'),
+    'horizon 0': ({'horizon': 0}, 'horizon must be >= 1'),
+    'horizon float': ({'horizon': 2.5}, 'horizon must be an integer'),
+    'q negative': ({'q': [1.0, -1.0]}, 'q must be a vector of finite weights >= 0'),
+    'q empty': ({'q': []}, 'q needs one weight per plant output'),
+    'q text': ({'q': 'one'}, 'q must be a list of numbers'),
+    'r 0': ({'r': 0.0}, 'r must be finite and > 0'),
+    'bounds': ({'u_min': 1.0, 'u_max': 0.0}, 'need u_min <= u_max'),
+    'planner': ({'planner': 'pid'}, 'planner must be one of latent_mpc, nmpc'),
+    'nmpc q': ({'planner': 'nmpc', 'q': [1.0]}, 'planner nmpc needs 2 weights in q'),
+    'reference': ({'reference': 'ramp'}, 'reference must be one of'),
+    'outputs': ({'reference_outputs': [2]}, 'outputs must be indices in [0, 2)'),
+    'setpoint values': ({'reference': 'setpoint', 'reference_values': [1.0, 2.0]},
+                        'reference setpoint takes one value'),
+    'steps': ({'reference': 'steps', 'reference_values': [1.0]}, 'reference steps needs'),
+    'steps order': ({'reference': 'steps', 'reference_times': [2.0, 1.0],
+                     'reference_values': [1.0, 2.0]}, 'increasing times'),
+    'sine period': ({'reference': 'sine', 'reference_period': 0.0}, 'period must be > 0'),
+    'paper segment': ({'reference_segment': -1.0}, 'segment > 0'),
+    'pre-model': ({'pre_model_input': 'noise'}, 'pre_model_input must be one of'),
+    'excitation kind': ({'excitation_kind': 'multisine'}, 'excitation_kind must be one of'),
+    'amplitude': ({'excitation_amplitude': 0.0}, 'excitation_amplitude must be > 0'),
+    'excitation bounds': ({'u_min': 0.5, 'u_max': 1.0, 'excitation_amplitude': 0.2},
+                          'excitation: need finite u_min <= u_max'),
+    'hold': ({'excitation_hold_s': 0.0}, 'hold_s'),
+    'seed': ({'excitation_seed': -1}, 'excitation_seed must be >= 0'),
+    'max_iter': ({'max_iter': 0}, 'max_iter >= 1'),
+    'time_limit': ({'time_limit': 0.0}, 'time_limit must be > 0'),
+    'eps_abs': ({'eps_abs': 0.0}, 'eps_abs must be > 0'),
+    'eps_rel': ({'eps_rel': -1e-3}, 'eps_rel >= 0'),
+    'history': ({'history': -3}, 'history must be in [0, 1000]'),
+    'active': ({'active': 'yes'}, 'active must be true or false'),
+}
+
+
+@pytest.mark.parametrize('case', sorted(BAD))
+def test_bad_values_name_the_parameter(case):
+    changes, message = BAD[case]
+    with pytest.raises(ParameterError, match=re.escape(message)):
+        parse_params(values(**changes))

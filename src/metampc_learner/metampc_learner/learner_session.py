@@ -1,0 +1,307 @@
+"""What the learner node does, without ROS: meta-train, adapt, keep and save the models.
+
+A :class:`LearnerSession` holds the meta-model of every method it has trained or loaded
+(omega_inf of Algorithm 1, per method), numbers every model it produces with an increasing
+version, and saves each one to ``checkpoint_dir`` (``<stage>_<method>_v<version>.pt``,
+see ``checkpoint.py``) when that is set. Versions continue after the highest one already in
+``checkpoint_dir``, so a restarted learner neither overwrites the checkpoints of an earlier run
+nor publishes a version lower than the models it made before. The node calls it from its
+training thread, one job at a time; requests it cannot carry out raise :class:`LearnerError`
+with the reason.
+
+- :meth:`LearnerSession.meta_train`: Algorithm 1 on the simulated source set
+  (``data.simulate_source`` with the node's source settings, simulated once and reused; the
+  NSSM's normalisation comes from it), optionally with the closed-loop collector of
+  ``online_collection`` (eq. ub) wired into the core's collector hook.
+- :meth:`LearnerSession.adapt`: D_target is the node's buffer, split by
+  ``target_buffer.split_target`` (the last ``heldout_fraction`` of the samples held out for
+  the loss curve). Methods: a meta method ('' = the latest meta-model) -> eq. (infer) from its
+  omega_inf; 'supervised' -> the same steps from ``init_params(seed)`` (gamma = 0); 'oracle'
+  -> ``oracle.fit_oracle`` on simulated episodes of the target plant (theta, dt, bounds from
+  plant_info), held out on the buffer's held-out part (or, with no buffered samples, on
+  further simulated episodes). supervised and oracle use the NSSM of the node parameters with
+  the source normalisation, so that every method predicts in the same units.
+"""
+import math
+import os
+import re
+from dataclasses import dataclass, field, replace
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from metampc_controller.nssm import init_params, Nssm, Params
+from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
+from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
+from metampc_learner.data import (normalisation_from, simulate_source, SourceConfig,
+                                  SourceData, SourceSet, Trajectory, Windows)
+from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
+from metampc_learner.meta_train import meta_train, MetaConfig, METHODS
+from metampc_learner.online_collection import CollectionStats, OnlineCollector
+from metampc_learner.oracle import fit_oracle, oracle_data
+from metampc_learner.progress import ProgressFn
+from metampc_learner.target_buffer import split_target, TargetSamples
+
+FINAL_LOSS_STEPS = 10   # final_loss of meta_train: mean meta-test loss of the last 10 steps
+CHECKPOINT_NAME = re.compile(r'(?:meta|adapted)_[a-z_]+_v(\d+)\.pt')
+
+
+class LearnerError(RuntimeError):
+    """A request that cannot be carried out; the message says what is missing or wrong."""
+
+
+@dataclass
+class ModelRecord:
+    """A trained model with what the NssmWeights message carries besides the weights.
+
+    Attributes:
+        model: architecture and normalisation.
+        params: the weights (omega_inf for stage 'meta', omega* for 'adapted').
+        method: 'imaml', 'maml', 'maml_unrolled', 'supervised' or 'oracle'.
+        stage: 'meta' or 'adapted'.
+        version: number of this model (increases with every model of the session).
+        train_loss: final training loss, normalised units.
+        train_steps: outer steps (meta) or adaptation steps (adapted).
+        train_samples: samples trained on.
+        seed: seed of the run.
+    """
+
+    model: Nssm
+    params: Params
+    method: str
+    stage: str
+    version: int
+    train_loss: float
+    train_steps: int
+    train_samples: int
+    seed: int
+
+
+@dataclass
+class PlantFacts:
+    """The target plant as plant_info describes it: theta, dt (s), RK4 substeps, input
+    bounds, state box."""
+
+    theta: float
+    dt: float
+    substeps: int
+    u_min: float
+    u_max: float
+    state_bound: float
+
+
+@dataclass
+class MetaOutcome:
+    """A finished meta-training: the record, the loss curve (mean meta-test loss per outer
+    step), final_loss, skipped tasks, collection counters (None without collection)."""
+
+    record: ModelRecord
+    losses: List[float]
+    final_loss: float
+    skipped: int
+    collection: Optional[CollectionStats]
+    collected_samples: int
+    dropped_samples: int
+    elapsed: float
+
+
+@dataclass
+class AdaptOutcome:
+    """A finished adaptation: the record, the core's result (held-out curve: index 0 before
+    the first step), and the samples of D_target used (in all, for training, held out)."""
+
+    record: ModelRecord
+    result: AdaptResult
+    used_samples: int
+    train_samples: int
+    heldout_samples: int
+
+
+def _samples(trajectories: List[Trajectory]) -> int:
+    return sum(len(t) for t in trajectories)
+
+
+@dataclass
+class LearnerSession:
+    """The learner's state: meta-models per method, versions, cached source data."""
+
+    config: LearnerNodeConfig
+    meta_models: Dict[str, ModelRecord] = field(default_factory=dict)
+    latest_meta: str = ''
+    version: int = 0
+    _source: Optional[SourceData] = field(default=None, repr=False)
+
+    def __post_init__(self):
+        directory = self.config.checkpoint_dir
+        if directory and os.path.isdir(directory):
+            found = (CHECKPOINT_NAME.fullmatch(name) for name in os.listdir(directory))
+            self.version = max([int(m.group(1)) for m in found if m] + [self.version])
+
+    # --- models ---------------------------------------------------------------------------
+
+    def _new_record(self, **kw) -> ModelRecord:
+        self.version += 1
+        record = ModelRecord(version=self.version, **kw)
+        if record.stage == 'meta':
+            self.meta_models[record.method] = record
+            self.latest_meta = record.method
+        self._save(record)
+        return record
+
+    def _save(self, record: ModelRecord) -> None:
+        directory = self.config.checkpoint_dir
+        if not directory:
+            return
+        os.makedirs(directory, exist_ok=True)
+        path = os.path.join(directory, f'{record.stage}_{record.method}_v{record.version}.pt')
+        save_checkpoint(path, record.model, record.params, {
+            'method': record.method, 'stage': record.stage, 'version': record.version,
+            'train_loss': record.train_loss, 'train_steps': record.train_steps,
+            'train_samples': record.train_samples, 'seed': record.seed})
+
+    def load_meta(self, path: str) -> ModelRecord:
+        """Load a checkpoint as the meta-model of its method (info 'method', default imaml).
+
+        Raises:
+            LearnerError: unreadable file, or a method that is not a meta method.
+        """
+        try:
+            ckpt = load_checkpoint(path)
+        except (OSError, ValueError, RuntimeError, KeyError, TypeError) as err:
+            raise LearnerError(f'cannot load meta-model {path!r}: {err}') from None
+        info = ckpt.info
+        method = info.get('method', 'imaml')
+        if method not in METHODS:
+            raise LearnerError(f'{path!r} holds a {method!r} model, not a meta-model of '
+                               f'{", ".join(METHODS)}')
+        return self._new_record(
+            model=ckpt.model, params=ckpt.params, method=method, stage='meta',
+            train_loss=float(info.get('train_loss', math.nan)),
+            train_steps=int(info.get('train_steps', 0)),
+            train_samples=int(info.get('train_samples', 0)), seed=int(info.get('seed', 0)))
+
+    # --- source data ----------------------------------------------------------------------
+
+    def _source_data(self) -> SourceData:
+        if self._source is None:
+            self._source = simulate_source(self.config.source)
+        return self._source
+
+    def _fresh_model(self) -> Nssm:
+        """An NSSM of the node parameters with the source normalisation."""
+        data = self._source_data()
+        return Nssm(self.config.nssm,
+                    normalisation_from([t for ts in data.trajectories for t in ts]))
+
+    # --- meta-training --------------------------------------------------------------------
+
+    def meta_train(self, config: MetaConfig, online: bool,
+                   progress: Optional[ProgressFn] = None) -> MetaOutcome:
+        """Algorithm 1 with `config`; with `online`, the closed-loop collector of eq. (ub).
+
+        Raises:
+            LearnerError: no usable source system.
+            MetaTrainingError: too many non-finite tasks (from the core).
+        """
+        cfg = self.config
+        model = self._fresh_model()
+        try:
+            source = SourceSet(self._source_data(), model.norm, cfg.nssm, cfg.train_fraction,
+                               cfg.online_max_samples)
+        except ValueError as err:
+            raise LearnerError(f'source set: {err}') from None
+        collector = (OnlineCollector(model, replace(cfg.online, seed=config.seed), cfg.source)
+                     if online else None)
+        result = meta_train(model, source, config, progress, collector)
+        tail = [v for v in result.losses[-FINAL_LOSS_STEPS:] if math.isfinite(v)]
+        final = float(np.mean(tail)) if tail else math.nan
+        samples = (sum(_samples(ts) for ts in self._source_data().trajectories)
+                   + result.collected_samples)
+        record = self._new_record(model=model, params=result.params, method=config.method,
+                                  stage='meta', train_loss=final,
+                                  train_steps=config.iterations, train_samples=samples,
+                                  seed=config.seed)
+        return MetaOutcome(record, list(result.losses), final, result.skipped,
+                           collector.stats if collector else None, result.collected_samples,
+                           result.dropped_samples, result.elapsed)
+
+    # --- adaptation -----------------------------------------------------------------------
+
+    def _meta_for(self, method: str) -> ModelRecord:
+        if not method:
+            if not self.latest_meta:
+                raise LearnerError("no meta-model yet: call meta_train first (or start with "
+                                   "meta_model_path), or adapt with 'supervised' or 'oracle'")
+            method = self.latest_meta
+        if method not in self.meta_models:
+            have = ', '.join(sorted(self.meta_models)) or 'none'
+            raise LearnerError(f"no meta-model for method '{method}' (have: {have}): call "
+                               f"meta_train with method '{method}' first")
+        return self.meta_models[method]
+
+    def _plant_source(self, plant: PlantFacts) -> SourceConfig:
+        """The source settings with the target plant's dynamics, bounds and box."""
+        src = self.config.source
+        return replace(src, dt=plant.dt, substeps=plant.substeps,
+                       state_bound=plant.state_bound,
+                       excitation=replace(src.excitation, u_min=plant.u_min,
+                                          u_max=plant.u_max))
+
+    def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantFacts],
+              progress: Optional[ProgressFn] = None) -> AdaptOutcome:
+        """Adapt (or train a baseline) on the buffered target samples; see the module.
+
+        Raises:
+            LearnerError: no such meta-model, too few samples, no or mismatching plant_info.
+        """
+        cfg = self.config
+        if plant is not None and not math.isclose(plant.dt, cfg.source.dt, rel_tol=1e-9):
+            raise LearnerError(f'the plant samples at dt = {plant.dt} s, the learner\'s '
+                               f'models at dt = {cfg.source.dt} s: set the dt parameter')
+        if job.method == 'oracle' and plant is None:
+            raise LearnerError("the oracle needs the target's theta: no plant_info received")
+        meta = None if job.method in ('supervised', 'oracle') else self._meta_for(job.method)
+        model = self._fresh_model() if meta is None else meta.model
+        train, held, used = split_target(samples, job.n_samples, cfg.heldout_fraction,
+                                         cfg.source.state_bound)
+        train_w = Windows.from_trajectories(train, model.norm, model.config)
+        held_w = Windows.from_trajectories(held, model.norm, model.config)
+        seed = cfg.meta.seed
+        if job.method == 'oracle':
+            episodes = oracle_data(plant.theta, self._plant_source(plant), cfg.oracle.episodes,
+                                   seed)
+            if len(held_w) == 0:
+                held_w = Windows.from_trajectories(oracle_data(
+                    plant.theta, self._plant_source(plant), max(1, cfg.oracle.episodes // 5),
+                    seed + 1), model.norm, model.config)
+            train, train_w = episodes, Windows.from_trajectories(episodes, model.norm,
+                                                                 model.config)
+            if len(train_w) == 0:
+                raise LearnerError(f'oracle: all {cfg.oracle.episodes} simulated episodes of '
+                                   f'theta = {plant.theta} left the state box')
+            result = fit_oracle(model, init_params(model.config, seed), train_w, held_w,
+                                replace(cfg.oracle, steps=job.steps, lr=job.lr), seed,
+                                progress)
+        else:
+            if len(train_w) == 0 or len(held_w) == 0:
+                window = model.config.window
+                least = math.ceil(window / min(cfg.heldout_fraction, 1 - cfg.heldout_fraction))
+                raise LearnerError(
+                    f'too few target samples: {len(samples)} buffered, {used} used, of which '
+                    f'{_samples(train)} valid for training and {_samples(held)} held out; each '
+                    f'part needs a run of H + T = {window} consecutive valid samples (about '
+                    f'{least} buffered samples in all)')
+            step_config = AdaptConfig(job.steps, job.lr, job.gamma)
+            if meta is None:
+                result = supervised(model, train_w, held_w, step_config, seed, progress)
+            else:
+                result = adapt(model, meta.params, train_w, held_w, step_config, progress)
+        record = self._new_record(
+            model=model, params=result.params, method=job.method or meta.method,
+            stage='adapted', train_loss=result.train_loss[-1], train_steps=job.steps,
+            train_samples=_samples(train), seed=seed)
+        return AdaptOutcome(record, result, used, _samples(train), _samples(held))
+
+
+__all__ = ['LearnerError', 'ModelRecord', 'PlantFacts', 'MetaOutcome', 'AdaptOutcome',
+           'LearnerSession']

@@ -1,0 +1,188 @@
+"""The `learner` node as a process (`ros2 run metampc_learner learner`) beside a lockstep plant.
+
+The plant runs without a controller (short input_timeout: it holds u = 0 and steps every
+20 ms on its limit cycle), so ``y`` flows while the learner trains. The probe calls the
+services, watches ``progress`` and ``y``, and subscribes late to ``nssm_weights``.
+"""
+import math
+import os
+import time
+
+from metampc_msgs.msg import NssmWeights, TrainingProgress
+from metampc_msgs.srv import Adapt, MetaTrain
+import numpy as np
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_srvs.srv import SetBool
+import torch
+
+from metampc_controller.weights_codec import fields_of, weights_from_fields
+from metampc_learner.checkpoint import load_checkpoint
+from metampc_testing import session_pids
+
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+ITERATIONS = 80    # several seconds of training: time to be busy and to buffer meanwhile
+CAPACITY = 40       # D_target; 10 held out (heldout_fraction 0.25), window H + T = 6
+TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
+        'horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
+        'cg_steps': 2, 'windows_per_task': 8, 'iterations': ITERATIONS, 'torch_threads': 1,
+        'target_buffer_size': CAPACITY, 'heldout_fraction': 0.25, 'adapt_steps': 5,
+        'oracle_episodes': 4, 'oracle_steps': 10, 'oracle_batch': 32,
+        'progress_period': 0.25, 'buffer_on_start': False}
+PLANT = {'theta': 1.0, 'x0': [1.0, 0.0], 'start_timeout': 0.2, 'input_timeout': 0.02}
+
+
+def call(probe, client, request, timeout=30.0):
+    future = client.call_async(request)
+    probe.wait_for(future.done, timeout, f'the answer of {client.srv_name}')
+    return future.result()
+
+
+class Latest:
+    """A late-joining latched subscriber of nssm_weights."""
+
+    def __init__(self, probe):
+        self.msgs = []
+        probe.node.create_subscription(NssmWeights, 'nssm_weights', self.msgs.append, LATCHED)
+
+
+def check_weights_equal_checkpoint(msg, path):
+    decoded = weights_from_fields(fields_of(msg))
+    ckpt = load_checkpoint(path)
+    assert ckpt.info['version'] == msg.version and ckpt.info['stage'] == msg.stage
+    assert (decoded.config.n_z, decoded.config.history, decoded.config.hidden) == (
+        ckpt.model.config.n_z, ckpt.model.config.history, ckpt.model.config.hidden)
+    assert set(decoded.params) == set(ckpt.params)
+    assert all(torch.equal(decoded.params[k], ckpt.params[k]) for k in ckpt.params)
+    for name in ('u_mean', 'u_std', 'y_mean', 'y_std'):
+        assert np.array_equal(getattr(decoded.norm, name), getattr(ckpt.model.norm, name))
+    return decoded
+
+
+def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, probe, tmp_path):
+    progress = []
+    probe.node.create_subscription(TrainingProgress, 'progress',
+                                   lambda m: progress.append((time.monotonic(), m)), RELIABLE)
+    meta = probe.node.create_client(MetaTrain, 'meta_train')
+    adapt = probe.node.create_client(Adapt, 'adapt')
+    buffering = probe.node.create_client(SetBool, 'set_buffering')
+    learner = procs.start('metampc_learner', 'learner',
+                          params={**TINY, 'checkpoint_dir': str(tmp_path / 'ckpt')})
+    procs.start('metampc_plant', 'plant', params=PLANT)
+    for client in (meta, adapt, buffering):
+        assert client.wait_for_service(timeout_sec=60.0), client.srv_name
+
+    # Requests that cannot be carried out say what is missing.
+    result = call(probe, adapt, Adapt.Request())
+    assert not result.success and 'no meta-model yet' in result.message, result.message
+    result = call(probe, adapt, Adapt.Request(method='supervised'))
+    assert not result.success, result.message
+    assert result.message.startswith('adapt failed: too few target samples: 0 buffered')
+    result = call(probe, adapt, Adapt.Request(method='reptile'))
+    assert not result.success and "unknown method 'reptile'" in result.message
+    result = call(probe, meta, MetaTrain.Request(method='supervised'))
+    assert not result.success and "call adapt with method 'supervised'" in result.message
+
+    first = meta.call_async(MetaTrain.Request())
+    probe.wait_for(lambda: any(m.phase == 'meta_train' for _, m in progress), 60.0,
+                   'progress of meta_train')
+    # While it trains: a second job is refused at once, buffering is served and goes on.
+    for client, request in ((meta, MetaTrain.Request()), (adapt, Adapt.Request())):
+        t0 = time.monotonic()
+        result = call(probe, client, request)
+        assert not result.success and result.message.startswith('busy: meta_train (imaml)')
+        assert time.monotonic() - t0 < 5.0
+    result = call(probe, buffering, SetBool.Request(data=True))
+    assert result.success and 'buffering (re)started: 0 samples cleared' in result.message
+    probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 30.0,
+                   'a full D_target')
+    result = call(probe, buffering, SetBool.Request(data=False))
+    assert not first.done(), f'meta_train ended too early: raise ITERATIONS ({ITERATIONS})'
+    assert result.message == f'buffering stopped: {CAPACITY} samples kept (0 skipped)'
+
+    probe.wait_for(first.done, 120.0, 'the meta_train answer')
+    done = first.result()
+    assert done.success, done.message
+    assert done.model_version == 1 and len(done.loss_curve) == ITERATIONS
+    assert all(math.isfinite(v) for v in done.loss_curve)
+    assert done.final_loss == np.mean(done.loss_curve[-10:])
+    probe.wait_for(lambda: progress[-1][1].phase == 'done', 10.0, 'the final progress')
+    job = [(t, m) for t, m in progress if m.phase in ('meta_train', 'done')]
+    assert [m.phase for _, m in job].count('done') == 1 and job[-1][1].phase == 'done'
+    assert job[0][1].iteration == 0 and job[-1][1].iteration == ITERATIONS
+    assert all(m.total == ITERATIONS and m.method == 'imaml' for _, m in job)
+    iterations = [m.iteration for _, m in job]
+    assert iterations == sorted(iterations) and len(set(iterations)) > 3
+    gaps = np.diff([t for t, _ in job])
+    assert gaps.max() < 1.0, f'progress gaps up to {gaps.max():.2f} s'
+    assert job[-1][1].loss == done.loss_curve[-1]
+    assert math.isfinite(job[-1][1].cg_residual)
+
+    late = Latest(probe)
+    probe.wait_for(lambda: late.msgs, 10.0, 'the latched meta-model')
+    msg = late.msgs[-1]
+    assert (msg.version, msg.stage, msg.method) == (1, 'meta', 'imaml')
+    assert msg.train_steps == ITERATIONS and msg.train_loss == done.final_loss
+    meta_weights = check_weights_equal_checkpoint(msg, tmp_path / 'ckpt' / 'meta_imaml_v1.pt')
+
+    result = call(probe, adapt, Adapt.Request(), timeout=60.0)
+    assert result.success, result.message
+    assert result.model_version == 2 and len(result.loss_curve) == 6
+    assert (result.loss_before, result.loss_after) == (result.loss_curve[0],
+                                                       result.loss_curve[-1])
+    probe.wait_for(lambda: late.msgs[-1].version == 2, 10.0, 'the adapted model')
+    msg = late.msgs[-1]
+    assert (msg.stage, msg.method, msg.train_steps) == ('adapted', 'imaml', 5)
+    assert msg.train_samples == CAPACITY - 10, 'the first 30 buffered samples train'
+    adapted = check_weights_equal_checkpoint(msg, tmp_path / 'ckpt' / 'adapted_imaml_v2.pt')
+    assert any(not torch.equal(adapted.params[k], meta_weights.params[k])
+               for k in adapted.params)
+
+    # The oracle takes theta from the latched plant_info.
+    result = call(probe, adapt, Adapt.Request(method='oracle'), timeout=60.0)
+    assert result.success, result.message
+    probe.wait_for(lambda: late.msgs[-1].version == 3, 10.0, 'the oracle model')
+    assert (late.msgs[-1].method, late.msgs[-1].stage) == ('oracle', 'adapted')
+
+    # Ctrl-C during a long job: the job is cancelled, the node exits 0 at once.
+    meta.call_async(MetaTrain.Request(iterations=100000, seed=5))
+    probe.wait_for(lambda: progress[-1][1].phase == 'meta_train'
+                   and progress[-1][1].total == 100000, 30.0, 'the long job')
+    t0 = time.monotonic()
+    code = procs.interrupt(learner, timeout=20.0)
+    out = procs.output(learner)
+    assert code == 0 and 'Traceback' not in out and 'exception' not in out, out
+    assert time.monotonic() - t0 < 10.0
+    assert session_pids(learner.pid) == []
+    ckpt = tmp_path / 'ckpt'
+    assert sorted(os.listdir(ckpt)) == [
+        'adapted_imaml_v2.pt', 'adapted_oracle_v3.pt', 'meta_imaml_v1.pt']
+
+    # A new learner loads the saved meta-model and publishes it at start; versions go on.
+    procs.start('metampc_learner', 'learner', params={
+        **TINY, 'checkpoint_dir': str(ckpt), 'meta_model_path': str(ckpt / 'meta_imaml_v1.pt')})
+    fresh = Latest(probe)
+    probe.wait_for(lambda: fresh.msgs, 60.0, 'the loaded meta-model')
+    assert (fresh.msgs[-1].version, fresh.msgs[-1].stage) == (4, 'meta')
+    loaded = check_weights_equal_checkpoint(fresh.msgs[-1], ckpt / 'meta_imaml_v4.pt')
+    assert all(torch.equal(loaded.params[k], meta_weights.params[k]) for k in loaded.params)
+
+
+BAD_PARAMS = {
+    'iterations': ({'iterations': 0}, 'iterations must be >= 1'),
+    'method': ({'method': 'reptile'}, 'method must be one of'),
+    'buffer': ({'target_buffer_size': 20}, 'target_buffer_size: its training / held-out'),
+    'path': ({'meta_model_path': '/nonexistent/meta.pt'}, 'meta_model_path: cannot load'),
+}
+
+
+def test_bad_parameters_one_line_and_exit_2(procs):
+    started = {case: procs.start('metampc_learner', 'learner', params=params)
+               for case, (params, _) in BAD_PARAMS.items()}
+    for case, proc in started.items():
+        code = proc.wait(60.0)
+        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        assert code == 2, (case, lines)
+        assert len(lines) == 1 and 'invalid parameter' in lines[0], (case, lines)
+        assert BAD_PARAMS[case][1] in lines[0], (case, lines)

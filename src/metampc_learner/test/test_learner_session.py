@@ -1,0 +1,162 @@
+"""LearnerSession (the learner node without ROS) on a tiny configuration."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from metampc_controller.nssm import init_params, Nssm
+from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
+from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
+                                  Windows)
+from metampc_learner.learner_params import AdaptJob, parse_params, PARAMETERS
+from metampc_learner.learner_session import LearnerError, LearnerSession, PlantFacts
+from metampc_learner.oracle import fit_oracle, oracle_data
+from metampc_learner.target_buffer import split_target, TargetSamples
+
+torch.set_num_threads(1)
+pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
+TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
+        'horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
+        'cg_steps': 2, 'windows_per_task': 8, 'iterations': 12, 'target_buffer_size': 40,
+        'heldout_fraction': 0.25, 'adapt_steps': 4, 'oracle_episodes': 3, 'oracle_steps': 15,
+        'oracle_batch': 32, 'online_samples': 20, 'online_horizon': 5, 'seed': 2}
+PLANT = PlantFacts(theta=0.4, dt=0.1, substeps=10, u_min=-1.0, u_max=1.0, state_bound=10.0)
+
+
+def _config(**overrides):
+    values = {name: spec.default for name, spec in PARAMETERS.items()}
+    values.update(TINY)
+    values.update(overrides)
+    return parse_params(values)
+
+
+def _target(cfg, n, theta=0.4, seed=1):
+    trajs = simulate_target(theta, cfg.source, n, seed=seed)
+    return TargetSamples(np.concatenate([t.steps for t in trajs]),
+                         np.concatenate([t.u for t in trajs]),
+                         np.concatenate([t.y for t in trajs]))
+
+
+def _equal(a, b):
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_meta_train_numbers_saves_and_reproduces(tmp_path):
+    cfg = _config(checkpoint_dir=str(tmp_path / 'ckpt'))
+    session = LearnerSession(cfg)
+    reports = []
+    out = session.meta_train(cfg.meta, False, reports.append)
+    rec = out.record
+    assert (rec.version, rec.stage, rec.method) == (1, 'meta', 'imaml')
+    assert (rec.seed, rec.train_steps) == (2, 12)
+    assert session.latest_meta == 'imaml' and session.meta_models['imaml'] is rec
+    assert len(out.losses) == 12 and out.final_loss == np.mean(out.losses[-10:])
+    assert [r.iteration for r in reports] == list(range(1, 13))
+    assert out.collection is None and out.collected_samples == 0
+    data = simulate_source(cfg.source)
+    assert rec.train_samples == sum(len(t) for ts in data.trajectories for t in ts)
+    assert np.array_equal(rec.model.norm.y_std, normalisation_from(
+        [t for ts in data.trajectories for t in ts]).y_std)
+
+    ckpt = load_checkpoint(str(tmp_path / 'ckpt' / 'meta_imaml_v1.pt'))
+    assert _equal(ckpt.params, rec.params)
+    assert ckpt.info == {'method': 'imaml', 'stage': 'meta', 'version': 1,
+                         'train_loss': out.final_loss, 'train_steps': 12,
+                         'train_samples': rec.train_samples, 'seed': 2}
+    again = LearnerSession(_config()).meta_train(cfg.meta, False).record
+    assert _equal(again.params, rec.params), 'same seed, same weights'
+
+
+def test_adapt_methods_match_the_cores_on_the_same_split(tmp_path):
+    cfg = _config()
+    session = LearnerSession(cfg)
+    job = AdaptJob('', 4, 0.05, 0.0, 0)
+    with pytest.raises(LearnerError, match='no meta-model yet: call meta_train first'):
+        session.adapt(job, _target(cfg, 40), None)
+    meta = session.meta_train(replace(cfg.meta, method='maml'), False).record
+    with pytest.raises(LearnerError, match=r"no meta-model for method 'imaml' \(have: maml\)"):
+        session.adapt(AdaptJob('imaml', 4, 0.05, 0.0, 0), _target(cfg, 40), None)
+    with pytest.raises(LearnerError, match='too few target samples: 12 buffered, 12 used, of '
+                                           'which 9 valid for training and 3 held out'):
+        session.adapt(job, _target(cfg, 12), None)
+
+    samples = _target(cfg, 40)
+    out = session.adapt(job, samples, None)
+    assert (out.record.version, out.record.stage, out.record.method) == (2, 'adapted', 'maml')
+    assert (out.used_samples, out.train_samples, out.heldout_samples) == (40, 30, 10)
+    train, held, _ = split_target(samples, 0, 0.25, 10.0)
+    model = meta.model
+    windows = [Windows.from_trajectories(p, model.norm, model.config) for p in (train, held)]
+    direct = adapt(model, meta.params, *windows, AdaptConfig(4, 0.05, 0.0))
+    assert _equal(out.record.params, direct.params)
+    assert out.result.heldout_loss == direct.heldout_loss and len(direct.heldout_loss) == 5
+    assert out.record.train_loss == direct.train_loss[-1]
+
+    out = session.adapt(AdaptJob('supervised', 4, 0.05, 1.0, 28), samples, None)
+    assert (out.record.version, out.record.method, out.used_samples) == (3, 'supervised', 28)
+    train, held, _ = split_target(samples, 28, 0.25, 10.0)
+    fresh = Nssm(cfg.nssm, meta.model.norm)   # the source normalisation, as every method's
+    windows = [Windows.from_trajectories(p, fresh.norm, fresh.config) for p in (train, held)]
+    direct = supervised(fresh, *windows, AdaptConfig(4, 0.05, 0.0), seed=cfg.meta.seed)
+    assert _equal(out.record.params, direct.params)
+
+
+def test_oracle_fits_simulated_target_episodes():
+    cfg = _config()
+    session = LearnerSession(cfg)
+    job = AdaptJob('oracle', 15, 3e-3, 0.0, 0)
+    samples = _target(cfg, 40)
+    with pytest.raises(LearnerError, match="the oracle needs the target's theta"):
+        session.adapt(job, samples, None)
+    with pytest.raises(LearnerError, match='the plant samples at dt = 0.05 s'):
+        session.adapt(job, samples, replace(PLANT, dt=0.05))
+    out = session.adapt(job, samples, PLANT)
+    assert (out.record.method, out.record.stage, out.heldout_samples) == ('oracle', 'adapted', 10)
+    episodes = oracle_data(PLANT.theta, cfg.source, cfg.oracle.episodes, cfg.meta.seed)
+    assert out.train_samples == sum(len(t) for t in episodes) > 0
+    model = Nssm(cfg.nssm, out.record.model.norm)
+    _, held, _ = split_target(samples, 0, 0.25, 10.0)
+    direct = fit_oracle(model, init_params(cfg.nssm, cfg.meta.seed),
+                        Windows.from_trajectories(episodes, model.norm, model.config),
+                        Windows.from_trajectories(held, model.norm, model.config),
+                        replace(cfg.oracle, steps=15, lr=3e-3), cfg.meta.seed)
+    assert _equal(out.record.params, direct.params)
+    assert out.result.train_loss[-1] < out.result.train_loss[0]
+
+
+def test_online_collection_grows_the_source_up_to_the_cap():
+    cfg = _config(online_max_samples=100, iterations=3)
+    out = LearnerSession(cfg).meta_train(cfg.meta, True)
+    stats = out.collection
+    assert stats.calls == 3 * 2 - out.skipped and stats.episodes == stats.calls
+    assert stats.samples > 100, 'enough collected to hit the cap'
+    assert out.collected_samples <= 100
+    assert out.collected_samples + out.dropped_samples == stats.samples
+
+
+def test_versions_continue_after_the_checkpoints_on_disk(tmp_path):
+    cfg = _config(checkpoint_dir=str(tmp_path))
+    rec = LearnerSession(cfg).meta_train(cfg.meta, False).record
+    # As if an earlier run had got to version 7.
+    save_checkpoint(str(tmp_path / 'adapted_maml_unrolled_v7.pt'), rec.model, rec.params)
+    (tmp_path / 'notes_v99.txt').write_text('not a checkpoint')
+    second = LearnerSession(cfg)
+    assert second.version == 7
+    loaded = second.load_meta(str(tmp_path / 'meta_imaml_v1.pt'))
+    assert (loaded.version, loaded.stage, loaded.method) == (8, 'meta', 'imaml')
+    assert _equal(load_checkpoint(str(tmp_path / 'meta_imaml_v8.pt')).params, rec.params)
+    assert second.latest_meta == 'imaml'
+
+
+def test_load_meta_refuses_what_is_not_a_meta_model(tmp_path):
+    session = LearnerSession(_config())
+    with pytest.raises(LearnerError, match="cannot load meta-model '/nonexistent.pt'"):
+        session.load_meta('/nonexistent.pt')
+    model = Nssm(_config().nssm)
+    path = str(tmp_path / 'oracle.pt')
+    save_checkpoint(path, model, model.params(), {'method': 'oracle'})
+    with pytest.raises(LearnerError, match="holds a 'oracle' model, not a meta-model"):
+        session.load_meta(path)
+    assert session.version == 0 and not session.meta_models
