@@ -1,0 +1,170 @@
+"""Metrics of a closed-loop run, on plain arrays (and on a :class:`RunSeries`).
+
+Conventions:
+
+- Episodes: the plant's step index restarts at 0 after every reset, so a sample is keyed by
+  ``(episode, step)``, the episode counting the decreases of `step` in that topic's sequence.
+- Reference: the MPC status answering step ``k`` carries ``y_ref`` = ``y_bar_{k+1..k+N}``; its
+  first row is the reference of the output of step ``k + 1``. Tracking pairs that output with
+  that row (pairs whose reference is not finite are left out).
+- Tracking cost: sum over paired samples and tracked outputs of the squared error (eq. mpc's
+  stage cost with Q = I on the tracked outputs); RMSE per tracked output and over all of them.
+- Missed tick: a plant step with no ControlInput answering it (same episode and step), counted
+  from the first answered step up to, not including, the last output (whose answer may come
+  after the recording stopped).
+- Solve times: statuses that solved a QP (``iterations >= 0``); percentiles interpolate
+  linearly (numpy's default).
+
+No rclpy here.
+"""
+from collections import Counter
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .run_series import RunSeries
+
+
+def episodes(steps: Sequence[int]) -> np.ndarray:
+    """Episode index per sample: starts at 0, +1 wherever the step decreases. Shape [n]."""
+    steps = np.asarray(steps, dtype=np.int64)
+    if steps.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.concatenate([[0], np.cumsum(np.diff(steps) < 0)]).astype(np.int64)
+
+
+def keys(steps: Sequence[int]) -> List[Tuple[int, int]]:
+    """(episode, step) of every sample."""
+    return list(zip(episodes(steps).tolist(), np.asarray(steps, dtype=np.int64).tolist()))
+
+
+def reference_pairs(output_steps: Sequence[int], status_steps: Sequence[int]
+                    ) -> Tuple[np.ndarray, np.ndarray]:
+    """Indices (outputs, statuses) pairing output (e, k + 1) with the status of (e, k)."""
+    index = {key: i for i, key in enumerate(keys(output_steps))}
+    out_idx, status_idx = [], []
+    for j, (episode, step) in enumerate(keys(status_steps)):
+        i = index.get((episode, step + 1))
+        if i is not None:
+            out_idx.append(i)
+            status_idx.append(j)
+    return np.array(out_idx, dtype=np.int64), np.array(status_idx, dtype=np.int64)
+
+
+def tracking_metrics(y: np.ndarray, r: np.ndarray, tracked: Sequence[int]) -> Dict:
+    """Tracking cost and RMSE of outputs `y` [n, n_y] against references `r` [n, n_y].
+
+    Rows whose tracked references are not all finite are dropped. Returns the number of
+    samples, the cost (sum of squared errors over tracked outputs), the overall RMSE and, per
+    tracked output index (a string key), its rmse, sse and max_abs_error (None without samples).
+    """
+    tracked = [int(i) for i in tracked]
+    y = np.asarray(y, dtype=float)
+    r = np.asarray(r, dtype=float)
+    if y.ndim == 1:
+        y, r = y[:, None], r[:, None]
+    if tracked and len(y):
+        keep = np.all(np.isfinite(r[:, tracked]), axis=1)
+        err = y[keep][:, tracked] - r[keep][:, tracked]
+    else:
+        err = np.zeros((0, len(tracked)))
+    n = err.shape[0]
+    per_output = {}
+    for col, i in enumerate(tracked):
+        e = err[:, col]
+        per_output[str(i)] = {
+            'rmse': float(np.sqrt(np.mean(e ** 2))) if n else None,
+            'sse': float(np.sum(e ** 2)),
+            'max_abs_error': float(np.max(np.abs(e))) if n else None}
+    return {'tracked_outputs': tracked, 'samples': n, 'cost': float(np.sum(err ** 2)),
+            'rmse': float(np.sqrt(np.mean(err ** 2))) if err.size else None,
+            'per_output': per_output}
+
+
+def percentile_summary(values: Sequence[float]) -> Dict:
+    """count, mean, p50, p99 and max of `values` (None each when empty)."""
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return {'count': 0, 'mean': None, 'p50': None, 'p99': None, 'max': None}
+    return {'count': int(v.size), 'mean': float(np.mean(v)),
+            'p50': float(np.percentile(v, 50)), 'p99': float(np.percentile(v, 99)),
+            'max': float(np.max(v))}
+
+
+def bound_violations(u: np.ndarray, u_min: float, u_max: float, tol: float = 1e-9) -> Dict:
+    """Samples of `u` [n, n_u] with a component outside [u_min - tol, u_max + tol].
+
+    Returns the count of such samples and the largest excess beyond the bounds (0 if none).
+    """
+    u = np.asarray(u, dtype=float)
+    if u.size == 0:
+        return {'u_min': u_min, 'u_max': u_max, 'violations': 0, 'max_excess': 0.0}
+    excess = np.maximum(u - u_max, u_min - u)
+    per_sample = np.max(excess.reshape(len(u), -1), axis=1)
+    return {'u_min': u_min, 'u_max': u_max, 'violations': int(np.sum(per_sample > tol)),
+            'max_excess': float(max(0.0, np.max(per_sample)))}
+
+
+def tick_accounting(output_steps: Sequence[int], input_steps: Sequence[int]) -> Dict:
+    """Answered and missed plant steps (see the module docstring for the window)."""
+    answered = set(keys(input_steps))
+    out_keys = keys(output_steps)
+    first = next((i for i, key in enumerate(out_keys) if key in answered), None)
+    if first is None:
+        return {'considered': 0, 'answered': 0, 'missed': 0}
+    window = out_keys[first:len(out_keys) - 1]
+    hits = sum(1 for key in window if key in answered)
+    return {'considered': len(window), 'answered': hits, 'missed': len(window) - hits}
+
+
+def training_summary(series: RunSeries) -> List[Dict]:
+    """Per (phase, method) of TrainingProgress: last iteration, total, loss, elapsed."""
+    p = series.progress
+    last: Dict[Tuple[str, str], int] = {}
+    for i, key in enumerate(zip(p.phase, p.method)):
+        last[key] = i
+    return [{'phase': phase, 'method': method, 'iteration': int(p.iteration[i]),
+             'total': int(p.total[i]), 'final_loss': float(p.loss[i]),
+             'elapsed': float(p.elapsed[i]), 'skipped_tasks': int(p.skipped_tasks[i]),
+             'messages': int(sum(1 for k in zip(p.phase, p.method) if k == (phase, method)))}
+            for (phase, method), i in last.items()]
+
+
+def compute_metrics(series: RunSeries, tracked: Optional[Sequence[int]] = None,
+                    u_bounds: Optional[Tuple[float, float]] = None) -> Dict:
+    """All metrics of a run, JSON-ready.
+
+    Args:
+        series: the run's series.
+        tracked: output indices that follow a reference (default: all outputs).
+        u_bounds: (u_min, u_max); default from PlantInfo, else bound checks are skipped.
+    """
+    out, inp, st = series.outputs, series.inputs, series.status
+    if tracked is None:
+        tracked = list(range(series.n_y))
+    oi, si = reference_pairs(out.step, st.step)
+    if u_bounds is None and series.plant_info is not None:
+        u_bounds = (float(series.plant_info['u_min']), float(series.plant_info['u_max']))
+    diverged = np.flatnonzero(out.diverged)
+    solved = st.iterations >= 0
+    return {
+        'samples': {'outputs': int(out.step.size), 'inputs': int(inp.step.size),
+                    'mpc_status': int(st.step.size), 'weights': len(series.weights),
+                    'progress': int(series.progress.loss.size)},
+        'tracking': tracking_metrics(out.y[oi], st.y_ref0[si], tracked),
+        'input_bounds': (bound_violations(inp.u, *u_bounds) if u_bounds is not None
+                         else None),
+        'saturated_samples': int(np.sum(out.saturated)),
+        'diverged_samples': int(diverged.size),
+        'first_diverged_step': int(out.step[diverged[0]]) if diverged.size else None,
+        'ticks': tick_accounting(out.step, inp.step),
+        'solve_time': percentile_summary(st.solve_time[solved]),
+        'tick_time': percentile_summary(st.tick_time),
+        'fallbacks': int(np.sum(st.fallback)),
+        'terminal_fallbacks': int(np.sum(st.terminal_fallback)),
+        'solver_status': dict(Counter(st.solver_status)),
+        'planner': dict(Counter(st.planner)),
+        'model_versions': {'published': [w['version'] for w in series.weights],
+                           'used_by_inputs': sorted(set(inp.model_version.tolist()))},
+        'training': training_summary(series),
+    }

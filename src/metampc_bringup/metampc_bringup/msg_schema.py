@@ -1,0 +1,143 @@
+"""Complete message definitions (MCAP schema `ros2msg` / `ros2idl`), as rosbag2 writes them.
+
+A recording must carry, for every message type, the *complete* definition: the type's own
+interface file followed by the files of every type it uses, recursively, so that a reader with
+no ROS installation (mcap_ros2, rosbags, Foxglove) can decode the CDR payloads. rosbag2
+(`rosbag2_cpp::LocalMessageDefinitionSource`, Jazzy) builds that text as follows, and this
+module reproduces it byte for byte:
+
+- the top-level ``.msg`` file text comes first, unchanged (comments included);
+- its dependencies are the non-primitive field types found by a regular expression on that text
+  (a type without a package is in the same package), visited in sorted order, depth first, each
+  type once;
+- each dependency is appended as ``"\\n"``, a line of 80 ``=``, a line ``MSG: pkg/Type`` (the
+  name as written in the field), then that file's text.
+
+Files are looked up through the ament index (``AMENT_PREFIX_PATH``):
+``<prefix>/share/<pkg>/msg/<Type>.msg``. When a type has no ``.msg`` file, rosbag2 falls back to
+``.idl`` files with ``IDL: pkg/msg/Type`` delimiters (encoding ``ros2idl``); so does this module.
+Nothing here imports rclpy.
+"""
+import os
+import re
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Set, Tuple
+
+DELIMITER = '=' * 80 + '\n'
+_MARKER = os.path.join('share', 'ament_index', 'resource_index', 'packages')
+# rosbag2's MSG_FIELD_TYPE_REGEX and IDL_FIELD_TYPE_REGEX (ECMAScript: '^' is start of text only).
+_MSG_FIELD_TYPE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
+_IDL_INCLUDE = re.compile(r'(?:^|\n)#include\s+(?:"|<)([a-zA-Z0-9_/]+)\.idl(?:"|>)')
+_PRIMITIVES = frozenset({
+    'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16', 'uint16', 'int32',
+    'uint32', 'int64', 'uint64', 'string'})
+_ROS_NAME = r'[a-zA-Z][a-zA-Z0-9_]*'
+_TYPE_NAME = re.compile(rf'^({_ROS_NAME})/(?:({_ROS_NAME})/)?({_ROS_NAME})$')
+_MAX_DEPTH = 50
+
+
+class DefinitionNotFoundError(LookupError):
+    """No interface file of the requested format exists for a type."""
+
+
+@dataclass(frozen=True)
+class MessageDefinition:
+    """A complete definition: MCAP schema `encoding` ('ros2msg' or 'ros2idl') and its `text`."""
+
+    encoding: str
+    text: str
+
+
+def package_share_directory(package: str, prefixes: Optional[List[str]] = None) -> str:
+    """`<prefix>/share/<package>` of the first ament prefix that registers `package`.
+
+    Args:
+        package: ROS package name.
+        prefixes: install prefixes to search; default: ``AMENT_PREFIX_PATH`` in order.
+
+    Raises:
+        DefinitionNotFoundError: no prefix has the package in its ament index.
+    """
+    if prefixes is None:
+        prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    for prefix in prefixes:
+        if os.path.isfile(os.path.join(prefix, _MARKER, package)):
+            return os.path.join(prefix, 'share', package)
+    raise DefinitionNotFoundError(f'package {package!r} is not in the ament index')
+
+
+def split_type_name(type_name: str) -> Tuple[str, str, str]:
+    """'pkg/msg/Type' or 'pkg/Type' -> ('pkg', 'msg', 'Type'); ValueError for anything else."""
+    match = _TYPE_NAME.match(type_name)
+    if match is None:
+        raise ValueError(f'invalid type name {type_name!r}')
+    package, namespace, name = match.groups()
+    return package, namespace or 'msg', name
+
+
+def _dependencies(fmt: str, text: str, package: str) -> List[str]:
+    """Sorted dependency names of one interface file (rosbag2's std::set<std::string> order)."""
+    found: Set[str] = set()
+    if fmt == 'msg':
+        for match in _MSG_FIELD_TYPE.finditer(text):
+            name = match.group(1)
+            if name in _PRIMITIVES:
+                continue
+            found.add(name if '/' in name else f'{package}/{name}')
+    else:
+        found.update(m.group(1) for m in _IDL_INCLUDE.finditer(text))
+    return sorted(found)
+
+
+class DefinitionSource:
+    """Builds complete definitions from interface files, caching every file it reads.
+
+    Args:
+        prefixes: ament prefixes to search (default: ``AMENT_PREFIX_PATH`` at each lookup).
+    """
+
+    def __init__(self, prefixes: Optional[List[str]] = None):
+        self._prefixes = prefixes
+        self._files: Dict[Tuple[str, str], Tuple[str, List[str]]] = {}
+
+    def _load(self, fmt: str, type_name: str) -> Tuple[str, List[str]]:
+        key = (fmt, type_name)
+        if key not in self._files:
+            package, namespace, name = split_type_name(type_name)
+            share = package_share_directory(package, self._prefixes)
+            path = os.path.join(share, namespace, f'{name}.{fmt}')
+            if not os.path.isfile(path):
+                raise DefinitionNotFoundError(f'no {path}')
+            with open(path, encoding='utf-8') as f:
+                text = f.read()
+            self._files[key] = (text, _dependencies(fmt, text, package))
+        return self._files[key]
+
+    def _full_text(self, fmt: str, root: str) -> str:
+        seen: Set[str] = set()
+        header = 'MSG: ' if fmt == 'msg' else 'IDL: '
+
+        def append(type_name: str, depth: int) -> str:
+            if depth <= 0:
+                raise RecursionError(f'definition of {root} nests too deeply')
+            text, deps = self._load(fmt, type_name)
+            for dep in deps:
+                if dep not in seen:
+                    seen.add(dep)
+                    text += '\n' + DELIMITER + header + dep + '\n' + append(dep, depth - 1)
+            return text
+
+        if fmt == 'msg':
+            return append(root, _MAX_DEPTH)
+        return DELIMITER + header + root + '\n' + append(root, _MAX_DEPTH)
+
+    def get(self, type_name: str) -> MessageDefinition:
+        """Complete definition of `type_name` ('pkg/msg/Type'), '.msg' first, else '.idl'.
+
+        Raises:
+            DefinitionNotFoundError: neither a '.msg' nor an '.idl' definition was found.
+        """
+        try:
+            return MessageDefinition('ros2msg', self._full_text('msg', type_name))
+        except DefinitionNotFoundError:
+            return MessageDefinition('ros2idl', self._full_text('idl', type_name))

@@ -1,0 +1,110 @@
+"""Playback of a recording onto ROS topics, as ``ros2 bag play`` does.
+
+Each recorded topic gets a publisher with the QoS rosbag2 would offer for it
+(:func:`~metampc_bringup.rosbag2_qos.offer_for_recorded`: the recorded reliability, durability,
+deadline and liveliness, history keep_last 10), so a latched topic replays latched. The recorded
+CDR bytes are published unchanged (rclpy's ``Publisher.publish`` takes ``bytes`` as a serialized
+message) at the recorded log-time spacing divided by `rate`. Used by
+``scripts/replay.py --play``.
+
+As with ``ros2 bag play``, a volatile sample published before a subscriber has been discovered
+is lost for it; ``delay`` gives discovery a fixed time (``--delay``), ``wait_for_subscribers``
+(an addition of this player) waits until every volatile topic played has a subscriber.
+"""
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from .rclpy_adapters import message_class, qos_to_rclpy
+from .recording_reader import read_recording, Recording
+from .rosbag2_qos import offer_for_recorded, profiles_from_yaml, QosProfile
+
+
+@dataclass
+class PlayConfig:
+    """Options of a playback.
+
+    Attributes:
+        rate: speed factor (2.0 plays twice as fast); > 0.
+        delay: seconds between creating the publishers and the first message (lets
+            subscribers discover them, as ``ros2 bag play --delay``).
+        topics: topics to play (default: all).
+        ack_timeout: seconds to wait at the end for reliable subscribers to acknowledge.
+        wait_for_subscribers: after the delay, wait up to this many seconds until every
+            volatile topic played has at least one matched subscriber (0: do not wait).
+    """
+
+    rate: float = 1.0
+    delay: float = 0.0
+    topics: List[str] = field(default_factory=list)
+    ack_timeout: float = 2.0
+    wait_for_subscribers: float = 0.0
+
+    def validate(self) -> None:
+        """ValueError for a non-positive rate or a negative delay or timeout."""
+        if not self.rate > 0 or min(self.delay, self.ack_timeout,
+                                    self.wait_for_subscribers) < 0:
+            raise ValueError('rate must be positive; delay, ack_timeout and '
+                             'wait_for_subscribers non-negative')
+
+
+def _offer(text: str) -> QosProfile:
+    try:
+        return offer_for_recorded(profiles_from_yaml(text))
+    except ValueError:
+        return QosProfile()
+
+
+def play(recording: Recording, node: Node, config: PlayConfig) -> Dict[str, int]:
+    """Publish the recording's messages from `node`; returns the count published per topic."""
+    config.validate()
+    names = config.topics or list(recording.topics)
+    unknown = sorted(set(names) - set(recording.topics))
+    if unknown:
+        raise ValueError(f'not in the recording: {", ".join(unknown)}')
+    publishers, volatile = {}, []
+    for name in names:
+        topic = recording.topics[name]
+        offer = _offer(topic.offered_qos_profiles)
+        publishers[name] = node.create_publisher(
+            message_class(topic.type_name), name, qos_to_rclpy(offer))
+        if offer.durability != 'transient_local':
+            volatile.append(publishers[name])
+    time.sleep(config.delay)
+    deadline = time.monotonic() + config.wait_for_subscribers
+    while (time.monotonic() < deadline
+           and any(p.get_subscription_count() == 0 for p in volatile)):
+        time.sleep(0.01)
+    counts = {name: 0 for name in names}
+    messages = [m for m in recording.messages if m.topic in publishers]
+    start_wall = time.monotonic()
+    start_log = messages[0].log_time if messages else 0
+    for message in messages:
+        due = start_wall + (message.log_time - start_log) * 1e-9 / config.rate
+        if due > time.monotonic():
+            time.sleep(due - time.monotonic())
+        publishers[message.topic].publish(message.data)
+        counts[message.topic] += 1
+    for publisher in publishers.values():
+        publisher.wait_for_all_acked(Duration(seconds=config.ack_timeout))
+    return counts
+
+
+def run_player(path: str, config: PlayConfig) -> Dict[str, int]:
+    """Play `path` (MCAP file or run folder) from a node of its own, then shut down."""
+    config.validate()
+    recording = read_recording(path)
+    rclpy.init()
+    node = Node('metampc_player')
+    try:
+        return play(recording, node, config)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return {}
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,152 @@
+"""PNG plots of a run (matplotlib, Agg backend): outputs against the reference, inputs, MPC
+solve times, training loss. Each function returns the path written, or None when the run has
+no data for that plot. No rclpy here.
+"""
+import os
+from typing import List, Optional, Sequence, Tuple
+
+import matplotlib
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
+import numpy as np  # noqa: E402
+
+from .metrics import episodes, keys, reference_pairs  # noqa: E402
+from .run_series import RunSeries  # noqa: E402
+
+
+def _save(fig, path: str) -> str:
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _time_axis(series: RunSeries) -> np.ndarray:
+    """Time of each output sample, s since the first one (header stamps: the plant's sim time
+    in lockstep, which never goes back across resets). Shape [n]."""
+    stamp = series.outputs.stamp
+    return stamp - stamp[0] if stamp.size else stamp
+
+
+def _broken(values: np.ndarray, episode: np.ndarray) -> np.ndarray:
+    """`values` [n] as float with a NaN inserted where the episode changes, so a line is not
+    drawn across a reset (pair with :func:`_broken` of the x values). Shape [n + resets]."""
+    cuts = np.flatnonzero(np.diff(episode)) + 1
+    return np.insert(np.asarray(values, dtype=float), cuts, np.nan)
+
+
+def _mark_resets(ax, t: np.ndarray, episode: np.ndarray) -> None:
+    """A dotted vertical line at the first sample of every episode after the first."""
+    for i in np.flatnonzero(np.diff(episode)) + 1:
+        ax.axvline(t[i], color='0.5', lw=0.8, ls=':')
+
+
+def plot_outputs(series: RunSeries, path: str,
+                 tracked: Optional[Sequence[int]] = None) -> Optional[str]:
+    """Each output y_i against plant time, with the reference MPC tracked for the outputs in
+    `tracked` (default: all); lines break at plant resets (dotted vertical lines)."""
+    out = series.outputs
+    if out.step.size == 0:
+        return None
+    tracked = range(series.n_y) if tracked is None else tracked
+    oi, si = reference_pairs(out.step, series.status.step)
+    t, ep = _time_axis(series), episodes(out.step)
+    n_y = series.n_y
+    fig, axes = plt.subplots(n_y, 1, figsize=(9, 2.6 * n_y), sharex=True, squeeze=False)
+    for i, ax in enumerate(axes[:, 0]):
+        ax.plot(_broken(t, ep), _broken(out.y[:, i], ep), label=f'y[{i}]')
+        if oi.size and i in tracked:
+            ax.plot(_broken(t[oi], ep[oi]), _broken(series.status.y_ref0[si, i], ep[oi]),
+                    '--', drawstyle='steps-mid', label=f'reference[{i}]')
+        _mark_resets(ax, t, ep)
+        ax.set_ylabel(f'y[{i}]')
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc='upper right')
+    axes[-1, 0].set_xlabel('plant time [s] (dotted: reset)')
+    axes[0, 0].set_title('Plant outputs and reference')
+    return _save(fig, path)
+
+
+def plot_inputs(series: RunSeries, path: str,
+                u_bounds: Optional[Tuple[float, float]] = None) -> Optional[str]:
+    """Inputs against plant time: the applied input u_applied of sample k, held over
+    (k-1, k], as a staircase, and each requested input (ControlInput answering step k) drawn
+    at the end of the interval (k, k+1] it was meant for; input bounds dotted."""
+    out, inp = series.outputs, series.inputs
+    if out.u_applied.size == 0:
+        return None
+    t, ep = _time_axis(series), episodes(out.step)
+    fig, ax = plt.subplots(figsize=(9, 3.2))
+    for j in range(out.u_applied.shape[1]):
+        ax.plot(_broken(t, ep), _broken(out.u_applied[:, j], ep), drawstyle='steps-pre',
+                label=f'u_applied[{j}]')
+    # Output sample k+1 of the same episode, where the input answering step k was applied.
+    applied_at = {key: i + 1 for i, key in enumerate(keys(out.step))
+                  if i + 1 < out.step.size and ep[i + 1] == ep[i]}
+    placed = [(applied_at[key], n) for n, key in enumerate(keys(inp.step))
+              if key in applied_at]
+    if placed:
+        x, rows = (np.array(v) for v in zip(*placed))
+        for j in range(inp.u.shape[1]):
+            ax.plot(t[x], inp.u[rows, j], '.', ms=4, label=f'u requested[{j}]')
+    if u_bounds is not None:
+        for bound in u_bounds:
+            ax.axhline(bound, color='k', lw=0.8, ls=':')
+    _mark_resets(ax, t, ep)
+    ax.set_xlabel('plant time [s] (dotted: reset)')
+    ax.set_ylabel('u')
+    ax.set_title('Inputs')
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
+def plot_solve_times(series: RunSeries, path: str) -> Optional[str]:
+    """OSQP solve time and whole tick time per MPC tick, ms."""
+    st = series.status
+    if st.step.size == 0:
+        return None
+    fig, ax = plt.subplots(figsize=(9, 3.2))
+    ticks = np.arange(st.step.size)
+    ax.plot(ticks, 1e3 * st.tick_time, lw=0.8, label='tick')
+    solved = st.iterations >= 0
+    ax.plot(ticks[solved], 1e3 * st.solve_time[solved], '.', ms=3, label='QP solve')
+    ax.set_xlabel('MPC tick')
+    ax.set_ylabel('time [ms]')
+    ax.set_title('MPC solve times')
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
+def plot_training_loss(series: RunSeries, path: str) -> Optional[str]:
+    """Loss reported on `progress` against iteration, one line per (phase, method)."""
+    p = series.progress
+    finite = np.isfinite(p.loss) & (p.loss > 0)
+    if not np.any(finite):
+        return None
+    fig, ax = plt.subplots(figsize=(9, 3.2))
+    for phase, method in sorted(set(zip(p.phase, p.method))):
+        sel = np.array([(a, b) == (phase, method) for a, b in zip(p.phase, p.method)]) & finite
+        if np.any(sel):
+            ax.semilogy(p.iteration[sel], p.loss[sel], '.-', ms=3, label=f'{phase} {method}')
+    ax.set_xlabel('iteration')
+    ax.set_ylabel('loss')
+    ax.set_title('Training progress')
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(loc='upper right')
+    return _save(fig, path)
+
+
+def write_plots(series: RunSeries, out_dir: str,
+                u_bounds: Optional[Tuple[float, float]] = None,
+                tracked: Optional[Sequence[int]] = None) -> List[str]:
+    """All plots into `out_dir` (outputs.png, inputs.png, solve_times.png,
+    training_loss.png); returns the paths written (a plot without data is left out)."""
+    written = [
+        plot_outputs(series, os.path.join(out_dir, 'outputs.png'), tracked),
+        plot_inputs(series, os.path.join(out_dir, 'inputs.png'), u_bounds),
+        plot_solve_times(series, os.path.join(out_dir, 'solve_times.png')),
+        plot_training_loss(series, os.path.join(out_dir, 'training_loss.png')),
+    ]
+    return [p for p in written if p is not None]

@@ -1,0 +1,135 @@
+"""Recorder node: subscribes with raw=True and writes the CDR bytes to MCAP as rosbag2 does.
+
+``ros2 run metampc_bringup recorder --ros-args -p output:=runs/x/recording.mcap``
+
+Parameters (names, defaults, ranges: :data:`metampc_bringup.recorder_config.PARAMETERS`):
+``output`` (required; parent folders are created; an existing file is an error: one line, exit
+status 2, the file is left alone), ``topics`` (unset or empty: every topic that appears under
+the node's namespace except ``/rosout``, ``/parameter_events``, hidden topics and ``/clock``),
+``record_clock``, ``chunk_size``, ``compression``, ``metadata_json``, ``discovery_period``,
+``flush_period``, ``qos_depth``.
+
+A topic is subscribed once it has a publisher, with rosbag2's QoS choice: reliable if every
+publisher is, transient_local if every publisher is (so latched messages are recorded); the
+publishers' profiles go into the channel's ``offered_qos_profiles``. The log time of a message
+is its receive time on the node clock (wall time unless use_sim_time), the publish time the
+publisher's source timestamp. SIGINT/SIGTERM close the file (summary with statistics) and exit
+0. The writing is :class:`~metampc_bringup.mcap_writer.Rosbag2McapWriter`.
+"""
+import os
+import sys
+from functools import partial
+from typing import Dict, Set
+
+from metampc_plant.node_main import declare_parameters, run_node
+from metampc_plant.node_params import ParameterError
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+
+from .mcap_writer import Rosbag2McapWriter
+from .msg_schema import DefinitionNotFoundError
+from .rclpy_adapters import message_class, qos_from_rclpy, qos_to_rclpy
+from .recorder_config import parse_params, PARAMETERS
+from .rosbag2_qos import request_for_offers
+
+_SYSTEM_TOPICS = frozenset({'/rosout', '/parameter_events'})
+
+
+class RecorderNode(Node):
+    """Thin adapter: graph discovery and raw subscriptions in, Rosbag2McapWriter out.
+
+    Raises:
+        ParameterError: a bad parameter, or an `output` that exists (left untouched).
+    """
+
+    def __init__(self):
+        super().__init__('recorder')
+        self.config = parse_params(declare_parameters(self, PARAMETERS))
+        writer_config = self.config.writer_config()
+        try:
+            self._wanted = {self.resolve_topic_name(t) for t in self.config.topics}
+        except RuntimeError as err:    # rclpy's RCLError
+            raise ParameterError(f'bad topic name in topics: {err}') from None
+        if self._wanted and self.config.record_clock:
+            self._wanted.add('/clock')
+        os.makedirs(os.path.dirname(os.path.abspath(writer_config.path)), exist_ok=True)
+        try:
+            self.writer = Rosbag2McapWriter(writer_config)
+        except FileExistsError:
+            raise ParameterError(f'output {writer_config.path} exists; '
+                                 'refusing to overwrite it') from None
+        except ValueError as err:
+            raise ParameterError(str(err)) from None
+        self._recorded: Dict[str, object] = {}
+        self._skipped: Set[str] = set()
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(self.config.discovery_period, self._discover, clock=steady)
+        if self.config.flush_period > 0:
+            self.create_timer(self.config.flush_period, self.writer.flush, clock=steady)
+        self.get_logger().info(f'recording to {writer_config.path} '
+                               f'({", ".join(sorted(self._wanted)) or "all topics"})')
+        self._discover()
+
+    def _selected(self, topic: str) -> bool:
+        if self._wanted:
+            return topic in self._wanted
+        namespace = self.get_namespace().rstrip('/')
+        if topic in _SYSTEM_TOPICS or (topic == '/clock' and not self.config.record_clock):
+            return False
+        if any(token.startswith('_') for token in topic.split('/')):
+            return False
+        return not namespace or topic.startswith(namespace + '/')
+
+    def _skip(self, topic: str, reason: str) -> None:
+        self._skipped.add(topic)
+        self.get_logger().warning(f'not recording {topic}: {reason}')
+
+    def _discover(self) -> None:
+        """Subscribe to every selected topic that has a publisher and is not recorded yet."""
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._recorded or topic in self._skipped:
+                continue
+            if not self._selected(topic):
+                continue
+            if len(types) != 1:
+                self._skip(topic, f'several types {types}')
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue    # seen through a subscription only: wait for a publisher's QoS
+            offered = [qos_from_rclpy(p.qos_profile) for p in publishers]
+            try:
+                msg_type = message_class(types[0])
+                self.writer.add_topic(topic, types[0], offered,
+                                      str(publishers[0].topic_type_hash))
+            except (ImportError, AttributeError, ValueError, DefinitionNotFoundError) as err:
+                self._skip(topic, f'type {types[0]} unavailable ({err})')
+                continue
+            request = request_for_offers(offered, self.config.qos_depth)
+            self._recorded[topic] = self.create_subscription(
+                msg_type, topic, partial(self._on_message, topic), qos_to_rclpy(request),
+                raw=True)
+            self.get_logger().info(f'recording {topic} [{types[0]}] '
+                                   f'({request.reliability}, {request.durability})')
+
+    def _on_message(self, topic: str, data: bytes, info: dict) -> None:
+        self.writer.write(topic, data, self.get_clock().now().nanoseconds,
+                          info['source_timestamp'], info['publication_sequence_number'] or 0)
+
+    def destroy_node(self) -> None:
+        """Finish the MCAP file (summary, statistics), destroy the node, report the counts."""
+        self.writer.close()
+        super().destroy_node()
+        counts = self.writer.topics
+        # Logged after destruction, as the plant does: after a signal, /rosout is gone.
+        self.get_logger().info(f'wrote {sum(counts.values())} messages on {len(counts)} '
+                               f'topics to {self.writer.config.path}')
+
+
+def main(args=None) -> int:
+    """`ros2 run metampc_bringup recorder --ros-args -p output:=...`; returns the exit code."""
+    return run_node(RecorderNode, 'recorder', args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,172 @@
+"""Reading a ROS 2 MCAP recording, finished or cut short, with the `mcap` library.
+
+The file is read front to back with :class:`mcap.stream_reader.StreamReader`, which needs no
+summary: a finished recording yields everything (and its Statistics record), one whose writer
+was killed yields every record up to the first incomplete one, i.e. every message of its
+complete chunks. Messages are decoded with `mcap_ros2`'s decoder from the schemas embedded in
+the file, so no ROS installation is needed. No rclpy here.
+"""
+import glob
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Tuple
+
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, Footer, Message, Metadata, Schema, Statistics
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
+
+from .mcap_writer import RUN_METADATA_NAME
+
+
+@dataclass
+class RecordedTopic:
+    """One channel of a recording.
+
+    Attributes:
+        name: topic name. type_name: 'pkg/msg/Type'. message_encoding: 'cdr'.
+        offered_qos_profiles: rosbag2 YAML of the publishers' QoS ('' if absent).
+        type_hash: 'RIHS01_...' or ''. count: messages read on this topic.
+    """
+
+    name: str
+    type_name: str
+    message_encoding: str
+    offered_qos_profiles: str
+    type_hash: str
+    schema: Optional[Schema]
+    count: int = 0
+
+
+@dataclass
+class RawMessage:
+    """One recorded message: CDR `data`, times in ns, publisher sequence number."""
+
+    topic: str
+    log_time: int
+    publish_time: int
+    sequence: int
+    data: bytes
+
+
+@dataclass
+class Recording:
+    """Everything read from one MCAP file.
+
+    Attributes:
+        path: the file.
+        complete: True if the file ends with a footer (the writer finished it).
+        topics: per topic name.
+        messages: in log-time order (stable: file order among equal times).
+        metadata: Metadata records by name (the last one of each name).
+        statistics: the summary's Statistics record (None when cut short).
+    """
+
+    path: str
+    complete: bool
+    topics: Dict[str, RecordedTopic]
+    messages: List[RawMessage]
+    metadata: Dict[str, Dict[str, str]] = field(default_factory=dict)
+    statistics: Optional[Statistics] = None
+
+    def run_config(self) -> Dict[str, Any]:
+        """The run configuration the recorder stored (``metampc`` record), {} if none."""
+        text = self.metadata.get(RUN_METADATA_NAME, {}).get('config')
+        return json.loads(text) if text else {}
+
+    def decoded(self, topics: Optional[Iterable[str]] = None
+                ) -> Iterator[Tuple[RecordedTopic, RawMessage, Any]]:
+        """(topic, raw message, decoded message) in log-time order, for `topics` (default all).
+
+        Decoded messages have the fields of the ROS message as attributes (mcap_ros2).
+        """
+        wanted = set(self.topics if topics is None else topics)
+        factory = DecoderFactory()
+        decoders: Dict[str, Callable[[bytes], Any]] = {}
+        for raw in self.messages:
+            if raw.topic not in wanted:
+                continue
+            topic = self.topics[raw.topic]
+            if raw.topic not in decoders:
+                decoder = factory.decoder_for(topic.message_encoding, topic.schema)
+                if decoder is None:
+                    raise ValueError(f'cannot decode {raw.topic}: encoding '
+                                     f'{topic.message_encoding!r}, schema {topic.type_name!r}')
+                decoders[raw.topic] = decoder
+            yield topic, raw, decoders[raw.topic](raw.data)
+
+
+class _ExactReads:
+    """A binary file whose read(n) returns n bytes or raises EndOfFile.
+
+    mcap's stream reader accepts short reads, so a record cut by the end of the file would come
+    back truncated instead of failing; this makes the cut an error at the first short record.
+    """
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def read(self, size: int) -> bytes:
+        data = self._stream.read(size)
+        if len(data) < size:
+            raise EndOfFile()
+        return data
+
+
+def resolve_recording(path: str) -> str:
+    """The MCAP file of `path`: the file itself, or the one ``*.mcap`` in a run folder.
+
+    Raises:
+        FileNotFoundError: no such file, or a folder without an MCAP file.
+        ValueError: a folder with several MCAP files.
+    """
+    if os.path.isfile(path):
+        return path
+    if not os.path.isdir(path):
+        raise FileNotFoundError(f'no such file or folder: {path}')
+    found = sorted(glob.glob(os.path.join(path, '*.mcap')))
+    if not found:
+        raise FileNotFoundError(f'no .mcap file in {path}')
+    if len(found) > 1:
+        raise ValueError(f'several .mcap files in {path}: '
+                         f'{", ".join(os.path.basename(f) for f in found)}; name one')
+    return found[0]
+
+
+def read_recording(path: str) -> Recording:
+    """Read an MCAP file or run folder (see :func:`resolve_recording`) into a Recording."""
+    path = resolve_recording(path)
+    schemas: Dict[int, Schema] = {}
+    channels: Dict[int, Channel] = {}
+    topics: Dict[str, RecordedTopic] = {}
+    messages: List[RawMessage] = []
+    metadata: Dict[str, Dict[str, str]] = {}
+    statistics = None
+    complete = False
+    with open(path, 'rb') as stream:
+        try:
+            for record in StreamReader(_ExactReads(stream)).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel) and record.id not in channels:
+                    channels[record.id] = record
+                    topics[record.topic] = RecordedTopic(
+                        record.topic, schemas[record.schema_id].name if record.schema_id else '',
+                        record.message_encoding, record.metadata.get('offered_qos_profiles', ''),
+                        record.metadata.get('topic_type_hash', ''), schemas.get(record.schema_id))
+                elif isinstance(record, Message):
+                    topic = channels[record.channel_id].topic
+                    topics[topic].count += 1
+                    messages.append(RawMessage(topic, record.log_time, record.publish_time,
+                                               record.sequence, record.data))
+                elif isinstance(record, Metadata):
+                    metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Statistics):
+                    statistics = record
+                elif isinstance(record, Footer):
+                    complete = True
+        except McapError:
+            pass    # cut short: keep every record read before the incomplete one
+    messages.sort(key=lambda m: m.log_time)
+    return Recording(path, complete, topics, messages, metadata, statistics)
