@@ -1,0 +1,74 @@
+#!/usr/bin/env python3
+"""Run the paper's experiment on the ROS 2 graph and write a run folder with its report.
+
+Examples:
+    python scripts/run_experiment.py                          # defaults: 1 seed, all methods
+    python scripts/run_experiment.py --seeds 10               # the paper's comparison
+    python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
+    # As root: plant | controllers | learner and recorder, one network namespace each.
+    python scripts/run_experiment.py --hosts 'plant|controller,controller_nmpc|learner,recorder'
+
+The defaults are config/default.yaml (tuned hyperparameters, see docs/experiments.md).
+Exit status: 0 done, 1 a phase failed (the message names it), 2 bad arguments or
+configuration, 130 interrupted (the nodes are stopped, the recording stays readable).
+"""
+import argparse
+import datetime
+import logging
+import os
+import sys
+
+from metampc_bringup.experiment import run_experiment
+from metampc_bringup.experiment_client import ExperimentError
+from metampc_bringup.experiment_config import ConfigError, load
+from metampc_bringup.netns import NetnsError, parse_hosts
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEFAULT_CONFIG = os.path.join(ROOT, 'config', 'default.yaml')
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--config', default=DEFAULT_CONFIG,
+                        help='YAML file with every hyperparameter (default: %(default)s)')
+    parser.add_argument('--methods', help='comma-separated: imaml,maml,maml_unrolled,'
+                                          'supervised,oracle,nmpc')
+    parser.add_argument('--seeds', type=int, help='number of seeds')
+    parser.add_argument('--first-seed', type=int, help='seed of the first run')
+    parser.add_argument('--theta', type=float, help='target damping (default: drawn per seed)')
+    parser.add_argument('--out', help='run folder to create (default: runs/<time>)')
+    parser.add_argument('--no-progress', action='store_true', help='no progress bars')
+    parser.add_argument('--hosts', help="nodes per host, e.g. 'plant|controller,controller_nmpc|"
+                                        "learner,recorder': one network namespace each (root)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
+                        datefmt='%H:%M:%S')
+    try:
+        config = load(args.config, {
+            'methods': args.methods.split(',') if args.methods else None,
+            'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': args.theta})
+        hosts = parse_hosts(args.hosts) if args.hosts else None
+    except (ConfigError, NetnsError) as err:
+        print(f'run_experiment: {err}', file=sys.stderr)
+        return 2
+    out = args.out or os.path.join(
+        ROOT, 'runs', datetime.datetime.now().strftime('%Y%m%d-%H%M%S'))
+    try:
+        report = run_experiment(config, out, progress=not args.no_progress, hosts=hosts)
+    except (FileExistsError, NetnsError) as err:
+        print(f'run_experiment: {err}', file=sys.stderr)
+        return 2
+    except ExperimentError as err:
+        print(f'run_experiment: failed: {err}\nrun folder: {out}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f'run_experiment: interrupted; nodes stopped, recordings in {out}',
+              file=sys.stderr)
+        return 130
+    print(f"run folder: {out}\nreport: {os.path.join(out, 'report.md')} "
+          f"({report['wall_time_s']:.0f} s)")
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,62 @@
+"""An experiment from nothing to a report: every seed's run (:class:`SeedRun`), then the
+analysis of the recordings (:mod:`.experiment_report`). ``scripts/run_experiment.py`` is its
+command line; ``make run`` runs it with the defaults.
+
+Run folder layout::
+
+    OUT/config.yaml                the resolved configuration
+    OUT/report.json, report.md     the experiment's report (claims table, figures)
+    OUT/fig2_meta_training.png, fig3_adaptation.png, tracking_all_methods.png
+    OUT/seed_<s>/recording.mcap    everything published in that seed's run
+    OUT/seed_<s>/report.json       that seed's report; tracking_<method>.png
+    OUT/seed_<s>/logs/*.log        each node's output
+"""
+import contextlib
+import logging
+import os
+import time
+from typing import Any, Dict, List, Optional
+
+import yaml
+
+from .domain import isolated
+from .experiment_config import ExperimentConfig
+from .experiment_report import experiment_report, seed_report
+from .netns import call_in_namespace, split_hosts
+from .orchestrator import SeedRun, terminate_as_interrupt
+
+log = logging.getLogger('metampc.experiment')
+
+
+def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True,
+                   prefix: Optional[Dict[str, List[str]]] = None,
+                   hosts: Optional[List[List[str]]] = None) -> Dict[str, Any]:
+    """Run every seed of `config` into the new folder `out_dir`; return the report.
+
+    The process joins a ROS domain of its own first (``ROS_DOMAIN_ID``, localhost discovery)
+    unless ``prefix`` places nodes on other hosts (then the environment's settings stand).
+    ``hosts`` (node names per host, :func:`.netns.parse_hosts`) runs each group in a network
+    namespace of its own instead, and the orchestration in one more (root only:
+    :class:`.netns.NetnsError` otherwise), all of them removed on return. Ctrl-C or SIGTERM
+    stops the nodes of the running seed, leaves its recording readable and re-raises
+    KeyboardInterrupt.
+    """
+    if hosts:
+        with terminate_as_interrupt(), split_hosts(hosts) as net:
+            return call_in_namespace(net.orchestrator, run_experiment, config, out_dir,
+                                     progress, net.prefix())
+    if os.path.exists(out_dir) and os.listdir(out_dir):
+        raise FileExistsError(f'{out_dir} exists and is not empty; runs are never overwritten')
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, 'config.yaml'), 'w') as f:
+        yaml.safe_dump(config.to_dict(), f, sort_keys=False)
+    started = time.monotonic()
+    reports = []
+    with terminate_as_interrupt(), (contextlib.nullcontext() if prefix else isolated()) as domain:
+        if domain is not None:
+            log.info('ROS_DOMAIN_ID=%d (localhost discovery)', domain)
+        for seed in config.seed_list():
+            seed_dir = os.path.join(out_dir, f'seed_{seed}')
+            SeedRun(config, seed, seed_dir, progress, prefix).run()
+            reports.append(seed_report(seed_dir))
+    return experiment_report(reports, out_dir, config.to_dict(), time.monotonic() - started)

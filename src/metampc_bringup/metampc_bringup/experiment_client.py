@@ -1,0 +1,230 @@
+"""The orchestrator's window on the graph: service calls, the plant's samples, event markers.
+
+An :class:`ExperimentClient` is an rclpy node (spun in a thread, :class:`SpunNode`) that
+
+* calls the services of the run (``reset`` of the plant, ``meta_train``, ``adapt`` and
+  ``set_buffering`` of the learner, ``set_active`` of each controller) and turns every failure
+  (no answer in time, the serving process gone, success=false) into an
+  :class:`ExperimentError` that says what failed;
+* follows ``y`` (the plant's samples: step, diverged flag, stamp), ``plant_info`` (latched) and
+  ``progress`` (the learner's training progress) so the orchestrator can wait on events;
+* publishes experiment events (std_msgs/String holding one JSON object each) on
+  ``experiment_events``, reliable + transient_local: the recorder stores them with the run,
+  and the analysis (:mod:`metampc_bringup.experiment_report`) reads phases, service results
+  and the sim-time span of every tracking run from them.
+"""
+import json
+import re
+import subprocess
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional
+
+from metampc_msgs.msg import PlantInfo, PlantOutput, TrainingProgress
+from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant
+from rclpy.duration import Duration
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import SetBool
+
+from .spun_node import SpunNode
+
+EVENTS_TOPIC = 'experiment_events'
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+EVENTS_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+_MODEL_VERSION = re.compile(r'model version (\d+)')
+
+
+class ExperimentError(RuntimeError):
+    """A phase of the experiment failed; the message names the phase and the cause."""
+
+
+@dataclass
+class Sample:
+    """What the orchestrator keeps of one plant sample."""
+
+    step: int
+    stamp: float        # header stamp, s (sim time in lockstep)
+    diverged: bool
+
+
+def stamp_seconds(msg: Any) -> float:
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+class ExperimentClient(SpunNode):
+    """Service clients, sample tracking and the events publisher of one experiment run.
+
+    Args:
+        controllers: controller name -> its ``set_active`` service name.
+        alive: returns None while every node process runs, else a text naming the one
+            that ended; checked while waiting, so a dead node fails the phase at once.
+    """
+
+    def __init__(self, controllers: Dict[str, str], alive: Callable[[], Optional[str]]):
+        super().__init__('metampc_orchestrator', threads=4)
+        node = self.node
+        self._alive = alive
+        self._cond = threading.Condition()
+        self.last: Optional[Sample] = None
+        self.samples = 0                    # y messages since the last reset_counts
+        self.valid_samples = 0              # of them: not diverged and step > 0
+        self.plant_info: Optional[PlantInfo] = None
+        self.progress: Optional[TrainingProgress] = None
+        node.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS)
+        node.create_subscription(PlantInfo, 'plant_info', self._on_info, LATCHED)
+        node.create_subscription(TrainingProgress, 'progress', self._on_progress, 10)
+        self._events = node.create_publisher(String, EVENTS_TOPIC, EVENTS_QOS)
+        self.clients = {
+            'reset': node.create_client(ResetPlant, 'reset'),
+            'meta_train': node.create_client(MetaTrain, 'meta_train'),
+            'adapt': node.create_client(Adapt, 'adapt'),
+            'set_buffering': node.create_client(SetBool, 'set_buffering'),
+            **{name: node.create_client(SetBool, service)
+               for name, service in controllers.items()},
+        }
+
+    # --- subscriptions ---------------------------------------------------------------------
+
+    def _on_y(self, msg: PlantOutput) -> None:
+        with self._cond:
+            self.last = Sample(msg.step, stamp_seconds(msg), msg.diverged)
+            self.samples += 1
+            self.valid_samples += int(msg.step > 0 and not msg.diverged)
+            self._cond.notify_all()
+
+    def _on_info(self, msg: PlantInfo) -> None:
+        with self._cond:
+            self.plant_info = msg
+            self._cond.notify_all()
+
+    def _on_progress(self, msg: TrainingProgress) -> None:
+        self.progress = msg
+
+    def _notify(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def reset_counts(self) -> None:
+        with self._cond:
+            self.samples = self.valid_samples = 0
+
+    # --- waiting ---------------------------------------------------------------------------
+
+    def check_alive(self, what: str) -> None:
+        dead = self._alive()
+        if dead:
+            raise ExperimentError(f'{what}: {dead}')
+
+    def wait_until(self, predicate: Callable[[], bool], timeout: float, what: str,
+                   tick: Optional[Callable[[], None]] = None) -> None:
+        """Wait (on sample/plant_info events, checking the processes twice a second) until
+        `predicate` holds; ExperimentError naming `what` on timeout or a dead node."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not predicate():
+                self.check_alive(what)
+                if tick:
+                    tick()
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise ExperimentError(f'{what}: no result within {timeout:g} s')
+                self._cond.wait(min(left, 0.5))
+
+    def subscribers(self, topic: str) -> List[str]:
+        """Names of the nodes subscribed to `topic` (relative names resolve as ours do)."""
+        name = self.node.resolve_topic_name(topic)
+        return [info.node_name for info in self.node.get_subscriptions_info_by_topic(name)]
+
+    def wait_ready(self, subscribers: Dict[str, List[str]], timeout: float) -> None:
+        """Every service answering, the latched plant_info here, and each topic of
+        `subscribers` subscribed by the nodes named: the graph is ready, with no sleeping on
+        a guess."""
+        deadline = time.monotonic() + timeout
+        for name, client in self.clients.items():
+            while not client.wait_for_service(timeout_sec=0.5):
+                self.check_alive('start-up')
+                if time.monotonic() > deadline:
+                    raise ExperimentError(f'start-up: service {client.srv_name!r} ({name}) '
+                                          f'not available within {timeout:g} s')
+        for topic, nodes in subscribers.items():
+            self.wait_until(lambda: set(nodes) <= set(self.subscribers(topic)),
+                            max(deadline - time.monotonic(), 0.0),
+                            f'start-up: {", ".join(nodes)} subscribed to {topic!r}')
+        self.wait_until(lambda: self.plant_info is not None,
+                        max(deadline - time.monotonic(), 0.0), 'start-up: latched plant_info')
+
+    # --- services --------------------------------------------------------------------------
+
+    def call(self, name: str, request: Any, timeout: float, what: str,
+             tick: Optional[Callable[[], None]] = None) -> Any:
+        """Call service `name`; the response if it succeeded, else ExperimentError."""
+        future = self.clients[name].call_async(request)
+        future.add_done_callback(lambda _: self._notify())
+        try:
+            self.wait_until(future.done, timeout, what, tick)
+        except ExperimentError:
+            future.cancel()
+            raise
+        response = future.result()
+        if response is None:
+            raise ExperimentError(f'{what}: the call failed ({future.exception()})')
+        if hasattr(response, 'success') and not response.success:
+            raise ExperimentError(f'{what}: {response.message}')
+        return response
+
+    def set_active(self, controller: str, active: bool) -> str:
+        """Activate or deactivate a controller; its answer (see :func:`model_version`)."""
+        return self.call(controller, SetBool.Request(data=active), 10.0,
+                         f'set_active({active}) of {controller}').message
+
+    def wait_model(self, controller: str, version: int, timeout: float) -> None:
+        """Wait until the (inactive) controller has model `version` ready for its next tick."""
+        deadline = time.monotonic() + timeout
+        while model_version(self.set_active(controller, False)) != version:
+            if time.monotonic() > deadline:
+                raise ExperimentError(f'{controller} did not take model version {version} '
+                                      f'within {timeout:g} s')
+            time.sleep(0.05)
+
+    # --- events ----------------------------------------------------------------------------
+
+    def event(self, kind: str, **fields: Any) -> Dict[str, Any]:
+        """Publish one experiment event (JSON) for the recording; return it."""
+        record = {'event': kind, 'wall_time': time.time(), **fields}
+        self._events.publish(String(data=json.dumps(record, allow_nan=True)))
+        return record
+
+    def close(self, ack_timeout: float = 5.0) -> None:
+        """Close once every subscriber (the recorder) has acknowledged the events, or after
+        `ack_timeout` s: a writer destroyed at once can take its last samples with it (the
+        final events were missing from recordings)."""
+        self._events.wait_for_all_acked(Duration(seconds=ack_timeout))
+        super().close()
+
+
+def model_version(set_active_answer: str) -> int:
+    """The model version a controller's set_active answer names (-1 if none)."""
+    found = _MODEL_VERSION.search(set_active_answer)
+    return int(found.group(1)) if found else -1
+
+
+def response_dict(response: Any, fields: List[str]) -> Dict[str, Any]:
+    """Selected fields of a service response as plain Python values (arrays -> lists)."""
+    return {f: (list(getattr(response, f)) if not isinstance(getattr(response, f),
+                                                             (str, int, float, bool))
+                else getattr(response, f)) for f in fields}
+
+
+def process_status(procs: Dict[str, subprocess.Popen]) -> Optional[str]:
+    """None while every process runs, else which ended and with what code."""
+    for name, proc in procs.items():
+        code = proc.poll()
+        if code is not None:
+            return f'{name} exited with status {code} (log: {proc.log_path})'
+    return None

@@ -1,0 +1,352 @@
+"""The experiment's results from its recordings alone: per-seed reports, the paper's figures
+and the table of its claims.
+
+A seed's recording holds the orchestrator's events (``experiment_events``, JSON: the service
+results of meta_train and adapt, and the sim-time span [start, end] of every tracking run) and
+the closed-loop messages. :func:`seed_report` cuts the messages of each tracking run out by
+their header stamps (the plant stamps its n-th sample n dt, the controller stamps an input and
+its status with the stamp of the sample they answer), computes each run's metrics with
+:func:`metampc_bringup.metrics.compute_metrics` and plots it. :func:`experiment_report`
+gathers the seeds into ``report.json``, ``report.md`` and the figures:
+
+* Fig. 2 of the paper: meta-training loss (mean meta-test loss after each outer step, log
+  scale) per meta method: median over seeds and the min-max band;
+* Fig. 3: held-out target loss against adaptation steps per method (median and band);
+* tracking: x (tracked outputs) and the reference per method, first seed.
+
+Claims (each counted over seeds, reported whichever way it falls):
+
+(a) iMAML's meta-training loss below MAML's at equal outer steps (the final loss);
+(b) after K adaptation steps, K in {0, 1, 5, 20}: iMAML < MAML < supervised in held-out
+    target loss;
+(c) tracking cost of each method relative to the oracle's and to the true-model NMPC's.
+
+No rclpy here.
+"""
+import json
+import math
+import os
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import matplotlib
+import numpy as np
+
+from .analysis import json_safe
+from .experiment_client import EVENTS_TOPIC
+from .metrics import compute_metrics
+from .recording_reader import read_recording
+from .run_series import RunSeries, SeriesBuilder
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
+
+K_STEPS = (0, 1, 5, 20)
+STAMP_TOL = 1e-6    # s; stamps are n * dt, exact to float rounding
+CLOSED_LOOP = ('metampc_msgs/msg/PlantOutput', 'metampc_msgs/msg/ControlInput',
+               'metampc_msgs/msg/MpcStatus')
+
+
+def read_events(recording) -> List[Dict[str, Any]]:
+    """The experiment events of a recording, in recorded order."""
+    topics = [t.name for t in recording.topics.values()
+              if t.name.rsplit('/', 1)[-1] == EVENTS_TOPIC]
+    return [json.loads(msg.data) for _, _, msg in recording.decoded(topics)]
+
+
+def tracking_spans(events: List[Dict[str, Any]]) -> Dict[str, Tuple[float, float, int]]:
+    """Per method: the sim-time span [start, end] (s) of its finished tracking run and the
+    model version its controller ran (0 for nmpc)."""
+    starts = {e['method']: e for e in events if e['event'] == 'track_start'}
+    return {e['method']: (starts[e['method']]['stamp'], e['stamp'],
+                          int(starts[e['method']]['model_version']))
+            for e in events if e['event'] == 'track_end' and e['method'] in starts}
+
+
+def tracking_series(recording, spans: Dict[str, Tuple[float, float, int]]
+                    ) -> Dict[str, RunSeries]:
+    """Per method, the series of the closed-loop messages stamped within its span; inputs and
+    statuses only of the run's model version (an inactive controller that is activated next
+    may still answer the previous run's last sample, stamped within that run's span).
+
+    ``plant_info`` (latched, the last one recorded) is added to every series for the bounds.
+    """
+    builders = {method: SeriesBuilder() for method in spans}
+    wanted = [t.name for t in recording.topics.values()
+              if t.type_name in CLOSED_LOOP or t.type_name == 'metampc_msgs/msg/PlantInfo']
+    for topic, raw, msg in recording.decoded(wanted):
+        if topic.type_name not in CLOSED_LOOP:
+            for builder in builders.values():
+                builder.add(topic.type_name, msg, raw.log_time)
+            continue
+        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        for method, (start, end, version) in spans.items():
+            if start - STAMP_TOL <= stamp <= end + STAMP_TOL and getattr(
+                    msg, 'model_version', version) == version:
+                builders[method].add(topic.type_name, msg, raw.log_time)
+    return {method: builder.build() for method, builder in builders.items()}
+
+
+def seed_report(path: str, out_dir: Optional[str] = None, plots: bool = True) -> Dict[str, Any]:
+    """Report of one seed's recording (`path`: MCAP file or its folder); writes
+    ``report.json`` and ``tracking_<method>.png`` into `out_dir` (default: the folder)."""
+    recording = read_recording(path)
+    out_dir = out_dir or os.path.dirname(os.path.abspath(recording.path))
+    events = read_events(recording)
+    start = next((e for e in events if e['event'] == 'start'), None)
+    if start is None:
+        raise ValueError(f'{recording.path} holds no experiment events (not an experiment '
+                         'recording?); use scripts/replay.py for a plain run')
+    config = recording.run_config()
+    tracked = [int(i) for i in config.get('tracked_outputs', [0])]
+    ends = {e['method']: e for e in events if e['event'] == 'track_end'}
+    methods: Dict[str, Dict[str, Any]] = {}
+    for method, series in tracking_series(recording, tracking_spans(events)).items():
+        metrics = compute_metrics(series, tracked)
+        metrics['escaped'] = bool(ends[method]['diverged'])
+        metrics['steps'] = int(ends[method]['steps'])
+        if plots:
+            metrics['plot'] = plot_tracking({method: series}, tracked,
+                                            os.path.join(out_dir, f'tracking_{method}.png'))
+        methods[method] = {'tracking': metrics}
+    for e in events:
+        if e['event'] in ('meta_train', 'adapt'):
+            methods.setdefault(e['method'], {})[e['event']] = {
+                k: v for k, v in e.items() if k not in ('event', 'method')}
+    done = next((e for e in events if e['event'] == 'done'), None)
+    report = json_safe({
+        'recording': os.path.abspath(recording.path),
+        'complete': recording.complete and done is not None,
+        'seed': start['seed'], 'theta': start['theta'], 'methods_compared': start['methods'],
+        'collect': next((e for e in events if e['event'] == 'collect_end'), None),
+        'timings': done['timings'] if done else None,
+        'methods': methods,
+        'config': config.get('experiment', {}),
+    })
+    with open(os.path.join(out_dir, 'report.json'), 'w') as f:
+        json.dump(report, f, indent=2, sort_keys=True)
+    return report
+
+
+# --- figures ---------------------------------------------------------------------------------
+
+def _curves(reports: List[Dict], method: str, kind: str) -> List[np.ndarray]:
+    curves = []
+    for report in reports:
+        entry = report['methods'].get(method, {}).get(kind)
+        if entry and entry.get('loss_curve'):
+            curves.append(np.array([np.nan if v is None else v for v in entry['loss_curve']]))
+    return curves
+
+
+def _band(ax, curves: List[np.ndarray], x0: int, label: str) -> bool:
+    if not curves:
+        return False
+    n = min(len(c) for c in curves)
+    stack = np.stack([c[:n] for c in curves])
+    x = np.arange(x0, x0 + n)
+    line, = ax.plot(x, np.nanmedian(stack, axis=0), label=f'{label} (median of {len(curves)})')
+    if len(curves) > 1:
+        ax.fill_between(x, np.nanmin(stack, axis=0), np.nanmax(stack, axis=0),
+                        color=line.get_color(), alpha=0.2)
+    return True
+
+
+def plot_loss_figure(reports: List[Dict], methods: Sequence[str], kind: str, path: str,
+                     title: str, xlabel: str) -> Optional[str]:
+    """Median (and min-max band) over seeds of the `kind` ('meta_train'|'adapt') loss curves."""
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    drawn = [_band(ax, _curves(reports, m, kind), 1 if kind == 'meta_train' else 0, m)
+             for m in methods]
+    if not any(drawn):
+        plt.close(fig)
+        return None
+    ax.set_yscale('log')
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel('loss (normalised units)')
+    ax.set_title(title)
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_tracking(series: Dict[str, RunSeries], tracked: Sequence[int], path: str) -> str:
+    """Tracked outputs of each method's run and the reference, against time since reset."""
+    fig, axes = plt.subplots(len(tracked) + 1, 1, figsize=(8, 2.6 * (len(tracked) + 1)),
+                             sharex=True, squeeze=False)
+    reference_drawn = False
+    for method, s in series.items():
+        if not s.outputs.step.size:
+            continue
+        dt = s.plant_info['dt'] if s.plant_info else 1.0
+        t = s.outputs.step * dt
+        for row, i in enumerate(tracked):
+            axes[row, 0].plot(t, s.outputs.y[:, i], label=method)
+        if not reference_drawn and s.status.step.size:
+            for row, i in enumerate(tracked):
+                axes[row, 0].step((s.status.step + 1) * dt, s.status.y_ref0[:, i], 'k--',
+                                  where='post', label='reference')
+            reference_drawn = True
+        axes[-1, 0].step(s.inputs.step * dt, s.inputs.u[:, 0], where='post', label=method)
+    for row, i in enumerate(tracked):
+        axes[row, 0].set_ylabel(f'y[{i}]')
+        axes[row, 0].legend(loc='upper right', fontsize='small')
+        axes[row, 0].grid(alpha=0.3)
+    axes[-1, 0].set_ylabel('u')
+    axes[-1, 0].set_xlabel('time since reset, s')
+    axes[-1, 0].grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return os.path.basename(path)
+
+
+# --- claims ----------------------------------------------------------------------------------
+
+def _adapt_loss(report: Dict, method: str, k: int) -> float:
+    curve = report['methods'].get(method, {}).get('adapt', {}).get('loss_curve') or []
+    value = curve[k] if k < len(curve) else None
+    return math.nan if value is None else float(value)
+
+
+def _tracking_cost(report: Dict, method: str) -> float:
+    tracking = report['methods'].get(method, {}).get('tracking')
+    if not tracking or tracking['escaped']:
+        return math.inf if tracking else math.nan
+    return float(tracking['tracking']['cost'])
+
+
+def claims(reports: List[Dict]) -> Dict[str, Any]:
+    """The paper's claims (a)-(c), each as per-seed values and the count of seeds where it
+    holds (a comparison with a missing value counts as not holding)."""
+    out: Dict[str, Any] = {'seeds': len(reports)}
+    final = [(_final(r, 'imaml'), _final(r, 'maml')) for r in reports]
+    out['a_meta_loss_imaml_below_maml'] = {
+        'final_losses': final, 'holds': sum(1 for i, m in final if i < m)}
+    b = {}
+    for k in K_STEPS:
+        values = [{m: _adapt_loss(r, m, k) for m in ('imaml', 'maml', 'supervised')}
+                  for r in reports]
+        b[str(k)] = {'losses': values,
+                     'holds': sum(1 for v in values
+                                  if v['imaml'] < v['maml'] < v['supervised'])}
+    out['b_adaptation_order'] = b
+    c = {}
+    for method in sorted({m for r in reports for m in r['methods']}):
+        costs = [_tracking_cost(r, method) for r in reports]
+        c[method] = {
+            'cost': costs,
+            'vs_oracle': [x / _tracking_cost(r, 'oracle') for x, r in zip(costs, reports)],
+            'vs_nmpc': [x / _tracking_cost(r, 'nmpc') for x, r in zip(costs, reports)],
+            'escaped': sum(1 for r in reports
+                           if r['methods'].get(method, {}).get('tracking', {}).get('escaped'))}
+    out['c_tracking_cost'] = c
+    return out
+
+
+def _final(report: Dict, method: str) -> float:
+    value = report['methods'].get(method, {}).get('meta_train', {}).get('final_loss')
+    return math.nan if value is None else float(value)
+
+
+def _fmt(x: float) -> str:
+    return 'n/a' if x is None or (isinstance(x, float) and math.isnan(x)) else (
+        'escaped' if x == math.inf else f'{x:.4g}')
+
+
+def _median(values: Sequence[float]) -> float:
+    finite = [v for v in values if not math.isnan(v)]
+    return float(np.median(finite)) if finite else math.nan
+
+
+def markdown(report: Dict[str, Any]) -> str:
+    """report.md: set-up, timings, the claims table, per-method tracking, figures."""
+    cl = report['claims']
+    n = cl['seeds']
+    lines = [f"# metampc experiment: {', '.join(report['methods'])}", '',
+             f"Seeds: {report['seeds']} (theta* = "
+             + ', '.join(f'{t:.3f}' for t in report['thetas']) + ')', '',
+             f"Wall time: {report['wall_time_s']:.0f} s in all.", '',
+             '## Claims of the paper, as measured', '',
+             '| claim | holds in | median values |', '|---|---|---|']
+    compared = set(report['methods'])
+    a = cl['a_meta_loss_imaml_below_maml']
+    if {'imaml', 'maml'} <= compared:
+        lines.append(f"| (a) final meta-training loss: iMAML < MAML | {a['holds']}/{n} | "
+                     f"iMAML {_fmt(_median([i for i, _ in a['final_losses']]))}, MAML "
+                     f"{_fmt(_median([m for _, m in a['final_losses']]))} |")
+    for k, entry in cl['b_adaptation_order'].items():
+        if not {'imaml', 'maml', 'supervised'} <= compared:
+            break
+        med = {m: _median([v[m] for v in entry['losses']])
+               for m in ('imaml', 'maml', 'supervised')}
+        lines.append(f"| (b) held-out target loss after {k} steps: iMAML < MAML < supervised "
+                     f"| {entry['holds']}/{n} | "
+                     + ', '.join(f'{m} {_fmt(v)}' for m, v in med.items()) + ' |')
+    for method, entry in cl['c_tracking_cost'].items():
+        lines.append(f"| (c) tracking cost of {method} vs oracle / vs NMPC | "
+                     f"escaped {entry['escaped']}/{n} | {_fmt(_median(entry['vs_oracle']))} / "
+                     f"{_fmt(_median(entry['vs_nmpc']))} |")
+    lines += ['', '## Tracking (x1 RMSE per seed)', '', '| method | ' + ' | '.join(
+        f'seed {s}' for s in report['seeds']) + ' |', '|---|' + '---|' * len(report['seeds'])]
+    for method in report['methods']:
+        row = []
+        for r in report['per_seed']:
+            t = r['methods'].get(method, {}).get('tracking')
+            row.append('n/a' if not t else
+                       'escaped' if t['escaped'] else _fmt(t['tracking']['rmse']))
+        lines.append(f'| {method} | ' + ' | '.join(row) + ' |')
+    lines += ['', '## Figures', '']
+    lines += [f'![{name}]({name})' for name in report['figures']]
+    lines += ['', '## Hyperparameters', '', '```json',
+              json.dumps({k: report['config'][k] for k in ('meta_train', 'adapt', 'learner',
+                                                           'controller')}, indent=2),
+              '```', '']
+    return '\n'.join(lines)
+
+
+def experiment_report(seed_reports: List[Dict], out_dir: str, config: Dict[str, Any],
+                      wall_time_s: float) -> Dict[str, Any]:
+    """Gather per-seed reports into `out_dir`: report.json, report.md and the figures."""
+    methods = list(config['methods'])
+    figures = []
+    meta = [m for m in methods if m in ('imaml', 'maml', 'maml_unrolled')]
+    fig2 = plot_loss_figure(seed_reports, meta, 'meta_train',
+                            os.path.join(out_dir, 'fig2_meta_training.png'),
+                            'Meta-training loss (Fig. 2)', 'outer step')
+    fig3 = plot_loss_figure(seed_reports, [m for m in methods if m != 'nmpc'], 'adapt',
+                            os.path.join(out_dir, 'fig3_adaptation.png'),
+                            'Held-out target loss during adaptation (Fig. 3)',
+                            'adaptation step')
+    figures += [os.path.basename(p) for p in (fig2, fig3) if p]
+    recording = read_recording(seed_reports[0]['recording'])
+    spans = tracking_spans(read_events(recording))
+    if spans:
+        tracked = [int(i) for i in config.get('tracked_outputs', [0])]
+        figures.append(plot_tracking(tracking_series(recording, spans), tracked,
+                                     os.path.join(out_dir, 'tracking_all_methods.png')))
+    report = json_safe({
+        'methods': methods, 'seeds': [r['seed'] for r in seed_reports],
+        'thetas': [r['theta'] for r in seed_reports], 'wall_time_s': wall_time_s,
+        'claims': claims(seed_reports), 'figures': figures, 'config': config,
+        'per_seed': seed_reports})
+    with open(os.path.join(out_dir, 'report.json'), 'w') as f:
+        json.dump(report, f, indent=2, sort_keys=True)
+    with open(os.path.join(out_dir, 'report.md'), 'w') as f:
+        f.write(markdown(_restore(report)))
+    return report
+
+
+def _restore(report: Dict) -> Dict:
+    """JSON-safe report back to floats (None -> nan) for formatting."""
+    def fix(v):
+        if v is None:
+            return math.nan
+        if isinstance(v, dict):
+            return {k: fix(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        return v
+    return {**report, 'claims': fix(report['claims'])}

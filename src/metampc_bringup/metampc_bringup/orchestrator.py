@@ -1,0 +1,326 @@
+"""The experiment of the paper, run on the ROS 2 graph: one bring-up and one recording per seed.
+
+For each seed (:class:`SeedRun`), in a ROS domain of its own:
+
+1. start the recorder first, then the learner, the plant (lockstep, waiting for inputs without
+   a time-out), the latent-MPC controller and, if ``nmpc`` is compared, a second controller
+   with the true-model NMPC (both inactive); wait until every service answers and the
+   recorder has subscribed to every topic it records (no sleeps as synchronisation);
+2. **collect**: reset the plant to theta* and let the controller's exploration input
+   (``pre_model_input: excitation``) drive it until the learner has buffered
+   ``target_samples`` samples (D_target; the plant is reset if it escapes);
+3. **meta-train** each meta method through ``meta_train`` (Algorithm 1; eqs. inner_imaml,
+   outer, Qb, cg for iMAML, eq. outer_maml for MAML);
+4. per method: **adapt** through ``adapt`` (eq. infer from the meta-model; from a random
+   initialisation for ``supervised``; on plentiful target data for ``oracle``), wait until the
+   controller holds the adapted model, then **track**: reset the plant to ``track_x0`` and
+   run the controller for ``track_duration`` s of plant time (``nmpc``: the second
+   controller, no learning);
+5. stop the nodes (recorder last, so it records everything and finishes its file) and analyse
+   the recording (:mod:`metampc_bringup.experiment_report`).
+
+Every phase publishes an event on ``experiment_events`` (:mod:`.experiment_client`): the
+service results and the sim-time span of each tracking run are in the recording, and the
+report is computed from the recording alone. Ctrl-C (SIGINT) or SIGTERM stops the nodes in
+the same order, so the recording stays readable and no process is left behind.
+"""
+import contextlib
+import json
+import logging
+import math
+import os
+import signal
+import time
+from typing import Any, Dict, Iterator, List, Optional
+
+from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant
+from std_srvs.srv import SetBool
+from tqdm import tqdm
+
+from .experiment_client import (EVENTS_TOPIC, ExperimentClient, ExperimentError,
+                                process_status, response_dict)
+from .experiment_config import ExperimentConfig
+from .processes import ProcessGroup
+from .recorder_config import RecorderConfig
+
+log = logging.getLogger('metampc.orchestrator')
+
+RECORDED_TOPICS = ('y', 'u', 'mpc_status', 'nssm_weights', 'progress', 'plant_info',
+                   EVENTS_TOPIC)
+RECORDING = 'recording.mcap'
+CONTROLLERS = {'controller': 'set_active', 'controller_nmpc': 'set_active_nmpc'}
+MAX_COLLECT_ESCAPES = 20
+MAX_EPISODE_STARTS = 5
+EPISODE_START_S = 3.0   # wall time for y_1 after an activation that found no y_0
+_META_RESULT = ['model_version', 'final_loss', 'loss_curve', 'message']
+_ADAPT_RESULT = ['model_version', 'loss_before', 'loss_after', 'loss_curve', 'message']
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt in the main thread, as Ctrl-C does, while inside."""
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f'signal {signum}')
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+class SeedRun:
+    """One seed of an experiment: bring-up, phases, shut-down; the recording in `out_dir`.
+
+    Args:
+        config: the experiment (validated).
+        seed: this run's seed (node seeds, target theta).
+        out_dir: the seed's folder (created; must not hold a recording yet).
+        progress: show progress bars (tqdm) on stderr.
+        prefix: per node name ('recorder', 'learner', 'plant', 'controller',
+            'controller_nmpc'), a command to start it under (e.g. ``ip netns exec host1``).
+    """
+
+    def __init__(self, config: ExperimentConfig, seed: int, out_dir: str,
+                 progress: bool = True, prefix: Optional[Dict[str, List[str]]] = None):
+        self.config = config
+        self.seed = seed
+        self.out_dir = out_dir
+        self.theta = config.target_theta(seed)
+        self.show_progress = progress
+        self.prefix = prefix or {}
+        self.recording = os.path.join(out_dir, RECORDING)
+        self.timings: Dict[str, float] = {}
+        self.procs: Dict[str, Any] = {}
+        self.client: Optional[ExperimentClient] = None
+        self.restarts = 0       # episodes restarted because a controller missed y_0
+
+    # --- bring-up and shut-down ------------------------------------------------------------
+
+    def run(self) -> Dict[str, Any]:
+        """Run every phase; return what happened (also in the recording's events)."""
+        os.makedirs(os.path.join(self.out_dir, 'logs'), exist_ok=True)
+        group = ProcessGroup(os.path.join(self.out_dir, 'logs'))
+        started = time.monotonic()
+        try:
+            self._bring_up(group)
+            self._phases()
+        finally:
+            if self.client is not None:
+                self.client.close()
+            # Newest first: controllers, plant, learner, then the recorder finishes its file.
+            group.stop_all(timeout=20.0)
+            self.timings['total'] = time.monotonic() - started
+        return {'seed': self.seed, 'theta': self.theta, 'recording': self.recording,
+                'timings': self.timings}
+
+    def _start(self, group: ProcessGroup, name: str, pkg: str, exe: str,
+               params: Dict[str, Any], remaps: Optional[Dict[str, str]] = None) -> None:
+        self.procs[name] = group.start(pkg, exe, params, remaps=remaps, name=name,
+                                       prefix=self.prefix.get(name, ()))
+
+    def _bring_up(self, group: ProcessGroup) -> None:
+        config, seed = self.config, self.seed
+        t0 = time.monotonic()
+        if os.path.exists(self.recording):
+            raise ExperimentError(f'{self.recording} exists; choose a new output folder')
+        run_config = {'experiment': config.to_dict(), 'seed': seed, 'theta': self.theta,
+                      'tracked_outputs': list(config.tracked_outputs)}
+        recorder = RecorderConfig(output=self.recording, topics=list(RECORDED_TOPICS),
+                                  metadata_json=json.dumps(run_config), **config.recorder)
+        self._start(group, 'recorder', 'metampc_bringup', 'recorder', recorder.to_parameters())
+        self._start(group, 'learner', 'metampc_learner', 'learner',
+                    config.node_parameters('learner', seed))
+        self._start(group, 'plant', 'metampc_plant', 'plant',
+                    config.node_parameters('plant', seed))
+        controller = config.node_parameters('controller', seed)
+        controllers = {'controller': 'set_active'}
+        self._start(group, 'controller', 'metampc_controller', 'controller',
+                    {**controller, 'planner': 'latent_mpc', 'pre_model_input': 'excitation'})
+        if 'nmpc' in config.methods:
+            controllers['controller_nmpc'] = CONTROLLERS['controller_nmpc']
+            self._start(group, 'controller_nmpc', 'metampc_controller', 'controller',
+                        {**controller, 'planner': 'nmpc'},
+                        remaps={'set_active': CONTROLLERS['controller_nmpc']})
+        self.client = ExperimentClient(controllers, lambda: process_status(self.procs))
+        subscribers = {topic: ['recorder'] for topic in RECORDED_TOPICS}
+        subscribers['y'] += ['learner', *controllers]
+        self.client.wait_ready(subscribers, config.timeouts.startup)
+        self.timings['startup'] = time.monotonic() - t0
+        self.client.event('start', seed=seed, theta=self.theta, methods=config.methods,
+                          nodes=sorted(self.procs))
+        log.info('seed %d: graph ready in %.1f s (theta* = %.4f)', seed,
+                 self.timings['startup'], self.theta)
+
+    # --- phases ----------------------------------------------------------------------------
+
+    def _phases(self) -> None:
+        config = self.config
+        self._timed('collect', self._collect)
+        for method in config.meta_methods():
+            self._timed(f'meta_train_{method}', self._meta_train, method)
+        # Only now, long after the plant paused: the learner has taken every sample of the
+        # collection, and its buffer (capacity target_samples) holds the first ones, whatever
+        # the timing (stopped at once, it kept however many it had processed by then).
+        self.client.call('set_buffering', _set_bool(False), 10.0, 'collect: stop buffering')
+        for method in config.methods:
+            if method == 'nmpc':
+                self._timed('track_nmpc', self._track, method, 'controller_nmpc', 0)
+                continue
+            version = self._timed(f'adapt_{method}', self._adapt, method)
+            self._timed(f'track_{method}', self._track, method, 'controller', version)
+        self.client.event('done', timings=self.timings, episode_restarts=self.restarts)
+
+    def _timed(self, name: str, fn, *args):
+        t0 = time.monotonic()
+        result = fn(*args)
+        self.timings[name] = time.monotonic() - t0
+        log.info('seed %d: %s done in %.1f s', self.seed, name, self.timings[name])
+        return result
+
+    def _bar(self, total: int, desc: str) -> 'PhaseProgress':
+        return PhaseProgress(total, f'seed {self.seed} {desc}', self.show_progress)
+
+    def _start_episode(self, x0: List[float], controller: str, what: str) -> float:
+        """Reset the plant to theta*, x0 and activate `controller` on the new episode;
+        return the stamp of its y_0.
+
+        The controller must have y_0 to answer it. The graph says when a node has subscribed,
+        not when the plant's writer has matched that subscription; a y_0 sent in between is
+        lost and the lockstep loop never starts. The controller's activation answer says
+        whether it answered y_0 (an answer to another step is to the previous episode's last
+        sample: y_0 had not reached it, and the plant ignores that answer); if not and no y_1
+        follows, the episode is restarted (counted and logged).
+        """
+        client = self.client
+        for attempt in range(1, MAX_EPISODE_STARTS + 1):
+            client.reset_counts()
+            client.call('reset', ResetPlant.Request(theta=self.theta, x0=list(map(float, x0))),
+                        10.0, f'{what}: plant reset')
+            client.wait_until(lambda: client.samples > 0 and client.last.step == 0, 10.0,
+                              f'{what}: y_0 after the plant reset')
+            start = client.last.stamp
+            client.reset_counts()   # count the new episode only
+            if 'answered step 0;' in client.set_active(controller, True):
+                return start
+            try:
+                client.wait_until(lambda: client.samples > 0, EPISODE_START_S,
+                                  f'{what}: y_1')
+                return start
+            except ExperimentError:
+                client.set_active(controller, False)
+                self.restarts += 1
+                log.warning('seed %d: %s: %s missed y_0 (attempt %d); restarting the episode',
+                            self.seed, what, controller, attempt)
+        raise ExperimentError(f'{what}: {controller} never received y_0 in '
+                              f'{MAX_EPISODE_STARTS} plant resets')
+
+    def _collect(self) -> None:
+        """D_target: `target_samples` samples under the exploration input, before any model."""
+        client, config = self.client, self.config
+        client.call('set_buffering', _set_bool(True), 10.0, 'collect: start buffering')
+        valid, escapes = 0, 0
+        with self._bar(config.target_samples, 'collect') as bar:
+            while valid < config.target_samples:
+                start = self._start_episode(config.collect_x0, 'controller', 'collect')
+                if not valid:
+                    client.event('collect_start', stamp=start, theta=self.theta)
+                need = config.target_samples - valid
+                client.wait_until(lambda: client.valid_samples >= need or client.last.diverged,
+                                  config.timeouts.phase, 'collect: target samples',
+                                  tick=lambda: bar.show(valid + client.valid_samples))
+                client.set_active('controller', False)
+                valid += client.valid_samples
+                if client.last.diverged and valid < config.target_samples:
+                    escapes += 1
+                    if escapes > MAX_COLLECT_ESCAPES:
+                        raise ExperimentError(f'collect: the plant escaped {escapes} times '
+                                              'under the exploration input; lower '
+                                              'controller.excitation_amplitude')
+                    log.warning('seed %d: the plant escaped while collecting; reset',
+                                self.seed)
+        client.event('collect_end', stamp=client.last.stamp, samples=valid, escapes=escapes)
+
+    def _meta_train(self, method: str) -> None:
+        client, config = self.client, self.config
+        fields = dict(config.meta_train.get(method) or {})
+        request = MetaTrain.Request(method=method, **fields)
+        client.progress = None
+        with self._bar(request.iterations or 0, f'meta_train {method}') as bar:
+            response = client.call(
+                'meta_train', request, config.timeouts.meta_train, f'meta_train {method}',
+                tick=lambda: _show_progress(bar, client.progress, 'meta_train'))
+        client.event('meta_train', method=method, request=fields,
+                     **response_dict(response, _META_RESULT))
+
+    def _adapt(self, method: str) -> int:
+        client, config = self.client, self.config
+        fields = dict(config.adapt.get(method) or {})
+        response = client.call('adapt', Adapt.Request(method=method, **fields),
+                               config.timeouts.adapt, f'adapt {method}')
+        client.event('adapt', method=method, request=fields,
+                     **response_dict(response, _ADAPT_RESULT))
+        client.wait_model('controller', response.model_version, 30.0)
+        return response.model_version
+
+    def _track(self, method: str, controller: str, version: int) -> None:
+        """One tracking run: steps 0..n of a fresh episode from track_x0."""
+        client, config = self.client, self.config
+        n = config.track_steps()
+        start = self._start_episode(config.track_x0, controller, f'track {method}')
+        client.event('track_start', method=method, controller=controller,
+                     model_version=version, stamp=start, steps=n)
+        with self._bar(n, f'track {method}') as bar:
+            client.wait_until(lambda: client.last.step >= n or client.last.diverged,
+                              config.timeouts.phase, f'track {method}',
+                              tick=lambda: bar.show(client.last.step))
+        client.set_active(controller, False)
+        last = client.last
+        end = start + min(last.step, n) * config.dt
+        client.event('track_end', method=method, stamp=end, steps=min(last.step, n),
+                     diverged=last.diverged)
+        if last.diverged:
+            log.warning('seed %d: %s let the plant escape at step %d', self.seed, method,
+                        last.step)
+
+
+def _set_bool(value: bool) -> SetBool.Request:
+    return SetBool.Request(data=value)
+
+
+class PhaseProgress:
+    """A phase's progress: a tqdm bar, or without one (``--no-progress``, logs of a CI run) a
+    log line at most every LOG_PERIOD_S, so a long phase never looks hung."""
+
+    LOG_PERIOD_S = 30.0
+
+    def __init__(self, total: int, desc: str, bar: bool):
+        self.desc = desc
+        self.bar = tqdm(total=total, desc=desc, unit='step', leave=False, disable=not bar,
+                        dynamic_ncols=True)
+        self.loss = math.nan
+        self._logged = time.monotonic()
+
+    def __enter__(self) -> 'PhaseProgress':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.close()
+
+    def show(self, value: int, total: int = 0, loss: float = math.nan) -> None:
+        """Progress is `value` steps (of `total`, when it changes) with the latest `loss`."""
+        bar = self.bar
+        if total and bar.total != total:
+            bar.reset(total=total)
+        if math.isfinite(loss):
+            self.loss = loss
+            bar.set_postfix(loss=f'{loss:.3g}', refresh=False)
+        bar.update(max(0, min(value, bar.total or value) - bar.n))
+        if bar.disable and time.monotonic() - self._logged >= self.LOG_PERIOD_S:
+            self._logged = time.monotonic()
+            log.info('%s: %d/%s%s', self.desc, min(value, bar.total or value), bar.total or '?',
+                     f', loss {self.loss:.4g}' if math.isfinite(self.loss) else '')
+
+
+def _show_progress(bar: PhaseProgress, progress, phase: str) -> None:
+    if progress is not None and progress.phase == phase:
+        bar.show(progress.iteration, progress.total, progress.loss)
