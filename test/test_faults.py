@@ -90,11 +90,11 @@ class Rig:
         self.nodes: Dict[str, subprocess.Popen] = {}
         self.killed: Set[str] = set()
         self.heard: Dict[str, list] = {topic: [] for topic in watch}
-        for topic in watch:
-            probe.node.create_subscription(TYPES[topic], topic, self.heard[topic].append,
-                                           RELIABLE)
+        self._subs = {topic: probe.node.create_subscription(
+            TYPES[topic], topic, self.heard[topic].append, RELIABLE) for topic in watch}
         self.recording: Optional[str] = None
         self.recorded_topics: List[str] = []
+        self._announce = []
 
     @property
     def ys(self) -> list:
@@ -103,6 +103,18 @@ class Rig:
     def start(self, name: str, pkg: str, exe: str, params: dict) -> subprocess.Popen:
         self.nodes[name] = self.procs.start(pkg, exe, params=params, name=name)
         return self.nodes[name]
+
+    def wait_matched(self, topic: str) -> None:
+        """Until the probe's subscription of `topic` has matched a node's publisher.
+
+        A node's publisher counts a reader as matched as soon as it has discovered it, which
+        may be before the reader has matched the publisher: a sample published in between is
+        lost to that (volatile) reader. A lockstep plant's start gate sees the former, so tests
+        that must hear y_0 open the gate (a `u` publisher) only after this."""
+        own = sum(pub.topic_name.lstrip('/') == topic for pub in self._announce)
+        sub = self._subs[topic]
+        self.probe.wait_for(lambda: sub.get_publisher_count() > own, 60.0,
+                            f"the probe's {topic} subscription matched")
 
     def record(self, topics: Sequence[str], **params) -> subprocess.Popen:
         """Start a recorder of `topics` and wait until it has subscribed to each of them.
@@ -231,11 +243,13 @@ def test_plant_nan_inf_and_wrong_length_inputs_are_rejected(procs, probe, tmp_pa
         return BAD_INPUTS[k % 6] if k % 6 < 5 else [0.8 * math.sin(0.3 * k)]
 
     rig = Rig(procs, probe, tmp_path, watch=('y',))
-    pub = probe.node.create_publisher(ControlInput, 'u', RELIABLE)
-    probe.node.create_subscription(PlantOutput, 'y', lambda m: pub.publish(
-        ControlInput(step=m.step, u=answer(m.step))) if m.step < n else None, RELIABLE)
     rig.start('plant', 'metampc_plant', 'plant',
               {'theta': 0.5, 'x0': [0.5, 0.0], 'input_timeout': 30.0})
+    rig.wait_matched('y')
+    answers = probe.node.create_subscription(PlantOutput, 'y', lambda m: pub.publish(
+        ControlInput(step=m.step, u=answer(m.step))) if m.step < n else None, RELIABLE)
+    probe.wait_for(lambda: answers.get_publisher_count() > 0, 60.0, 'y matched')
+    pub = probe.node.create_publisher(ControlInput, 'u', RELIABLE)    # opens the start gate
     probe.wait_for(lambda: rig.ys and rig.ys[-1].step == n, 60.0, f'y_{n}')
 
     core = VdpPlant(VdpConfig(theta=0.5, x0=(0.5, 0.0)))
@@ -267,12 +281,13 @@ def test_plant_with_negative_theta_escapes_flagged_never_nan(procs, probe, tmp_p
     escape = int(np.argmax(beyond)) if beyond.any() else len(sol.t)
 
     rig = Rig(procs, probe, tmp_path, watch=('y',))
-    # A silent `u` publisher opens the plant's start gate (see start_loop) once the probe has
-    # matched the plant: the probe hears y from y_0 on.
-    gate = probe.node.create_publisher(ControlInput, 'u', RELIABLE)
     rig.record(['y'])
     rig.start('plant', 'metampc_plant', 'plant', {
         'theta': theta, 'x0': x0, 'state_bound': bound, 'dt': dt, 'input_timeout': 0.05})
+    # A silent `u` publisher opens the plant's start gate once the probe has matched the
+    # plant: the probe hears y from y_0 on.
+    rig.wait_matched('y')
+    gate = probe.node.create_publisher(ControlInput, 'u', RELIABLE)
     probe.wait_for(lambda: any(m.diverged for m in rig.ys), 60.0, 'the divergence flag')
     rig.wait_steps(5)
     ys = list(rig.ys)
