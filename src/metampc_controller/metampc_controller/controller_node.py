@@ -36,10 +36,9 @@ from concurrent.futures import ThreadPoolExecutor
 import math
 import sys
 import time
-from typing import Dict
 
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
-from metampc_plant.node_main import declare_parameters, run_node
+from metampc_plant.node_main import declare_parameters, EventCounts, run_node
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -57,7 +56,6 @@ STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-WARN_PERIOD_S = 1.0     # at most one warning of each kind per this wall time
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y')
 
 
@@ -76,8 +74,9 @@ class ControllerNode(Node):
         self.cfg = parse_params(declare_parameters(self, PARAMETERS))
         self.core = ControllerCore(self.cfg)
         self.rule = AnswerRule(self.cfg.active)
-        self._counts: Dict[str, int] = dict.fromkeys(COUNTERS, 0)
-        self._last_warn: Dict[str, float] = {}
+        self._events = EventCounts(self, COUNTERS)
+        self._counts = self._events.counts
+        self._warn = self._events.warn
         self._plant_warnings = set()
         self._stamp = None              # stamp of the newest y
         self._u_msg = ControlInput()
@@ -103,14 +102,6 @@ class ControllerNode(Node):
             f'q={list(mpc.q)}, r={mpc.r}, u in [{mpc.u_min}, {mpc.u_max}], reference '
             f'{self.cfg.reference_kind}, pre-model input {self.cfg.pre_model_input}'
             + ('' if self.cfg.active else '; inactive until set_active'))
-
-    def _warn(self, counter: str, text: str) -> None:
-        """Count an event and warn about it, at most once per WARN_PERIOD_S for each kind."""
-        self._counts[counter] += 1
-        now = time.monotonic()
-        if now - self._last_warn.get(counter, -math.inf) >= WARN_PERIOD_S:
-            self._last_warn[counter] = now
-            self.get_logger().warning(f'{text} ({self._counts[counter]} {counter} so far)')
 
     # --- ticks ----------------------------------------------------------------------------
 
@@ -236,7 +227,7 @@ class ControllerNode(Node):
         step = self.core.history.step
         self.get_logger().info(
             ('stopped before any sample: ' if step is None else f'stopped at step {step}: ')
-            + ', '.join(f'{n} {name}' for name, n in self._counts.items()))
+            + self._events.summary())
 
 
 def main(args=None) -> int:

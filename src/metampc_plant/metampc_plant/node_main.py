@@ -4,8 +4,10 @@
 `ros2 run` expects: a bad argument or parameter is one error line and exit status 2, not a
 traceback, and Ctrl-C is exit status 0 even when it lands while a callback is publishing.
 """
+import math
 import signal
 import threading
+import time
 from typing import Callable, Dict, Mapping, Optional, Sequence
 
 from metampc_plant.node_params import ParameterError, ParamSpec, Value
@@ -24,6 +26,32 @@ def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, 
         node.declare_parameter(name, spec.default, ParameterDescriptor(
             description=spec.description, read_only=True, dynamic_typing=True))
     return {name: node.get_parameter(name).value for name in table}
+
+
+class EventCounts:
+    """A node's event counters (logged when it stops), each with a throttled warning.
+
+    Attributes:
+        counts: {name: count}, in the order given; nodes also increment it directly.
+    """
+
+    def __init__(self, node: Node, names: Sequence[str], warn_period_s: float = 1.0):
+        self.counts: Dict[str, int] = dict.fromkeys(names, 0)
+        self._node = node
+        self._period = warn_period_s
+        self._last_warn: Dict[str, float] = {}
+
+    def warn(self, counter: str, text: str) -> None:
+        """Count an event and warn about it, at most once per warn period for each kind."""
+        self.counts[counter] += 1
+        now = time.monotonic()
+        if now - self._last_warn.get(counter, -math.inf) >= self._period:
+            self._last_warn[counter] = now
+            self._node.get_logger().warning(f'{text} ({self.counts[counter]} {counter} so far)')
+
+    def summary(self) -> str:
+        """'n1 name1, n2 name2, ...' for the stop line."""
+        return ', '.join(f'{n} {name}' for name, n in self.counts.items())
 
 
 class _SigintSeen:

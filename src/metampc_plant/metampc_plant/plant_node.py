@@ -48,12 +48,12 @@ import math
 import sys
 import time
 from array import array
-from typing import Dict, Optional, Tuple
+from typing import Optional, Tuple
 
 from builtin_interfaces.msg import Time
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
-from metampc_plant.node_main import declare_parameters, run_node
+from metampc_plant.node_main import declare_parameters, EventCounts, run_node
 from metampc_plant.plant_params import PARAMETERS, parse_params
 from metampc_plant.vanderpol import N_U, N_X, VdpPlant
 import numpy as np
@@ -68,7 +68,6 @@ STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-WARN_PERIOD_S = 1.0     # at most one warning of each kind per this wall time
 GATE_PERIOD_S = 0.02    # lockstep start: how often to look for a subscriber and a publisher
 # ...and how long both must have been there: each side of a DDS match completes on its own
 # time, and an answer to y_0 sent before the controller's writer matched our reader is lost.
@@ -91,8 +90,9 @@ class PlantNode(Node):
         self._requested_u = 0.0         # realtime: latest accepted input, before saturation
         self._y0 = self.plant.output()  # y_0 of the first episode, drawn before any step
         self._n_resets = 0
-        self._counts: Dict[str, int] = dict.fromkeys(COUNTERS, 0)
-        self._last_warn: Dict[str, float] = {}
+        self._events = EventCounts(self, COUNTERS)
+        self._counts = self._events.counts
+        self._warn = self._events.warn
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._y_msg = PlantOutput()
         self._clock_msg = ClockMsg()
@@ -166,14 +166,6 @@ class PlantNode(Node):
             clock_mode=self.cfg.mode, rate_hz=0.0 if self._lockstep else self.cfg.rate_hz,
             state_bound=vdp.state_bound, diverged=self.plant.diverged,
             n_resets=self._n_resets, header=Header(stamp=self._stamp())))
-
-    def _warn(self, counter: str, text: str) -> None:
-        """Count an event and warn about it, at most once per WARN_PERIOD_S for each kind."""
-        self._counts[counter] += 1
-        now = time.monotonic()
-        if now - self._last_warn.get(counter, -math.inf) >= WARN_PERIOD_S:
-            self._last_warn[counter] = now
-            self.get_logger().warning(f'{text} ({self._counts[counter]} {counter} so far)')
 
     # --- stepping -----------------------------------------------------------------------
 
@@ -293,7 +285,7 @@ class PlantNode(Node):
         # this also works after a SIGINT has already shut the context down.
         self.get_logger().info(
             f'stopped at step {self.plant.step_index} after {self._n_resets} reset(s): '
-            + ', '.join(f'{n} {name}' for name, n in self._counts.items()))
+            + self._events.summary())
 
 
 def main(args=None) -> int:
