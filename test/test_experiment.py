@@ -73,6 +73,8 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
         assert not tracking['escaped'] and end['steps'] == n
         assert tracking['ticks']['missed'] == 0
         assert tracking['tracking']['samples'] == n       # pairs y_{k+1} with ref of step k
+        # The answers of steps 0..n-1, each once (not y_n's, nor the previous run's).
+        assert tracking['samples']['inputs'] == tracking['samples']['mpc_status'] == n
         assert tracking['tracking']['rmse'] == pytest.approx(
             _rmse(outputs, statuses, start['stamp'], end['stamp']), rel=1e-9, abs=1e-12)
         planners = set(tracking['planner'])

@@ -42,7 +42,8 @@ import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
 
 K_STEPS = (0, 1, 5, 20)
 STAMP_TOL = 1e-6    # s; stamps are n * dt, exact to float rounding
-CLOSED_LOOP = ('metampc_msgs/msg/PlantOutput', 'metampc_msgs/msg/ControlInput',
+PLANT_OUTPUT = 'metampc_msgs/msg/PlantOutput'
+CLOSED_LOOP = (PLANT_OUTPUT, 'metampc_msgs/msg/ControlInput',
                'metampc_msgs/msg/MpcStatus')
 
 
@@ -64,9 +65,11 @@ def tracking_spans(events: List[Dict[str, Any]]) -> Dict[str, Tuple[float, float
 
 def tracking_series(recording, spans: Dict[str, Tuple[float, float, int]]
                     ) -> Dict[str, RunSeries]:
-    """Per method, the series of the closed-loop messages stamped within its span; inputs and
-    statuses only of the run's model version (an inactive controller that is activated next
-    may still answer the previous run's last sample, stamped within that run's span).
+    """Per method, the series of the closed-loop messages stamped within its span: outputs
+    y_0..y_n, and the inputs and statuses answering steps 0..n-1 with the run's model version
+    only. The answer to y_n comes or not depending on when the controller was deactivated, and
+    an inactive controller that is activated next may still answer the previous run's y_n
+    with its new model; neither belongs to the run.
 
     ``plant_info`` (latched, the last one recorded) is added to every series for the bounds.
     """
@@ -79,8 +82,10 @@ def tracking_series(recording, spans: Dict[str, Tuple[float, float, int]]
                 builder.add(topic.type_name, msg, raw.log_time)
             continue
         stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        answer = topic.type_name != PLANT_OUTPUT    # stamped with the y it answers
         for method, (start, end, version) in spans.items():
-            if start - STAMP_TOL <= stamp <= end + STAMP_TOL and getattr(
+            last = end - STAMP_TOL if answer else end + STAMP_TOL
+            if start - STAMP_TOL <= stamp <= last and getattr(
                     msg, 'model_version', version) == version:
                 builders[method].add(topic.type_name, msg, raw.log_time)
     return {method: builder.build() for method, builder in builders.items()}

@@ -91,7 +91,8 @@ class LearnerNode(Node):
         self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED_QOS)
         self._pub_progress = self.create_publisher(TrainingProgress, 'progress', PROGRESS_QOS)
         data = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS, callback_group=data)
+        self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS,
+                                               callback_group=data)
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED_QOS,
                                  callback_group=data)
         self.create_service(SetBool, 'set_buffering', self._on_set_buffering,
@@ -133,8 +134,11 @@ class LearnerNode(Node):
                           ) -> SetBool.Response:
         if request.data:
             cleared = self.buffer.start()
+            # Matched from our side: samples published before that never reach us, and
+            # the graph alone (a subscriber listed) does not say so. Callers wait on it.
             response.message = (f'buffering (re)started: {cleared} samples cleared, keeping '
-                                f'the next {self.buffer.capacity} valid samples')
+                                f'the next {self.buffer.capacity} valid samples; y matched '
+                                f'to {self._sub_y.get_publisher_count()} publisher(s)')
         else:
             self.buffer.freeze()
             response.message = (f'buffering stopped: {len(self.buffer)} samples kept '
