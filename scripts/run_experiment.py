@@ -16,6 +16,7 @@ import argparse
 import datetime
 import logging
 import os
+import signal
 import sys
 
 from metampc_bringup.experiment import run_experiment
@@ -41,6 +42,9 @@ def main(argv=None) -> int:
     parser.add_argument('--hosts', help="nodes per host, e.g. 'plant|controller,controller_nmpc|"
                                         "learner,recorder': one network namespace each (root)")
     args = parser.parse_args(argv)
+    # Ctrl-C is KeyboardInterrupt even when started from a non-interactive shell in the
+    # background, which starts it with SIGINT ignored (and rclpy would chain to that).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
                         datefmt='%H:%M:%S')
     try:

@@ -95,7 +95,9 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
         assert time.monotonic() - t0 < 5.0
     result = call(probe, buffering, SetBool.Request(data=True))
     assert result.success and 'buffering (re)started: 0 samples cleared' in result.message
-    assert result.message.endswith('y matched to 1 publisher(s)'), result.message
+    # The learner says when its y subscription has matched the plant (its side of DDS).
+    probe.wait_for(lambda: call(probe, buffering, SetBool.Request(data=True)).message.endswith(
+        'y matched to 1 publisher(s)'), 30.0, "the learner's y matched to the plant")
     probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 30.0,
                    'a full D_target')
     result = call(probe, buffering, SetBool.Request(data=False))
