@@ -110,7 +110,7 @@ def bench_core(ticks: int, theta: float) -> dict:
     try:
         spin_until(lambda: node._pub_u.get_subscription_count()
                    and node._pub_status.get_subscription_count(), 'listener')
-        node._on_weights(model_message(theta))
+        node._build(model_message(theta))     # synchronously (the node builds on a thread)
         if node.core.model is None:
             raise RuntimeError(f'the benchmark model was rejected: {node.core.model_status}')
         loop = PlantLoop(theta)
