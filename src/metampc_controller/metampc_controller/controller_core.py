@@ -251,8 +251,8 @@ class PlantDescription:
 class ControllerCore:
     """The controller's state and tick, in physical units (module docstring).
 
-    Threading: everything runs in the node's tick callback group except :meth:`offer_model`
-    and :meth:`reject_model`, which the weights callback calls from another thread; they
+    Threading: everything runs on the node's executor thread except :meth:`offer_model`
+    and :meth:`reject_model`, which the node's model-builder thread calls; they
     replace one (model, status) tuple that a tick reads once, so a model is swapped in
     between ticks and a tick never mixes two models.
     """
