@@ -51,26 +51,15 @@ import math
 import multiprocessing
 import os
 import time
-from dataclasses import dataclass, replace
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
-import torch
-from tqdm import tqdm
 
 from metampc_bringup.analysis import json_safe
-from metampc_bringup.experiment_config import load
-from metampc_controller.nssm import Nssm
-from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
-from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
-                                  SourceSet, Windows)
-from metampc_learner.learner_params import LearnerNodeConfig, PARAMETERS, parse_params
-from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
+from metampc_bringup.offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs,
+                                     settings_from, THETA_STREAM, VALIDATION_SEED)
 
-VALIDATION_SEED = 1000       # source_seed, meta seed and supervised init seed of the search
-THETA_STREAM = 0x5a1         # validation thetas: rng([VALIDATION_SEED + i, THETA_STREAM])
 DRAW_STREAM = 0xd7a          # configuration draws: rng([--seed, DRAW_STREAM])
-HELDOUT_SAMPLES = 600
 CG_STEPS = 5
 CURVATURE = 'gauss_newton'
 CALIBRATION = {'inner_steps': 10, 'lr_inner': 0.05, 'lr_outer': 1e-3, 'gamma': 1.0}
@@ -80,172 +69,6 @@ GAMMA_GRID = (0.1, 0.3, 1.0, 3.0)
 AXES = {'imaml': {**SHARED_GRID, 'gamma': GAMMA_GRID}, 'maml': SHARED_GRID}
 ADAPT_LRS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
 META_METHODS = ('imaml', 'maml')
-CURVE_STEPS = (0, 1, 5, 20)  # held-out loss reported after these adaptation steps
-
-
-@dataclass
-class Settings:
-    """What every job needs to rebuild the validation set-up (picklable).
-
-    Attributes:
-        learner: the experiment's learner configuration with the validation source seed.
-        thetas: the validation targets.
-        target_samples: adaptation samples per target.
-        batch_size: B.
-        adapt_steps: adaptation steps scored.
-    """
-
-    learner: LearnerNodeConfig
-    thetas: Tuple[float, ...]
-    target_samples: int
-    batch_size: int
-    adapt_steps: int
-
-
-@dataclass
-class Validation:
-    """The validation set-up: NSSM with the source normalisation, source set, target windows."""
-
-    model: Nssm
-    source: SourceSet
-    train: List[Windows]
-    heldout: List[Windows]
-
-
-@dataclass
-class Job:
-    """One configuration: meta-train (unless supervised), then adapt with each step size.
-
-    Attributes:
-        method: 'imaml', 'maml' or 'supervised'.
-        index: configuration number within the method.
-        hyper: meta hyperparameters (empty for supervised).
-        iterations: outer steps.
-        lrs: adaptation step sizes to score.
-        stage: 'search' (random draws), 'refine' (neighbours) or 'robust'.
-        source_seed: seed of the validation source set and of meta-training.
-    """
-
-    method: str
-    index: int
-    hyper: Dict[str, float]
-    iterations: int
-    lrs: Tuple[float, ...]
-    stage: str
-    source_seed: int = VALIDATION_SEED
-
-    def cost(self) -> float:
-        """Rough relative cost, to start the long jobs first."""
-        if self.method == 'supervised':
-            return 0.0
-        per_step = 1.5 if self.method == 'imaml' else 1.0
-        return self.iterations * per_step * (4 + self.hyper['inner_steps'])
-
-
-def validation_thetas(n: int, theta_mean: float, theta_std: float) -> Tuple[float, ...]:
-    """theta_i = rng([VALIDATION_SEED + i, THETA_STREAM]).normal(mean, std), i = 0..n-1."""
-    return tuple(float(np.random.default_rng([VALIDATION_SEED + i, THETA_STREAM])
-                       .normal(theta_mean, theta_std)) for i in range(n))
-
-
-def settings_from(config_path: str, n_thetas: int, batch_size: int, adapt_steps: int
-                  ) -> Settings:
-    """The experiment's learner set-up (NSSM, source size, windows per task) for validation."""
-    experiment = load(config_path)
-    values = {name: spec.default for name, spec in PARAMETERS.items()}
-    values.update(experiment.node_parameters('learner', VALIDATION_SEED))
-    learner = parse_params(values)
-    return Settings(learner, validation_thetas(n_thetas, experiment.theta_mean,
-                                               experiment.theta_std),
-                    experiment.target_samples, batch_size, adapt_steps)
-
-
-def build_validation(settings: Settings, source_seed: int) -> Validation:
-    """Simulate a validation source set and the targets' adaptation and held-out data (the
-    same target data for every source set; its normalisation is the source set's)."""
-    cfg = settings.learner
-    data = simulate_source(replace(cfg.source, seed=source_seed))
-    model = Nssm(cfg.nssm, normalisation_from([t for ts in data.trajectories for t in ts]))
-    source = SourceSet(data, model.norm, cfg.nssm, cfg.train_fraction)
-    one_episode = replace(cfg.source, episode_samples=settings.target_samples)
-    train, heldout = [], []
-    for i, theta in enumerate(settings.thetas):
-        base = 10 * (VALIDATION_SEED + i)
-        train.append(Windows.from_trajectories(
-            simulate_target(theta, one_episode, settings.target_samples, base + 1),
-            model.norm, cfg.nssm))
-        heldout.append(Windows.from_trajectories(
-            simulate_target(theta, cfg.source, HELDOUT_SAMPLES, base + 2), model.norm,
-            cfg.nssm))
-    return Validation(model, source, train, heldout)
-
-
-_SETTINGS: Optional[Settings] = None
-_VALIDATIONS: Dict[int, Validation] = {}
-
-
-def init_worker(settings: Settings, threads: int) -> None:
-    """Worker process start: torch threads and the settings."""
-    global _SETTINGS
-    torch.set_num_threads(threads)
-    _SETTINGS = settings
-
-
-def validation(source_seed: int) -> Validation:
-    """The validation set-up of a source seed, built once per worker."""
-    if source_seed not in _VALIDATIONS:
-        _VALIDATIONS[source_seed] = build_validation(_SETTINGS, source_seed)
-    return _VALIDATIONS[source_seed]
-
-
-def meta_config(job: Job, settings: Settings) -> MetaConfig:
-    """The MetaConfig of a meta job: its hyperparameters on the experiment's defaults."""
-    return replace(settings.learner.meta, method=job.method, iterations=job.iterations,
-                   batch_size=settings.batch_size, cg_steps=CG_STEPS, curvature=CURVATURE,
-                   seed=job.source_seed, **job.hyper)
-
-
-def run_job(job: Job) -> dict:
-    """Meta-train (meta methods) and score every step size; a failure scores inf."""
-    settings, val = _SETTINGS, validation(job.source_seed)
-    cpu = time.process_time()
-    out = {'method': job.method, 'index': job.index, 'stage': job.stage, 'hyper': job.hyper,
-           'iterations': job.iterations if job.method != 'supervised' else 0,
-           'source_seed': job.source_seed}
-    params = None
-    if job.method != 'supervised':
-        try:
-            result = meta_train(val.model, val.source, meta_config(job, settings))
-        except MetaTrainingError as err:
-            return {**out, 'error': str(err), 'score': math.inf, 'adapt': [],
-                    'cpu_seconds': round(time.process_time() - cpu, 1)}
-        params = result.params
-        out.update(meta_final_loss=float(np.mean(result.losses[-10:])),
-                   meta_loss_every_10=[float(v) for v in result.losses[9::10]],
-                   meta_skipped=result.skipped, meta_seconds=round(result.elapsed, 1))
-    out['adapt'] = []
-    start = time.monotonic()
-    for lr in job.lrs:
-        step = AdaptConfig(steps=settings.adapt_steps, lr=lr)
-        curves: List[List[float]] = []
-        for train, held in zip(val.train, val.heldout):
-            try:
-                res: AdaptResult = (
-                    supervised(val.model, train, held, step, seed=VALIDATION_SEED)
-                    if params is None else adapt(val.model, params, train, held, step))
-                curves.append(res.heldout_loss)
-            except ValueError:
-                curves.append([math.inf] * (settings.adapt_steps + 1))
-        final = [c[-1] for c in curves]
-        out['adapt'].append({
-            'lr': lr, 'score': float(np.mean(final)), 'heldout_final': final,
-            'heldout_at': {str(k): [c[k] for c in curves]
-                           for k in CURVE_STEPS if k <= settings.adapt_steps}})
-    out['adapt_seconds'] = round(time.monotonic() - start, 1)
-    out['cpu_seconds'] = round(time.process_time() - cpu, 1)
-    best = min(out['adapt'], key=lambda a: a['score'])
-    out.update(score=best['score'], best_lr=best['lr'])
-    return out
 
 
 def draw_jobs(k: int, iterations: int, seed: int) -> List[Job]:
@@ -333,18 +156,6 @@ def robust_scores(runs: Sequence[dict]) -> List[dict]:
     return out
 
 
-def run_jobs(pool: futures.Executor, jobs: Sequence[Job], what: str) -> List[dict]:
-    """Run jobs longest first with a progress bar; results in the order of `jobs`."""
-    order = sorted(range(len(jobs)), key=lambda i: -jobs[i].cost())
-    pending = {pool.submit(run_job, jobs[i]): i for i in order}
-    results: List[Optional[dict]] = [None] * len(jobs)
-    with tqdm(total=len(jobs), desc=what, unit='config') as bar:
-        for done in futures.as_completed(pending):
-            results[pending[done]] = done.result()
-            bar.update()
-    return results
-
-
 def best_of(method: str, results: Sequence[dict]) -> dict:
     """The result of the method's configuration with the lowest score."""
     return min((r for r in results if r['method'] == method), key=lambda r: r['score'])
@@ -386,20 +197,21 @@ def main(argv=None) -> None:
     parser.add_argument('--out', default='config/tuning.json')
     args = parser.parse_args(argv)
     start, load_start = time.monotonic(), os.getloadavg()
-    settings = settings_from(args.config, args.thetas, args.batch_size, args.adapt_steps)
+    settings = settings_from(args.config, args.thetas, args.adapt_steps,
+                             {'batch_size': args.batch_size, 'cg_steps': CG_STEPS,
+                              'curvature': CURVATURE})
     jobs = draw_jobs(args.k, args.iterations, args.seed)
     context = multiprocessing.get_context('spawn')
     with futures.ProcessPoolExecutor(args.jobs, context, init_worker,
                                      (settings, args.threads)) as pool:
-        results = run_jobs(pool, jobs, 'search')
+        results = run_jobs(pool, jobs, 'search', settings)
         if args.refine:
             results += run_jobs(pool, refine_jobs(results, args.refine, args.iterations,
-                                                  args.seed), 'refine')
+                                                  args.seed), 'refine', settings)
         search_s = time.monotonic() - start
         seeds = [VALIDATION_SEED + j for j in range(args.robust_seeds)]
-        robust_runs = (run_jobs(pool, robust_jobs(results, args.finalists,
-                                                  args.full_iterations, seeds), 'robust')
-                       if args.finalists else [])
+        finalists = robust_jobs(results, args.finalists, args.full_iterations, seeds)
+        robust_runs = run_jobs(pool, finalists, 'robust', settings) if args.finalists else []
     robust = robust_scores(robust_runs)
     best = {m: best_of(m, robust or results) for m in META_METHODS}
     best['supervised'] = best_of('supervised', results)

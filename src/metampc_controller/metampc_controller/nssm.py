@@ -25,6 +25,7 @@ view the controller runs at every tick: ``encode`` from physical histories and t
 :class:`LatentModel` in physical units.
 """
 from collections import OrderedDict
+import math
 from dataclasses import dataclass, field
 from typing import Dict, List, Mapping, Tuple
 
@@ -34,6 +35,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from metampc_controller.latent_model import LatentModel
+from metampc_controller.latent_stability import bounded_transition, transition_coordinates
 
 Params = Dict[str, torch.Tensor]
 
@@ -49,6 +51,9 @@ class NssmConfig:
         history: H, samples of (u, y) the encoder reads.
         hidden: widths of the encoder's ReLU hidden layers (paper: 128, 128).
         horizon: T, prediction steps of the training loss.
+        stable_latent: A of eq. (z_next) bounded to spectral norm < rho_max by the smooth map
+            of ``latent_stability.py`` (False: A free, as in the paper).
+        rho_max: the bound (> 0).
     """
 
     n_u: int = 1
@@ -57,9 +62,13 @@ class NssmConfig:
     history: int = 10
     hidden: Tuple[int, ...] = (128, 128)
     horizon: int = 10
+    stable_latent: bool = True
+    rho_max: float = 1.0
 
     def __post_init__(self):
         self.hidden = tuple(int(w) for w in self.hidden)
+        self.stable_latent = bool(self.stable_latent)
+        self.rho_max = float(self.rho_max)
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
@@ -68,6 +77,8 @@ class NssmConfig:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
         if any(w < 1 for w in self.hidden):
             raise ValueError(f'hidden widths must be >= 1, got {self.hidden}')
+        if not (0 < self.rho_max < math.inf):
+            raise ValueError(f'rho_max must be > 0 and finite, got {self.rho_max}')
 
     @property
     def window(self) -> int:
@@ -138,6 +149,7 @@ def init_params(config: NssmConfig, seed: int, dtype: torch.dtype = torch.float3
 
     Every entry is uniform in +-1/sqrt(fan_in) (PyTorch's default for linear layers; for a
     bias the fan-in of its layer): the encoder layers and the matrices A, B, C of the paper.
+    With ``stable_latent`` the draw is W and A its bounded image (latent_stability.py).
     """
     gen = torch.Generator().manual_seed(int(seed))
     shapes = param_shapes(config)
@@ -147,6 +159,8 @@ def init_params(config: NssmConfig, seed: int, dtype: torch.dtype = torch.float3
         bound = 1.0 / np.sqrt(shapes[weight][-1])
         params[name] = ((torch.rand(shape, generator=gen, dtype=torch.float64) * 2 - 1)
                         * bound).to(dtype)
+    if config.stable_latent:
+        params['A'] = bounded_transition(params['A'], config.rho_max)
     return params
 
 
@@ -292,23 +306,36 @@ class FlatWeights:
 
 
 class ParamSpec:
-    """Exact round trip between a parameter dict and one flat vector (P,), differentiable.
+    """Round trip between a parameter dict and the flat training vector (P,), differentiable.
 
     Training keeps the weights as one vector so that CG, the proximal term, Adam and vmap
-    over tasks work on plain tensors; :meth:`unflatten` returns views for functional_call.
+    over tasks work on plain tensors. The vector holds every parameter as it is, except that
+    with ``stable_latent`` it holds W in place of A (``latent_stability.py``): every step of
+    every method then keeps ||A||_2 < rho_max. :meth:`unflatten` maps back (differentiably,
+    under vmap too) for functional_call; the round trip is exact to float rounding.
     """
 
     def __init__(self, config: NssmConfig):
+        self.config = config
         self.shapes = param_shapes(config)
         self.sizes = [int(np.prod(s)) for s in self.shapes.values()]
         self.size = sum(self.sizes)
 
     def flatten(self, params: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat([params[n].reshape(-1) for n in self.shapes])
+        """Published weights -> training vector; ValueError if A is outside the bound."""
+        cfg = self.config
+        return torch.cat([(transition_coordinates(params[n], cfg.rho_max)
+                           if n == 'A' and cfg.stable_latent else params[n]).reshape(-1)
+                          for n in self.shapes])
 
     def unflatten(self, flat: torch.Tensor) -> Params:
+        """Training vector (..., P) -> published weights (leading dimensions kept)."""
         chunks = torch.split(flat, self.sizes, dim=-1)
-        return {n: c.reshape(*c.shape[:-1], *s) for (n, s), c in zip(self.shapes.items(), chunks)}
+        params = {n: c.reshape(*c.shape[:-1], *s)
+                  for (n, s), c in zip(self.shapes.items(), chunks)}
+        if self.config.stable_latent:
+            params['A'] = bounded_transition(params['A'], self.config.rho_max)
+        return params
 
 
 class NssmPredictor:

@@ -5,6 +5,10 @@ Adaptation: ``steps`` full-batch gradient steps on
 paper's plain steps of sec. Simulation). Supervised baseline: the same steps from a random
 initialisation (gamma = 0). Both report the loss on held-out target windows before and after
 every step.
+
+Step size (the same rule for every method): each step backtracks from the nominal rate ``lr``
+(Armijo, ``FlatObjective.armijo_step``), so a rate too large for the target's curvature is
+halved within the step instead of costing it, and the next step tries ``lr`` again.
 """
 import math
 import time
@@ -40,12 +44,14 @@ class AdaptResult:
         params: omega*.
         train_loss: l_SSM(D_target; psi) before each step and after the last.
         heldout_loss: l_SSM on the held-out target windows, same indexing.
+        rates: the step size each step took (0.0: no decrease found, psi kept), length steps.
         elapsed: wall time, s.
     """
 
     params: Params
     train_loss: List[float] = field(default_factory=list)
     heldout_loss: List[float] = field(default_factory=list)
+    rates: List[float] = field(default_factory=list)
     elapsed: float = 0.0
 
 
@@ -75,9 +81,10 @@ def adapt(model: Nssm, init: Params, train: Windows, heldout: Windows, config: A
                              f'{len(result.train_loss) - 1}')
 
     record()
-    rate = torch.tensor(config.lr, dtype=psi.dtype)
     for step in range(1, config.steps + 1):
-        psi, rate = objective.prox_step(psi, anchor, train.u, train.y, rate, config.gamma)
+        psi, rate = objective.armijo_step(psi, anchor, train.u, train.y, config.lr,
+                                          config.gamma)
+        result.rates.append(rate)
         record()
         if progress is not None:
             progress(Progress(step, config.steps, result.heldout_loss[-1],

@@ -38,7 +38,8 @@ def load_checkpoint(path: str) -> Checkpoint:
     blob = torch.load(path, map_location='cpu', weights_only=True)
     if blob.get('format') != FORMAT:
         raise ValueError(f'{path}: not a {FORMAT} checkpoint')
-    config = NssmConfig(**blob['config'])
+    # files from before the stable latent parameterisation hold a free A
+    config = NssmConfig(**{'stable_latent': False, **blob['config']})
     params = blob['params']
     if {k: tuple(v.shape) for k, v in params.items()} != dict(param_shapes(config)):
         raise ValueError(f'{path}: weights do not fit {config}')

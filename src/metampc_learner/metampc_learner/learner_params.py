@@ -50,6 +50,9 @@ PARAMETERS: Dict[str, ParamSpec] = {
     'history': ParamSpec(_NSSM.history, 'H, samples the encoder reads (>= 1)'),
     'horizon': ParamSpec(_NSSM.horizon, 'T, prediction steps of the loss (>= 1)'),
     'hidden': ParamSpec(list(_NSSM.hidden), 'widths of the encoder ReLU layers (each >= 1)'),
+    'stable_latent': ParamSpec(_NSSM.stable_latent, 'bound the spectral norm of A by rho_max '
+                               '(false: A free, as in the paper)'),
+    'rho_max': ParamSpec(_NSSM.rho_max, 'bound of the spectral norm of A (> 0)'),
     # Simulated source systems (also the simulator of online collection and the oracle).
     'n_systems': ParamSpec(_SRC.n_systems, 'N_s, source systems (>= 1)'),
     'episodes_per_system': ParamSpec(_SRC.episodes_per_system, 'episodes per system (>= 1)'),
@@ -212,7 +215,9 @@ def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
     _check(text['method'] in METHODS,
            f'method must be one of {", ".join(METHODS)}, got {text["method"]!r}')
     nssm = _checked(lambda: NssmConfig(n_z=num['n_z'], history=num['history'], hidden=hidden,
-                                       horizon=num['horizon']))
+                                       horizon=num['horizon'],
+                                       stable_latent=flags['stable_latent'],
+                                       rho_max=num['rho_max']))
     meta = _checked(lambda: MetaConfig(
         method=text['method'], iterations=num['iterations'], batch_size=num['batch_size'],
         inner_steps=num['inner_steps'], lr_inner=num['lr_inner'], lr_outer=num['lr_outer'],

@@ -14,6 +14,9 @@ from torch.func import grad_and_value
 
 from metampc_controller.nssm import Nssm, ParamSpec, prediction_loss
 
+ARMIJO_C = 1e-4        # sufficient decrease of the Armijo rule (Nocedal & Wright's choice)
+MAX_HALVINGS = 30      # lr / 2^30: below any useful step
+
 
 class FlatObjective:
     """l_SSM of an NSSM over normalised windows, as a function of flat weights (P,).
@@ -63,6 +66,27 @@ class FlatObjective:
         slack = torch.finfo(value.dtype).eps ** 0.5 * value.abs()
         ok = self.prox_objective(candidate, anchor, u, y, gamma) <= value + slack
         return torch.where(ok, candidate, psi), torch.where(ok, rate, 0.5 * rate)
+
+    def armijo_step(self, psi: torch.Tensor, anchor: torch.Tensor, u: torch.Tensor,
+                    y: torch.Tensor, lr: float, gamma: float) -> Tuple[torch.Tensor, float]:
+        """One gradient step on the proximal objective, backtracking from `lr` at every step.
+
+        Takes the largest rate r = lr / 2^j, j = 0..MAX_HALVINGS, with the Armijo decrease
+        f(psi - r g) <= f(psi) - ARMIJO_C r ||g||^2; returns (psi, r), or (psi unchanged, 0.0)
+        when none decreases f. Unlike :meth:`prox_step` a rejected rate costs no step and the
+        next step starts from `lr` again, so the first step already moves the loss. Not
+        vmappable (data-dependent loop): adaptation, one task at a time.
+        """
+        g, value = grad_and_value(self.prox_objective)(psi, anchor, u, y, gamma)
+        decrease = ARMIJO_C * float(g.square().sum())
+        rate = lr
+        for _ in range(MAX_HALVINGS + 1):
+            candidate = psi - rate * g
+            trial = float(self.prox_objective(candidate, anchor, u, y, gamma))
+            if trial <= float(value) - rate * decrease:     # NaN fails it too
+                return candidate, rate
+            rate *= 0.5
+        return psi, 0.0
 
     def inner_loop(self, omega: torch.Tensor, u: torch.Tensor, y: torch.Tensor, steps: int,
                    lr: float, gamma: float) -> torch.Tensor:

@@ -78,3 +78,29 @@ def test_adapt_refuses_empty_data(target):
         adapt(model, init_params(TINY, 0), empty, held, AdaptConfig())
     with pytest.raises(ValueError):
         AdaptConfig(steps=-1).validate()
+
+
+def test_the_first_step_already_moves_the_loss_at_a_rate_too_large(target):
+    """Armijo backtracking from the nominal rate at every step: no step is lost."""
+    model, train, held = target
+    init = init_params(TINY, 3)
+    result = adapt(model, init, train, held, AdaptConfig(steps=3, lr=50.0))
+    assert result.train_loss[1] < result.train_loss[0]
+    assert all(0 < r < 50.0 for r in result.rates)
+    assert np.all(np.diff(result.train_loss) < 0)
+
+
+def test_a_rate_that_decreases_enough_is_plain_gradient_descent(target):
+    model, train, held = target
+    init = init_params(TINY, 3, torch.float64)
+    model64 = Nssm(TINY, model.norm, dtype=torch.float64)
+    train64 = Windows(train.u.double(), train.y.double())
+    result = adapt(model64, init, train64, held.__class__(held.u.double(), held.y.double()),
+                   AdaptConfig(steps=4, lr=0.01))
+    assert result.rates == [0.01] * 4
+    objective = FlatObjective(model64)
+    flat = objective.spec.flatten(init)
+    for _ in range(4):
+        flat = flat - 0.01 * torch.func.grad(objective.loss)(flat, train64.u, train64.y)
+    got = objective.spec.flatten(result.params)
+    torch.testing.assert_close(got, flat, rtol=1e-9, atol=1e-11)

@@ -1,0 +1,327 @@
+"""The experiment's learning set-up without ROS: meta-training and adaptation jobs.
+
+What ``scripts/tune.py``, ``scripts/robustness.py`` and ``scripts/sweep_inner_steps.py`` share:
+the learner configuration an experiment gives a seed (the same NSSM, source set, windows per
+task and request fields as the learner node gets from the orchestrator), validation targets
+that are never the experiment's test targets, and a job runner (worker processes, one torch
+thread count each, results cached on disk so that a long run stopped half-way resumes).
+
+Validation, never the test targets: the experiment's seed s uses ``source_seed = s`` and the
+target theta of ``rng([s, 0x7e7a])``; validation targets are ``theta_i = rng([1000 + i,
+0x5a1]).normal(theta_mean, theta_std)``, each with ``target_samples`` adaptation samples (one
+bounded excitation episode, like the experiment's collection) and an independent held-out set
+of :data:`HELDOUT_SAMPLES` samples.
+"""
+import concurrent.futures as futures
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from metampc_controller.nssm import Nssm
+from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
+from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
+                                  SourceSet, Windows)
+from metampc_learner.learner_params import LearnerNodeConfig, PARAMETERS, parse_params
+from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
+
+from .experiment_config import ExperimentConfig, load
+
+VALIDATION_SEED = 1000       # validation source set, meta seed and supervised init seed
+THETA_STREAM = 0x5a1         # validation thetas: rng([VALIDATION_SEED + i, THETA_STREAM])
+HELDOUT_SAMPLES = 600
+CURVE_STEPS = (0, 1, 5, 20)  # held-out loss reported after these adaptation steps
+
+
+def learner_config(experiment: ExperimentConfig, seed: int) -> LearnerNodeConfig:
+    """The learner node's configuration in the experiment's run `seed` (checked)."""
+    values = {name: spec.default for name, spec in PARAMETERS.items()}
+    values.update(experiment.node_parameters('learner', seed))
+    return parse_params(values)
+
+
+def request_meta_config(experiment: ExperimentConfig, method: str) -> Dict[str, Any]:
+    """The experiment's MetaTrain request fields of `method` as MetaConfig fields (online
+    collection, a request flag, is not one)."""
+    fields = dict(experiment.meta_train.get(method) or {})
+    fields.pop('online_collection', None)
+    return fields
+
+
+@dataclass
+class Settings:
+    """What every job needs to rebuild the set-up (picklable).
+
+    Attributes:
+        learner: the experiment's learner configuration (its source seed is replaced per job).
+        thetas: the validation targets.
+        target_samples: adaptation samples per target.
+        adapt_steps: adaptation steps scored.
+        meta_defaults: MetaConfig fields applied before a job's own (e.g. cg_steps).
+    """
+
+    learner: LearnerNodeConfig
+    thetas: Tuple[float, ...]
+    target_samples: int
+    adapt_steps: int
+    meta_defaults: Dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Validation:
+    """The set-up of one source set: NSSM with its normalisation, source set, target windows."""
+
+    model: Nssm
+    source: SourceSet
+    train: List[Windows]
+    heldout: List[Windows]
+
+
+@dataclass
+class Job:
+    """One run: meta-train (unless supervised), then adapt with each step size.
+
+    Attributes:
+        method: 'imaml', 'maml', 'maml_unrolled' or 'supervised'.
+        index: configuration number within its search or sweep.
+        hyper: MetaConfig fields of this run (empty for supervised).
+        iterations: outer steps.
+        lrs: adaptation step sizes to score (empty: meta-training only).
+        stage: free label ('search', 'refine', 'robust', 'sweep', ...).
+        source_seed: seed of the source set and of meta-training.
+        nssm: NssmConfig fields that differ from the experiment's (e.g. rho_max).
+    """
+
+    method: str
+    index: int
+    hyper: Dict[str, Any]
+    iterations: int
+    lrs: Tuple[float, ...]
+    stage: str
+    source_seed: int = VALIDATION_SEED
+    nssm: Dict[str, Any] = field(default_factory=dict)
+
+    def cost(self) -> float:
+        """Rough relative cost, to start the long jobs first."""
+        if self.method == 'supervised':
+            return 0.0
+        per_step = 1.5 if self.method == 'imaml' else 1.0
+        return self.iterations * per_step * (4 + self.hyper.get('inner_steps', 10))
+
+    def key(self, settings: Settings) -> str:
+        """A name for the cached result: a hash of the job and of the settings."""
+        blob = json.dumps([asdict(self), repr(settings)], sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def validation_thetas(n: int, theta_mean: float, theta_std: float) -> Tuple[float, ...]:
+    """theta_i = rng([VALIDATION_SEED + i, THETA_STREAM]).normal(mean, std), i = 0..n-1."""
+    return tuple(float(np.random.default_rng([VALIDATION_SEED + i, THETA_STREAM])
+                       .normal(theta_mean, theta_std)) for i in range(n))
+
+
+def settings_from(config_path: str, n_thetas: int, adapt_steps: int,
+                  meta_defaults: Optional[Dict[str, Any]] = None) -> Settings:
+    """Settings from an experiment YAML: its learner set-up, validation targets."""
+    experiment = load(config_path)
+    return Settings(learner_config(experiment, VALIDATION_SEED),
+                    validation_thetas(n_thetas, experiment.theta_mean, experiment.theta_std),
+                    experiment.target_samples, adapt_steps, dict(meta_defaults or {}))
+
+
+def build_validation(settings: Settings, source_seed: int, nssm: Dict[str, Any]
+                     ) -> Validation:
+    """Simulate a source set and the validation targets' adaptation and held-out data (the
+    same target data for every source set; its normalisation is the source set's)."""
+    cfg = settings.learner
+    nssm_config = replace(cfg.nssm, **nssm)
+    data = simulate_source(replace(cfg.source, seed=source_seed))
+    model = Nssm(nssm_config, normalisation_from([t for ts in data.trajectories for t in ts]))
+    source = SourceSet(data, model.norm, nssm_config, cfg.train_fraction)
+    one_episode = replace(cfg.source, episode_samples=settings.target_samples)
+    train, heldout = [], []
+    for i, theta in enumerate(settings.thetas):
+        base = 10 * (VALIDATION_SEED + i)
+        train.append(Windows.from_trajectories(
+            simulate_target(theta, one_episode, settings.target_samples, base + 1),
+            model.norm, nssm_config))
+        heldout.append(Windows.from_trajectories(
+            simulate_target(theta, cfg.source, HELDOUT_SAMPLES, base + 2), model.norm,
+            nssm_config))
+    return Validation(model, source, train, heldout)
+
+
+_SETTINGS: Optional[Settings] = None
+_VALIDATIONS: Dict[str, Validation] = {}
+
+
+def init_worker(settings: Settings, threads: int) -> None:
+    """Worker process start: torch threads and the settings."""
+    global _SETTINGS
+    torch.set_num_threads(threads)
+    _SETTINGS = settings
+
+
+def validation(source_seed: int, nssm: Dict[str, Any]) -> Validation:
+    """The set-up of a source seed and NSSM, built once per worker."""
+    key = json.dumps([source_seed, nssm], sort_keys=True)
+    if key not in _VALIDATIONS:
+        _VALIDATIONS[key] = build_validation(_SETTINGS, source_seed, nssm)
+    return _VALIDATIONS[key]
+
+
+def meta_config(job: Job, settings: Settings) -> MetaConfig:
+    """The MetaConfig of a meta job: its fields on the experiment's learner defaults."""
+    return replace(settings.learner.meta, method=job.method, iterations=job.iterations,
+                   seed=job.source_seed, **{**settings.meta_defaults, **job.hyper})
+
+
+def _spectrum(params) -> Dict[str, float]:
+    a = params['A'].detach().double()
+    return {'a_radius': float(torch.linalg.eigvals(a).abs().max()),
+            'a_norm': float(torch.linalg.matrix_norm(a, ord=2))}
+
+
+def run_job(job: Job) -> dict:
+    """Meta-train (meta methods), then score every step size; a failure scores inf.
+
+    The result holds the meta-training curve (every 10th step), its final loss (mean of the
+    last 10 steps), the largest loss, the spectral radius and norm of the meta-model's A,
+    and per step size the held-out loss of every validation target after ``CURVE_STEPS``
+    steps; ``score`` is the mean held-out loss after the last step at the best step size
+    (the final meta loss when no step size is scored).
+    """
+    settings, val = _SETTINGS, validation(job.source_seed, job.nssm)
+    cpu = time.process_time()
+    out: Dict[str, Any] = {'method': job.method, 'index': job.index, 'stage': job.stage,
+                           'hyper': job.hyper, 'nssm': job.nssm,
+                           'iterations': job.iterations if job.method != 'supervised' else 0,
+                           'source_seed': job.source_seed}
+    params = None
+    if job.method != 'supervised':
+        try:
+            result = meta_train(val.model, val.source, meta_config(job, settings))
+        except MetaTrainingError as err:
+            return {**out, 'error': str(err), 'score': math.inf, 'adapt': [],
+                    'cpu_seconds': round(time.process_time() - cpu, 1)}
+        params = result.params
+        losses = np.array(result.losses)
+        out.update(meta_final_loss=float(np.mean(losses[-10:])),
+                   meta_max_loss=float(np.max(losses)) if np.all(np.isfinite(losses))
+                   else math.inf,
+                   meta_loss_every_10=[float(v) for v in losses[9::10]],
+                   meta_skipped=result.skipped, meta_seconds=round(result.elapsed, 1),
+                   **_spectrum(params))
+    out['adapt'] = []
+    start = time.monotonic()
+    for lr in job.lrs:
+        step = AdaptConfig(steps=settings.adapt_steps, lr=lr)
+        curves: List[List[float]] = []
+        for train, held in zip(val.train, val.heldout):
+            try:
+                res: AdaptResult = (
+                    supervised(val.model, train, held, step, seed=VALIDATION_SEED)
+                    if params is None else adapt(val.model, params, train, held, step))
+                curves.append(res.heldout_loss)
+            except ValueError:
+                curves.append([math.inf] * (settings.adapt_steps + 1))
+        final = [c[-1] for c in curves]
+        out['adapt'].append({
+            'lr': lr, 'score': float(np.mean(final)), 'heldout_final': final,
+            'heldout_at': {str(k): [c[k] for c in curves]
+                           for k in CURVE_STEPS if k <= settings.adapt_steps}})
+    out['adapt_seconds'] = round(time.monotonic() - start, 1)
+    out['cpu_seconds'] = round(time.process_time() - cpu, 1)
+    if out['adapt']:
+        best = min(out['adapt'], key=lambda a: a['score'])
+        out.update(score=best['score'], best_lr=best['lr'])
+    else:
+        out['score'] = out.get('meta_final_loss', math.inf)
+    return out
+
+
+def run_jobs(pool: futures.Executor, jobs: Sequence[Job], what: str,
+             settings: Settings, cache_dir: Optional[str] = None) -> List[dict]:
+    """Run jobs longest first with a progress bar; results in the order of `jobs`.
+
+    With `cache_dir`, each finished job's result is written there (``<key>.json``, see
+    :meth:`Job.key`) as soon as it finishes and a job whose result is there is not run again:
+    a run stopped half-way resumes where it stopped.
+    """
+    results: List[Optional[dict]] = [None] * len(jobs)
+    todo = []
+    for i, job in enumerate(jobs):
+        path = os.path.join(cache_dir, f'{job.key(settings)}.json') if cache_dir else None
+        if path and os.path.exists(path):
+            with open(path) as f:
+                results[i] = json.load(f)
+        else:
+            todo.append(i)
+    if cache_dir:
+        os.makedirs(cache_dir, exist_ok=True)
+    order = sorted(todo, key=lambda i: -jobs[i].cost())
+    pending = {pool.submit(run_job, jobs[i]): i for i in order}
+    with tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit='job') as bar:
+        for done in futures.as_completed(pending):
+            i = pending[done]
+            results[i] = done.result()
+            if cache_dir:     # Python's json keeps inf and nan (scores of failed runs)
+                path = os.path.join(cache_dir, f'{jobs[i].key(settings)}.json')
+                with open(path + '.tmp', 'w') as f:
+                    json.dump(results[i], f)
+                os.replace(path + '.tmp', path)     # a kill never leaves half a result
+            bar.update()
+    return results
+
+
+__all__ = ['VALIDATION_SEED', 'THETA_STREAM', 'HELDOUT_SAMPLES', 'CURVE_STEPS', 'Settings',
+           'Validation', 'Job', 'learner_config', 'request_meta_config', 'validation_thetas',
+           'settings_from', 'build_validation', 'init_worker', 'validation', 'meta_config',
+           'run_job', 'run_jobs', 'robustness_jobs', 'robustness_summary']
+
+
+# --- robustness: meta-training on many source sets ------------------------------------------
+
+DIVERGED_FACTOR = 10.0   # a run whose final loss exceeds 10x its method's median diverged
+
+
+def robustness_jobs(experiment: ExperimentConfig, methods: Sequence[str], seeds: Sequence[int],
+                    nssm: Dict[str, Any]) -> List[Job]:
+    """Meta-training at the experiment's request fields on the source sets of `seeds` (the
+    experiment's own: source seed = meta seed = the run's seed), no adaptation."""
+    jobs = []
+    for method in methods:
+        hyper = request_meta_config(experiment, method)
+        iterations = int(hyper.pop('iterations', 0) or MetaConfig().iterations)
+        jobs.extend(Job(method, seed, hyper, iterations, (), 'robust', seed, dict(nssm))
+                    for seed in seeds)
+    return jobs
+
+
+def robustness_summary(results: Sequence[dict]) -> Dict[str, Any]:
+    """Per method: final losses per seed, median, the runs that diverged (non-finite, failed,
+    or a final loss above DIVERGED_FACTOR x the median), and A's largest spectral radius."""
+    out: Dict[str, Any] = {}
+    for method in dict.fromkeys(r['method'] for r in results):
+        runs = [r for r in results if r['method'] == method]
+        final = [float(r.get('meta_final_loss', math.inf)) for r in runs]
+        finite = [v for v in final if math.isfinite(v)]
+        median = float(np.median(finite)) if finite else math.inf
+        diverged = [r['source_seed'] for r, v in zip(runs, final)
+                    if not math.isfinite(v) or v > DIVERGED_FACTOR * median]
+        out[method] = {
+            'seeds': [r['source_seed'] for r in runs], 'final_loss': final,
+            'median_final_loss': median, 'worst_final_loss': max(final),
+            'max_loss': [r.get('meta_max_loss', math.inf) for r in runs],
+            'diverged': diverged, 'n_diverged': len(diverged),
+            'a_radius': [r.get('a_radius', math.nan) for r in runs],
+            'max_a_radius': max(r.get('a_radius', math.nan) for r in runs),
+            'meta_seconds': [r.get('meta_seconds') for r in runs]}
+    return out
