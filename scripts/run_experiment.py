@@ -4,6 +4,7 @@
 Examples:
     python scripts/run_experiment.py                          # defaults: 1 seed, all methods
     python scripts/run_experiment.py --seeds 10               # the paper's comparison
+    python scripts/run_experiment.py --seeds 5 --protocol paper   # Algorithm 1 as written
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
     # As root: plant | controllers | learner and recorder, one network namespace each.
     python scripts/run_experiment.py --hosts 'plant|controller,controller_nmpc|learner,recorder'
@@ -37,6 +38,7 @@ def main(argv=None) -> int:
     parser.add_argument('--seeds', type=int, help='number of seeds')
     parser.add_argument('--first-seed', type=int, help='seed of the first run')
     parser.add_argument('--theta', type=float, help='target damping (default: drawn per seed)')
+    parser.add_argument('--protocol', help="'tuned' (default) or 'paper' (docs/experiments.md)")
     parser.add_argument('--out', help='run folder to create (default: runs/<time>)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bars')
     parser.add_argument('--hosts', help="nodes per host, e.g. 'plant|controller,controller_nmpc|"
@@ -50,7 +52,8 @@ def main(argv=None) -> int:
     try:
         config = load(args.config, {
             'methods': args.methods.split(',') if args.methods else None,
-            'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': args.theta})
+            'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': args.theta,
+            'protocol': args.protocol})
         hosts = parse_hosts(args.hosts) if args.hosts else None
     except (ConfigError, NetnsError) as err:
         print(f'run_experiment: {err}', file=sys.stderr)

@@ -11,6 +11,15 @@ target theta) are set by :meth:`ExperimentConfig.node_parameters`.
 Requests: ``meta_train.<method>`` are the fields of a ``MetaTrain`` request for each meta
 method, ``adapt.<method>`` those of an ``Adapt`` request for each method that adapts (a
 field left out keeps the learner's parameter).
+
+Protocols (``protocol``), applied to those requests by :meth:`ExperimentConfig.meta_request`
+and :meth:`ExperimentConfig.adapt_request`:
+
+- ``tuned`` (the default, ``make run``): the requests as written; the tuned set-up adapts
+  every method by plain steps (gamma = 0) and meta-trains on the simulated source set alone.
+- ``paper``: the paper as written: Algorithm 1 collects closed-loop source data during
+  meta-training (eq. ub, ``online_collection``), iMAML adapts by eq. (infer) with the gamma it
+  was meta-trained with, first-order MAML and supervised training by plain steps (eq. inner).
 """
 from dataclasses import asdict, dataclass, field, fields
 import math
@@ -19,6 +28,7 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 import yaml
 
+PROTOCOLS = ('tuned', 'paper')
 META_METHODS = ('imaml', 'maml', 'maml_unrolled')
 ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
 METHODS = (*ADAPT_METHODS, 'nmpc')
@@ -59,6 +69,7 @@ class ExperimentConfig:
         dt, u_min, u_max: sample time (s) and input bounds, shared by the nodes.
         plant, learner, controller, recorder: ROS parameters of each node.
         meta_train / adapt: request fields per method (see the module docstring).
+        protocol: 'tuned' or 'paper' (see the module docstring).
         timeouts: see :class:`Timeouts`.
     """
 
@@ -83,6 +94,7 @@ class ExperimentConfig:
     recorder: Dict[str, Any] = field(default_factory=dict)
     meta_train: Dict[str, Dict[str, Any]] = field(default_factory=dict)
     adapt: Dict[str, Dict[str, Any]] = field(default_factory=dict)
+    protocol: str = 'tuned'
     timeouts: Timeouts = field(default_factory=Timeouts)
 
     # --- derived ---------------------------------------------------------------------------
@@ -120,6 +132,21 @@ class ExperimentConfig:
                           rate_hz=1.0 / self.dt)
         return params
 
+    def meta_request(self, method: str) -> Dict[str, Any]:
+        """The MetaTrain request fields of `method` under the protocol."""
+        fields = dict(self.meta_train.get(method) or {})
+        if self.protocol == 'paper':
+            fields['online_collection'] = True
+        return fields
+
+    def adapt_request(self, method: str) -> Dict[str, Any]:
+        """The Adapt request fields of `method` under the protocol."""
+        fields = dict(self.adapt.get(method) or {})
+        if self.protocol == 'paper' and method in ('imaml', 'maml', 'supervised'):
+            fields['gamma'] = (float(self.meta_train['imaml']['gamma']) if method == 'imaml'
+                               else 0.0)
+        return fields
+
     def to_dict(self) -> Dict[str, Any]:
         return asdict(self)
 
@@ -147,6 +174,13 @@ class ExperimentConfig:
             if clash:
                 raise ConfigError(f'{node}: set {", ".join(clash)} at the top level (shared '
                                   'by the nodes), not in the node section')
+        if self.protocol not in PROTOCOLS:
+            raise ConfigError(f'protocol must be one of {", ".join(PROTOCOLS)}, got '
+                              f'{self.protocol!r}')
+        if (self.protocol == 'paper' and 'imaml' in self.methods
+                and 'gamma' not in (self.meta_train.get('imaml') or {})):
+            raise ConfigError('protocol paper: iMAML adapts with its meta-training gamma; set '
+                              'meta_train.imaml.gamma')
         _check_requests('meta_train', self.meta_train, META_METHODS, _META_FIELDS)
         _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
         return self

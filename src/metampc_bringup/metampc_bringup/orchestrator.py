@@ -261,7 +261,7 @@ class SeedRun:
 
     def _meta_train(self, method: str) -> None:
         client, config = self.client, self.config
-        fields = dict(config.meta_train.get(method) or {})
+        fields = config.meta_request(method)
         request = MetaTrain.Request(method=method, **fields)
         client.progress = None
         with self._bar(request.iterations or 0, f'meta_train {method}') as bar:
@@ -273,7 +273,7 @@ class SeedRun:
 
     def _adapt(self, method: str) -> int:
         client, config = self.client, self.config
-        fields = dict(config.adapt.get(method) or {})
+        fields = config.adapt_request(method)
         response = client.call('adapt', Adapt.Request(method=method, **fields),
                                config.timeouts.adapt, f'adapt {method}')
         client.event('adapt', method=method, request=fields,

@@ -1,0 +1,37 @@
+"""The named protocols turn the experiment's requests into the tuned or the paper's set-up."""
+import pytest
+
+from metampc_bringup.experiment_config import ConfigError, from_mapping
+
+REQUESTS = {'meta_train': {'imaml': {'gamma': 3.0, 'inner_steps': 10}, 'maml': {'lr_inner': 0.02}},
+            'adapt': {'imaml': {'steps': 20, 'lr': 0.2}, 'maml': {'lr': 0.3},
+                      'supervised': {'lr': 0.3}, 'oracle': {}}}
+
+
+def test_tuned_sends_the_requests_as_written():
+    config = from_mapping(REQUESTS).validate()
+    assert config.protocol == 'tuned'
+    assert config.meta_request('imaml') == {'gamma': 3.0, 'inner_steps': 10}
+    assert config.adapt_request('imaml') == {'steps': 20, 'lr': 0.2}
+    assert config.meta_request('maml_unrolled') == {}
+
+
+def test_paper_collects_online_and_adapts_imaml_by_eq_infer():
+    config = from_mapping({**REQUESTS, 'protocol': 'paper'}).validate()
+    assert config.meta_request('imaml') == {'gamma': 3.0, 'inner_steps': 10,
+                                            'online_collection': True}
+    assert config.meta_request('maml') == {'lr_inner': 0.02, 'online_collection': True}
+    assert config.adapt_request('imaml') == {'steps': 20, 'lr': 0.2, 'gamma': 3.0}
+    assert config.adapt_request('maml') == {'lr': 0.3, 'gamma': 0.0}
+    assert config.adapt_request('supervised') == {'lr': 0.3, 'gamma': 0.0}
+    assert config.adapt_request('oracle') == {}
+    # the requests as configured are left as they are
+    assert config.meta_train['imaml'] == {'gamma': 3.0, 'inner_steps': 10}
+
+
+def test_bad_protocol_and_paper_without_imaml_gamma_are_refused():
+    with pytest.raises(ConfigError, match="protocol must be one of tuned, paper, got 'papr'"):
+        from_mapping({'protocol': 'papr'}).validate()
+    with pytest.raises(ConfigError, match='set meta_train.imaml.gamma'):
+        from_mapping({'protocol': 'paper'}).validate()
+    from_mapping({'protocol': 'paper', 'methods': ['maml', 'nmpc']}).validate()
