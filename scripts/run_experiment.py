@@ -5,6 +5,7 @@ Examples:
     python scripts/run_experiment.py                          # defaults: 1 seed, all methods
     python scripts/run_experiment.py --seeds 10               # the paper's comparison
     python scripts/run_experiment.py --seeds 5 --protocol paper   # Algorithm 1 as written
+    python scripts/run_experiment.py --report runs/<time>     # recompute its reports
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
     # As root: plant | controllers | learner and recorder, one network namespace each.
     python scripts/run_experiment.py --hosts 'plant|controller,controller_nmpc|learner,recorder'
@@ -20,7 +21,7 @@ import os
 import signal
 import sys
 
-from metampc_bringup.experiment import run_experiment
+from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_client import ExperimentError
 from metampc_bringup.experiment_config import ConfigError, load
 from metampc_bringup.netns import NetnsError, parse_hosts
@@ -41,6 +42,9 @@ def main(argv=None) -> int:
     parser.add_argument('--protocol', help="'tuned' (default) or 'paper' (docs/experiments.md)")
     parser.add_argument('--out', help='run folder to create (default: runs/<time>)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bars')
+    parser.add_argument('--report', metavar='RUN_DIR',
+                        help='only recompute the reports of an existing run folder from its '
+                             'recordings (report.json, report.md, figures are rewritten)')
     parser.add_argument('--hosts', help="nodes per host, e.g. 'plant|controller,controller_nmpc|"
                                         "learner,recorder': one network namespace each (root)")
     args = parser.parse_args(argv)
@@ -49,6 +53,14 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
                         datefmt='%H:%M:%S')
+    if args.report:
+        try:
+            report = rebuild_report(args.report)
+        except (OSError, ValueError) as err:
+            print(f'run_experiment: --report {args.report}: {err}', file=sys.stderr)
+            return 2
+        print(f"report: {os.path.join(args.report, 'report.md')}")
+        return 0
     try:
         config = load(args.config, {
             'methods': args.methods.split(',') if args.methods else None,

@@ -2,7 +2,7 @@
 
 The report is checked against the recording read by a reader this project did not write
 (`rosbags`): the tracking RMSE of each method recomputed from the raw messages, the service
-results from the recorded events.
+results from the recorded events, a held-out target loss from the recorded weights by numpy.
 """
 import json
 import math
@@ -17,9 +17,11 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from metampc_bringup.experiment import run_experiment
+from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_config import ConfigError, load
+from metampc_bringup.offline import learner_config
 from metampc_bringup.processes import session_pids
+from metampc_learner.heldout import target_heldout
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CI_CONFIG = os.path.join(ROOT, 'config', 'ci.yaml')
@@ -48,6 +50,41 @@ def _rmse(outputs, statuses, start: float, end: float) -> float:
     refs = {round(m.step): m.y_ref[0] for s, m in statuses if start - 1e-6 <= s <= end + 1e-6}
     err = [ys[k + 1] - r for k, r in refs.items() if k + 1 in ys]
     return float(np.sqrt(np.mean(np.square(err))))
+
+
+def _weights(mcap_path: str, version: int):
+    """The NssmWeights message of `version`, decoded by rosbags."""
+    with AnyReader([Path(mcap_path)]) as reader:
+        for conn, _, raw in reader.messages():
+            if conn.topic.rsplit('/', 1)[-1] == 'nssm_weights':
+                msg = reader.deserialize(raw, conn.msgtype)
+                if msg.version == version:
+                    return msg
+    raise AssertionError(f'no model version {version} recorded')
+
+
+def _numpy_loss(msg, trajectories, horizon: int) -> float:
+    """l_SSM of eq. (SSM) of the message's model on every window of H + T samples: encoder
+    MLP and latent recursion step by step, float64, normalised units."""
+    flat, offsets, p, at = np.asarray(msg.params, np.float64), list(msg.shape_offsets), {}, 0
+    for i, name in enumerate(msg.names):
+        shape = [int(n) for n in msg.shapes[offsets[i]:offsets[i + 1]]]
+        p[name] = flat[at:at + int(np.prod(shape))].reshape(shape)
+        at += int(np.prod(shape))
+    n_h, layers, errors = int(msg.history), len(msg.encoder_layers) + 1, []
+    for t in trajectories:
+        u, y = (t.u - msg.u_mean) / msg.u_std, (t.y - msg.y_mean) / msg.y_std
+        for s in range(len(t) - n_h - horizon + 1):
+            z = np.concatenate([u[s:s + n_h], y[s:s + n_h]], axis=1).reshape(-1)
+            for i in range(layers):
+                z = p[f'encoder.{i}.weight'] @ z + p[f'encoder.{i}.bias']
+                z = np.maximum(z, 0.0) if i < layers - 1 else z
+            error = 0.0
+            for k in range(s + n_h, s + n_h + horizon):
+                z = p['A'] @ z + p['B'] @ u[k]
+                error += np.sum(np.square(p['C'] @ z - y[k]))
+            errors.append(error / horizon)
+    return float(np.mean(errors))
 
 
 def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp_path):
@@ -91,10 +128,32 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
         assert all(math.isfinite(v) for v in trained['loss_curve'])
     # Claims are computed from the same values.
     b0 = report['claims']['b_adaptation_order']['0']['losses'][0]
+    # Every published model scored on >= 2000 fresh samples of theta*; iMAML's adapted loss
+    # by numpy from the recorded weights, on the set rebuilt from the learner's settings (the
+    # CI plant has the learner's dt, substeps, bounds and box).
+    assert per_seed['heldout']['samples'] >= 2000
+    for method in config.methods:
+        entry = per_seed['methods'][method].get('heldout')
+        assert (entry is None) == (method == 'nmpc'), method
+        if entry:
+            assert entry['samples'] >= 2000 and math.isfinite(entry['adapted']), method
+            meta = method in config.meta_methods()
+            assert (entry['meta'] is not None) == meta and (not meta or entry['meta'] > 0)
+    learner = learner_config(config, per_seed['seed'])
+    version = per_seed['methods']['imaml']['adapt']['model_version']
+    assert per_seed['methods']['imaml']['heldout']['adapted'] == pytest.approx(_numpy_loss(
+        _weights(os.path.join(seed_dir, 'recording.mcap'), version),
+        target_heldout(config.theta, learner.source, per_seed['seed']),
+        learner.nssm.horizon), rel=1e-4)
     assert b0['imaml'] == per_seed['methods']['imaml']['adapt']['loss_curve'][0]
     with open(os.path.join(out, 'report.md')) as f:
         text = f.read()
     assert '(a) final meta-training loss' in text and 'fig2_meta_training.png' in text
+    assert '## Held-out target loss on 2000 independent samples' in text
+    # The reports again from the recordings alone: the same claims and wall time.
+    rebuilt = rebuild_report(out)
+    assert rebuilt['claims'] == report['claims']
+    assert rebuilt['wall_time_s'] == pytest.approx(report['wall_time_s'])
 
 
 def _pids_in_domain(domain: int):

@@ -12,6 +12,7 @@ Run folder layout::
     OUT/seed_<s>/logs/*.log        each node's output
 """
 import contextlib
+import json
 import logging
 import os
 import time
@@ -60,3 +61,27 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
             SeedRun(config, seed, seed_dir, progress, prefix).run()
             reports.append(seed_report(seed_dir))
     return experiment_report(reports, out_dir, config.to_dict(), time.monotonic() - started)
+
+
+def rebuild_report(out_dir: str) -> Dict[str, Any]:
+    """Recompute every report of the run folder `out_dir` from its recordings alone (e.g.
+    after the analysis gained a metric): each ``seed_<s>/report.json``, ``report.json``,
+    ``report.md`` and the figures are written again; the recordings are only read.
+
+    Raises:
+        FileNotFoundError: no config.yaml or no seed_<s>/recording.mcap in `out_dir`.
+    """
+    with open(os.path.join(out_dir, 'config.yaml')) as f:
+        config = yaml.safe_load(f)
+    seeds = sorted((int(name[len('seed_'):]) for name in os.listdir(out_dir)
+                    if name.startswith('seed_') and name[len('seed_'):].isdigit()
+                    and os.path.exists(os.path.join(out_dir, name, 'recording.mcap'))))
+    if not seeds:
+        raise FileNotFoundError(f'{out_dir}: no seed_<s>/recording.mcap')
+    wall = float('nan')
+    previous = os.path.join(out_dir, 'report.json')
+    if os.path.exists(previous):
+        with open(previous) as f:
+            wall = json.load(f).get('wall_time_s') or wall
+    reports = [seed_report(os.path.join(out_dir, f'seed_{s}')) for s in seeds]
+    return experiment_report(reports, out_dir, config, wall)

@@ -16,6 +16,12 @@ gathers the seeds into ``report.json``, ``report.md`` and the figures:
   is another kind of curve and only in report.json;
 * tracking: x (tracked outputs) and the reference per method, first seed.
 
+Held-out target loss (:func:`heldout_losses`): each published model (meta-model and adapted,
+decoded from the recorded NssmWeights) scored with l_SSM on >= 2000 samples of fresh
+simulated episodes of theta* (``metampc_learner.heldout``), per seed in report.json under
+``methods.<method>.heldout``, median over seeds in report.md. The adapt loss curves stay what
+the learner saw: the samples it held out of D_target (60 of 300 by default).
+
 Claims (each counted over seeds, reported whichever way it falls):
 
 (a) iMAML's meta-training loss below MAML's at equal outer steps (the final loss);
@@ -23,19 +29,32 @@ Claims (each counted over seeds, reported whichever way it falls):
     target loss;
 (c) tracking cost of each method relative to the oracle's and to the true-model NMPC's.
 
+Each pairwise claim 'a < b' comes with its statistics over seeds (:func:`pairwise`, by
+:mod:`metampc_bringup.paired_stats` on log ratios): the seeds where it holds, the median ratio
+a/b with a bootstrap 95 % interval, a Wilcoxon p-value, and the verdict (supported only when
+the interval lies below 1).
+
 No rclpy here.
 """
 import json
 import math
 import os
+import time
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import matplotlib
 import numpy as np
 
+from metampc_controller.weights_codec import DecodedWeights, fields_of, weights_from_fields
+from metampc_learner.heldout import (HELDOUT_STREAM, heldout_seed, model_heldout_loss,
+                                     plant_source, target_heldout)
+
 from .analysis import json_safe
 from .experiment_client import EVENTS_TOPIC
+from .experiment_config import from_mapping
 from .metrics import compute_metrics
+from .offline import learner_config
+from .paired_stats import claim_cells, paired_claim
 from .recording_reader import read_recording
 from .run_series import RunSeries, SeriesBuilder
 
@@ -47,6 +66,8 @@ STAMP_TOL = 1e-6    # s; stamps are n * dt, exact to float rounding
 PLANT_OUTPUT = 'metampc_msgs/msg/PlantOutput'
 CLOSED_LOOP = (PLANT_OUTPUT, 'metampc_msgs/msg/ControlInput',
                'metampc_msgs/msg/MpcStatus')
+NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
+PLANT_INFO = 'metampc_msgs/msg/PlantInfo'
 
 
 def read_events(recording) -> List[Dict[str, Any]]:
@@ -93,9 +114,66 @@ def tracking_series(recording, spans: Dict[str, Tuple[float, float, int]]
     return {method: builder.build() for method, builder in builders.items()}
 
 
+def _messages(recording, type_name: str) -> List[Any]:
+    """The decoded messages of every topic of `type_name`, in log-time order."""
+    topics = [t.name for t in recording.topics.values() if t.type_name == type_name]
+    return [msg for _, _, msg in recording.decoded(topics)]
+
+
+def published_models(recording) -> Dict[int, DecodedWeights]:
+    """Every NSSM the learner published (NssmWeights messages), decoded, by version."""
+    return {int(msg.version): weights_from_fields(fields_of(msg))
+            for msg in _messages(recording, NSSM_WEIGHTS)}
+
+
+def heldout_losses(recording, events: List[Dict[str, Any]], config: Dict[str, Any]
+                   ) -> Tuple[Dict[str, Any], Dict[str, Dict[str, Any]]]:
+    """The seed's held-out target set and the l_SSM of each published model on it.
+
+    The set (``metampc_learner.heldout.target_heldout``): fresh bounded excitation episodes
+    of theta* (the start event's), with the source settings the learner had in this run
+    (rebuilt from the run config) at the dt, substeps, input bounds and state box of the last
+    recorded plant_info, seeded by ``heldout_seed(seed)``. Each model is scored in its own
+    normalisation on windows of H + T samples (T: the learner's horizon parameter).
+
+    Returns:
+        (the set: samples, episodes, seed, stream, elapsed_s (wall time of decoding,
+        simulating and scoring); per method: {'samples', 'meta', 'adapted'}, the l_SSM
+        (normalised units) of the model of its meta_train and of its adapt event, None
+        without one, e.g. the meta stage of supervised and oracle).
+    """
+    t0 = time.monotonic()
+    start = next(e for e in events if e['event'] == 'start')
+    seed = int(start['seed'])
+    learner = learner_config(from_mapping(config['experiment']), seed)
+    source = learner.source
+    plants = _messages(recording, PLANT_INFO)
+    if plants:
+        p = plants[-1]
+        source = plant_source(source, p.dt, p.substeps, p.u_min, p.u_max, p.state_bound)
+    trajectories = target_heldout(float(start['theta']), source, seed)
+    samples = sum(len(t) for t in trajectories)
+    models = published_models(recording)
+    losses: Dict[str, Dict[str, Any]] = {}
+    for e in events:
+        if e['event'] not in ('meta_train', 'adapt'):
+            continue
+        weights = models.get(int(e['model_version']))
+        entry = losses.setdefault(e['method'], {'samples': samples, 'meta': None,
+                                                'adapted': None})
+        entry['meta' if e['event'] == 'meta_train' else 'adapted'] = (
+            None if weights is None
+            else model_heldout_loss(weights, trajectories, learner.nssm.horizon))
+    about = {'samples': samples, 'episodes': len(trajectories), 'seed': heldout_seed(seed),
+             'stream': HELDOUT_STREAM, 'elapsed_s': time.monotonic() - t0}
+    return about, losses
+
+
 def seed_report(path: str, out_dir: Optional[str] = None, plots: bool = True) -> Dict[str, Any]:
     """Report of one seed's recording (`path`: MCAP file or its folder); writes
-    ``report.json`` and ``tracking_<method>.png`` into `out_dir` (default: the folder)."""
+    ``report.json`` and ``tracking_<method>.png`` into `out_dir` (default: the folder).
+    The held-out target set is in ``heldout``, each method's losses on it in
+    ``methods.<method>.heldout`` (:func:`heldout_losses`)."""
     recording = read_recording(path)
     out_dir = out_dir or os.path.dirname(os.path.abspath(recording.path))
     events = read_events(recording)
@@ -119,6 +197,9 @@ def seed_report(path: str, out_dir: Optional[str] = None, plots: bool = True) ->
         if e['event'] in ('meta_train', 'adapt'):
             methods.setdefault(e['method'], {})[e['event']] = {
                 k: v for k, v in e.items() if k not in ('event', 'method')}
+    heldout, losses = heldout_losses(recording, events, config)
+    for method, entry in losses.items():
+        methods[method]['heldout'] = entry
     done = next((e for e in events if e['event'] == 'done'), None)
     report = json_safe({
         'recording': os.path.abspath(recording.path),
@@ -126,6 +207,7 @@ def seed_report(path: str, out_dir: Optional[str] = None, plots: bool = True) ->
         'seed': start['seed'], 'theta': start['theta'], 'methods_compared': start['methods'],
         'collect': next((e for e in events if e['event'] == 'collect_end'), None),
         'timings': done['timings'] if done else None,
+        'heldout': heldout,
         'methods': methods,
         'config': config.get('experiment', {}),
     })
@@ -225,23 +307,54 @@ def _tracking_cost(report: Dict, method: str) -> float:
     return float(tracking['tracking']['cost'])
 
 
+# Pairwise claims 'a < b' with statistics; the chain of (b) is the first two.
+ADAPT_PAIRS = (('imaml', 'maml'), ('maml', 'supervised'), ('imaml', 'supervised'))
+TRACKING_PAIRS = (('imaml', 'maml'), ('imaml', 'supervised'), ('maml', 'supervised'),
+                  ('imaml', 'nmpc'), ('imaml', 'oracle'), ('maml', 'nmpc'), ('maml', 'oracle'))
+NAMES = {'imaml': 'iMAML', 'maml': 'MAML', 'nmpc': 'NMPC'}
+
+
+def pairwise(values_per_seed: List[Dict[str, float]], pairs: Sequence[Tuple[str, str]]
+             ) -> Dict[str, Dict[str, Any]]:
+    """Per claim 'a < b' of `pairs`, keyed ``'a<b'``: :func:`paired_claim` of the per-seed
+    values (NaN or no key = missing) as log ratios a/b, losses and costs spanning orders of
+    magnitude over seeds. Pairs with a method that has no value on any seed (not in the run)
+    are left out."""
+    def column(method: str) -> List[float]:
+        return [v.get(method, math.nan) for v in values_per_seed]
+
+    return {f'{a}<{b}': paired_claim(column(a), column(b), log=True) for a, b in pairs
+            if not (np.all(np.isnan(column(a))) or np.all(np.isnan(column(b))))}
+
+
 def claims(reports: List[Dict]) -> Dict[str, Any]:
     """The paper's claims (a)-(c), each as per-seed values and the count of seeds where it
-    holds (a comparison with a missing value counts as not holding)."""
+    holds (a comparison with a missing value counts as not holding), and ``stats``, the
+    statistics of each pairwise claim (:func:`pairwise`): in (a) and in (b) per K, and
+    ``c_tracking_cost_stats`` for the tracking costs (an escaped run costs inf)."""
     out: Dict[str, Any] = {'seeds': len(reports)}
     final = [(_final(r, 'imaml'), _final(r, 'maml')) for r in reports]
     out['a_meta_loss_imaml_below_maml'] = {
-        'final_losses': final, 'holds': sum(1 for i, m in final if i < m)}
+        'final_losses': final, 'holds': sum(1 for i, m in final if i < m),
+        'stats': pairwise([{'imaml': i, 'maml': m} for i, m in final], [('imaml', 'maml')])}
     b = {}
     for k in K_STEPS:
         values = [{m: _adapt_loss(r, m, k) for m in ('imaml', 'maml', 'supervised')}
                   for r in reports]
         b[str(k)] = {'losses': values,
                      'holds': sum(1 for v in values
-                                  if v['imaml'] < v['maml'] < v['supervised'])}
+                                  if v['imaml'] < v['maml'] < v['supervised']),
+                     'stats': pairwise(values, ADAPT_PAIRS)}
     out['b_adaptation_order'] = b
+    large = {}     # the same pairs on >= 2000 independent samples: meta-model, adapted model
+    for stage in ('meta', 'adapted'):
+        values = [{m: _heldout(r, m, stage) for m in ('imaml', 'maml', 'supervised')}
+                  for r in reports]
+        large[stage] = {'losses': values, 'stats': pairwise(values, ADAPT_PAIRS)}
+    out['b_heldout_large'] = large
     c = {}
-    for method in sorted({m for r in reports for m in r['methods']}):
+    present = sorted({m for r in reports for m in r['methods']})
+    for method in present:
         costs = [_tracking_cost(r, method) for r in reports]
         c[method] = {
             'cost': costs,
@@ -250,7 +363,15 @@ def claims(reports: List[Dict]) -> Dict[str, Any]:
             'escaped': sum(1 for r in reports
                            if r['methods'].get(method, {}).get('tracking', {}).get('escaped'))}
     out['c_tracking_cost'] = c
+    out['c_tracking_cost_stats'] = pairwise(
+        [{m: _tracking_cost(r, m) for m in present} for r in reports], TRACKING_PAIRS)
     return out
+
+
+def _heldout(report: Dict, method: str, stage: str) -> float:
+    """l_SSM of the method's `stage` ('meta' | 'adapted') model on the large held-out set."""
+    value = report['methods'].get(method, {}).get('heldout', {}).get(stage)
+    return math.nan if value is None else float(value)
 
 
 def _final(report: Dict, method: str) -> float:
@@ -268,6 +389,38 @@ def _median(values: Sequence[float]) -> float:
     return float(np.median(finite)) if finite else math.nan
 
 
+def _claim_name(key: str) -> str:
+    """'imaml<maml' as 'iMAML < MAML'; against a reference 'iMAML vs NMPC'."""
+    a, b = key.split('<')
+    return f"{NAMES.get(a, a)} {'vs' if b in ('nmpc', 'oracle') else '<'} {NAMES.get(b, b)}"
+
+
+def _claim_row(label: str, stats: Dict[str, Any]) -> str:
+    return '| ' + ' | '.join((label, *claim_cells(stats))) + ' |'
+
+
+def _heldout_section(report: Dict[str, Any]) -> List[str]:
+    """report.md's held-out table: per method, the median over seeds of the l_SSM of its
+    meta-model and of its adapted model on the independent target set ([] without one)."""
+    seeds = [r for r in report['per_seed'] if r.get('heldout')]
+    if not seeds:
+        return []
+    lines = ['', f"## Held-out target loss on {min(r['heldout']['samples'] for r in seeds)} "
+             'independent samples', '',
+             'l_SSM (normalised units) of each published model on fresh simulated episodes '
+             f'of theta*, median over {len(seeds)} seed(s). The adaptation curves (Fig. 3, '
+             'claim (b)) are on the samples the learner held out of D_target.', '',
+             '| method | meta-model | adapted |', '|---|---|---|']
+    for method in report['methods']:
+        entries = [r['methods'][method]['heldout'] for r in seeds
+                   if 'heldout' in r['methods'].get(method, {})]
+        if entries:
+            med = [_fmt(_median([math.nan if e[stage] is None else e[stage] for e in entries]))
+                   for stage in ('meta', 'adapted')]
+            lines.append(f'| {method} | ' + ' | '.join(med) + ' |')
+    return lines
+
+
 def markdown(report: Dict[str, Any]) -> str:
     """report.md: set-up, timings, the claims table, per-method tracking, figures."""
     cl = report['claims']
@@ -277,25 +430,45 @@ def markdown(report: Dict[str, Any]) -> str:
              + ', '.join(f'{t:.3f}' for t in report['thetas']) + ')', '',
              f"Wall time: {report['wall_time_s']:.0f} s in all.", '',
              '## Claims of the paper, as measured', '',
-             '| claim | holds in | median values |', '|---|---|---|']
+             "Per claim 'a < b', over the seeds with both values (an escaped run costs inf): "
+             'the seeds where it holds; the median of the ratio a/b (loss or tracking cost) '
+             'with its 95 % percentile-bootstrap interval (seeds resampled); the two-sided '
+             'Wilcoxon signed-rank p-value of the log ratios; the verdict: supported when the '
+             'interval lies below 1, contradicted when above. Against a reference (NMPC on the '
+             "true model, the oracle NSSM) the ratio is the method's cost over the reference's.",
+             '', '| claim | holds in | median ratio a/b [95 % CI] | Wilcoxon p | verdict |',
+             '|---|---|---|---|---|']
+    medians = ['', '### Median values over seeds', '', '| quantity | median |', '|---|---|']
     compared = set(report['methods'])
     a = cl['a_meta_loss_imaml_below_maml']
     if {'imaml', 'maml'} <= compared:
-        lines.append(f"| (a) final meta-training loss: iMAML < MAML | {a['holds']}/{n} | "
-                     f"iMAML {_fmt(_median([i for i, _ in a['final_losses']]))}, MAML "
-                     f"{_fmt(_median([m for _, m in a['final_losses']]))} |")
+        lines += [_claim_row(f'(a) final meta-training loss: {_claim_name(key)}', stats)
+                  for key, stats in a['stats'].items()]
+        medians.append('| (a) final meta-training loss | iMAML '
+                       f"{_fmt(_median([i for i, _ in a['final_losses']]))}, MAML "
+                       f"{_fmt(_median([m for _, m in a['final_losses']]))} |")
     for k, entry in cl['b_adaptation_order'].items():
         if not {'imaml', 'maml', 'supervised'} <= compared:
             break
-        med = {m: _median([v[m] for v in entry['losses']])
-               for m in ('imaml', 'maml', 'supervised')}
         lines.append(f"| (b) held-out target loss after {k} steps: iMAML < MAML < supervised "
-                     f"| {entry['holds']}/{n} | "
-                     + ', '.join(f'{m} {_fmt(v)}' for m, v in med.items()) + ' |')
+                     f"| {entry['holds']}/{n} | | | |")
+        lines += [_claim_row(f'(b) after {k} steps: {_claim_name(key)}', stats)
+                  for key, stats in entry['stats'].items()]
+        medians.append(f'| (b) held-out target loss after {k} steps | ' + ', '.join(
+            f"{NAMES.get(m, m)} {_fmt(_median([v[m] for v in entry['losses']]))}"
+            for m in ('imaml', 'maml', 'supervised')) + ' |')
+    for stage, entry in cl.get('b_heldout_large', {}).items():
+        lines += [_claim_row(f'(b) {stage} model on the large held-out set: '
+                             f'{_claim_name(key)}', stats)
+                  for key, stats in entry['stats'].items()]
+    lines += [_claim_row(f'(c) tracking cost: {_claim_name(key)}', stats)
+              for key, stats in cl['c_tracking_cost_stats'].items()]
     for method, entry in cl['c_tracking_cost'].items():
-        lines.append(f"| (c) tracking cost of {method} vs oracle / vs NMPC | "
-                     f"escaped {entry['escaped']}/{n} | {_fmt(_median(entry['vs_oracle']))} / "
-                     f"{_fmt(_median(entry['vs_nmpc']))} |")
+        medians.append(f'| (c) tracking cost of {NAMES.get(method, method)} (escaped '
+                       f"{entry['escaped']}/{n}) | {_fmt(_median(entry['cost']))}; "
+                       f"vs oracle {_fmt(_median(entry['vs_oracle']))}, "
+                       f"vs NMPC {_fmt(_median(entry['vs_nmpc']))} |")
+    lines += medians
     lines += ['', '## Tracking (x1 RMSE per seed)', '', '| method | ' + ' | '.join(
         f'seed {s}' for s in report['seeds']) + ' |', '|---|' + '---|' * len(report['seeds'])]
     for method in report['methods']:
@@ -305,6 +478,7 @@ def markdown(report: Dict[str, Any]) -> str:
             row.append('n/a' if not t else
                        'escaped' if t['escaped'] else _fmt(t['tracking']['rmse']))
         lines.append(f'| {method} | ' + ' | '.join(row) + ' |')
+    lines += _heldout_section(report)
     lines += ['', '## Figures', '']
     lines += [f'![{name}]({name})' for name in report['figures']]
     lines += ['', '## Hyperparameters', '', '```json',

@@ -35,6 +35,7 @@ from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (normalisation_from, simulate_source, SourceConfig,
                                   SourceData, SourceSet, Trajectory, Windows)
+from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
 from metampc_learner.meta_train import meta_train, MetaConfig, METHODS
 from metampc_learner.online_collection import CollectionStats, OnlineCollector
@@ -241,11 +242,8 @@ class LearnerSession:
 
     def _plant_source(self, plant: PlantFacts) -> SourceConfig:
         """The source settings with the target plant's dynamics, bounds and box."""
-        src = self.config.source
-        return replace(src, dt=plant.dt, substeps=plant.substeps,
-                       state_bound=plant.state_bound,
-                       excitation=replace(src.excitation, u_min=plant.u_min,
-                                          u_max=plant.u_max))
+        return plant_source(self.config.source, plant.dt, plant.substeps, plant.u_min,
+                            plant.u_max, plant.state_bound)
 
     def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantFacts],
               progress: Optional[ProgressFn] = None) -> AdaptOutcome:

@@ -1,0 +1,98 @@
+"""The report's held-out target set: size, seed stream, dynamics, and l_SSM against numpy."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from metampc_controller.nssm import init_params, Normalisation, Nssm, NssmConfig
+from metampc_controller.weights_codec import fields_from_weights, weights_from_fields
+from metampc_learner.data import simulate_target, SourceConfig, Trajectory, Windows
+from metampc_learner.heldout import (HELDOUT_SAMPLES, heldout_loss, heldout_seed,
+                                     model_heldout_loss, plant_source, target_heldout)
+from metampc_learner.oracle import oracle_data
+from metampc_plant.vanderpol import rk4_sample
+
+torch.set_num_threads(1)
+SOURCE = SourceConfig(episode_samples=60)
+THETA = -0.7
+
+
+def _numpy_loss(params, norm: Normalisation, config: NssmConfig, trajs) -> float:
+    """l_SSM by hand: every window of H + T samples, MLP encoder, latent recursion."""
+    p = {k: v.double().numpy() for k, v in params.items()}
+    n_h, n_t = config.history, config.horizon
+    errors = []
+    for traj in trajs:
+        u = (traj.u - norm.u_mean) / norm.u_std
+        y = (traj.y - norm.y_mean) / norm.y_std
+        for s in range(len(traj) - n_h - n_t + 1):
+            h = np.concatenate([u[s:s + n_h], y[s:s + n_h]], axis=1).reshape(-1)
+            for i in range(len(config.hidden) + 1):
+                h = p[f'encoder.{i}.weight'] @ h + p[f'encoder.{i}.bias']
+                h = np.maximum(h, 0) if i < len(config.hidden) else h
+            z, sq = h, 0.0
+            for k in range(s + n_h, s + n_h + n_t):
+                z = p['A'] @ z + p['B'] @ u[k]
+                sq += np.sum((p['C'] @ z - y[k]) ** 2)
+            errors.append(sq / n_t)
+    return float(np.mean(errors))
+
+
+def test_the_set_has_the_samples_of_bounded_theta_star_episodes():
+    trajs = target_heldout(THETA, SOURCE, run_seed=3)
+    assert sum(len(t) for t in trajs) == HELDOUT_SAMPLES >= 2000
+    assert len(trajs) == -(-HELDOUT_SAMPLES // SOURCE.episode_samples)
+    for t in trajs:     # every step is the plant core's RK4 sample of theta* under u_{k+1}
+        assert np.abs(t.y).max() <= SOURCE.state_bound
+        assert np.all((SOURCE.excitation.u_min <= t.u) & (t.u <= SOURCE.excitation.u_max))
+        x_next = rk4_sample(t.y[:-1], t.u[1:, 0], np.full(len(t) - 1, THETA), SOURCE.dt,
+                            SOURCE.substeps)
+        np.testing.assert_allclose(x_next, t.y[1:], rtol=0, atol=1e-12)
+
+
+def test_seeded_and_apart_from_the_runs_own_seeds():
+    first, again = target_heldout(THETA, SOURCE, 3), target_heldout(THETA, SOURCE, 3)
+    assert all(np.array_equal(a.y, b.y) and np.array_equal(a.u, b.u)
+               for a, b in zip(first, again))
+    other = target_heldout(THETA, SOURCE, 4)
+    assert not np.array_equal(first[0].y, other[0].y)
+    # The run's seed s drives the collection, the oracle's episodes (s, s + 1) and the source
+    # set; no held-out episode starts where one of those does.
+    seeds = {heldout_seed(s) for s in range(100)}
+    assert len(seeds) == 100 and not seeds & set(range(102))
+    starts = {tuple(t.y[0]) for t in first}
+    for s in (3, 4):
+        drawn = oracle_data(THETA, SOURCE, 40, s) + simulate_target(THETA, SOURCE, 300, s)
+        assert not starts & {tuple(t.y[0]) for t in drawn}
+
+
+def test_plant_source_takes_the_plants_sampling_bounds_and_box():
+    source = plant_source(SOURCE, dt=0.05, substeps=4, u_min=-2.0, u_max=0.5, state_bound=6.0)
+    assert (source.dt, source.substeps, source.state_bound) == (0.05, 4, 6.0)
+    assert (source.excitation.u_min, source.excitation.u_max) == (-2.0, 0.5)
+    assert source.excitation.kind == SOURCE.excitation.kind
+    assert source.episode_samples == SOURCE.episode_samples and SOURCE.dt == 0.1
+
+
+def test_loss_of_a_published_model_equals_the_numpy_rollout():
+    config = NssmConfig(history=3, horizon=4, hidden=(8, 6), n_z=3)
+    norm = Normalisation([0.1], [0.6], [0.2, -0.1], [2.5, 3.0])
+    params = init_params(config, seed=5)
+    params['A'] = params['A'] * 0.9
+    trajs = [Trajectory(t.steps[:12], t.u[:12], t.y[:12])
+             for t in target_heldout(THETA, SOURCE, 1)[:3]]
+    expected = _numpy_loss(params, norm, config, trajs)
+    windows = Windows.from_trajectories(trajs, norm, config)
+    assert len(windows) == 3 * 6
+    assert heldout_loss(Nssm(config, norm), params, windows) == pytest.approx(expected, rel=1e-5)
+    # Through the message fields: the decoded model, its own normalisation, the learner's T
+    # (the message carries none; the decoded config has the default).
+    decoded = weights_from_fields(fields_from_weights(config, norm, params))
+    assert decoded.config.horizon != config.horizon
+    assert model_heldout_loss(decoded, trajs, config.horizon) == pytest.approx(expected,
+                                                                               rel=1e-5)
+    other = replace(norm, y_std=np.array([1.0, 1.0]))
+    assert _numpy_loss(params, other, config, trajs) != pytest.approx(expected, rel=1e-3)
+    assert np.isnan(heldout_loss(Nssm(config, norm), params, Windows.from_trajectories(
+        trajs, norm, replace(config, horizon=20))))
