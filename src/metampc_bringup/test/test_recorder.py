@@ -114,8 +114,10 @@ def test_sigkill_mid_run_leaves_every_complete_chunk_readable(
     recording = read_recording(str(path))
     assert not recording.complete and recording.statistics is None
     got = [m for _, _, m in recording.decoded(['/y'])]
+    # every complete chunk and nothing beyond it; whether a message was lost after the last
+    # complete chunk depends on where the kill fell (a race), so it is not asserted
     assert len(got) == complete_chunk_messages(data) >= 300
-    assert len(sent) > len(got)
+    assert len(sent) >= len(got)
     for k, msg in enumerate(got):
         same(sent[k], msg, f'/y[{k}]')
     assert recording.run_config() == {}
