@@ -11,6 +11,11 @@ target theta of ``rng([s, 0x7e7a])``; validation targets are ``theta_i = rng([10
 0x5a1]).normal(theta_mean, theta_std)``, each with ``target_samples`` adaptation samples (one
 bounded excitation episode, like the experiment's collection) and an independent held-out set
 of :data:`HELDOUT_SAMPLES` samples.
+
+Test targets (the sweep's evaluation): a job with ``target_theta`` is scored on that one target
+instead, the experiment's theta* of the run whose seed is the job's ``source_seed``; its
+adaptation episode and held-out set (``heldout_samples``, e.g. :data:`TEST_HELDOUT_SAMPLES`)
+are seeded by :func:`target_data_seeds`, a stream of its own.
 """
 import concurrent.futures as futures
 import hashlib
@@ -19,7 +24,7 @@ import math
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -37,6 +42,8 @@ from .experiment_config import ExperimentConfig, load
 VALIDATION_SEED = 1000       # validation source set, meta seed and supervised init seed
 THETA_STREAM = 0x5a1         # validation thetas: rng([VALIDATION_SEED + i, THETA_STREAM])
 HELDOUT_SAMPLES = 600
+TEST_HELDOUT_SAMPLES = 2000
+TEST_DATA_STREAM = 0x7e57    # test target data: SeedSequence([source_seed, TEST_DATA_STREAM])
 CURVE_STEPS = (0, 1, 5, 20)  # held-out loss reported after these adaptation steps
 
 
@@ -97,6 +104,9 @@ class Job:
         stage: free label ('search', 'refine', 'robust', 'sweep', ...).
         source_seed: seed of the source set and of meta-training.
         nssm: NssmConfig fields that differ from the experiment's (e.g. rho_max).
+        target_theta: None: scored on the validation targets of the settings; else on this
+            one target (the test target of the run whose seed is `source_seed`).
+        heldout_samples: held-out samples per target.
     """
 
     method: str
@@ -107,6 +117,8 @@ class Job:
     stage: str
     source_seed: int = VALIDATION_SEED
     nssm: Dict[str, Any] = field(default_factory=dict)
+    target_theta: Optional[float] = None
+    heldout_samples: int = HELDOUT_SAMPLES
 
     def cost(self) -> float:
         """Rough relative cost, to start the long jobs first."""
@@ -117,8 +129,21 @@ class Job:
 
     def key(self, settings: Settings) -> str:
         """A name for the cached result: a hash of the job and of the settings."""
-        blob = json.dumps([asdict(self), repr(settings)], sort_keys=True, default=str)
+        fields = {k: v for k, v in asdict(self).items()
+                  if k not in _LATER_FIELDS or v != _LATER_FIELDS[k]}
+        blob = json.dumps([fields, repr(settings)], sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+# Fields added after results were cached: hashed only when set, so those keep their names.
+_LATER_FIELDS = {'target_theta': None, 'heldout_samples': HELDOUT_SAMPLES}
+
+
+def target_data_seeds(source_seed: int) -> Tuple[int, int]:
+    """Seeds of a test target's (adaptation, held-out) data: the first two 64-bit words of
+    ``SeedSequence([source_seed, TEST_DATA_STREAM])``, shared with no other stream."""
+    words = np.random.SeedSequence([source_seed, TEST_DATA_STREAM]).generate_state(2, np.uint64)
+    return int(words[0]), int(words[1])
 
 
 def validation_thetas(n: int, theta_mean: float, theta_std: float) -> Tuple[float, ...]:
@@ -136,25 +161,34 @@ def settings_from(config_path: str, n_thetas: int, adapt_steps: int,
                     experiment.target_samples, adapt_steps, dict(meta_defaults or {}))
 
 
-def build_validation(settings: Settings, source_seed: int, nssm: Dict[str, Any]
-                     ) -> Validation:
-    """Simulate a source set and the validation targets' adaptation and held-out data (the
-    same target data for every source set; its normalisation is the source set's)."""
+def build_validation(settings: Settings, source_seed: int, nssm: Dict[str, Any],
+                     target_theta: Optional[float] = None,
+                     heldout_samples: int = HELDOUT_SAMPLES) -> Validation:
+    """Simulate a source set and the targets' adaptation and held-out data: the validation
+    targets (the same data for every source set), or the one test target `target_theta`
+    (data seeded by :func:`target_data_seeds` of `source_seed`); the normalisation is the
+    source set's."""
     cfg = settings.learner
     nssm_config = replace(cfg.nssm, **nssm)
     data = simulate_source(replace(cfg.source, seed=source_seed))
     model = Nssm(nssm_config, normalisation_from([t for ts in data.trajectories for t in ts]))
     source = SourceSet(data, model.norm, nssm_config, cfg.train_fraction)
     one_episode = replace(cfg.source, episode_samples=settings.target_samples)
+    targets = ([(target_theta, *target_data_seeds(source_seed))] if target_theta is not None
+               else [(theta, 10 * (VALIDATION_SEED + i) + 1, 10 * (VALIDATION_SEED + i) + 2)
+                     for i, theta in enumerate(settings.thetas)])
+    # simulate_target's default of 20 episodes for up to 5 needed: the validation data as
+    # before; a larger held-out set gets 4 per needed one (measured: at most 14 % of the
+    # episodes escape for theta in [-3.5, 3.5]).
+    attempts = max(20, 4 * math.ceil(heldout_samples / cfg.source.episode_samples))
     train, heldout = [], []
-    for i, theta in enumerate(settings.thetas):
-        base = 10 * (VALIDATION_SEED + i)
+    for theta, train_seed, heldout_seed in targets:
         train.append(Windows.from_trajectories(
-            simulate_target(theta, one_episode, settings.target_samples, base + 1),
+            simulate_target(theta, one_episode, settings.target_samples, train_seed),
             model.norm, nssm_config))
         heldout.append(Windows.from_trajectories(
-            simulate_target(theta, cfg.source, HELDOUT_SAMPLES, base + 2), model.norm,
-            nssm_config))
+            simulate_target(theta, cfg.source, heldout_samples, heldout_seed, attempts),
+            model.norm, nssm_config))
     return Validation(model, source, train, heldout)
 
 
@@ -169,11 +203,14 @@ def init_worker(settings: Settings, threads: int) -> None:
     _SETTINGS = settings
 
 
-def validation(source_seed: int, nssm: Dict[str, Any]) -> Validation:
-    """The set-up of a source seed and NSSM, built once per worker."""
-    key = json.dumps([source_seed, nssm], sort_keys=True)
+def validation(source_seed: int, nssm: Dict[str, Any], target_theta: Optional[float] = None,
+               heldout_samples: int = HELDOUT_SAMPLES) -> Validation:
+    """The set-up of a source seed, NSSM and targets (see :func:`build_validation`), built
+    once per worker."""
+    key = json.dumps([source_seed, nssm, target_theta, heldout_samples], sort_keys=True)
     if key not in _VALIDATIONS:
-        _VALIDATIONS[key] = build_validation(_SETTINGS, source_seed, nssm)
+        _VALIDATIONS[key] = build_validation(_SETTINGS, source_seed, nssm, target_theta,
+                                             heldout_samples)
     return _VALIDATIONS[key]
 
 
@@ -198,12 +235,15 @@ def run_job(job: Job) -> dict:
     steps; ``score`` is the mean held-out loss after the last step at the best step size
     (the final meta loss when no step size is scored).
     """
-    settings, val = _SETTINGS, validation(job.source_seed, job.nssm)
+    settings = _SETTINGS
+    val = validation(job.source_seed, job.nssm, job.target_theta, job.heldout_samples)
     cpu = time.process_time()
     out: Dict[str, Any] = {'method': job.method, 'index': job.index, 'stage': job.stage,
                            'hyper': job.hyper, 'nssm': job.nssm,
                            'iterations': job.iterations if job.method != 'supervised' else 0,
                            'source_seed': job.source_seed}
+    if job.target_theta is not None:
+        out.update(target_theta=job.target_theta, heldout_samples=job.heldout_samples)
     params = None
     if job.method != 'supervised':
         try:
@@ -248,8 +288,10 @@ def run_job(job: Job) -> dict:
 
 
 def run_jobs(pool: futures.Executor, jobs: Sequence[Job], what: str,
-             settings: Settings, cache_dir: Optional[str] = None) -> List[dict]:
-    """Run jobs longest first with a progress bar; results in the order of `jobs`.
+             settings: Settings, cache_dir: Optional[str] = None,
+             fn: Callable[[Job], dict] = run_job) -> List[dict]:
+    """Run jobs (``fn(job)`` in the pool, default :func:`run_job`) longest first with a
+    progress bar; results in the order of `jobs`.
 
     With `cache_dir`, each finished job's result is written there (``<key>.json``, see
     :meth:`Job.key`) as soon as it finishes and a job whose result is there is not run again:
@@ -267,7 +309,7 @@ def run_jobs(pool: futures.Executor, jobs: Sequence[Job], what: str,
     if cache_dir:
         os.makedirs(cache_dir, exist_ok=True)
     order = sorted(todo, key=lambda i: -jobs[i].cost())
-    pending = {pool.submit(run_job, jobs[i]): i for i in order}
+    pending = {pool.submit(fn, jobs[i]): i for i in order}
     with tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit='job') as bar:
         for done in futures.as_completed(pending):
             i = pending[done]
@@ -281,9 +323,10 @@ def run_jobs(pool: futures.Executor, jobs: Sequence[Job], what: str,
     return results
 
 
-__all__ = ['VALIDATION_SEED', 'THETA_STREAM', 'HELDOUT_SAMPLES', 'CURVE_STEPS', 'Settings',
-           'Validation', 'Job', 'learner_config', 'request_meta_config', 'validation_thetas',
-           'settings_from', 'build_validation', 'init_worker', 'validation', 'meta_config',
+__all__ = ['VALIDATION_SEED', 'THETA_STREAM', 'HELDOUT_SAMPLES', 'TEST_HELDOUT_SAMPLES',
+           'TEST_DATA_STREAM', 'CURVE_STEPS', 'Settings', 'Validation', 'Job', 'learner_config',
+           'request_meta_config', 'target_data_seeds', 'validation_thetas', 'settings_from',
+           'build_validation', 'init_worker', 'validation', 'meta_config',
            'run_job', 'run_jobs', 'robustness_jobs', 'robustness_summary']
 
 
