@@ -9,6 +9,10 @@ from metampc_controller.nssm import init_params, NssmConfig, ParamSpec
 F64 = torch.float64
 
 
+def _gen(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
 @pytest.mark.parametrize('rho', [0.5, 1.0])
 def test_any_weights_map_inside_the_bound(rho):
     gen = torch.Generator().manual_seed(0)
@@ -25,7 +29,7 @@ def test_any_weights_map_inside_the_bound(rho):
 
 
 def test_small_weights_pass_nearly_unchanged_and_zero_is_fixed():
-    w = 1e-3 * torch.randn(5, 5, dtype=F64)
+    w = 1e-3 * torch.randn(5, 5, generator=_gen(1), dtype=F64)
     s = float(torch.linalg.matrix_norm(w, ord=2))
     rel = float((bounded_transition(w, 1.0) - w).norm() / w.norm())
     assert rel == pytest.approx(s ** 2 / 3, rel=1e-3)          # tanh(s)/s = 1 - s^2/3 + ...
@@ -37,7 +41,7 @@ def test_small_weights_pass_nearly_unchanged_and_zero_is_fixed():
 
 
 def test_non_finite_weights_give_a_non_finite_a_not_an_error():
-    w = torch.randn(2, 3, 3, dtype=F64)
+    w = torch.randn(2, 3, 3, generator=_gen(2), dtype=F64)
     w[0, 1, 1] = float('nan')
     w[1, 0, 2] = float('inf')
     a = bounded_transition(w, 1.0)
@@ -45,7 +49,7 @@ def test_non_finite_weights_give_a_non_finite_a_not_an_error():
 
 
 def test_inverse_round_trip_and_refusal_outside_the_bound():
-    w = 2.0 * torch.randn(4, 5, 5, dtype=F64)
+    w = 2.0 * torch.randn(4, 5, 5, generator=_gen(3), dtype=F64)
     torch.testing.assert_close(transition_coordinates(bounded_transition(w, 0.9), 0.9), w,
                                rtol=1e-8, atol=1e-10)
     a = torch.diag(torch.tensor([1.0, 0.5], dtype=F64))
@@ -58,11 +62,12 @@ def test_inverse_round_trip_and_refusal_outside_the_bound():
 
 
 def test_gradients_and_forward_mode_agree_with_finite_differences():
-    w = torch.randn(4, 4, dtype=F64, requires_grad=True)
+    w = torch.randn(4, 4, generator=_gen(4), dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda x: bounded_transition(x, 0.8), (w,))
     assert torch.autograd.gradgradcheck(lambda x: bounded_transition(x, 0.8), (w,))
     # Gauss-Newton CG runs jvp under vmap in float32: the tangent keeps the dtype
-    w32, v32 = torch.randn(3, 5, 5), torch.randn(3, 5, 5)
+    gen = _gen(5)
+    w32, v32 = torch.randn(3, 5, 5, generator=gen), torch.randn(3, 5, 5, generator=gen)
     out, tangent = vmap(lambda a, b: jvp(lambda x: bounded_transition(x, 1.0), (a,), (b,)))(
         w32, v32)
     assert out.dtype == tangent.dtype == torch.float32
@@ -82,10 +87,11 @@ def test_flat_vector_holds_w_and_published_weights_hold_a():
     for name in params:
         torch.testing.assert_close(back[name], params[name], rtol=1e-10, atol=1e-12)
     # any training vector at all maps to a stable A, batched too
-    wild = 3.0 * torch.randn(3, spec.size, dtype=F64)
+    wild = 100.0 * torch.randn(3, spec.size, generator=_gen(6), dtype=F64)
     a = spec.unflatten(wild)['A']
     assert a.shape == (3, 4, 4)
-    assert torch.all(torch.linalg.matrix_norm(a, ord=2) < 0.7)
+    # <=: at this scale tanh rounds to 1 and the norm is rho_max to rounding
+    assert torch.all(torch.linalg.matrix_norm(a, ord=2) <= 0.7 * (1 + 1e-12))
     free = NssmConfig(hidden=(8,), n_z=4, history=3, stable_latent=False)
     raw = init_params(free, seed=5, dtype=F64)
     assert torch.equal(ParamSpec(free).unflatten(100.0 * ParamSpec(free).flatten(raw))['A'],
