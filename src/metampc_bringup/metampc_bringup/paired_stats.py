@@ -108,6 +108,18 @@ def format_claim(stats: Dict[str, Any]) -> str:
     return f'{holds}; {kind} {estimate}; p = {p}; {verdict}'
 
 
+def median_ci(values: Sequence[float], n_boot: int = 10000, seed: int = 0
+              ) -> Tuple[float, float, float]:
+    """One sample's median and the percentile-bootstrap 95 % interval of it (values
+    resampled, endpoints as in :func:`paired_claim`, so inf (a failed run) stays inf); the
+    interval is NaN with fewer than 2 values, everything NaN with none."""
+    x = np.asarray(values, dtype=float)
+    if x.size == 0:
+        return math.nan, math.nan, math.nan
+    low, high = _bootstrap(x, n_boot, seed) if x.size >= 2 else (math.nan, math.nan)
+    return float(_medians(x)), low, high
+
+
 def _medians(d: np.ndarray) -> np.ndarray:
     """Medians along the last axis on the extended reals (see the module)."""
     s = np.sort(d, axis=-1)

@@ -74,7 +74,7 @@ from .experiment_config import ExperimentConfig, load
 from .offline import (CURVE_STEPS, init_worker, Job, request_meta_config, run_job, run_jobs,
                       Settings, settings_from, TEST_HELDOUT_SAMPLES, validation,
                       VALIDATION_SEED)
-from .paired_stats import claim_cells, paired_claim
+from .paired_stats import claim_cells, median_ci, paired_claim
 
 METHODS = ('imaml', 'maml', 'maml_unrolled')
 NAMES = {'imaml': 'iMAML', 'maml': 'first-order MAML', 'maml_unrolled': 'unrolled MAML'}
@@ -220,23 +220,6 @@ def measured_run(job: Job) -> dict:
     if 'meta_seconds' in out:
         out['s_per_step'] = out['meta_seconds'] / job.iterations
     return out
-
-
-def median_ci(values: Sequence[float], n_boot: int = N_BOOT, seed: int = BOOT_SEED
-              ) -> Tuple[float, float, float]:
-    """Median and percentile-bootstrap 95 % interval of the median (values resampled;
-    endpoints are resampled medians, never interpolated, so inf (a failed run) stays inf);
-    the interval is NaN with fewer than 2 values."""
-    x = np.asarray(values, dtype=float)
-    if x.size == 0:
-        return math.nan, math.nan, math.nan
-    median = float(np.median(x))
-    if x.size < 2:
-        return median, math.nan, math.nan
-    idx = np.random.default_rng(seed).integers(0, x.size, size=(n_boot, x.size))
-    medians = np.median(x[idx], axis=1)
-    return (median, float(np.quantile(medians, 0.025, method='lower')),
-            float(np.quantile(medians, 0.975, method='higher')))
 
 
 def heldout_at(run: dict, k: int) -> float:
@@ -574,6 +557,6 @@ def main(config: str, plan: Plan, out: str, jobs: int, threads: int) -> Dict[str
 
 __all__ = ['METHODS', 'DEFAULT_MS', 'UNROLLED_MAX_M', 'GRIDS', 'ADAPT_LRS', 'COST_PER_STEP',
            'SweepError', 'Plan', 'base_hyper', 'tune_jobs', 'winners', 'evaluation_jobs',
-           'estimate_cpu_s', 'measured_run', 'median_ci', 'heldout_at', 'summarise', 'paired',
+           'estimate_cpu_s', 'measured_run', 'heldout_at', 'summarise', 'paired',
            'plain_words', 'plot_loss', 'plot_memory', 'markdown', 'protocol', 'sweep',
            'settings_for', 'check_out', 'summary_line', 'main']

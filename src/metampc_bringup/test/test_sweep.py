@@ -14,9 +14,10 @@ import pytest
 
 from metampc_bringup.experiment_config import load
 from metampc_bringup.offline import init_worker, Job, settings_from, TEST_HELDOUT_SAMPLES
+from metampc_bringup.paired_stats import median_ci
 from metampc_bringup.sweep import (ADAPT_LRS, estimate_cpu_s, evaluation_jobs, GRIDS,
-                                   median_ci, paired, Plan, summarise, sweep, SweepError,
-                                   tune_jobs, UNROLLED_MAX_M, winners)
+                                   paired, Plan, summarise, sweep, SweepError, tune_jobs,
+                                   UNROLLED_MAX_M, winners)
 
 ROOT = Path(__file__).resolve().parents[3]
 TINY = """
