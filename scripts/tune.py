@@ -10,14 +10,14 @@ Every method gets the same search budget, spent on validation systems only (docs
   adaptation samples (one bounded excitation episode, like the experiment's collection) and an
   independent held-out set of 600 samples (three further episodes).
 - Budget: ``--k`` (+ ``--refine``) meta-trainings per meta method (iMAML with Gauss-Newton
-  curvature and 5 CG steps; first-order MAML), each of ``--iterations`` outer steps with
-  B = 16 and the experiment's NSSM, source set size and windows per task (from ``--config``).
-  Configuration 0 of each is the calibration of DESIGN.md sec. 4 (M = 10, beta_in = 0.05,
-  gamma = 1, Adam 1e-3); configurations 1..K-1 are drawn without replacement from the grid of
-  (inner_steps, lr_inner, lr_outer) and shared by both methods (paired draws); iMAML adds a
-  gamma from its grid (a shuffled sequence that holds every gamma of the grid in turn). Every
-  meta-trained model is then adapted (eq. infer, gamma = 0, ``--adapt-steps`` plain steps)
-  with every step size of :data:`ADAPT_LRS`; supervised training, which has no
+  curvature and the CG steps of :data:`CG_STEPS` for its gamma; first-order MAML), each of
+  ``--iterations`` outer steps with B = 16 and the experiment's NSSM, source set size and
+  windows per task (from ``--config``). Configuration 0 of each is the calibration (M = 10,
+  beta_in = 0.05, gamma = 1, Adam 1e-3); configurations 1..K-1 are drawn without replacement
+  from the grid of (inner_steps, lr_inner, lr_outer) and shared by both methods (paired draws);
+  iMAML adds a gamma from its grid (a shuffled sequence that holds every gamma of the grid in
+  turn). Every meta-trained model is then adapted (eq. infer, gamma = 0, ``--adapt-steps``
+  plain steps) with every step size of :data:`ADAPT_LRS`; supervised training, which has no
   meta-training, gets the same step sizes (8 = K configurations).
 - Score of a (configuration, step size): the mean over the validation targets of the held-out
   loss (normalised units, eq. l_SSM) after the adaptation steps; a configuration's score is
@@ -60,12 +60,15 @@ from metampc_bringup.offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs
                                      settings_from, THETA_STREAM, VALIDATION_SEED)
 
 DRAW_STREAM = 0xd7a          # configuration draws: rng([--seed, DRAW_STREAM])
-CG_STEPS = 5
 CURVATURE = 'gauss_newton'
 CALIBRATION = {'inner_steps': 10, 'lr_inner': 0.05, 'lr_outer': 1e-3, 'gamma': 1.0}
 SHARED_GRID = {'inner_steps': (5, 10, 20), 'lr_inner': (0.02, 0.05, 0.1, 0.2),
                'lr_outer': (1e-3, 2e-3, 5e-3, 1e-2)}
-GAMMA_GRID = (0.1, 0.3, 1.0, 3.0)
+GAMMA_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+# CG steps per gamma: the system I + G/gamma (eq. implicit_grad) has condition number up to
+# 1 + lambda_max(G)/gamma, and CG needs about its square root in steps: more for small gamma
+# (the final relative residual of every run is in its result, ``meta_cg_residual``).
+CG_STEPS = {0.01: 20, 0.03: 20, 0.1: 10, 0.3: 10, 1.0: 5, 3.0: 5}
 AXES = {'imaml': {**SHARED_GRID, 'gamma': GAMMA_GRID}, 'maml': SHARED_GRID}
 ADAPT_LRS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
 META_METHODS = ('imaml', 'maml')
@@ -85,11 +88,16 @@ def draw_jobs(k: int, iterations: int, seed: int) -> List[Job]:
     jobs = []
     for i, (pick, gamma) in enumerate(zip(picks, gammas)):
         shared = {n: (int(v) if n == 'inner_steps' else float(v)) for n, v in zip(names, pick)}
-        jobs.append(Job('imaml', i, {**shared, 'gamma': gamma}, iterations, ADAPT_LRS,
-                        'search'))
+        jobs.append(Job('imaml', i, with_cg('imaml', {**shared, 'gamma': gamma}), iterations,
+                        ADAPT_LRS, 'search'))
         jobs.append(Job('maml', i, shared, iterations, ADAPT_LRS, 'search'))
     jobs.append(Job('supervised', 0, {}, 0, ADAPT_LRS, 'search'))
     return jobs
+
+
+def with_cg(method: str, hyper: Dict[str, float]) -> Dict[str, float]:
+    """iMAML's configuration with the CG steps its gamma needs (:data:`CG_STEPS`)."""
+    return {**hyper, 'cg_steps': CG_STEPS[hyper['gamma']]} if method == 'imaml' else hyper
 
 
 def neighbours(method: str, hyper: Dict[str, float]) -> List[Dict[str, float]]:
@@ -97,7 +105,8 @@ def neighbours(method: str, hyper: Dict[str, float]) -> List[Dict[str, float]]:
     out = []
     for name, axis in AXES[method].items():
         at = axis.index(hyper[name])
-        out.extend({**hyper, name: axis[j]} for j in (at - 1, at + 1) if 0 <= j < len(axis))
+        out.extend(with_cg(method, {**hyper, name: axis[j]})
+                   for j in (at - 1, at + 1) if 0 <= j < len(axis))
     return out
 
 
@@ -169,8 +178,6 @@ def request_fields(best: dict, full_iterations: int, batch_size: int, adapt_step
     if best['method'] != 'supervised':
         out['meta_train'] = {'iterations': full_iterations, 'batch_size': batch_size,
                              **best['hyper']}
-        if best['method'] == 'imaml':
-            out['meta_train']['cg_steps'] = CG_STEPS
     return out
 
 
@@ -198,8 +205,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     start, load_start = time.monotonic(), os.getloadavg()
     settings = settings_from(args.config, args.thetas, args.adapt_steps,
-                             {'batch_size': args.batch_size, 'cg_steps': CG_STEPS,
-                              'curvature': CURVATURE})
+                             {'batch_size': args.batch_size, 'curvature': CURVATURE})
     jobs = draw_jobs(args.k, args.iterations, args.seed)
     context = multiprocessing.get_context('spawn')
     with futures.ProcessPoolExecutor(args.jobs, context, init_worker,
@@ -224,7 +230,8 @@ def main(argv=None) -> None:
             'full_iterations': args.full_iterations, 'finalists': args.finalists,
             'robust_seeds': seeds, 'adapt_steps': args.adapt_steps,
             'adapt_lrs': list(ADAPT_LRS), 'shared_grid': SHARED_GRID, 'gamma_grid': GAMMA_GRID,
-            'calibration': CALIBRATION, 'cg_steps': CG_STEPS, 'curvature': CURVATURE,
+            'calibration': CALIBRATION,
+            'cg_steps': {str(g): n for g, n in CG_STEPS.items()}, 'curvature': CURVATURE,
             'windows_per_task': settings.learner.meta.windows_per_task,
             'n_systems': settings.learner.source.n_systems,
             'hidden': list(settings.learner.nssm.hidden), 'draw_seed': args.seed,

@@ -258,6 +258,8 @@ def run_job(job: Job) -> dict:
                    else math.inf,
                    meta_loss_every_10=[float(v) for v in losses[9::10]],
                    meta_skipped=result.skipped, meta_seconds=round(result.elapsed, 1),
+                   meta_cg_residual=float(np.nanmean(result.cg_residuals[-10:]))
+                   if job.method == 'imaml' else None,
                    **_spectrum(params))
     out['adapt'] = []
     start = time.monotonic()
