@@ -34,27 +34,19 @@ import time
 
 import numpy as np
 
+from metampc_bringup.percentiles import percentiles
+from metampc_bringup.weights_messages import manual_weights
+
 DT = 0.1
 EPISODE = 300       # samples per plant episode: the paper's 30 s task
 
 
-def percentiles(seconds, prefix: str) -> dict:
-    """p50, p99 and max of durations (s) in microseconds."""
-    us = np.asarray(seconds) * 1e6
-    return {f'{prefix}p50_us': round(float(np.percentile(us, 50)), 1),
-            f'{prefix}p99_us': round(float(np.percentile(us, 99)), 1),
-            f'{prefix}max_us': round(float(us.max()), 1)}
+US = dict(points=(50, 99, 100), scale=1e6, digits=1)     # p50, p99, max of s in us
 
 
-def model_message(theta: float, version: int = 1):
+def model_message(theta: float):
     """The default-size hand-built NSSM as an NssmWeights message."""
-    from metampc_msgs.msg import NssmWeights
-
-    from metampc_controller.manual_model import linearised_vdp_nssm
-    from metampc_controller.weights_codec import fields_from_weights
-    config, norm, params = linearised_vdp_nssm(theta, DT, history=10, n_z=5, hidden=(128, 128))
-    return NssmWeights(version=version, method='manual', stage='adapted',
-                       **fields_from_weights(config, norm, params))
+    return manual_weights(theta, DT, history=10, n_z=5, hidden=(128, 128))
 
 
 class PlantLoop:
@@ -132,10 +124,10 @@ def bench_core(ticks: int, theta: float) -> dict:
                                f'{ticks + 50} ticks')
         solver = [s for s in status if s.iterations >= 0]
         return {
-            **percentiles([s.tick_time for s in status], 'tick_'),
-            **percentiles(wall, 'callback_'),
-            'callback_cpu_p99_us': round(float(np.percentile(cpu, 99)) * 1e6, 1),
-            **percentiles([s.solve_time for s in status], 'solve_'),
+            **percentiles([s.tick_time for s in status], key='tick_{}_us', **US),
+            **percentiles(wall, key='callback_{}_us', **US),
+            **percentiles(cpu, (99,), 1e6, 1, key='callback_cpu_{}_us'),
+            **percentiles([s.solve_time for s in status], key='solve_{}_us', **US),
             'iter_mean': round(float(np.mean([s.iterations for s in solver])), 2),
             'fallbacks': sum(s.fallback for s in status),
             'terminal_fallback': bool(status[-1].terminal_fallback),
@@ -150,16 +142,13 @@ def bench_core(ticks: int, theta: float) -> dict:
 
 def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
     """The controller as a process, this script as its lockstep plant."""
-    import rclpy
+    from metampc_common.qos import LATCHED, STREAM
     from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
+    import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
 
     from metampc_bringup.processes import ProcessGroup
-    stream = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)   # as the plant's
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
     dt_ns = round(DT * 1e9)
     with tempfile.TemporaryDirectory(prefix='bench_controller_') as log_dir:
         group = ProcessGroup(log_dir)
@@ -170,9 +159,9 @@ def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
         try:
             ctl = group.start('metampc_controller', 'controller',
                               params={'use_sim_time': True, 'rate_hz': 1.0 / DT})
-            pub_y = node.create_publisher(PlantOutput, 'y', stream)
-            pub_clock = node.create_publisher(Clock, '/clock', stream)
-            pub_weights = node.create_publisher(NssmWeights, 'nssm_weights', latched)
+            pub_y = node.create_publisher(PlantOutput, 'y', STREAM)
+            pub_clock = node.create_publisher(Clock, '/clock', STREAM)
+            pub_weights = node.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
             loop = PlantLoop(theta)
             sent, rtt, status, state = {}, {}, {}, {'n': 0, 'version': 0}
 
@@ -199,8 +188,8 @@ def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
                 status[(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
                        // dt_ns] = msg
 
-            sub_u = node.create_subscription(ControlInput, 'u', on_u, stream)
-            sub_status = node.create_subscription(MpcStatus, 'mpc_status', on_status, stream)
+            sub_u = node.create_subscription(ControlInput, 'u', on_u, STREAM)
+            sub_status = node.create_subscription(MpcStatus, 'mpc_status', on_status, STREAM)
             deadline = time.monotonic() + timeout
 
             def spin_until(done, what: str) -> None:
@@ -219,8 +208,9 @@ def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
             spin_until(lambda: state['n'] >= first + ticks and all(
                 n in status for n in range(first, first + ticks)), f'{ticks} round trips')
             steps = range(first, first + ticks)
-            return {**percentiles([rtt[n][0] for n in steps], 'round_trip_'),
-                    **percentiles([status[n].tick_time for n in steps], 'node_tick_'),
+            return {**percentiles([rtt[n][0] for n in steps], key='round_trip_{}_us', **US),
+                    **percentiles([status[n].tick_time for n in steps], key='node_tick_{}_us',
+                                  **US),
                     'round_trips_per_s': round(ticks / sum(rtt[n][0] for n in steps), 1)}
         finally:
             spin.shutdown()

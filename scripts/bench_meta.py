@@ -32,6 +32,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
+from metampc_bringup.procfs import reset_peak_rss, status_kib
 from metampc_controller.nssm import Nssm, NssmConfig
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet
 from metampc_learner.meta_train import batch_gradient_fn, meta_train, MetaConfig
@@ -60,14 +61,6 @@ def seconds_per_step(model, source, steps: int, **kw) -> Tuple[float, float]:
     return wall / steps, (time.process_time() - cpu) / steps
 
 
-def status_kib(field: str) -> int:
-    with open('/proc/self/status') as f:
-        for line in f:
-            if line.startswith(field + ':'):
-                return int(line.split()[1])
-    raise RuntimeError(f'{field} not in /proc/self/status')
-
-
 def memory_probe(name: str, inner_steps: int) -> int:
     """Peak RSS (bytes) added by one batched meta-gradient; runs in its own process."""
     model, source = setup()
@@ -77,8 +70,7 @@ def memory_probe(name: str, inner_steps: int) -> int:
                                 np.random.default_rng(0))
     omega = objective.spec.flatten(model.params())
     fn = batch_gradient_fn(objective, config)
-    with open('/proc/self/clear_refs', 'w') as f:     # VmHWM := VmRSS (Linux >= 4.0)
-        f.write('5')
+    reset_peak_rss()
     before = status_kib('VmRSS')
     out = fn(omega, train.u, train.y, test.u, test.y)
     peak = status_kib('VmHWM')

@@ -20,6 +20,7 @@ import time
 import numpy as np
 import osqp
 
+from metampc_bringup.percentiles import percentiles
 from metampc_controller.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.references import make_reference
@@ -87,17 +88,15 @@ def bench(horizon: int, ticks: int, seed: int) -> dict:
         z = model.step(z, u)
     if pending is not None:
         time_raw(pending)
-    us = 1e6
-
-    def pct(v, p):
-        return round(float(np.percentile(v, p)) * us, 1)
-
+    us = dict(scale=1e6, digits=1)
+    stats = {**percentiles(ours, (50, 99), key='{}_us', **us),
+             **percentiles(ours_cpu, (99,), key='cpu_{}_us', **us),
+             **percentiles(raws, (50, 99), key='raw_{}_us', **us),
+             **percentiles(raws_cpu, (99,), key='raw_cpu_{}_us', **us)}
     return {
-        'p50_us': pct(ours, 50), 'p99_us': pct(ours, 99), 'cpu_p99_us': pct(ours_cpu, 99),
-        'raw_p50_us': pct(raws, 50), 'raw_p99_us': pct(raws, 99),
-        'raw_cpu_p99_us': pct(raws_cpu, 99),
-        'ratio_p50': round(pct(ours, 50) / pct(raws, 50), 2),
-        'ratio_p99': round(pct(ours, 99) / pct(raws, 99), 2),
+        **stats,
+        'ratio_p50': round(stats['p50_us'] / stats['raw_p50_us'], 2),
+        'ratio_p99': round(stats['p99_us'] / stats['raw_p99_us'], 2),
         'iter_mean': round(float(np.mean(it_ours)), 2), 'iter_max': int(np.max(it_ours)),
         'iter_equal_raw': bool(np.array_equal(it_ours, it_raw)), 'fallbacks': int(fallbacks),
         'terminal_fallback': bool(res.terminal_fallback),

@@ -9,21 +9,22 @@ Prints ONE JSON line:
                               minimal echo controller process (this script with --echo)
   lockstep_steps            round trips timed (after a warm-up)
 
-The two processes run in a ROS_DOMAIN_ID of their own (claimed with a lock file, as the test
-sessions do) with discovery on localhost only, and are stopped before the script returns.
+The two processes run in a ROS_DOMAIN_ID of their own (metampc_bringup.domain: claimed with a
+lock file, as the test sessions do) with discovery on localhost only, and are stopped before
+the script returns.
 Run from the repository root after `source scripts/env.sh`.
 """
 import argparse
-import fcntl
 import json
-import os
-import signal
 import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
+
+from metampc_bringup.domain import isolate
+from metampc_bringup.script_child import last_json_line, script_child
 
 WARMUP_STEPS = 200
 
@@ -51,32 +52,18 @@ def bench_core(seconds: float) -> dict:
             'core_system_steps_per_s_1000': round(1000 * many)}
 
 
-def claim_domain():
-    """(domain id, held lock file): a ROS_DOMAIN_ID no other metampc session is using."""
-    for domain in range(101, 0, -1):
-        handle = open(os.path.join(tempfile.gettempdir(), f'metampc-ros-domain-{domain}.lock'),
-                      'w')
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return domain, handle
-        except OSError:
-            handle.close()
-    raise RuntimeError('no free ROS_DOMAIN_ID in 1..101')
-
-
 def echo(steps: int) -> None:
     """Minimal controller: answer every y_k with u = 0.1 for step k; time `steps` round trips.
 
     Prints {"round_trips_per_s": ...} once done and exits.
     """
-    import rclpy
+    from metampc_common.qos import STREAM
     from metampc_msgs.msg import ControlInput, PlantOutput
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    import rclpy
 
-    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)  # as the plant's
     rclpy.init()
     node = rclpy.create_node('bench_echo')
-    pub = node.create_publisher(ControlInput, 'u', qos)
+    pub = node.create_publisher(ControlInput, 'u', STREAM)
     marks = {}
 
     def on_y(msg: PlantOutput) -> None:
@@ -84,7 +71,7 @@ def echo(steps: int) -> None:
             marks[msg.step] = time.perf_counter()
         pub.publish(ControlInput(step=msg.step, u=[0.1]))
 
-    node.create_subscription(PlantOutput, 'y', on_y, qos)
+    node.create_subscription(PlantOutput, 'y', on_y, STREAM)
     while rclpy.ok() and len(marks) < 2:
         rclpy.spin_once(node, timeout_sec=1.0)
     elapsed = marks[WARMUP_STEPS + steps] - marks[WARMUP_STEPS]
@@ -96,34 +83,21 @@ def echo(steps: int) -> None:
 def bench_lockstep(steps: int, timeout: float) -> float:
     """Round trips/s between `ros2 run metampc_plant plant` and an echo process."""
     from metampc_bringup.processes import ProcessGroup
-    domain, lock = claim_domain()
-    env = {'ROS_DOMAIN_ID': str(domain), 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     with tempfile.TemporaryDirectory(prefix='bench_plant_') as log_dir:
-        group = ProcessGroup(log_dir, env=env)
-        # input_timeout 0: strict lockstep, so only answered steps are timed.
-        plant = group.start('metampc_plant', 'plant',
-                            params={'dt': 0.05, 'input_timeout': 0.0})
-        child_env = {**os.environ, **env}
-        child_env.pop('ROS_LOCALHOST_ONLY', None)
-        controller = subprocess.Popen([sys.executable, __file__, '--echo', str(steps)],
-                                      env=child_env, stdout=subprocess.PIPE, text=True,
-                                      start_new_session=True)
+        group = ProcessGroup(log_dir)
         try:
-            out, _ = controller.communicate(timeout=timeout)
-            return json.loads(out.strip().splitlines()[-1])['round_trips_per_s']
-        except (subprocess.TimeoutExpired, IndexError, ValueError, KeyError):
-            raise RuntimeError(f'no lockstep result within {timeout} s; plant log:\n'
-                               + group.output(plant)) from None
-        finally:
-            if controller.poll() is None:
-                controller.send_signal(signal.SIGINT)
+            # input_timeout 0: strict lockstep, so only answered steps are timed.
+            plant = group.start('metampc_plant', 'plant',
+                                params={'dt': 0.05, 'input_timeout': 0.0})
+            with script_child(__file__, ['--echo', str(steps)]) as controller:
                 try:
-                    controller.wait(5.0)
-                except subprocess.TimeoutExpired:
-                    controller.kill()
-                    controller.wait()
+                    out, _ = controller.communicate(timeout=timeout)
+                    return last_json_line(out)['round_trips_per_s']
+                except (subprocess.TimeoutExpired, IndexError, ValueError, KeyError):
+                    raise RuntimeError(f'no lockstep result within {timeout} s; plant log:\n'
+                                       + group.output(plant)) from None
+        finally:
             group.stop_all()
-            lock.close()
 
 
 def main() -> int:
@@ -138,6 +112,7 @@ def main() -> int:
     if args.echo:
         echo(args.echo)
         return 0
+    isolate()
     result = bench_core(args.core_seconds)
     try:
         rate = bench_lockstep(args.steps, args.timeout)

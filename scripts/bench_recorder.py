@@ -24,41 +24,27 @@ are stopped before the script returns. Run after `source scripts/env.sh`.
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
 import time
 
-TICKS = os.sysconf('SC_CLK_TCK')
-
-
-def cpu_seconds(pids) -> float:
-    """utime + stime of the live processes `pids`, s."""
-    total = 0
-    for pid in pids:
-        try:
-            with open(f'/proc/{pid}/stat') as f:
-                fields = f.read().rsplit(')', 1)[1].split()
-        except OSError:
-            continue
-        total += int(fields[11]) + int(fields[12])     # utime, stime (fields 14 and 15)
-    return total / TICKS
+from metampc_bringup.procfs import live_cpu_seconds
+from metampc_bringup.script_child import last_json_line, script_child
 
 
 def publish(rate_hz: float, seconds: float, timeout: float) -> None:
     """Publisher process: wait for a subscriber on y, send rate_hz * seconds PlantOutputs at
     rate_hz, wait until all are acknowledged; print 'start' when the first goes out, then a JSON
     line {"published", "send_s": s from the first to the last message}."""
-    import rclpy
+    from metampc_common.qos import STREAM
     from metampc_msgs.msg import PlantOutput
+    import rclpy
     from rclpy.duration import Duration
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     rclpy.init()
     node = rclpy.create_node('bench_publisher')
-    pub = node.create_publisher(PlantOutput, 'y', QoSProfile(
-        depth=100, reliability=ReliabilityPolicy.RELIABLE))   # as the plant's
+    pub = node.create_publisher(PlantOutput, 'y', STREAM)   # as the plant's
     deadline = time.monotonic() + timeout
     while pub.get_subscription_count() < 1:
         if time.monotonic() > deadline:
@@ -101,21 +87,19 @@ def bench(args) -> dict:
     with tempfile.TemporaryDirectory(prefix='bench_recorder_') as folder:
         config = RecorderConfig(output=os.path.join(folder, 'bench.mcap'), topics=['y'])
         group = ProcessGroup(folder)
-        publisher = None
         try:
             recorder = group.start('metampc_bringup', 'recorder', config.to_parameters(),
                                    name='recorder')
-            publisher = subprocess.Popen(
-                [sys.executable, __file__, '--publish', '--rate', str(args.rate),
-                 '--seconds', str(args.seconds), '--timeout', str(args.timeout)],
-                stdout=subprocess.PIPE, text=True, start_new_session=True)
-            if publisher.stdout.readline().strip() != 'start':
-                raise RuntimeError('the publisher did not start; recorder log:\n'
-                                   + group.output(recorder))
-            t0, cpu0 = time.monotonic(), cpu_seconds(session_pids(recorder.pid))
-            out, _ = publisher.communicate(timeout=args.seconds + args.timeout)
-            t1, cpu1 = time.monotonic(), cpu_seconds(session_pids(recorder.pid))
-            sent = json.loads(out.strip().splitlines()[-1])
+            with script_child(__file__, ['--publish', '--rate', str(args.rate), '--seconds',
+                                         str(args.seconds), '--timeout', str(args.timeout)]
+                              ) as publisher:
+                if publisher.stdout.readline().strip() != 'start':
+                    raise RuntimeError('the publisher did not start; recorder log:\n'
+                                       + group.output(recorder))
+                t0, cpu0 = time.monotonic(), live_cpu_seconds(session_pids(recorder.pid))
+                out, _ = publisher.communicate(timeout=args.seconds + args.timeout)
+                t1, cpu1 = time.monotonic(), live_cpu_seconds(session_pids(recorder.pid))
+            sent = last_json_line(out)
             if group.interrupt(recorder) != 0:
                 raise RuntimeError('the recorder did not exit 0:\n' + group.output(recorder))
             result = {'published': sent['published']}
@@ -128,9 +112,6 @@ def bench(args) -> dict:
                 'compression': config.compression, 'chunk_size': config.chunk_size})
             return result
         finally:
-            if publisher is not None and publisher.poll() is None:
-                os.killpg(publisher.pid, signal.SIGKILL)
-                publisher.wait()
             group.stop_all()
 
 

@@ -1,260 +1,54 @@
 #!/usr/bin/env python3
-"""A fair hyperparameter search for iMAML, first-order MAML and supervised training (issue 9).
+"""A fair hyperparameter search for iMAML, first-order MAML and supervised training.
 
-Every method gets the same search budget, spent on validation systems only (docs/tuning.md):
-
-- Validation, never the test targets: the source set is drawn with ``source_seed`` 1000 (the
-  experiment's seeds 0..9 use ``source_seed = seed``) and ``--thetas`` validation targets with
-  theta_i = rng([1000 + i, 0x5a1]).normal(theta_mean, theta_std) (the experiment's test
-  targets come from rng([seed, 0x7e7a])). Each validation target gets ``target_samples`` (300)
-  adaptation samples (one bounded excitation episode, like the experiment's collection) and an
-  independent held-out set of 600 samples (three further episodes).
-- Budget: ``--k`` (+ ``--refine``) meta-trainings per meta method (iMAML with Gauss-Newton
-  curvature and the CG steps of :data:`CG_STEPS` for its gamma; first-order MAML), each of
-  ``--iterations`` outer steps with B = 16 and the experiment's NSSM, source set size and
-  windows per task (from ``--config``). Configuration 0 of each is the calibration (M = 10,
-  beta_in = 0.05, gamma = 1, Adam 1e-3); configurations 1..K-1 are drawn without replacement
-  from the grid of (inner_steps, lr_inner, lr_outer) and shared by both methods (paired draws);
-  iMAML adds a gamma from its grid (a shuffled sequence that holds every gamma of the grid in
-  turn). Every meta-trained model is then adapted (eq. infer, gamma = 0, ``--adapt-steps``
-  plain steps) with every step size of :data:`ADAPT_LRS`; supervised training, which has no
-  meta-training, gets the same step sizes (8 = K configurations).
-- Score of a (configuration, step size): the mean over the validation targets of the held-out
-  loss (normalised units, eq. l_SSM) after the adaptation steps; a configuration's score is
-  that of its best step size, and the winner of a method is its best configuration.
-- Refinement (stage 2, the same ``--refine`` budget per meta method): neighbours of the
-  method's stage-1 winner (one hyperparameter moved one grid step, not tried yet) drawn at
-  random, topped up from the neighbours of the next best configurations when the winner has
-  too few; the winner is then the best of both stages.
-- Robustness (stage 3, the same budget per meta method): the ``--finalists`` best
-  configurations of each meta method are meta-trained for ``--full-iterations`` (the
-  experiment's 300) outer steps on each of ``--robust-seeds`` validation source sets
-  (``source_seed`` = meta seed = 1000, 1001, ...) and scored with every step size; a
-  finalist's robust score is the mean over the source sets at its best step size, and the
-  winner of a meta method is its finalist with the lowest robust score. One source set is not
-  enough: a winner of the one-seed search (Adam 1e-2 for iMAML) diverged on another one.
-
-Jobs run in ``--jobs`` worker processes with ``--threads`` torch threads each; every job is
-seeded (meta seed = source seed; supervised init seed 1000) and independent of the order in
-which the jobs finish, so the scores are reproducible at the same thread count. Progress goes
+The protocol is :mod:`metampc_bringup.tuning` (its docstring) and docs/tuning.md. Progress goes
 to stderr (tqdm); stdout gets ONE JSON line (configurations with scores, robustness runs,
-winners, wall time, CPU time of the jobs, load average), also written to ``--out``.
+winners, wall time, CPU time of the jobs, load average), also written to ``--out``. Bad
+arguments: one line on stderr, exit status 2.
 
 Usage: python scripts/tune.py [--k 8] [--refine 4] [--finalists 2] [--robust-seeds 3]
        [--jobs 2] [--out config/tuning.json]
 """
 import argparse
-import concurrent.futures as futures
-import itertools
 import json
-import math
-import multiprocessing
-import os
-import time
-from typing import Dict, List, Sequence, Tuple
 
-import numpy as np
-
-from metampc_bringup.analysis import json_safe
-from metampc_bringup.offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs,
-                                     settings_from, THETA_STREAM, VALIDATION_SEED)
-
-DRAW_STREAM = 0xd7a          # configuration draws: rng([--seed, DRAW_STREAM])
-CURVATURE = 'gauss_newton'
-CALIBRATION = {'inner_steps': 10, 'lr_inner': 0.05, 'lr_outer': 1e-3, 'gamma': 1.0}
-SHARED_GRID = {'inner_steps': (5, 10, 20), 'lr_inner': (0.02, 0.05, 0.1, 0.2),
-               'lr_outer': (1e-3, 2e-3, 5e-3, 1e-2)}
-GAMMA_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
-# CG steps per gamma: the system I + G/gamma (eq. implicit_grad) has condition number up to
-# 1 + lambda_max(G)/gamma, and CG needs about its square root in steps: more for small gamma
-# (the final relative residual of every run is in its result, ``meta_cg_residual``).
-CG_STEPS = {0.01: 20, 0.03: 20, 0.1: 10, 0.3: 10, 1.0: 5, 3.0: 5}
-AXES = {'imaml': {**SHARED_GRID, 'gamma': GAMMA_GRID}, 'maml': SHARED_GRID}
-ADAPT_LRS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
-META_METHODS = ('imaml', 'maml')
-
-
-def draw_jobs(k: int, iterations: int, seed: int) -> List[Job]:
-    """K paired meta configurations per meta method (0: calibration) and supervised."""
-    rng = np.random.default_rng([seed, DRAW_STREAM])
-    names = tuple(SHARED_GRID)
-    calibration = tuple(CALIBRATION[n] for n in names)
-    grid = [c for c in itertools.product(*SHARED_GRID.values()) if c != calibration]
-    if k - 1 > len(grid):
-        raise ValueError(f'k = {k} exceeds the grid ({len(grid) + 1} configurations)')
-    picks = [calibration] + [grid[i] for i in rng.choice(len(grid), size=k - 1, replace=False)]
-    gammas = [CALIBRATION['gamma']] + [float(g) for g in
-                                       rng.permutation(np.resize(GAMMA_GRID, k - 1))]
-    jobs = []
-    for i, (pick, gamma) in enumerate(zip(picks, gammas)):
-        shared = {n: (int(v) if n == 'inner_steps' else float(v)) for n, v in zip(names, pick)}
-        jobs.append(Job('imaml', i, with_cg('imaml', {**shared, 'gamma': gamma}), iterations,
-                        ADAPT_LRS, 'search'))
-        jobs.append(Job('maml', i, shared, iterations, ADAPT_LRS, 'search'))
-    jobs.append(Job('supervised', 0, {}, 0, ADAPT_LRS, 'search'))
-    return jobs
-
-
-def with_cg(method: str, hyper: Dict[str, float]) -> Dict[str, float]:
-    """iMAML's configuration with the CG steps its gamma needs (:data:`CG_STEPS`)."""
-    return {**hyper, 'cg_steps': CG_STEPS[hyper['gamma']]} if method == 'imaml' else hyper
-
-
-def neighbours(method: str, hyper: Dict[str, float]) -> List[Dict[str, float]]:
-    """The configurations one grid step away from `hyper` along one axis of the method."""
-    out = []
-    for name, axis in AXES[method].items():
-        at = axis.index(hyper[name])
-        out.extend(with_cg(method, {**hyper, name: axis[j]})
-                   for j in (at - 1, at + 1) if 0 <= j < len(axis))
-    return out
-
-
-def refine_jobs(results: Sequence[dict], r: int, iterations: int, seed: int) -> List[Job]:
-    """Stage 2: per meta method, r untried neighbours drawn at random (seeded) among those of
-    its best configuration; when that one has fewer, all of them and the rest from the next
-    best configurations' neighbours, so every method gets the same r."""
-    jobs = []
-    for m, method in enumerate(META_METHODS):
-        mine = sorted((x for x in results if x['method'] == method), key=lambda x: x['score'])
-        tried = [x['hyper'] for x in mine]
-        rng = np.random.default_rng([seed, DRAW_STREAM, 1 + m])
-        picked: List[Dict[str, float]] = []
-        for centre in mine:
-            fresh = [h for h in neighbours(method, centre['hyper'])
-                     if h not in tried and h not in picked]
-            need = min(r - len(picked), len(fresh))
-            picked.extend(fresh[p] for p in sorted(rng.choice(len(fresh), need, replace=False)))
-            if len(picked) == r:
-                break
-        jobs.extend(Job(method, len(mine) + i, h, iterations, ADAPT_LRS, 'refine')
-                    for i, h in enumerate(picked))
-    return jobs
-
-
-def robust_jobs(results: Sequence[dict], finalists: int, iterations: int,
-                seeds: Sequence[int]) -> List[Job]:
-    """Stage 3: the `finalists` best configurations of each meta method on every seed."""
-    jobs = []
-    for method in META_METHODS:
-        ranked = sorted((r for r in results if r['method'] == method and
-                         math.isfinite(r['score'])), key=lambda r: r['score'])
-        jobs.extend(Job(method, r['index'], r['hyper'], iterations, ADAPT_LRS, 'robust', seed)
-                    for r in ranked[:finalists] for seed in seeds)
-    return jobs
-
-
-def robust_scores(runs: Sequence[dict]) -> List[dict]:
-    """Per finalist: mean over source seeds of each step size's score; the best step size."""
-    groups: Dict[Tuple[str, int], List[dict]] = {}
-    for run in runs:
-        groups.setdefault((run['method'], run['index']), []).append(run)
-    out = []
-    for (method, index), group in groups.items():
-        by_lr = {}
-        for run in group:
-            for a in run['adapt'] or [{'lr': lr, 'score': math.inf} for lr in ADAPT_LRS]:
-                by_lr.setdefault(a['lr'], []).append(a['score'])
-        lr = min(by_lr, key=lambda x: np.mean(by_lr[x]))
-        out.append({'method': method, 'index': index, 'hyper': group[0]['hyper'],
-                    'best_lr': lr, 'score': float(np.mean(by_lr[lr])),
-                    'source_seeds': [r['source_seed'] for r in group],
-                    'score_per_seed': by_lr[lr],
-                    'meta_final_loss_per_seed': [r.get('meta_final_loss', math.inf)
-                                                 for r in group]})
-    return out
-
-
-def best_of(method: str, results: Sequence[dict]) -> dict:
-    """The result of the method's configuration with the lowest score."""
-    return min((r for r in results if r['method'] == method), key=lambda r: r['score'])
-
-
-def request_fields(best: dict, full_iterations: int, batch_size: int, adapt_steps: int
-                   ) -> dict:
-    """A winner as the experiment's meta_train / adapt request fields (config/default.yaml)."""
-    out = {'index': best['index'], 'score': best['score'],
-           'adapt': {'steps': adapt_steps, 'lr': best['best_lr']}}
-    if best['method'] != 'supervised':
-        out['meta_train'] = {'iterations': full_iterations, 'batch_size': batch_size,
-                             **best['hyper']}
-    return out
+from metampc_bringup.tuning import TuneConfig, tune
 
 
 def main(argv=None) -> None:
+    d = TuneConfig()
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    parser.add_argument('--config', default='config/default.yaml',
+    parser.add_argument('--config', default=d.config,
                         help='experiment YAML whose learner section sets the NSSM and source')
-    parser.add_argument('--k', type=int, default=8, help='meta configurations per method')
-    parser.add_argument('--refine', type=int, default=4,
+    parser.add_argument('--k', type=int, default=d.k, help='meta configurations per method')
+    parser.add_argument('--refine', type=int, default=d.refine,
                         help='stage 2: neighbours of the stage-1 winner per meta method')
-    parser.add_argument('--iterations', type=int, default=150, help='outer steps in the search')
-    parser.add_argument('--full-iterations', type=int, default=300,
+    parser.add_argument('--iterations', type=int, default=d.iterations,
+                        help='outer steps in the search')
+    parser.add_argument('--full-iterations', type=int, default=d.full_iterations,
                         help="outer steps of the robustness stage (the experiment's)")
-    parser.add_argument('--finalists', type=int, default=2,
+    parser.add_argument('--finalists', type=int, default=d.finalists,
                         help='stage 3: best configurations per meta method (0: no stage 3)')
-    parser.add_argument('--robust-seeds', type=int, default=3,
+    parser.add_argument('--robust-seeds', type=int, default=d.robust_seeds,
                         help='stage 3: validation source sets 1000, 1001, ...')
-    parser.add_argument('--batch-size', type=int, default=16)
-    parser.add_argument('--adapt-steps', type=int, default=20)
-    parser.add_argument('--thetas', type=int, default=6, help='validation targets')
-    parser.add_argument('--seed', type=int, default=0, help='seed of the configuration draws')
-    parser.add_argument('--jobs', type=int, default=2, help='worker processes')
-    parser.add_argument('--threads', type=int, default=1, help='torch threads per worker')
+    parser.add_argument('--batch-size', type=int, default=d.batch_size)
+    parser.add_argument('--adapt-steps', type=int, default=d.adapt_steps)
+    parser.add_argument('--thetas', type=int, default=d.thetas, help='validation targets')
+    parser.add_argument('--seed', type=int, default=d.seed,
+                        help='seed of the configuration draws')
+    parser.add_argument('--jobs', type=int, default=d.jobs, help='worker processes')
+    parser.add_argument('--threads', type=int, default=d.threads,
+                        help='torch threads per worker')
     parser.add_argument('--out', default='config/tuning.json')
-    args = parser.parse_args(argv)
-    start, load_start = time.monotonic(), os.getloadavg()
-    settings = settings_from(args.config, args.thetas, args.adapt_steps,
-                             {'batch_size': args.batch_size, 'curvature': CURVATURE})
-    jobs = draw_jobs(args.k, args.iterations, args.seed)
-    context = multiprocessing.get_context('spawn')
-    with futures.ProcessPoolExecutor(args.jobs, context, init_worker,
-                                     (settings, args.threads)) as pool:
-        results = run_jobs(pool, jobs, 'search', settings)
-        if args.refine:
-            results += run_jobs(pool, refine_jobs(results, args.refine, args.iterations,
-                                                  args.seed), 'refine', settings)
-        search_s = time.monotonic() - start
-        seeds = [VALIDATION_SEED + j for j in range(args.robust_seeds)]
-        finalists = robust_jobs(results, args.finalists, args.full_iterations, seeds)
-        robust_runs = run_jobs(pool, finalists, 'robust', settings) if args.finalists else []
-    robust = robust_scores(robust_runs)
-    best = {m: best_of(m, robust or results) for m in META_METHODS}
-    best['supervised'] = best_of('supervised', results)
-    winners = {m: request_fields(b, args.full_iterations, args.batch_size, args.adapt_steps)
-               for m, b in best.items()}
-    report = {
-        'protocol': {
-            'k': args.k, 'refine': args.refine, 'search_iterations': args.iterations,
-            'batch_size': args.batch_size,
-            'full_iterations': args.full_iterations, 'finalists': args.finalists,
-            'robust_seeds': seeds, 'adapt_steps': args.adapt_steps,
-            'adapt_lrs': list(ADAPT_LRS), 'shared_grid': SHARED_GRID, 'gamma_grid': GAMMA_GRID,
-            'calibration': CALIBRATION,
-            'cg_steps': {str(g): n for g, n in CG_STEPS.items()}, 'curvature': CURVATURE,
-            'windows_per_task': settings.learner.meta.windows_per_task,
-            'n_systems': settings.learner.source.n_systems,
-            'hidden': list(settings.learner.nssm.hidden), 'draw_seed': args.seed,
-            'score': 'mean over validation thetas of held-out l_SSM after adapt_steps steps '
-                     '(normalised units), best adaptation step size per configuration',
-            'robust_score': 'mean of the score over the robust_seeds source sets at '
-                            'full_iterations outer steps, best adaptation step size'},
-        'validation': {
-            'thetas': list(settings.thetas), 'source_seed': VALIDATION_SEED,
-            'meta_seed': VALIDATION_SEED, 'supervised_init_seed': VALIDATION_SEED,
-            'theta_rng': f'rng([{VALIDATION_SEED} + i, {THETA_STREAM:#x}])',
-            'target_samples': settings.target_samples, 'heldout_samples': HELDOUT_SAMPLES,
-            'data_seeds': {'adapt': f'10 * ({VALIDATION_SEED} + i) + 1',
-                           'heldout': f'10 * ({VALIDATION_SEED} + i) + 2'}},
-        'configurations': results, 'robust': robust, 'robust_runs': robust_runs,
-        'winners': winners,
-        'search_wall_s': round(search_s, 1), 'wall_s': round(time.monotonic() - start, 1),
-        'cpu_s': round(sum(r['cpu_seconds'] for r in results + robust_runs), 1),
-        'jobs': args.jobs, 'threads_per_job': args.threads,
-        'load_avg_start': [round(v, 2) for v in load_start],
-        'load_avg_end': [round(v, 2) for v in os.getloadavg()]}
-    report = json_safe(report)
-    with open(args.out, 'w') as f:
+    args = vars(parser.parse_args(argv))
+    out = args.pop('out')
+    cfg = TuneConfig(**args)
+    try:
+        cfg.validate()
+    except ValueError as err:
+        parser.error(str(err))
+    report = tune(cfg)
+    with open(out, 'w') as f:
         json.dump(report, f, indent=1)
         f.write('\n')
     print(json.dumps(report))

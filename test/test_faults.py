@@ -34,7 +34,8 @@ from metampc_bringup.experiment_client import ExperimentClient, ExperimentError,
 from metampc_bringup.recorder_config import RecorderConfig
 from metampc_bringup.recording_reader import read_recording
 from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.nssm import init_params, Normalisation, NssmConfig
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import init_params, NssmConfig
 from metampc_controller.weights_codec import fields_from_weights
 from metampc_plant.vanderpol import VdpConfig, VdpPlant
 from metampc_testing import session_pids
@@ -381,14 +382,23 @@ def test_capped_qp_falls_back_to_a_finite_bounded_input(procs, probe, tmp_path):
     rig.wait_steps(8)
     pub.publish(weights(1))
     rig.wait_status(lambda s: s.model_version == 1, 'model 1')
-    rig.wait_steps(20)
-    statuses = [s for s in rig.heard['mpc_status'] if s.model_version == 1]
-    assert len(statuses) >= 20
+
+    def with_model():
+        """Model 1's statuses, its inputs whose y the probe has heard, the applied inputs."""
+        applied = {m.step: m.u_applied[0] for m in rig.ys}
+        return ([s for s in rig.heard['mpc_status'] if s.model_version == 1],
+                [m for m in rig.heard['u'] if m.model_version == 1 and m.step in applied],
+                applied)
+
+    def enough():
+        statuses, answers, _ = with_model()
+        return len(statuses) >= 20 and len(answers) >= 15
+    # Counts, not a number of steps: y, u and mpc_status are three topics (mpc_status follows
+    # u, which the plant's next y may overtake), each of which may reach the probe late.
+    probe.wait_for(enough, 60.0, '20 statuses and 15 inputs with model 1')
+    statuses, answers, applied = with_model()
     assert all(s.fallback and s.solver_status == 'maximum iterations reached'
                and s.iterations == 1 for s in statuses)
-    applied = {m.step: m.u_applied[0] for m in rig.ys}
-    answers = [m for m in rig.heard['u'] if m.model_version == 1 and m.step in applied]
-    assert len(answers) >= 15
     assert all(m.u[0] == applied[m.step] and -0.7 <= m.u[0] <= 0.7 for m in answers)
     assert len({m.u[0] for m in answers}) == 1, 'the input held since the model came'
     out = rig.finish()['controller']
@@ -531,7 +541,8 @@ def test_sigkill_of_the_learner_during_meta_train(procs, probe, tmp_path):
     the learner published before and the loop goes on."""
     rig = Rig(procs, probe, tmp_path)
     learner = rig.start('learner', 'metampc_learner', 'learner', LEARNER)
-    start_loop(rig, {'theta': 0.5, 'input_timeout': 2.0}, {})
+    # OSQP's wall-clock cap (50 ms) out of reach: every later tick must be 'solved'.
+    start_loop(rig, {'theta': 0.5, 'input_timeout': 2.0}, {'time_limit': 30.0})
     client = ExperimentClient({}, lambda: process_status({'learner': learner}))
     try:
         probe.wait_for(lambda: client.clients['meta_train'].service_is_ready(), 60.0,
@@ -556,9 +567,9 @@ def test_sigkill_of_the_learner_during_meta_train(procs, probe, tmp_path):
     finally:
         client.close()
     n = len(rig.heard['mpc_status'])
-    rig.wait_steps(20)
+    # Counted on mpc_status itself, which the plant's y may overtake on the way to the probe.
+    probe.wait_for(lambda: len(rig.heard['mpc_status']) >= n + 15, 60.0, '15 more statuses')
     later = rig.heard['mpc_status'][n:]
-    assert len(later) >= 15
     assert all(s.model_version == done.model_version and s.model_status == 'ok'
                and s.solver_status == 'solved' for s in later)
     rig.finish()

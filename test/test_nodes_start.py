@@ -1,4 +1,7 @@
 """Each node started with `ros2 run` joins the graph and exits 0 on SIGINT, with no traceback."""
+import os
+import signal
+
 import pytest
 
 from metampc_testing import session_pids
@@ -18,3 +21,30 @@ def test_node_starts_and_stops_cleanly(procs, probe, tmp_path, pkg, exe):
     assert code == 0, out
     assert 'Traceback' not in out, out
     assert session_pids(proc.pid) == [], 'a process of the node outlived ros2 run'
+
+
+def test_sigusr1_prints_every_thread_stack_and_the_node_goes_on(procs, probe):
+    """How a hang is diagnosed (ProcessGroup.interrupt does it before SIGKILL): the node's
+    threads are printed, and it still stops cleanly afterwards."""
+    proc = procs.start('metampc_plant', 'plant')
+    probe.wait_for_node('plant', timeout=30.0)
+    (node,) = [pid for pid in session_pids(proc.pid) if pid != proc.pid]
+    os.kill(node, signal.SIGUSR1)
+    probe.wait_for(lambda: 'most recent call first' in procs.output(proc), 30.0, 'a stack dump')
+    assert 'plant_node.py' in procs.output(proc)      # the main thread's frames
+    assert proc.poll() is None
+    assert procs.interrupt(proc) == 0
+
+
+def test_a_learner_expecting_another_dt_than_the_plants_refuses_at_start_up(procs, probe):
+    """The plant's plant_info is the one source of truth for dt: a learner whose source systems
+    sample at another dt ends with one line and exit status 2 (not at its first adapt)."""
+    plant = procs.start('metampc_plant', 'plant', params={'dt': 0.1})
+    probe.wait_for_node('plant', timeout=30.0)
+    learner = procs.start('metampc_learner', 'learner', params={'dt': 0.2})
+    probe.wait_for(lambda: learner.poll() is not None, 60.0, 'the learner to exit')
+    out = procs.output(learner)
+    assert learner.returncode == 2, out
+    assert 'invalid parameter: dt: the plant samples at dt = 0.1 s' in out, out
+    assert 'Traceback' not in out, out
+    assert procs.interrupt(plant) == 0

@@ -1,24 +1,6 @@
-from setuptools import find_packages, setup
+from setuptools import setup
 
-package_name = 'metampc_learner'
-
-setup(
-    name=package_name,
-    version='0.1.0',
-    packages=find_packages(exclude=['test']),
-    data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
-        ('share/' + package_name, ['package.xml']),
-    ],
-    install_requires=['setuptools'],
-    zip_safe=True,
-    maintainer='metampc developers',
-    maintainer_email='metampc@example.com',
-    description='Meta-learning (iMAML, MAML, supervised) of the NSSM: cores and the learner node.',
-    license='Apache-2.0',
-    entry_points={
-        'console_scripts': [
-            'learner = metampc_learner.learner_node:main',
-        ],
-    },
-)
+# Metadata, packages and entry points are in setup.cfg; ament's index needs these data files.
+NAME = 'metampc_learner'
+setup(data_files=[('share/ament_index/resource_index/packages', ['resource/' + NAME]),
+                  ('share/' + NAME, ['package.xml'])])

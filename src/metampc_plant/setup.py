@@ -1,24 +1,6 @@
-from setuptools import find_packages, setup
+from setuptools import setup
 
-package_name = 'metampc_plant'
-
-setup(
-    name=package_name,
-    version='0.1.0',
-    packages=find_packages(exclude=['test']),
-    data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
-        ('share/' + package_name, ['package.xml']),
-    ],
-    install_requires=['setuptools'],
-    zip_safe=True,
-    maintainer='metampc developers',
-    maintainer_email='metampc@example.com',
-    description='Van der Pol plant with uncertain damping: simulator core and the plant node.',
-    license='Apache-2.0',
-    entry_points={
-        'console_scripts': [
-            'plant = metampc_plant.plant_node:main',
-        ],
-    },
-)
+# Metadata, packages and entry points are in setup.cfg; ament's index needs these data files.
+NAME = 'metampc_plant'
+setup(data_files=[('share/ament_index/resource_index/packages', ['resource/' + NAME]),
+                  ('share/' + NAME, ['package.xml'])])

@@ -31,7 +31,7 @@ def select_topics(topics: Dict[str, RecordedTopic],
     """Topic to analyse per metampc message type.
 
     A type carried by one topic takes it; by several, the one whose last name token is the
-    default name (DESIGN.md section 3: 'y', 'u', 'mpc_status', ...), else ValueError.
+    default name (docs/architecture.md: 'y', 'u', 'mpc_status', ...), else ValueError.
 
     Args:
         topics: the recording's topics.

@@ -14,30 +14,21 @@ An :class:`ExperimentClient` is an rclpy node (spun in a thread, :class:`SpunNod
   and the sim-time span of every tracking run from them.
 """
 import json
-import re
 import subprocess
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
+from metampc_common.qos import EVENTS, LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import PlantInfo, PlantOutput, TrainingProgress
-from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant
+from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant, SetActive, SetBuffering
 from rclpy.duration import Duration
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
-from std_srvs.srv import SetBool
 
 from .spun_node import SpunNode
 
 EVENTS_TOPIC = 'experiment_events'
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-EVENTS_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-_MODEL_VERSION = re.compile(r'model version (\d+)')
 
 
 class ExperimentError(RuntimeError):
@@ -76,16 +67,16 @@ class ExperimentClient(SpunNode):
         self.valid_samples = 0              # of them: not diverged and step > 0
         self.plant_info: Optional[PlantInfo] = None
         self.progress: Optional[TrainingProgress] = None
-        node.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS)
+        node.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
         node.create_subscription(PlantInfo, 'plant_info', self._on_info, LATCHED)
-        node.create_subscription(TrainingProgress, 'progress', self._on_progress, 10)
-        self._events = node.create_publisher(String, EVENTS_TOPIC, EVENTS_QOS)
+        node.create_subscription(TrainingProgress, 'progress', self._on_progress, SPARSE)
+        self._events = node.create_publisher(String, EVENTS_TOPIC, EVENTS)
         self.clients = {
             'reset': node.create_client(ResetPlant, 'reset'),
             'meta_train': node.create_client(MetaTrain, 'meta_train'),
             'adapt': node.create_client(Adapt, 'adapt'),
-            'set_buffering': node.create_client(SetBool, 'set_buffering'),
-            **{name: node.create_client(SetBool, service)
+            'set_buffering': node.create_client(SetBuffering, 'set_buffering'),
+            **{name: node.create_client(SetActive, service)
                for name, service in controllers.items()},
         }
 
@@ -178,15 +169,21 @@ class ExperimentClient(SpunNode):
             raise ExperimentError(f'{what}: {response.message}')
         return response
 
-    def set_active(self, controller: str, active: bool) -> str:
-        """Activate or deactivate a controller; its answer (see :func:`model_version`)."""
-        return self.call(controller, SetBool.Request(data=active), 10.0,
-                         f'set_active({active}) of {controller}').message
+    def set_active(self, controller: str, active: bool) -> SetActive.Response:
+        """Activate or deactivate a controller; its response (answered step, model version)."""
+        return self.call(controller, SetActive.Request(active=active), 10.0,
+                         f'set_active({active}) of {controller}')
+
+    def set_buffering(self, buffering: bool, what: str) -> SetBuffering.Response:
+        """(Re)start or stop the learner's buffering; its response (counts, matched y)."""
+        return self.call('set_buffering', SetBuffering.Request(buffering=buffering), 10.0,
+                         what)
 
     def wait_model(self, controller: str, version: int, timeout: float) -> None:
-        """Wait until the (inactive) controller has model `version` ready for its next tick."""
+        """Wait until the (inactive) controller has model `version` ready for its next tick
+        (it builds a model on a worker thread after the weights arrive; no topic says when)."""
         deadline = time.monotonic() + timeout
-        while model_version(self.set_active(controller, False)) != version:
+        while self.set_active(controller, False).model_version != version:
             if time.monotonic() > deadline:
                 raise ExperimentError(f'{controller} did not take model version {version} '
                                       f'within {timeout:g} s')
@@ -206,12 +203,6 @@ class ExperimentClient(SpunNode):
         final events were missing from recordings)."""
         self._events.wait_for_all_acked(Duration(seconds=ack_timeout))
         super().close()
-
-
-def model_version(set_active_answer: str) -> int:
-    """The model version a controller's set_active answer names (-1 if none)."""
-    found = _MODEL_VERSION.search(set_active_answer)
-    return int(found.group(1)) if found else -1
 
 
 def response_dict(response: Any, fields: List[str]) -> Dict[str, Any]:

@@ -55,7 +55,7 @@ class Timeouts:
 
 @dataclass
 class ExperimentConfig:
-    """Everything an experiment needs; defaults are the paper's set-up (DESIGN.md sec. 4).
+    """Everything an experiment needs; defaults are the paper's set-up.
 
     Attributes:
         methods: what to compare, in order (:data:`METHODS`).

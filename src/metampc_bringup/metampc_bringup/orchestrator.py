@@ -34,7 +34,6 @@ import time
 from typing import Any, Dict, Iterator, List, Optional
 
 from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant
-from std_srvs.srv import SetBool
 from tqdm import tqdm
 
 from .experiment_client import (EVENTS_TOPIC, ExperimentClient, ExperimentError,
@@ -162,7 +161,7 @@ class SeedRun:
         # Only now, long after the plant paused: the learner has taken every sample of the
         # collection, and its buffer (capacity target_samples) holds the first ones, whatever
         # the timing (stopped at once, it kept however many it had processed by then).
-        self.client.call('set_buffering', _set_bool(False), 10.0, 'collect: stop buffering')
+        self.client.set_buffering(False, 'collect: stop buffering')
         for method in config.methods:
             if method == 'nmpc':
                 self._timed('track_nmpc', self._track, method, 'controller_nmpc', 0)
@@ -201,7 +200,7 @@ class SeedRun:
                               f'{what}: y_0 after the plant reset')
             start = client.last.stamp
             client.reset_counts()   # count the new episode only
-            if 'answered step 0;' in client.set_active(controller, True):
+            if client.set_active(controller, True).answered_step == 0:
                 return start
             try:
                 client.wait_until(lambda: client.samples > 0, EPISODE_START_S,
@@ -224,9 +223,7 @@ class SeedRun:
         """
         deadline = time.monotonic() + self.config.timeouts.startup
         while True:
-            message = self.client.call('set_buffering', _set_bool(True), 10.0,
-                                       'collect: start buffering').message
-            if not message.endswith('to 0 publisher(s)'):
+            if self.client.set_buffering(True, 'collect: start buffering').matched_publishers:
                 return
             if time.monotonic() > deadline:
                 raise ExperimentError("collect: the learner's y subscription never matched "
@@ -300,10 +297,6 @@ class SeedRun:
         if last.diverged:
             log.warning('seed %d: %s let the plant escape at step %d', self.seed, method,
                         last.step)
-
-
-def _set_bool(value: bool) -> SetBool.Request:
-    return SetBool.Request(data=value)
 
 
 class PhaseProgress:

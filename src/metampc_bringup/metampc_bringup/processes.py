@@ -9,7 +9,11 @@ import contextlib
 import os
 import signal
 import subprocess
+import time
 from typing import Dict, Iterable, List, Optional
+
+STACK_DUMP_S = 2.0    # s for a hung node to write its thread stacks (SIGUSR1) before SIGKILL
+LOG_TAIL = 6000       # characters of a hung node's output in the error
 
 
 def ros_args(params: Optional[Dict[str, object]] = None, remaps: Optional[Dict[str, str]] = None,
@@ -51,6 +55,13 @@ def session_pids(sid: int) -> List[int]:
     return pids
 
 
+class StopTimeout(subprocess.TimeoutExpired):
+    """A process outlived its SIGINT; the message ends with the tail of its output."""
+
+    def __str__(self) -> str:
+        return f'{super().__str__()}; its output ends with:\n{self.output or ""}'
+
+
 class ProcessGroup:
     """Nodes started for one run or test; `stop_all` stops every one (SIGINT, then SIGKILL)."""
 
@@ -90,16 +101,26 @@ class ProcessGroup:
     def interrupt(proc: subprocess.Popen, timeout: float = 10.0) -> int:
         """SIGINT to the process's group (as Ctrl-C does), wait, return the exit code.
 
-        If it is still running after `timeout` s, every process of its session is killed and
-        subprocess.TimeoutExpired is raised.
+        If it is still running after `timeout` s, the nodes of its session are asked for their
+        thread stacks (SIGUSR1: metampc nodes register faulthandler for it), every process of
+        the session is killed and :class:`StopTimeout` is raised with the end of the output.
         """
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGINT)
         try:
             return proc.wait(timeout)
         except subprocess.TimeoutExpired:
+            # proc itself is the `ros2 run` (no handler: SIGUSR1 would end it); its children
+            # are the nodes.
+            for pid in session_pids(proc.pid):
+                if pid != proc.pid:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, signal.SIGUSR1)
+            time.sleep(STACK_DUMP_S)
             ProcessGroup.kill(proc)
-            raise
+            log = getattr(proc, 'log_path', None)
+            tail = ProcessGroup.output(proc)[-LOG_TAIL:] if log else ''
+            raise StopTimeout(proc.args, timeout, output=tail) from None
 
     @staticmethod
     def kill(proc: subprocess.Popen) -> None:

@@ -1,9 +1,9 @@
 """Parameters of the recorder node: table, typed config and checks. No rclpy.
 
 The node declares every entry of :data:`PARAMETERS` through the shared runtime
-(:func:`metampc_plant.node_main.declare_parameters`) and hands the values to
+(:func:`metampc_common.node_main.declare_parameters`) and hands the values to
 :func:`parse_params`; a bad value is one error line and exit status 2
-(:class:`~metampc_plant.node_params.ParameterError`). The orchestrator builds a
+(:class:`~metampc_common.params.ParameterError`). The orchestrator builds a
 :class:`RecorderConfig` and turns it into ``--ros-args`` with :meth:`RecorderConfig.to_parameters`.
 """
 import json
@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Dict, List, Mapping
 
-from metampc_plant.node_params import number, ParameterError, ParamSpec, Value
+from metampc_common.params import number, ParameterError, ParamSpec, Value
 
 from .mcap_writer import COMPRESSIONS, McapWriterConfig
 

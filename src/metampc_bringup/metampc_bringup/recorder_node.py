@@ -21,8 +21,8 @@ import sys
 from functools import partial
 from typing import Dict, Set
 
-from metampc_plant.node_main import declare_parameters, run_node
-from metampc_plant.node_params import ParameterError
+from metampc_common.node_main import declare_parameters, run_node
+from metampc_common.params import ParameterError
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 

@@ -19,7 +19,7 @@ MPC_STATUS = 'metampc_msgs/msg/MpcStatus'
 NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
 TRAINING_PROGRESS = 'metampc_msgs/msg/TrainingProgress'
 PLANT_INFO = 'metampc_msgs/msg/PlantInfo'
-# Type -> default topic name of DESIGN.md section 3 (relative).
+# Type -> default topic name (relative; docs/architecture.md, 'Graph').
 DEFAULT_TOPICS = {PLANT_OUTPUT: 'y', CONTROL_INPUT: 'u', MPC_STATUS: 'mpc_status',
                   NSSM_WEIGHTS: 'nssm_weights', TRAINING_PROGRESS: 'progress',
                   PLANT_INFO: 'plant_info'}

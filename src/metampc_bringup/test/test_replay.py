@@ -149,8 +149,10 @@ def test_play_republishes_with_recorded_qos(tmp_path, procs, probe, recorders):
     got = {'y': [], 'weights': []}
     probe.node.create_subscription(PlantOutput, 'y', got['y'].append, STREAM)
     # Volatile samples published before the player has matched the probe's subscription would
-    # be lost (with ros2 bag play as here): --wait-subscribers waits for that match.
-    player = subprocess.Popen([sys.executable, REPLAY, str(path), '--play',
+    # be lost (with ros2 bag play as here): --wait-subscribers waits for that match. Played at
+    # a tenth of the speed (about 20 s) so that the late subscriber below is discovered while
+    # the player still runs, however loaded the machine.
+    player = subprocess.Popen([sys.executable, REPLAY, str(path), '--play', '--rate', '0.1',
                                '--wait-subscribers', '30'],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                               env={**os.environ, 'PYTHONUNBUFFERED': '1'})
@@ -161,7 +163,7 @@ def test_play_republishes_with_recorded_qos(tmp_path, procs, probe, recorders):
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
         probe.node.create_subscription(NssmWeights, 'nssm_weights', got['weights'].append, late)
         try:
-            probe.wait_for(lambda: len(got['y']) == 40 and got['weights'], 30, 'the replay')
+            probe.wait_for(lambda: len(got['y']) == 40 and got['weights'], 90, 'the replay')
         except AssertionError as err:
             raise AssertionError(f"{err}: {len(got['y'])} samples (steps "
                                  f"{[m.step for m in got['y']][:5]}...), "

@@ -20,13 +20,11 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from metampc_plant.excitation import excitation, ExcitationConfig
-from metampc_plant.vanderpol import N_U
-
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
+from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.nmpc import Nmpc, NmpcConfig
-from metampc_controller.nssm import NssmPredictor
+from metampc_controller.nmpc import N_U, Nmpc, NmpcConfig
+from metampc_controller.predictor import NssmPredictor
 from metampc_controller.references import make_reference
 from metampc_controller.weights_codec import DecodedWeights, WeightsError
 

@@ -1,4 +1,4 @@
-"""The `controller` node: a thin ROS 2 adapter over controller_core (DESIGN.md, section 3).
+"""The `controller` node: a thin ROS 2 adapter over controller_core.
 
 Interfaces (relative names, so a namespace can wrap them):
 
@@ -16,9 +16,10 @@ Interfaces (relative names, so a namespace can wrap them):
 * ``u`` (ControlInput, published, reliable): the input computed from y_k, with ``step = k``,
   held over (k, k+1], stamped with y_k's stamp, and the NSSM version that produced it.
 * ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it.
-* ``set_active`` (std_srvs/SetBool): inactive, nothing is published (a lockstep plant waits);
-  activation answers the newest unanswered y at once. The answer ends with
-  ``model version V``: the model of the next tick (0: none).
+* ``set_active`` (metampc_msgs/SetActive): inactive, nothing is published (a lockstep plant
+  waits); activation answers the newest unanswered y at once. The response carries the step
+  answered at once (``answered_step``, -1: none) and ``model_version``, the model of the next
+  tick (0: none).
 
 Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
 plant, rate_hz = 1/dt). Each y is answered exactly once (controller_core.AnswerRule): a tick
@@ -37,25 +38,19 @@ import math
 import sys
 import time
 
+from metampc_common.node_main import declare_parameters, EventCounts, run_node
+from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
-from metampc_plant.node_main import declare_parameters, EventCounts, run_node
+from metampc_msgs.srv import SetActive
 import numpy as np
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
-from std_srvs.srv import SetBool
 
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
                                                 PlantDescription, TickResult)
 from metampc_controller.controller_params import PARAMETERS, parse_params
 from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
 
-# As the plant's y: deep enough that a recorder a few hundred samples behind loses nothing.
-STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y')
 
 
@@ -86,15 +81,14 @@ class ControllerNode(Node):
         # group of their own measured ~1.6x the CPU per sample and fell behind its y queue at
         # 100 Hz on a loaded 2-core machine (docs/controller.md).
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix='model_builder')
-        self._pub_u = self.create_publisher(ControlInput, 'u', STREAM_QOS)
-        self._pub_status = self.create_publisher(MpcStatus, 'mpc_status', STREAM_QOS)
-        self.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS)
-        self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED_QOS)
-        self.create_subscription(Float64MultiArray, 'reference', self._on_reference,
-                                 COMMAND_QOS)
+        self._pub_u = self.create_publisher(ControlInput, 'u', STREAM)
+        self._pub_status = self.create_publisher(MpcStatus, 'mpc_status', STREAM)
+        self.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
+        self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED)
+        self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)
         if self.cfg.planner == 'latent_mpc':
-            self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED_QOS)
-        self.create_service(SetBool, 'set_active', self._on_set_active)
+            self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED)
+        self.create_service(SetActive, 'set_active', self._on_set_active)
         self.create_timer(1.0 / self.cfg.rate_hz, self._on_timer)
         mpc = self.cfg.mpc
         self.get_logger().info(
@@ -149,17 +143,20 @@ class ControllerNode(Node):
         status.header.stamp = self._stamp
         self._pub_status.publish(status)
 
-    def _on_set_active(self, request: SetBool.Request, response: SetBool.Response
-                       ) -> SetBool.Response:
-        answer_now = self.rule.set_active(request.data)
+    def _on_set_active(self, request: SetActive.Request, response: SetActive.Response
+                       ) -> SetActive.Response:
+        answer_now = self.rule.set_active(request.active)
         response.success = True
-        response.message = 'active' if request.data else 'inactive: publishing nothing'
+        response.answered_step = -1
         if answer_now:
             self._answer(time.perf_counter())
-            response.message += f', answered step {self.core.history.step}'
+            response.answered_step = self.core.history.step
         # The orchestrator reads the version to know the model for the next tick is ready.
         model = self.core.model
-        response.message += f'; model version {model.version if model is not None else 0}'
+        response.model_version = model.version if model is not None else 0
+        response.message = (('active' if request.active else 'inactive: publishing nothing')
+                            + (f', answered step {response.answered_step}' if answer_now
+                               else '') + f'; model version {response.model_version}')
         self.get_logger().info(f'set_active: {response.message}')
         return response
 

@@ -8,11 +8,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Mapping, Tuple
 
-from metampc_plant.excitation import ExcitationConfig
-from metampc_plant.node_params import number, ParameterError, ParamSpec, Value
-from metampc_plant.vanderpol import N_Y
+from metampc_common.params import number, ParameterError, ParamSpec, Value
 
+from metampc_controller.excitation import ExcitationConfig
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.nmpc import N_Y
 from metampc_controller.references import make_reference, PaperConfig
 
 PLANNERS = ('latent_mpc', 'nmpc')

@@ -18,8 +18,8 @@ spectral radius below rho_max is similar to one with spectral norm below rho_max
 encoder's last layer and C absorb the change of latent basis.
 
 Published weights (messages, checkpoints, ``Params`` dicts) carry A itself; W exists only in
-the flat training vector (``nssm.ParamSpec``). :func:`transition_coordinates` is the inverse,
-for training that starts from published weights (adaptation from omega_inf).
+the flat training vector (``metampc_learner.training_vector``). :func:`transition_coordinates`
+is the inverse, for training that starts from published weights (adaptation from omega_inf).
 """
 import torch
 

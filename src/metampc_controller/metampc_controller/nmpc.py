@@ -20,7 +20,9 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy.optimize import minimize
 
-from metampc_plant.vanderpol import N_Y, rk4_sample
+# The plant's equations: the one module of the controller that imports the plant package. Its
+# input and output counts are also those the controller checks samples and parameters against.
+from metampc_plant.vanderpol import N_U, N_Y, rk4_sample
 
 
 @dataclass
@@ -125,7 +127,7 @@ class Nmpc:
             plan = np.clip(guess, cfg.u_min, cfg.u_max)
         self._plan = plan
         y_pred = self.rollout(x0, plan[None])[0]
-        return NmpcResult(u=plan[:1].copy(), u_plan=plan[:, None], y_pred=y_pred,
+        return NmpcResult(u=plan[:1].copy(), u_plan=plan.reshape(n, N_U), y_pred=y_pred,
                           cost=float(self.costs(x0, u_prev, y_ref, plan[None])[0]),
                           status='solved' if res.success else f'stopped: {res.message}',
                           iterations=int(res.nit), solve_time=time.perf_counter() - start)

@@ -19,23 +19,23 @@ in normalised units.
 
 Parameters are a ``Dict[str, Tensor]`` in the canonical order of :func:`param_shapes`
 (``encoder.<i>.weight``, ``encoder.<i>.bias``, ``A``, ``B``, ``C``), usable with
-``torch.func.functional_call(Nssm(...), params, (u, y))``. :class:`FlatWeights` is the exact
-float32 round trip that the NssmWeights message carries. :class:`NssmPredictor` is the numpy
-view the controller runs at every tick: ``encode`` from physical histories and the
-:class:`LatentModel` in physical units.
+``torch.func.functional_call(Nssm(...), params, (u, y))``. The same model elsewhere, one idea
+a module: the units (``normalisation.py``), the numpy view the controller runs at every tick
+(``predictor.py``), the NssmWeights message's fields (``weights_codec.py``) and the flat
+vector that training steps (``metampc_learner.training_vector``).
 """
 from collections import OrderedDict
 import math
-from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Tuple
+from dataclasses import dataclass
+from typing import Dict, Mapping, Tuple
 
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from metampc_controller.latent_model import LatentModel
-from metampc_controller.latent_stability import bounded_transition, transition_coordinates
+from metampc_controller.latent_stability import bounded_transition
+from metampc_controller.normalisation import Normalisation
 
 Params = Dict[str, torch.Tensor]
 
@@ -84,51 +84,6 @@ class NssmConfig:
     def window(self) -> int:
         """Samples in one training window, H + T."""
         return self.history + self.horizon
-
-
-@dataclass
-class Normalisation:
-    """Affine scaling between physical and normalised units; travels with the model.
-
-    ``u_n = (u - u_mean) / u_std``, ``y_n = (y - y_mean) / y_std``. Arrays of shape (n_u,)
-    and (n_y,), float64, scales > 0.
-    """
-
-    u_mean: np.ndarray
-    u_std: np.ndarray
-    y_mean: np.ndarray
-    y_std: np.ndarray
-
-    def __post_init__(self):
-        for name in ('u_mean', 'u_std', 'y_mean', 'y_std'):
-            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(-1))
-
-    @classmethod
-    def identity(cls, config: NssmConfig) -> 'Normalisation':
-        return cls(np.zeros(config.n_u), np.ones(config.n_u), np.zeros(config.n_y),
-                   np.ones(config.n_y))
-
-    def validate(self, config: NssmConfig) -> None:
-        """Raise ValueError on wrong sizes, non-finite entries or scales <= 0."""
-        for name, n in (('u_mean', config.n_u), ('u_std', config.n_u), ('y_mean', config.n_y),
-                        ('y_std', config.n_y)):
-            value = getattr(self, name)
-            if value.shape != (n,) or not np.all(np.isfinite(value)):
-                raise ValueError(f'{name} must be {n} finite numbers, got {value.tolist()}')
-        if np.any(self.u_std <= 0) or np.any(self.y_std <= 0):
-            raise ValueError('normalisation scales must be > 0')
-
-    def to_dict(self) -> Dict[str, List[float]]:
-        return {name: getattr(self, name).tolist()
-                for name in ('u_mean', 'u_std', 'y_mean', 'y_std')}
-
-    def normalise(self, u: np.ndarray, y: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Physical (..., n_u), (..., n_y) -> normalised, same shapes."""
-        return (u - self.u_mean) / self.u_std, (y - self.y_mean) / self.y_std
-
-    def denormalise_y(self, y_n: np.ndarray) -> np.ndarray:
-        """Normalised outputs (..., n_y) -> physical."""
-        return y_n * self.y_std + self.y_mean
 
 
 def param_shapes(config: NssmConfig) -> 'OrderedDict[str, Tuple[int, ...]]':
@@ -228,14 +183,6 @@ class Nssm(nn.Module):
         n_h = self.config.history
         return self.rollout(self.encode(u[..., :n_h, :], y[..., :n_h, :]), u[..., n_h:, :])
 
-    def latent_model(self, params: Mapping[str, torch.Tensor]) -> LatentModel:
-        """The affine latent model in physical units for these parameters."""
-        return latent_model(params, self.norm)
-
-    def predictor(self, params: Mapping[str, torch.Tensor]) -> 'NssmPredictor':
-        """The numpy view for the controller."""
-        return NssmPredictor(self.config, self.norm, params)
-
 
 def prediction_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Tensor,
                     y: torch.Tensor) -> torch.Tensor:
@@ -245,147 +192,3 @@ def prediction_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Te
     """
     y_hat = torch.func.functional_call(model, params, (u, y))
     return (y_hat - y[..., model.config.history:, :]).square().sum(dim=-1).mean()
-
-
-def latent_model(params: Mapping[str, torch.Tensor], norm: Normalisation) -> LatentModel:
-    """Eqs. (z_next), (haty) in physical units (see ``latent_model.py`` for the mapping).
-
-    A = A_n, B = B_n / u_std, e = -B_n (u_mean / u_std), C = diag(y_std) C_n, d = y_mean.
-    """
-    a_n, b_n, c_n = (params[k].detach().cpu().double().numpy() for k in ('A', 'B', 'C'))
-    return LatentModel(A=a_n.copy(), B=b_n / norm.u_std[None, :],
-                       e=-b_n @ (norm.u_mean / norm.u_std), C=norm.y_std[:, None] * c_n,
-                       d=norm.y_mean.copy())
-
-
-@dataclass
-class FlatWeights:
-    """Parameters as the NssmWeights message carries them.
-
-    ``shapes[shape_offsets[i]:shape_offsets[i+1]]`` is the shape of ``names[i]``
-    (len(shape_offsets) = len(names) + 1); ``params`` concatenates the row-major flattened
-    parameters in the order of ``names``, float32.
-    """
-
-    names: List[str]
-    shape_offsets: List[int]
-    shapes: List[int]
-    params: np.ndarray = field(repr=False)
-
-    @classmethod
-    def from_params(cls, params: Mapping[str, torch.Tensor]) -> 'FlatWeights':
-        names = list(params)
-        offsets, shapes = [0], []
-        for name in names:
-            shapes.extend(int(s) for s in params[name].shape)
-            offsets.append(len(shapes))
-        flat = np.concatenate([params[n].detach().cpu().reshape(-1).to(torch.float32).numpy()
-                               for n in names]) if names else np.zeros(0, np.float32)
-        return cls(names, offsets, shapes, flat)
-
-    def shape_of(self, i: int) -> Tuple[int, ...]:
-        return tuple(self.shapes[self.shape_offsets[i]:self.shape_offsets[i + 1]])
-
-    def to_params(self, config: NssmConfig, dtype: torch.dtype = torch.float32) -> Params:
-        """Rebuild the parameter dict; ValueError if it does not fit the architecture."""
-        expected = param_shapes(config)
-        if len(self.shape_offsets) != len(self.names) + 1:
-            raise ValueError('shape_offsets must have one entry more than names')
-        got = {n: self.shape_of(i) for i, n in enumerate(self.names)}
-        if got != dict(expected):
-            raise ValueError(f'weights do not fit the NSSM {config}: got {got}')
-        sizes = [int(np.prod(got[n])) for n in self.names]
-        flat = np.asarray(self.params, dtype=np.float32).reshape(-1)
-        if flat.size != sum(sizes):
-            raise ValueError(f'{flat.size} parameters, shapes need {sum(sizes)}')
-        if not np.all(np.isfinite(flat)):
-            raise ValueError('weights have non-finite entries')
-        chunks = dict(zip(self.names, np.split(flat, np.cumsum(sizes)[:-1])))
-        return {n: torch.from_numpy(chunks[n].copy()).reshape(s).to(dtype)
-                for n, s in expected.items()}
-
-
-class ParamSpec:
-    """Round trip between a parameter dict and the flat training vector (P,), differentiable.
-
-    Training keeps the weights as one vector so that CG, the proximal term, Adam and vmap
-    over tasks work on plain tensors. The vector holds every parameter as it is, except that
-    with ``stable_latent`` it holds W in place of A (``latent_stability.py``): every step of
-    every method then keeps ||A||_2 < rho_max. :meth:`unflatten` maps back (differentiably,
-    under vmap too) for functional_call; the round trip is exact to float rounding.
-    """
-
-    def __init__(self, config: NssmConfig):
-        self.config = config
-        self.shapes = param_shapes(config)
-        self.sizes = [int(np.prod(s)) for s in self.shapes.values()]
-        self.size = sum(self.sizes)
-
-    def flatten(self, params: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Published weights -> training vector; ValueError if A is outside the bound."""
-        cfg = self.config
-        return torch.cat([(transition_coordinates(params[n], cfg.rho_max)
-                           if n == 'A' and cfg.stable_latent else params[n]).reshape(-1)
-                          for n in self.shapes])
-
-    def unflatten(self, flat: torch.Tensor) -> Params:
-        """Training vector (..., P) -> published weights (leading dimensions kept)."""
-        chunks = torch.split(flat, self.sizes, dim=-1)
-        params = {n: c.reshape(*c.shape[:-1], *s)
-                  for (n, s), c in zip(self.shapes.items(), chunks)}
-        if self.config.stable_latent:
-            params['A'] = bounded_transition(params['A'], self.config.rho_max)
-        return params
-
-
-class NssmPredictor:
-    """Numpy NSSM for the controller tick: encode physical histories, latent model, predict.
-
-    Args:
-        config, norm: as the model's.
-        params: parameter dict (any float dtype); copied to float64 numpy arrays.
-    """
-
-    def __init__(self, config: NssmConfig, norm: Normalisation,
-                 params: Mapping[str, torch.Tensor]):
-        self.config = config
-        self.norm = norm
-        n_layers = len(config.hidden) + 1
-        self._layers = [(params[f'encoder.{i}.weight'].detach().cpu().double().numpy().copy(),
-                         params[f'encoder.{i}.bias'].detach().cpu().double().numpy().copy())
-                        for i in range(n_layers)]
-        self.latent = latent_model(params, norm)
-
-    def encode(self, u_hist: np.ndarray, y_hist: np.ndarray) -> np.ndarray:
-        """Eq. (z) from physical histories u_{t-H+1..t} (H, n_u), y_{t-H+1..t} (H, n_y).
-
-        Returns z_t, shape (n_z,), float64. Rows are oldest first; row k of u_hist is the
-        input that produced row k of y_hist.
-        """
-        cfg = self.config
-        u_n = (np.asarray(u_hist, dtype=np.float64).reshape(cfg.history, cfg.n_u)
-               - self.norm.u_mean) / self.norm.u_std
-        y_n = (np.asarray(y_hist, dtype=np.float64).reshape(cfg.history, cfg.n_y)
-               - self.norm.y_mean) / self.norm.y_std
-        h = np.concatenate([u_n, y_n], axis=1).reshape(-1)
-        last = len(self._layers) - 1
-        for i, (w, b) in enumerate(self._layers):
-            h = w @ h + b
-            if i < last:
-                np.maximum(h, 0.0, out=h)
-        return h
-
-    def predict(self, u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray
-                ) -> np.ndarray:
-        """Physical y_{t+1..t+K} (K, n_y) from the histories and u_{t+1..t+K} (K, n_u)."""
-        z = self.encode(u_hist, y_hist)
-        u_future = np.asarray(u_future, dtype=np.float64).reshape(-1, self.config.n_u)
-        out = np.empty((u_future.shape[0], self.config.n_y))
-        for k, u in enumerate(u_future):
-            z = self.latent.step(z, u)
-            out[k] = self.latent.output(z)
-        return out
-
-
-__all__ = ['NssmConfig', 'Normalisation', 'Nssm', 'NssmPredictor', 'FlatWeights', 'ParamSpec',
-           'param_shapes', 'init_params', 'prediction_loss', 'latent_model', 'Params']

@@ -18,17 +18,64 @@ Reading::
     predictor = NssmPredictor(decoded.config, decoded.norm, decoded.params)
 """
 from array import array
-from dataclasses import dataclass
-from typing import Any, Dict, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Mapping, Tuple
 
 import numpy as np
 import torch
 
-from metampc_controller.nssm import (FlatWeights, Normalisation, NssmConfig, param_shapes,
-                                     Params)
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import NssmConfig, param_shapes, Params
 
 MODEL_FIELDS = ('n_z', 'n_u', 'n_y', 'history', 'encoder_layers', 'names', 'shape_offsets',
                 'shapes', 'params', 'u_mean', 'u_std', 'y_mean', 'y_std')
+
+
+@dataclass
+class FlatWeights:
+    """Parameters as the NssmWeights message carries them.
+
+    ``shapes[shape_offsets[i]:shape_offsets[i+1]]`` is the shape of ``names[i]``
+    (len(shape_offsets) = len(names) + 1); ``params`` concatenates the row-major flattened
+    parameters in the order of ``names``, float32.
+    """
+
+    names: List[str]
+    shape_offsets: List[int]
+    shapes: List[int]
+    params: np.ndarray = field(repr=False)
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, torch.Tensor]) -> 'FlatWeights':
+        names = list(params)
+        offsets, shapes = [0], []
+        for name in names:
+            shapes.extend(int(s) for s in params[name].shape)
+            offsets.append(len(shapes))
+        flat = np.concatenate([params[n].detach().cpu().reshape(-1).to(torch.float32).numpy()
+                               for n in names]) if names else np.zeros(0, np.float32)
+        return cls(names, offsets, shapes, flat)
+
+    def shape_of(self, i: int) -> Tuple[int, ...]:
+        return tuple(self.shapes[self.shape_offsets[i]:self.shape_offsets[i + 1]])
+
+    def to_params(self, config: NssmConfig, dtype: torch.dtype = torch.float32) -> Params:
+        """Rebuild the parameter dict; ValueError if it does not fit the architecture."""
+        expected = param_shapes(config)
+        if len(self.shape_offsets) != len(self.names) + 1:
+            raise ValueError('shape_offsets must have one entry more than names')
+        got = {n: self.shape_of(i) for i, n in enumerate(self.names)}
+        if got != dict(expected):
+            raise ValueError(f'weights do not fit the NSSM {config}: got {got}')
+        sizes = [int(np.prod(got[n])) for n in self.names]
+        flat = np.asarray(self.params, dtype=np.float32).reshape(-1)
+        if flat.size != sum(sizes):
+            raise ValueError(f'{flat.size} parameters, shapes need {sum(sizes)}')
+        if not np.all(np.isfinite(flat)):
+            raise ValueError('weights have non-finite entries')
+        chunks = dict(zip(self.names, np.split(flat, np.cumsum(sizes)[:-1])))
+        return {n: torch.from_numpy(chunks[n].copy()).reshape(s).to(dtype)
+                for n, s in expected.items()}
 
 
 class WeightsError(ValueError):

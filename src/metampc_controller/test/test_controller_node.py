@@ -19,9 +19,9 @@ import math
 import time
 
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
+from metampc_msgs.srv import SetActive
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
-from std_srvs.srv import SetBool
 
 from metampc_controller.manual_model import linearised_vdp_nssm
 from metampc_controller.weights_codec import fields_from_weights
@@ -33,7 +33,10 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 # A long input timeout: a step the controller does not answer stalls the run (and the test
 # times out) instead of being covered up by the plant holding its input.
 PLANT = {'theta': 0.5, 'input_timeout': 30.0}
-CONTROLLER = {'use_sim_time': True, 'reference': 'setpoint', 'reference_values': [0.5]}
+# time_limit: OSQP's wall-clock cap (50 ms) trips when a loaded machine stalls the process;
+# the checks of 'solved' below are about the answer, not its speed.
+CONTROLLER = {'use_sim_time': True, 'reference': 'setpoint', 'reference_values': [0.5],
+              'time_limit': 30.0}
 
 
 def weights(version: int, theta: float = 0.5, **model) -> NssmWeights:
@@ -87,7 +90,7 @@ class Loop:
             return sorted(set(range(steps)) - {m.step for m in self.us})
 
         try:
-            self.probe.wait_for(lambda: not missing(), 5.0, f'the inputs of steps < {steps}')
+            self.probe.wait_for(lambda: not missing(), 30.0, f'the inputs of steps < {steps}')
         except AssertionError as err:
             raise AssertionError(f'{err}; missing {missing()[:20]}') from None
         return {m.step: m.u[0] for m in self.us}
@@ -105,7 +108,7 @@ class Loop:
         assert all(answers[k] == 1 for k in range(last)), 'each step answered exactly once'
         # The probe may hear u_k before y_k (other topic), so it waits for the ys to catch up.
         newest = max(answers)
-        self.probe.wait_for(lambda: self.ys[-1].step >= newest, 5.0,
+        self.probe.wait_for(lambda: self.ys[-1].step >= newest, 30.0,
                             f'y_{newest} (answered): no answer for a step not yet published')
         heard = [m.step for m in ys]
         assert heard == list(range(heard[0], last + 1)), 'one episode, no gap'
@@ -188,7 +191,7 @@ def test_excitation_tracking_swaps_rejections_and_restart(procs, probe):
 def test_nmpc_reference_override_and_set_active(procs, probe):
     loop = Loop(probe)
     reference = probe.node.create_publisher(Float64MultiArray, 'reference', RELIABLE)
-    client = probe.node.create_client(SetBool, 'set_active')
+    client = probe.node.create_client(SetActive, 'set_active')
     plant, ctl = loop.start(procs, PLANT, {**CONTROLLER, 'planner': 'nmpc', 'horizon': 10,
                                            'reference_values': [-0.5]})
     loop.wait_tracked(-0.5)     # nmpc tracks with the plant_info theta
@@ -202,19 +205,27 @@ def test_nmpc_reference_override_and_set_active(procs, probe):
 
     assert client.wait_for_service(timeout_sec=10.0)
 
-    def set_active(value: bool) -> str:
-        future = client.call_async(SetBool.Request(data=value))
+    def set_active(value: bool) -> SetActive.Response:
+        future = client.call_async(SetActive.Request(active=value))
         probe.wait_for(future.done, 10.0, 'set_active response')
-        return future.result().message
+        return future.result()
 
     answer = set_active(False)
-    assert answer.startswith('inactive') and 'model version 0' in answer, answer
-    time.sleep(0.3)     # what was under way when the service ran
-    n_u, n_y = len(loop.us), len(loop.ys)
+    assert answer.success and (answer.answered_step, answer.model_version) == (-1, 0), answer
+    assert answer.message.startswith('inactive'), answer.message
+    # Inactive, the controller answers nothing, so the lockstep plant (input_timeout 30 s)
+    # waits on its newest y, y_S, which activation answers at once. What reached the probe
+    # before activation shows it, whatever the delays: no input or status for S or later, no
+    # y after y_S. (The sleep gives a faulty controller time to publish; nothing is timed.)
     time.sleep(1.0)
-    assert len(loop.us) == n_u and len(loop.ys) == n_y, 'inactive: nothing published'
-    waiting = loop.ys[-1].step
-    assert f'answered step {waiting}' in set_active(True)
+    before = {'u': list(loop.us), 'mpc_status': list(loop.status), 'y': list(loop.ys)}
+    answer = set_active(True)
+    waiting = answer.answered_step
+    assert waiting >= 0, f'activation answered nothing: {answer}'
+    assert f'answered step {waiting}' in answer.message, answer.message
+    assert all(m.step < waiting for m in before['u'] + before['mpc_status']), (
+        'inactive: nothing published')
+    assert all(m.step <= waiting for m in before['y']), 'the plant waited for an input'
     loop.wait_steps(10)
     loop.check_one_answer_per_step()
     stop_cleanly(procs, ctl)

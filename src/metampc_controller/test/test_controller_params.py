@@ -4,8 +4,8 @@ import re
 
 import pytest
 
+from metampc_common.params import ParameterError
 from metampc_controller.controller_params import parse_params, PARAMETERS
-from metampc_plant.node_params import ParameterError
 
 
 def values(**changes):

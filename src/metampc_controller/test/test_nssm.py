@@ -1,14 +1,14 @@
 """The NSSM: shapes, seeding, flat round trip, latent model and numpy encoder (no ROS)."""
-import time
 
 import numpy as np
 import pytest
 import torch
 from torch.func import functional_call
 
-from metampc_controller.nssm import (FlatWeights, init_params, latent_model, Normalisation,
-                                     Nssm, NssmConfig, NssmPredictor, param_shapes, ParamSpec,
-                                     prediction_loss)
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import init_params, Nssm, NssmConfig, param_shapes, prediction_loss
+from metampc_controller.predictor import latent_model, NssmPredictor
+from metampc_controller.weights_codec import FlatWeights
 
 torch.set_num_threads(1)
 
@@ -96,20 +96,6 @@ def test_flat_weights_rejects_mismatch():
             config)
 
 
-def test_param_spec_round_trip_is_exact():
-    """Exact for a free A; the stable A goes through W and back (test_latent_stability.py)."""
-    config = NssmConfig(stable_latent=False)
-    spec = ParamSpec(config)
-    params = init_params(config, 2)
-    flat = spec.flatten(params)
-    assert flat.shape == (spec.size,)
-    back = spec.unflatten(flat)
-    assert all(torch.equal(back[k], params[k]) for k in params)
-    stable = ParamSpec(NssmConfig())
-    back = stable.unflatten(stable.flatten(init_params(NssmConfig(), 2)))
-    assert all(torch.equal(back[k], params[k]) for k in params if k != 'A')
-
-
 @pytest.mark.parametrize('dtype, tol', [(torch.float64, 1e-10), (torch.float32, 1e-5)])
 def test_latent_model_reproduces_the_rollout_in_physical_units(dtype, tol):
     config = NssmConfig()
@@ -124,7 +110,7 @@ def test_latent_model_reproduces_the_rollout_in_physical_units(dtype, tol):
         y_hat_n = functional_call(model, params, (torch.as_tensor(u_n, dtype=dtype),
                                                   torch.as_tensor(y_n, dtype=dtype)))
     y_hat = norm.denormalise_y(y_hat_n.double().numpy())
-    predictor = model.predictor(params)
+    predictor = NssmPredictor(config, norm, params)
     lm = latent_model(params, norm)
     lm.validate()
     n_h = config.history
@@ -155,20 +141,6 @@ def test_latent_model_formula():
     assert np.allclose(lm.e, -b[:, 0] * (0.1 / 0.6))
     assert np.allclose(lm.C, np.diag([2.9, 3.1]) @ c)
     assert np.allclose(lm.d, [0.05, -0.2])
-
-
-def test_encode_is_fast_enough_for_the_controller_tick():
-    config = NssmConfig()
-    predictor = NssmPredictor(config, _norm(), init_params(config, 0))
-    u, y = np.zeros((config.history, 1)), np.ones((config.history, 2))
-    for _ in range(20):
-        predictor.encode(u, y)
-    times = []
-    for _ in range(300):
-        t0 = time.perf_counter()
-        predictor.encode(u, y)
-        times.append(time.perf_counter() - t0)
-    assert np.median(times) < 1e-3, f'median encode {np.median(times) * 1e6:.0f} us'
 
 
 def test_validation():

@@ -9,7 +9,9 @@ from rclpy.serialization import deserialize_message, serialize_message
 import torch
 
 from metampc_controller.manual_model import linearised_vdp, linearised_vdp_nssm
-from metampc_controller.nssm import init_params, Normalisation, NssmConfig, NssmPredictor
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import init_params, NssmConfig
+from metampc_controller.predictor import NssmPredictor
 from metampc_controller.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
                                               weights_from_fields, WeightsError)
 from metampc_plant.vanderpol import rk4_sample, VdpConfig, VdpPlant

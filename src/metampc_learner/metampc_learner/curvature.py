@@ -4,7 +4,7 @@ Q^b = I + H / gamma (eq. Qb) is never formed; CG needs only products with the cu
 
 - 'hessian': the exact Hessian of l_SSM(D_tr; psi), forward-over-reverse
   (``jvp`` of ``grad``). Indefinite for this non-convex loss, so I + H/gamma can be too, and
-  CG then stalls (measured, DESIGN.md sec. 4).
+  CG then stalls (measured, docs/architecture.md 'Calibration').
 - 'gauss_newton': G = J' (2 / (N T)) J with J the Jacobian of the N x T x n_y predictions:
   the Hessian without the residual-curvature term, positive semi-definite, so I + G/gamma is
   positive definite for any gamma > 0. One ``vjp`` closure is built at psi and reused; each

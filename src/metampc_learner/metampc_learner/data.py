@@ -6,8 +6,8 @@ all finite, with step indices without gaps (index convention of ``metampc_plant.
 so a window never spans an invalid sample, a divergence or a gap in step indices.
 
 Non-finite data never enters a data set: simulated episodes that leave the state box (the
-escaping theta < 0 systems of DESIGN.md sec. 4) are dropped whole and counted, and buffered
-samples are split at gaps, non-finite values and out-of-box outputs.
+escaping theta < 0 systems of docs/architecture.md, 'Calibration') are dropped whole and
+counted, and buffered samples are split at gaps, non-finite values and out-of-box outputs.
 
 Source set (sec. Meta-learning framework): N_s simulated van der Pol systems, theta ~ N(0, 1),
 excitation inputs, bounded episodes; each task's episodes are cut in time into D_tr (first
@@ -20,8 +20,9 @@ from typing import Deque, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from metampc_controller.nssm import NssmConfig, Normalisation
-from metampc_plant.excitation import excitation, ExcitationConfig
+from metampc_controller.excitation import excitation, ExcitationConfig
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import NssmConfig
 from metampc_plant.vanderpol import sample_thetas, simulate, VdpConfig
 
 
@@ -125,7 +126,7 @@ def normalisation_from(trajectories: Sequence[Trajectory], y_spread: float = 3.0
     """Statistics of source data: u_n has unit std, y_n has std 1 / y_spread.
 
     y_spread = 3 maps +-3 standard deviations of the outputs to +-1, which is the output
-    scaling of the calibration in DESIGN.md sec. 4 (source outputs have std ~1 per channel).
+    scaling of the calibration (docs/architecture.md) (source outputs have std ~1 per channel).
     """
     u = np.concatenate([t.u for t in trajectories])
     y = np.concatenate([t.y for t in trajectories])

@@ -1,4 +1,4 @@
-"""The `learner` node: a thin ROS 2 adapter over LearnerSession (DESIGN.md, section 3).
+"""The `learner` node: a thin ROS 2 adapter over LearnerSession.
 
 Interfaces (relative names, so a namespace can wrap them):
 
@@ -6,9 +6,12 @@ Interfaces (relative names, so a namespace can wrap them):
   u_k, y_k) go to D_target (:class:`TargetBuffer`): the first ``target_buffer_size`` valid
   samples after buffering (re)starts (at start-up if ``buffer_on_start``).
 * ``plant_info`` (PlantInfo, subscribed, latched): theta, dt and bounds of the target plant,
-  for the ``oracle`` adaptation and the dt check.
-* ``set_buffering`` (std_srvs/SetBool): true clears D_target and (re)starts buffering, false
-  stops it and keeps the samples; the answer says how many samples were cleared or kept.
+  for the ``oracle`` adaptation. The plant's dt is the one source of truth: a plant that
+  samples at another dt than the ``dt`` parameter (the source systems') ends the node with
+  one error line and exit status 2.
+* ``set_buffering`` (metampc_msgs/SetBuffering): true clears D_target and (re)starts
+  buffering, false stops it and keeps the samples; the response counts the samples cleared,
+  kept and skipped, and the publishers of ``y`` matched when it was sent.
 * ``meta_train`` (MetaTrain): Algorithm 1 on simulated source systems (``learner_session``);
   answers when done with the version, the loss curve and the final loss; publishes the
   meta-model on ``nssm_weights`` (stage 'meta').
@@ -37,17 +40,16 @@ import threading
 import traceback
 from typing import Optional
 
+from metampc_common.node_main import declare_parameters, run_node
+from metampc_common.params import ParameterError
+from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import NssmWeights, PlantInfo, PlantOutput, TrainingProgress
-from metampc_msgs.srv import Adapt, MetaTrain
-from metampc_plant.node_main import declare_parameters, run_node
-from metampc_plant.node_params import ParameterError
+from metampc_msgs.srv import Adapt, MetaTrain, SetBuffering
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
-from std_srvs.srv import SetBool
 import torch
 
 from metampc_controller.weights_codec import fields_from_weights
@@ -59,12 +61,6 @@ from metampc_learner.learner_session import (LearnerError, LearnerSession, Model
 from metampc_learner.meta_train import MetaTrainingError
 from metampc_learner.target_buffer import TargetBuffer
 
-# As the plant's y: reliable, deep enough that no sample of a fast lockstep run is lost.
-STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-PROGRESS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # One thread trains, one answers a second request 'busy', one buffers y, one beats progress.
 EXECUTOR_THREADS = 4
 # Longest wait at shutdown for a running job to reach its next step and stop, s.
@@ -88,14 +84,14 @@ class LearnerNode(Node):
         self._slot = JobSlot()
         self._progress_lock = threading.Lock()
 
-        self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED_QOS)
-        self._pub_progress = self.create_publisher(TrainingProgress, 'progress', PROGRESS_QOS)
+        self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
+        self._pub_progress = self.create_publisher(TrainingProgress, 'progress', SPARSE)
         data = MutuallyExclusiveCallbackGroup()
-        self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, STREAM_QOS,
+        self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, STREAM,
                                                callback_group=data)
-        self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED_QOS,
+        self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED,
                                  callback_group=data)
-        self.create_service(SetBool, 'set_buffering', self._on_set_buffering,
+        self.create_service(SetBuffering, 'set_buffering', self._on_set_buffering,
                             callback_group=data)
         jobs = ReentrantCallbackGroup()
         self.create_service(MetaTrain, 'meta_train', self._on_meta_train, callback_group=jobs)
@@ -127,22 +123,31 @@ class LearnerNode(Node):
                                    f'({self.buffer.skipped} skipped)')
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
-        self._plant = PlantFacts(theta=msg.theta, dt=msg.dt, substeps=msg.substeps,
-                                 u_min=msg.u_min, u_max=msg.u_max, state_bound=msg.state_bound)
+        plant = PlantFacts(theta=msg.theta, dt=msg.dt, substeps=msg.substeps, u_min=msg.u_min,
+                           u_max=msg.u_max, state_bound=msg.state_bound)
+        try:
+            self.session.check_plant(plant)
+        except LearnerError as err:
+            # Refuse at once (exit 2 through run_node), not at the first adapt.
+            raise ParameterError(f'dt: {err}') from None
+        self._plant = plant
 
-    def _on_set_buffering(self, request: SetBool.Request, response: SetBool.Response
-                          ) -> SetBool.Response:
-        if request.data:
-            cleared = self.buffer.start()
-            # Matched from our side: samples published before that never reach us, and
-            # the graph alone (a subscriber listed) does not say so. Callers wait on it.
-            response.message = (f'buffering (re)started: {cleared} samples cleared, keeping '
-                                f'the next {self.buffer.capacity} valid samples; y matched '
-                                f'to {self._sub_y.get_publisher_count()} publisher(s)')
+    def _on_set_buffering(self, request: SetBuffering.Request, response: SetBuffering.Response
+                          ) -> SetBuffering.Response:
+        buffer = self.buffer
+        if request.buffering:
+            response.cleared = buffer.start()
+            response.message = (f'buffering (re)started: {response.cleared} samples cleared, '
+                                f'keeping the next {buffer.capacity} valid samples')
         else:
-            self.buffer.freeze()
-            response.message = (f'buffering stopped: {len(self.buffer)} samples kept '
-                                f'({self.buffer.skipped} skipped)')
+            buffer.freeze()
+            response.message = (f'buffering stopped: {len(buffer)} samples kept '
+                                f'({buffer.skipped} skipped)')
+        response.kept, response.skipped = len(buffer), buffer.skipped
+        response.capacity = buffer.capacity
+        # Matched from our side: samples published before that never reach us, and the
+        # graph alone (a subscriber listed) does not say so. Callers wait on it.
+        response.matched_publishers = self._sub_y.get_publisher_count()
         response.success = True
         self.get_logger().info(response.message)
         return response

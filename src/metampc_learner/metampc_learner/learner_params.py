@@ -7,7 +7,7 @@ are resolved against the parameters by :func:`resolve_meta_request` and
 :func:`resolve_adapt_request` (0 / empty fields mean 'use the node parameter'); they raise
 ``ValueError`` with the reason for a bad request.
 
-Defaults are the calibration of DESIGN.md sec. 4 (B = 16, M = 10 at lr 0.05, 5 CG steps with
+Defaults are the calibration of docs/architecture.md (B = 16, M = 10 at lr 0.05, 5 CG steps with
 Gauss-Newton curvature, Adam 1e-3, 64 windows per task, 20 plain adaptation steps at lr 0.05)
 and the paper's NSSM (n_z = 5, 128-wide ReLU layers).
 """
@@ -15,6 +15,8 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Dict, Mapping, Tuple
 
+from metampc_common.params import number, ParameterError, ParamSpec, Value
+from metampc_controller.excitation import ExcitationConfig, KINDS
 from metampc_controller.nssm import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.curvature import CURVATURES
@@ -22,8 +24,6 @@ from metampc_learner.data import SourceConfig
 from metampc_learner.meta_train import MetaConfig, METHODS
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
-from metampc_plant.excitation import ExcitationConfig, KINDS
-from metampc_plant.node_params import number, ParameterError, ParamSpec, Value
 
 ADAPT_METHODS = ('', *METHODS, 'supervised', 'oracle')
 

@@ -245,6 +245,13 @@ class LearnerSession:
         return plant_source(self.config.source, plant.dt, plant.substeps, plant.u_min,
                             plant.u_max, plant.state_bound)
 
+    def check_plant(self, plant: PlantFacts) -> None:
+        """LearnerError unless the plant samples at the dt the source systems are simulated at
+        (the plant's plant_info is the one source of truth for dt)."""
+        if not math.isclose(plant.dt, self.config.source.dt, rel_tol=1e-9):
+            raise LearnerError(f'the plant samples at dt = {plant.dt} s, the source systems '
+                               f'at dt = {self.config.source.dt} s: set dt:={plant.dt}')
+
     def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantFacts],
               progress: Optional[ProgressFn] = None) -> AdaptOutcome:
         """Adapt (or train a baseline) on the buffered target samples; see the module.
@@ -253,9 +260,8 @@ class LearnerSession:
             LearnerError: no such meta-model, too few samples, no or mismatching plant_info.
         """
         cfg = self.config
-        if plant is not None and not math.isclose(plant.dt, cfg.source.dt, rel_tol=1e-9):
-            raise LearnerError(f'the plant samples at dt = {plant.dt} s, the learner\'s '
-                               f'models at dt = {cfg.source.dt} s: set the dt parameter')
+        if plant is not None:
+            self.check_plant(plant)
         if job.method == 'oracle' and plant is None:
             raise LearnerError("the oracle needs the target's theta: no plant_info received")
         meta = None if job.method in ('supervised', 'oracle') else self._meta_for(job.method)

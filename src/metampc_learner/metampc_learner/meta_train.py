@@ -44,7 +44,7 @@ class MetaTrainingError(RuntimeError):
 
 @dataclass
 class MetaConfig:
-    """Hyperparameters of meta-training (defaults: the calibration of DESIGN.md sec. 4).
+    """Hyperparameters of meta-training (defaults: the calibration, docs/architecture.md).
 
     Attributes:
         method: 'imaml', 'maml' (first-order) or 'maml_unrolled' (second-order).

@@ -12,7 +12,8 @@ import torch
 
 from torch.func import grad_and_value
 
-from metampc_controller.nssm import Nssm, ParamSpec, prediction_loss
+from metampc_controller.nssm import Nssm, prediction_loss
+from metampc_learner.training_vector import TrainingVector
 
 ARMIJO_C = 1e-4        # sufficient decrease of the Armijo rule (Nocedal & Wright's choice)
 MAX_HALVINGS = 30      # lr / 2^30: below any useful step
@@ -26,7 +27,7 @@ class FlatObjective:
 
     def __init__(self, model: Nssm):
         self.model = model
-        self.spec = ParamSpec(model.config)
+        self.spec = TrainingVector(model.config)
 
     @property
     def size(self) -> int:

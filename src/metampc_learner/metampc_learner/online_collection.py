@@ -30,10 +30,11 @@ from typing import List
 import numpy as np
 import torch
 
+from metampc_controller.excitation import excitation
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.nssm import Nssm, Params
+from metampc_controller.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig, Trajectory
-from metampc_plant.excitation import excitation
 from metampc_plant.vanderpol import VdpConfig, VdpPlant
 
 
@@ -136,7 +137,7 @@ class OnlineCollector:
         try:
             if not all(bool(torch.isfinite(v).all()) for v in params.values()):
                 raise ValueError('weights are not finite')
-            predictor = self.model.predictor(params)
+            predictor = NssmPredictor(self.model.config, self.model.norm, params)
             mpc.set_model(predictor.latent)
         except (ValueError, np.linalg.LinAlgError):
             self.stats.model_failures += 1

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import init_params, Normalisation, Nssm, NssmConfig
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import init_params, Nssm, NssmConfig
 from metampc_controller.weights_codec import fields_from_weights, weights_from_fields
 from metampc_learner.data import simulate_target, SourceConfig, Trajectory, Windows
 from metampc_learner.heldout import (HELDOUT_SAMPLES, heldout_loss, heldout_seed,

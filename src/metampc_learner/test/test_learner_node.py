@@ -6,13 +6,11 @@ services, watches ``progress`` and ``y``, and subscribes late to ``nssm_weights`
 """
 import math
 import os
-import time
 
 from metampc_msgs.msg import NssmWeights, TrainingProgress
-from metampc_msgs.srv import Adapt, MetaTrain
+from metampc_msgs.srv import Adapt, MetaTrain, SetBuffering
 import numpy as np
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_srvs.srv import SetBool
 import torch
 
 from metampc_controller.weights_codec import fields_of, weights_from_fields
@@ -22,7 +20,7 @@ from metampc_testing import session_pids
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-ITERATIONS = 80    # several seconds of training: time to be busy and to buffer meanwhile
+ITERATIONS = 80    # several seconds of training: several progress heartbeats
 CAPACITY = 40       # D_target; 10 held out (heldout_fraction 0.25), window H + T = 6
 TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
         'horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
@@ -60,15 +58,20 @@ def check_weights_equal_checkpoint(msg, path):
     return decoded
 
 
+def stamp_s(msg) -> float:
+    """A message's header stamp, s."""
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
 def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, probe, tmp_path):
     progress = []
-    probe.node.create_subscription(TrainingProgress, 'progress',
-                                   lambda m: progress.append((time.monotonic(), m)), RELIABLE)
+    probe.node.create_subscription(TrainingProgress, 'progress', progress.append, RELIABLE)
     meta = probe.node.create_client(MetaTrain, 'meta_train')
     adapt = probe.node.create_client(Adapt, 'adapt')
-    buffering = probe.node.create_client(SetBool, 'set_buffering')
+    buffering = probe.node.create_client(SetBuffering, 'set_buffering')
+    ckpt = tmp_path / 'ckpt'
     learner = procs.start('metampc_learner', 'learner',
-                          params={**TINY, 'checkpoint_dir': str(tmp_path / 'ckpt')})
+                          params={**TINY, 'checkpoint_dir': str(ckpt)})
     procs.start('metampc_plant', 'plant', params=PLANT)
     for client in (meta, adapt, buffering):
         assert client.wait_for_service(timeout_sec=60.0), client.srv_name
@@ -85,91 +88,100 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     assert not result.success and "call adapt with method 'supervised'" in result.message
 
     first = meta.call_async(MetaTrain.Request())
-    probe.wait_for(lambda: any(m.phase == 'meta_train' for _, m in progress), 60.0,
-                   'progress of meta_train')
-    # While it trains: a second job is refused at once, buffering is served and goes on.
-    for client, request in ((meta, MetaTrain.Request()), (adapt, Adapt.Request())):
-        t0 = time.monotonic()
-        result = call(probe, client, request)
-        assert not result.success and result.message.startswith('busy: meta_train (imaml)')
-        assert time.monotonic() - t0 < 5.0
-    result = call(probe, buffering, SetBool.Request(data=True))
-    assert result.success and 'buffering (re)started: 0 samples cleared' in result.message
-    # The learner says when its y subscription has matched the plant (its side of DDS).
-    probe.wait_for(lambda: call(probe, buffering, SetBool.Request(data=True)).message.endswith(
-        'y matched to 1 publisher(s)'), 30.0, "the learner's y matched to the plant")
-    probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 30.0,
-                   'a full D_target')
-    result = call(probe, buffering, SetBool.Request(data=False))
-    assert not first.done(), f'meta_train ended too early: raise ITERATIONS ({ITERATIONS})'
-    assert result.message == f'buffering stopped: {CAPACITY} samples kept (0 skipped)'
-
-    probe.wait_for(first.done, 120.0, 'the meta_train answer')
+    probe.wait_for(first.done, 300.0, 'the meta_train answer')
     done = first.result()
     assert done.success, done.message
     assert done.model_version == 1 and len(done.loss_curve) == ITERATIONS
     assert all(math.isfinite(v) for v in done.loss_curve)
     assert done.final_loss == np.mean(done.loss_curve[-10:])
-    probe.wait_for(lambda: progress[-1][1].phase == 'done', 10.0, 'the final progress')
-    job = [(t, m) for t, m in progress if m.phase in ('meta_train', 'done')]
-    assert [m.phase for _, m in job].count('done') == 1 and job[-1][1].phase == 'done'
-    assert job[0][1].iteration == 0 and job[-1][1].iteration == ITERATIONS
-    assert all(m.total == ITERATIONS and m.method == 'imaml' for _, m in job)
-    iterations = [m.iteration for _, m in job]
+    probe.wait_for(lambda: progress and progress[-1].phase == 'done', 30.0, 'the final progress')
+    job = [m for m in progress if m.phase in ('meta_train', 'done')]
+    assert [m.phase for m in job].count('done') == 1 and job[-1].phase == 'done'
+    assert job[0].iteration == 0 and job[-1].iteration == ITERATIONS
+    assert all(m.total == ITERATIONS and m.method == 'imaml' for m in job)
+    iterations = [m.iteration for m in job]
     assert iterations == sorted(iterations) and len(set(iterations)) > 3
-    gaps = np.diff([t for t, _ in job])
-    assert gaps.max() < 1.0, f'progress gaps up to {gaps.max():.2f} s'
-    assert job[-1][1].loss == done.loss_curve[-1]
-    assert math.isfinite(job[-1][1].cg_residual)
+    # The heartbeat goes on while the job trains: its rate by the learner's own stamps, within
+    # a factor 2 of 1 / progress_period (a loaded machine delays single beats).
+    beats = (stamp_s(job[-1]) - stamp_s(job[0])) / (len(job) - 1)
+    assert len(job) > 4 and beats < 2 * TINY['progress_period'], (
+        f'{len(job)} progress messages, one per {beats:.2f} s')
+    assert job[-1].loss == done.loss_curve[-1]
+    assert math.isfinite(job[-1].cg_residual)
 
     late = Latest(probe)
-    probe.wait_for(lambda: late.msgs, 10.0, 'the latched meta-model')
+    probe.wait_for(lambda: late.msgs, 30.0, 'the latched meta-model')
     msg = late.msgs[-1]
     assert (msg.version, msg.stage, msg.method) == (1, 'meta', 'imaml')
     assert msg.train_steps == ITERATIONS and msg.train_loss == done.final_loss
-    meta_weights = check_weights_equal_checkpoint(msg, tmp_path / 'ckpt' / 'meta_imaml_v1.pt')
+    meta_weights = check_weights_equal_checkpoint(msg, ckpt / 'meta_imaml_v1.pt')
 
-    result = call(probe, adapt, Adapt.Request(), timeout=60.0)
+    # A job that cannot end by itself: what follows happens while it trains, by construction.
+    endless = meta.call_async(MetaTrain.Request(iterations=100000, seed=5))
+    probe.wait_for(lambda: progress[-1].phase == 'meta_train' and progress[-1].total == 100000,
+                   60.0, 'the long job')
+    # A second job is refused while it trains (the answers do not wait for it: it is still
+    # running below), buffering is served and goes on.
+    for client, request in ((meta, MetaTrain.Request()), (adapt, Adapt.Request())):
+        result = call(probe, client, request)
+        assert not result.success and result.message.startswith('busy: meta_train (imaml)')
+    result = call(probe, buffering, SetBuffering.Request(buffering=True))
+    assert result.success and (result.cleared, result.capacity) == (0, CAPACITY), result
+    # The learner says when its y subscription has matched the plant (its side of DDS).
+    probe.wait_for(lambda: call(probe, buffering, SetBuffering.Request(buffering=True)
+                                ).matched_publishers == 1, 60.0,
+                   "the learner's y matched to the plant")
+    probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 60.0,
+                   'a full D_target')
+    result = call(probe, buffering, SetBuffering.Request(buffering=False))
+    assert (result.kept, result.skipped, result.cleared) == (CAPACITY, 0, 0), result
+    assert result.message == f'buffering stopped: {CAPACITY} samples kept (0 skipped)'
+    assert not endless.done() and progress[-1].phase == 'meta_train'
+
+    # Ctrl-C during the long job: the job is cancelled at its next step, the node exits 0.
+    code = procs.interrupt(learner, timeout=60.0)
+    out = procs.output(learner)
+    assert code == 0 and 'Traceback' not in out and 'exception' not in out, out
+    assert 'did not stop within' not in out, out
+    assert session_pids(learner.pid) == []
+    assert sorted(os.listdir(ckpt)) == ['meta_imaml_v1.pt']
+
+    # A new learner loads the saved meta-model and publishes it at start; versions go on.
+    learner = procs.start('metampc_learner', 'learner', params={
+        **TINY, 'checkpoint_dir': str(ckpt), 'meta_model_path': str(ckpt / 'meta_imaml_v1.pt')})
+    fresh = Latest(probe)
+    probe.wait_for(lambda: fresh.msgs, 60.0, 'the loaded meta-model')
+    assert (fresh.msgs[-1].version, fresh.msgs[-1].stage) == (2, 'meta')
+    loaded = check_weights_equal_checkpoint(fresh.msgs[-1], ckpt / 'meta_imaml_v2.pt')
+    assert all(torch.equal(loaded.params[k], meta_weights.params[k]) for k in loaded.params)
+
+    # Adaptation of the loaded meta-model to freshly buffered target samples.
+    for client in (adapt, buffering):
+        assert client.wait_for_service(timeout_sec=60.0), client.srv_name
+    result = call(probe, buffering, SetBuffering.Request(buffering=True))
     assert result.success, result.message
-    assert result.model_version == 2 and len(result.loss_curve) == 6
+    probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 60.0,
+                   'a full D_target')
+    result = call(probe, adapt, Adapt.Request(), timeout=120.0)
+    assert result.success, result.message
+    assert result.model_version == 3 and len(result.loss_curve) == 6
     assert (result.loss_before, result.loss_after) == (result.loss_curve[0],
                                                        result.loss_curve[-1])
-    probe.wait_for(lambda: late.msgs[-1].version == 2, 10.0, 'the adapted model')
-    msg = late.msgs[-1]
+    probe.wait_for(lambda: fresh.msgs[-1].version == 3, 30.0, 'the adapted model')
+    msg = fresh.msgs[-1]
     assert (msg.stage, msg.method, msg.train_steps) == ('adapted', 'imaml', 5)
     assert msg.train_samples == CAPACITY - 10, 'the first 30 buffered samples train'
-    adapted = check_weights_equal_checkpoint(msg, tmp_path / 'ckpt' / 'adapted_imaml_v2.pt')
+    adapted = check_weights_equal_checkpoint(msg, ckpt / 'adapted_imaml_v3.pt')
     assert any(not torch.equal(adapted.params[k], meta_weights.params[k])
                for k in adapted.params)
 
     # The oracle takes theta from the latched plant_info.
-    result = call(probe, adapt, Adapt.Request(method='oracle'), timeout=60.0)
+    result = call(probe, adapt, Adapt.Request(method='oracle'), timeout=120.0)
     assert result.success, result.message
-    probe.wait_for(lambda: late.msgs[-1].version == 3, 10.0, 'the oracle model')
-    assert (late.msgs[-1].method, late.msgs[-1].stage) == ('oracle', 'adapted')
-
-    # Ctrl-C during a long job: the job is cancelled, the node exits 0 at once.
-    meta.call_async(MetaTrain.Request(iterations=100000, seed=5))
-    probe.wait_for(lambda: progress[-1][1].phase == 'meta_train'
-                   and progress[-1][1].total == 100000, 30.0, 'the long job')
-    t0 = time.monotonic()
-    code = procs.interrupt(learner, timeout=20.0)
-    out = procs.output(learner)
-    assert code == 0 and 'Traceback' not in out and 'exception' not in out, out
-    assert time.monotonic() - t0 < 10.0
-    assert session_pids(learner.pid) == []
-    ckpt = tmp_path / 'ckpt'
+    probe.wait_for(lambda: fresh.msgs[-1].version == 4, 30.0, 'the oracle model')
+    assert (fresh.msgs[-1].method, fresh.msgs[-1].stage) == ('oracle', 'adapted')
     assert sorted(os.listdir(ckpt)) == [
-        'adapted_imaml_v2.pt', 'adapted_oracle_v3.pt', 'meta_imaml_v1.pt']
-
-    # A new learner loads the saved meta-model and publishes it at start; versions go on.
-    procs.start('metampc_learner', 'learner', params={
-        **TINY, 'checkpoint_dir': str(ckpt), 'meta_model_path': str(ckpt / 'meta_imaml_v1.pt')})
-    fresh = Latest(probe)
-    probe.wait_for(lambda: fresh.msgs, 60.0, 'the loaded meta-model')
-    assert (fresh.msgs[-1].version, fresh.msgs[-1].stage) == (4, 'meta')
-    loaded = check_weights_equal_checkpoint(fresh.msgs[-1], ckpt / 'meta_imaml_v4.pt')
-    assert all(torch.equal(loaded.params[k], meta_weights.params[k]) for k in loaded.params)
+        'adapted_imaml_v3.pt', 'adapted_oracle_v4.pt', 'meta_imaml_v1.pt', 'meta_imaml_v2.pt']
 
 
 BAD_PARAMS = {

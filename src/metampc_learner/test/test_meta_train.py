@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import init_params, NssmConfig, Nssm
+from metampc_controller.nssm import init_params, Nssm, NssmConfig
 from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
                                   SourceConfig, SourceData, SourceSet, Trajectory)
 from metampc_learner.meta_train import (meta_train, MetaConfig, MetaTrainingError,

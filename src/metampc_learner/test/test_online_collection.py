@@ -5,7 +5,9 @@ import numpy as np
 import torch
 
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.nssm import init_params, Normalisation, Nssm, NssmConfig
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_controller.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig
 from metampc_learner.online_collection import OnlineCollectionConfig, OnlineCollector
 from metampc_plant.vanderpol import rk4_sample_scalar
@@ -15,10 +17,15 @@ NORM = Normalisation([0.0], [0.6], [0.0, 0.0], [3.0, 3.0])
 SOURCE = SourceConfig(dt=0.1, substeps=10)
 CONFIG = OnlineCollectionConfig(episodes=2, episode_samples=30, horizon=5, noise_std=0.3,
                                 seed=4)
+# OSQP's wall-clock cap (MpcConfig.time_limit, 50 ms) trips when a loaded machine stalls the
+# process and turns a solve into a fallback, so equal runs would differ: out of reach here.
+NO_TIME_LIMIT = 30.0
 
 
 def _collect(theta=0.5, config=CONFIG, source=SOURCE, params=None, task=0):
     collector = OnlineCollector(Nssm(TINY, NORM), config, source)
+    # The collector has no setting for the cap: its MPC settings are replaced.
+    collector._mpc_config = replace(collector._mpc_config, time_limit=NO_TIME_LIMIT)
     trajs = collector(task, theta, init_params(TINY, 1) if params is None else params)
     return collector, trajs
 
@@ -58,8 +65,8 @@ def test_without_noise_the_inputs_are_the_mpc_plan():
     config = replace(CONFIG, noise_std=0.0, ref_bound=0.0, episodes=1)
     params = init_params(TINY, 1)
     _, (traj,) = _collect(config=config, params=params)
-    predictor = Nssm(TINY, NORM).predictor(params)
-    mpc = LatentMpc(MpcConfig(horizon=5, q=(1.0, 0.0), r=config.r))
+    predictor = NssmPredictor(TINY, NORM, params)
+    mpc = LatentMpc(MpcConfig(horizon=5, q=(1.0, 0.0), r=config.r, time_limit=NO_TIME_LIMIT))
     mpc.set_model(predictor.latent)
     n_h = TINY.history
     for t in range(n_h - 1, len(traj) - 1):          # row i holds sample i + 1

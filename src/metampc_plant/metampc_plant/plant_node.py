@@ -1,4 +1,4 @@
-"""The `plant` node: a thin ROS 2 adapter over the van der Pol core (DESIGN.md, section 3).
+"""The `plant` node: a thin ROS 2 adapter over the van der Pol core.
 
 Interfaces (relative names, so a namespace can wrap them):
 
@@ -19,8 +19,9 @@ Clock modes:
   polling. Inputs for another step are ignored and counted (stale). Without an answer within
   ``input_timeout`` s of wall time the plant holds the last input and steps anyway (throttled
   warning), so a plant alone still moves. y_0 is published once ``y`` has had a subscriber
-  and ``u`` a publisher for GATE_SETTLE_S (or after ``start_timeout``), so a controller
-  started together with the plant answers every step and a seeded run is reproducible.
+  and ``u`` a publisher for ``lockstep.GATE_SETTLE_S`` (or after ``start_timeout``), so a
+  controller started together with the plant answers every step and a seeded run is
+  reproducible. These rules are :class:`metampc_plant.lockstep.Lockstep`'s; the node wires them.
 * realtime: a steady wall-clock timer at ``rate_hz`` steps the plant with the latest input.
 
 The other nodes of a lockstep run take ``use_sim_time:=true``: their clock is then the plant's
@@ -51,27 +52,20 @@ from array import array
 from typing import Optional, Tuple
 
 from builtin_interfaces.msg import Time
+from metampc_common.node_main import declare_parameters, EventCounts, run_node
+from metampc_common.qos import LATCHED, STREAM
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
-from metampc_plant.node_main import declare_parameters, EventCounts, run_node
+from metampc_plant.lockstep import Lockstep
 from metampc_plant.plant_params import PARAMETERS, parse_params
 from metampc_plant.vanderpol import N_U, N_X, VdpPlant
 import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Header
 
-# Deep enough that a recorder a few hundred samples behind a fast lockstep run loses nothing.
-STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 GATE_PERIOD_S = 0.02    # lockstep start: how often to look for a subscriber and a publisher
-# ...and how long both must have been there: each side of a DDS match completes on its own
-# time, and an answer to y_0 sent before the controller's writer matched our reader is lost.
-GATE_SETTLE_S = 0.1
 COUNTERS = ('stale', 'rejected', 'timeouts')
 
 
@@ -82,10 +76,7 @@ class PlantNode(Node):
         super().__init__('plant')
         self.cfg = parse_params(declare_parameters(self, PARAMETERS))
         self.plant = VdpPlant(self.cfg.vdp)
-        self._lockstep = self.cfg.mode == 'lockstep'
-        self._dt_ns = round(self.cfg.vdp.dt * 1e9)
-        self._tick = -1                 # index of the last y published since start
-        self._started = False           # lockstep: y_0 is out and steps are being answered
+        self.lockstep: Optional[Lockstep] = None   # realtime: none
         self._held_u = 0.0              # last applied (saturated) input
         self._requested_u = 0.0         # realtime: latest accepted input, before saturation
         self._y0 = self.plant.output()  # y_0 of the first episode, drawn before any step
@@ -97,23 +88,24 @@ class PlantNode(Node):
         self._y_msg = PlantOutput()
         self._clock_msg = ClockMsg()
 
-        self._pub_y = self.create_publisher(PlantOutput, 'y', STREAM_QOS)
-        self._pub_info = self.create_publisher(PlantInfo, 'plant_info', LATCHED_QOS)
-        self._pub_clock = (self.create_publisher(ClockMsg, '/clock', STREAM_QOS)
-                           if self._lockstep and self.cfg.publish_clock else None)
-        self._sub_u = self.create_subscription(ControlInput, 'u', self._on_input, STREAM_QOS)
+        lockstep = self.cfg.mode == 'lockstep'
+        self._pub_y = self.create_publisher(PlantOutput, 'y', STREAM)
+        self._pub_info = self.create_publisher(PlantInfo, 'plant_info', LATCHED)
+        self._pub_clock = (self.create_publisher(ClockMsg, '/clock', STREAM)
+                           if lockstep and self.cfg.publish_clock else None)
+        self._sub_u = self.create_subscription(ControlInput, 'u', self._on_input, STREAM)
         self.create_service(ResetPlant, 'reset', self._on_reset)
 
         self._timeout_timer = None
         self._gate_timer = None
         self._tick_timer = None
-        if self._lockstep:
-            if self.cfg.input_timeout > 0:
+        if lockstep:
+            self.lockstep = Lockstep(self.cfg.vdp.dt, self.cfg.input_timeout,
+                                     self.cfg.start_timeout, time.monotonic())
+            if self.lockstep.timeout_s is not None:
                 self._timeout_timer = self.create_timer(
-                    self.cfg.input_timeout, self._on_timeout, clock=self._steady,
+                    self.lockstep.timeout_s, self._on_timeout, clock=self._steady,
                     autostart=False)
-            self._gate_since = time.monotonic()
-            self._ready_since: Optional[float] = None
             self._gate_timer = self.create_timer(GATE_PERIOD_S, self._on_gate,
                                                  clock=self._steady)
         else:
@@ -125,23 +117,24 @@ class PlantNode(Node):
             f'{self.cfg.mode} van der Pol plant: theta={vdp.theta}, dt={vdp.dt} s, '
             f'x0={list(vdp.x0)}, u in [{vdp.u_min}, {vdp.u_max}]'
             + (f'; y_0 goes out once y has a subscriber and u a publisher (at the latest '
-               f'after start_timeout = {self.cfg.start_timeout} s)' if self._lockstep
+               f'after start_timeout = {self.cfg.start_timeout} s)' if lockstep
                else f', {self.cfg.rate_hz} Hz'))
-        if not self._lockstep:
+        if not lockstep:
             self._start()
 
     # --- time and publication -------------------------------------------------------------
 
     def _stamp(self) -> Time:
         """Sim time of the current tick (lockstep) or the node clock's time (realtime)."""
-        if self._lockstep:
-            t_ns = max(self._tick, 0) * self._dt_ns
+        if self.lockstep is not None:
+            t_ns = self.lockstep.stamp_ns
             return Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
         return self.get_clock().now().to_msg()
 
     def _publish_y(self, y: np.ndarray, u_applied: float, saturated: bool) -> None:
         """Publish y_k (then /clock in lockstep) and restart the input timeout."""
-        self._tick += 1
+        if self.lockstep is not None:
+            self.lockstep.published()
         msg = self._y_msg
         msg.header.stamp = self._stamp()
         msg.step = self.plant.step_index
@@ -163,7 +156,8 @@ class PlantNode(Node):
             theta=self.plant.theta, dt=vdp.dt, substeps=vdp.substeps, u_min=vdp.u_min,
             u_max=vdp.u_max, process_noise_std=vdp.process_noise_std,
             measurement_noise_std=vdp.measurement_noise_std, seed=vdp.seed,
-            clock_mode=self.cfg.mode, rate_hz=0.0 if self._lockstep else self.cfg.rate_hz,
+            clock_mode=self.cfg.mode,
+            rate_hz=0.0 if self.lockstep is not None else self.cfg.rate_hz,
             state_bound=vdp.state_bound, diverged=self.plant.diverged,
             n_resets=self._n_resets, header=Header(stamp=self._stamp())))
 
@@ -174,7 +168,8 @@ class PlantNode(Node):
         if self._gate_timer is not None:
             self.destroy_timer(self._gate_timer)
             self._gate_timer = None
-        self._started = True
+        if self.lockstep is not None:
+            self.lockstep.start()
 
     def _start(self) -> None:
         """Publish y_0 of the first episode."""
@@ -207,17 +202,17 @@ class PlantNode(Node):
 
     def _on_input(self, msg: ControlInput) -> None:
         step = self.plant.step_index
-        if self._lockstep and (not self._started or msg.step != step):
+        if self.lockstep is not None and not self.lockstep.answers(msg.step, step):
             self._warn('stale', f'ignored an input for step {msg.step}: waiting for step {step}')
             return
         u, why = self._check_input(msg.u)
         if u is None:
             self._warn('rejected', f'rejected the input for step {msg.step} ({why}); holding '
                        f'u = {self._held_u}')
-            if self._lockstep:
+            if self.lockstep is not None:
                 self._advance(self._held_u)
             return
-        if self._lockstep:
+        if self.lockstep is not None:
             self._advance(u)
         else:
             self._requested_u = u
@@ -228,14 +223,9 @@ class PlantNode(Node):
         self._advance(self._held_u)
 
     def _on_gate(self) -> None:
-        now = time.monotonic()
-        if not (self._pub_y.get_subscription_count() > 0
-                and self._sub_u.get_publisher_count() > 0):
-            self._ready_since = None
-        elif self._ready_since is None:
-            self._ready_since = now
-        settled = self._ready_since is not None and now - self._ready_since >= GATE_SETTLE_S
-        if settled or 0 < self.cfg.start_timeout <= now - self._gate_since:
+        matched = (self._pub_y.get_subscription_count() > 0
+                   and self._sub_u.get_publisher_count() > 0)
+        if self.lockstep.gate(time.monotonic(), matched):
             self._start()
 
     def _on_tick(self) -> None:

@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Dict, Mapping
 
-from metampc_plant.node_params import number, ParameterError, ParamSpec, Value
+from metampc_common.params import number, ParameterError, ParamSpec, Value
 from metampc_plant.vanderpol import N_X, VdpConfig
 
 MODES = ('lockstep', 'realtime')

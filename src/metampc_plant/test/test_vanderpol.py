@@ -98,6 +98,41 @@ def test_noise_is_seeded():
     assert not np.allclose(run(5), run(6))
 
 
+@pytest.mark.parametrize('simulator', ['single', 'batch'])
+def test_process_noise_variance_is_std_squared_times_dt(simulator):
+    """Process noise is a Wiener increment of intensity process_noise_std: the x2 noise of one
+    sample has variance std**2 * dt. The noise of each step is what is left after subtracting
+    the noiseless RK4 sample from the same state; its mean square over N = 20000 steps is an
+    estimate of that variance with a relative standard error of sqrt(2 / N) = 1 %."""
+    std, dt, theta, n = 0.3, 0.05, 1.0, 20000
+    # One RK4 step per sample: the noise does not depend on it, and it is 10x cheaper.
+    cfg = VdpConfig(theta=theta, dt=dt, substeps=1, x0=(1.0, 0.0), process_noise_std=std,
+                    seed=3)
+    if simulator == 'single':
+        plant, noise = VdpPlant(cfg), []
+        for _ in range(n):
+            x1, x2 = rk4_sample_scalar(*plant.x, 0.0, theta, dt, cfg.substeps)
+            y = plant.step(0.0)
+            assert y[0] == x1, 'x1 carries no noise'
+            noise.append(y[1] - x2)
+        assert not plant.diverged
+    else:
+        batch = 500     # 40 steps of 500 systems
+        sim = BatchVdp(np.full(batch, theta), cfg)
+        noise = []
+        for _ in range(n // batch):
+            free = rk4_sample(sim.x, np.zeros(batch), sim.theta, dt, cfg.substeps)
+            y = sim.step(np.zeros(batch))
+            assert np.array_equal(y[:, 0], free[:, 0]), 'x1 carries no noise'
+            noise.extend(y[:, 1] - free[:, 1])
+        assert not sim.diverged.any()
+    noise = np.asarray(noise)
+    assert noise.size == n
+    # 5 % is 5 standard errors; scaling by dt instead of sqrt(dt) would give 5 % of std**2 dt.
+    assert abs(np.mean(noise ** 2) / (std ** 2 * dt) - 1.0) < 0.05
+    assert abs(noise.mean()) < 5 * std * np.sqrt(dt / n), 'zero mean'
+
+
 @pytest.mark.parametrize('state_bound', [10.0, 1e300], ids=['leaves-box', 'non-finite'])
 def test_escaping_state_is_flagged_never_nan(state_bound):
     # theta < 0: the limit cycle is unstable and a state outside it escapes in finite time;

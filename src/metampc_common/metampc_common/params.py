@@ -1,6 +1,6 @@
 """Typed, range-checked node parameters, shared by every metampc node. No rclpy.
 
-A node keeps a table ``{name: ParamSpec(default, description)}``; :mod:`metampc_plant.node_main`
+A node keeps a table ``{name: ParamSpec(default, description)}``; :mod:`metampc_common.node_main`
 declares it and hands the values to the node's own parse function, which builds a typed config
 with :func:`number` and raises :class:`ParameterError` naming the first bad parameter.
 """

@@ -1,5 +1,8 @@
 """Seeded excitation inputs for data collection, each within [u_min, u_max].
 
+The controller's input before a model (``pre_model_input: excitation``) and the learner's
+simulated episodes (source tasks, the oracle, the warm-up of online collection) draw from here.
+
 Every generator returns an array of shape (B, K): K inputs for each of B systems, one per
 sample of length dt. Determinism: the same arguments and seed give the same array.
 """

@@ -4,18 +4,20 @@
 `ros2 run` expects: a bad argument or parameter is one error line and exit status 2, not a
 traceback, and Ctrl-C is exit status 0 even when it lands while a callback is publishing.
 """
+import faulthandler
 import math
 import signal
 import threading
 import time
 from typing import Callable, Dict, Mapping, Optional, Sequence
 
-from metampc_plant.node_params import ParameterError, ParamSpec, Value
 from rcl_interfaces.msg import ParameterDescriptor
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+
+from metampc_common.params import ParameterError, ParamSpec, Value
 
 
 def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, Value]:
@@ -74,6 +76,9 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     prints a traceback when it is collected; so the Python-level handler that rclpy chains to
     only notes the signal (also one that arrives before rclpy.init: the node then exits at once).
 
+    A node that hangs can be asked where: SIGUSR1 (``kill -USR1 PID``) prints the stack of
+    every thread to stderr (faulthandler) and the node goes on.
+
     Args:
         make_node: builds the node (may raise ParameterError).
         name: logger name for the error lines.
@@ -83,6 +88,7 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     sigint = _SigintSeen()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, sigint)
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         rclpy.init(args=args)
     except _rclpy.RCLError as err:  # e.g. `-p x0:=[1, 0.5]`: YAML lists must be of one type

@@ -1,0 +1,126 @@
+"""The search's bookkeeping (metampc_bringup.tuning): draws, neighbours, stages, scores.
+
+Pure functions on job lists and hand-made results; no training runs here (scripts/tune.py
+runs them, docs/tuning.md has the measured search).
+"""
+import math
+
+import pytest
+
+from metampc_bringup import tuning
+from metampc_bringup.tuning import (best_of, CALIBRATION, CG_STEPS, draw_jobs, GAMMA_GRID,
+                                    neighbours, refine_jobs, request_fields, robust_jobs,
+                                    robust_scores, SHARED_GRID, TuneConfig)
+
+
+def _result(method, index, hyper, score, lrs=None):
+    return {'method': method, 'index': index, 'hyper': hyper, 'score': score,
+            'adapt': [{'lr': lr, 'score': s} for lr, s in (lrs or {}).items()]}
+
+
+def test_draws_are_paired_seeded_and_start_at_the_calibration():
+    jobs = draw_jobs(8, 150, seed=0)
+    imaml = [j for j in jobs if j.method == 'imaml']
+    maml = [j for j in jobs if j.method == 'maml']
+    assert len(imaml) == len(maml) == 8
+    assert [j.method for j in jobs].count('supervised') == 1
+    shared = tuple(SHARED_GRID)
+    for a, b in zip(imaml, maml):
+        assert a.index == b.index
+        assert {n: a.hyper[n] for n in shared} == b.hyper     # the same draw for both
+    assert maml[0].hyper == {n: CALIBRATION[n] for n in shared}
+    assert imaml[0].hyper['gamma'] == CALIBRATION['gamma']
+    # 7 further gammas cycle through the grid: each of the 6 at least once
+    assert set(j.hyper['gamma'] for j in imaml[1:]) == set(GAMMA_GRID)
+    assert len({tuple(sorted(j.hyper.items())) for j in maml}) == 8   # no repeats
+    assert [j.hyper for j in draw_jobs(8, 150, seed=0)] == [j.hyper for j in jobs]
+    assert [j.hyper for j in draw_jobs(8, 150, seed=1)] != [j.hyper for j in jobs]
+
+
+def test_imaml_gets_the_cg_steps_of_its_gamma():
+    for job in draw_jobs(8, 150, seed=3):
+        if job.method == 'imaml':
+            assert job.hyper['cg_steps'] == CG_STEPS[job.hyper['gamma']]
+        else:
+            assert 'cg_steps' not in job.hyper and 'gamma' not in job.hyper
+    # more steps for a smaller gamma (worse conditioned I + G/gamma), never fewer
+    steps = [CG_STEPS[g] for g in sorted(GAMMA_GRID)]
+    assert steps == sorted(steps, reverse=True)
+
+
+def test_neighbours_move_one_axis_one_grid_step():
+    centre = {'inner_steps': 10, 'lr_inner': 0.02, 'lr_outer': 1e-2, 'gamma': 0.1,
+              'cg_steps': CG_STEPS[0.1]}
+    got = neighbours('imaml', centre)
+    # inner_steps 5/20, lr_inner 0.05 (0.02 is the grid's first), lr_outer 5e-3 (1e-2 last),
+    # gamma 0.03 / 0.3
+    assert len(got) == 2 + 1 + 1 + 2
+    for h in got:
+        changed = [n for n in ('inner_steps', 'lr_inner', 'lr_outer', 'gamma')
+                   if h[n] != centre[n]]
+        assert len(changed) == 1
+        axis = {**SHARED_GRID, 'gamma': GAMMA_GRID}[changed[0]]
+        assert abs(axis.index(h[changed[0]]) - axis.index(centre[changed[0]])) == 1
+        assert h['cg_steps'] == CG_STEPS[h['gamma']]
+    assert all('gamma' not in h for h in neighbours('maml', {
+        'inner_steps': 10, 'lr_inner': 0.02, 'lr_outer': 1e-2}))
+
+
+def test_refinement_takes_untried_neighbours_of_the_best_first():
+    best = {'inner_steps': 5, 'lr_inner': 0.02, 'lr_outer': 1e-3}    # a grid corner: 3 left
+    tried_neighbour = {**best, 'inner_steps': 10}
+    second = {'inner_steps': 20, 'lr_inner': 0.2, 'lr_outer': 1e-2}
+    results = [_result('maml', 0, best, 0.1), _result('maml', 1, tried_neighbour, 0.3),
+               _result('maml', 2, second, 0.2),
+               _result('imaml', 0, {**best, 'gamma': 1.0, 'cg_steps': 5}, 0.1)]
+    jobs = [j for j in refine_jobs(results, 4, 150, seed=0) if j.method == 'maml']
+    hypers = [j.hyper for j in jobs]
+    assert len(hypers) == 4
+    own = [h for h in neighbours('maml', best) if h != tried_neighbour]
+    assert len(own) == 2 and all(h in hypers for h in own)   # all the best's untried first
+    rest = [h for h in hypers if h not in own]
+    assert all(h in neighbours('maml', second) for h in rest)   # then the next best's
+    assert all(h not in [r['hyper'] for r in results] for h in hypers)
+    assert [j.index for j in jobs] == [3, 4, 5, 6]
+
+
+def test_robust_stage_and_scores():
+    results = [_result('imaml', i, {'gamma': 1.0}, s) for i, s in enumerate([0.3, 0.1, 0.2])]
+    results.append(_result('imaml', 3, {'gamma': 3.0}, math.inf))
+    jobs = robust_jobs(results, 2, 300, [1000, 1001])
+    assert [(j.index, j.source_seed) for j in jobs] == [(1, 1000), (1, 1001), (2, 1000),
+                                                        (2, 1001)]
+    runs = [{**_result('imaml', 1, {'gamma': 1.0}, 0, {0.1: 1.0, 0.2: 4.0}), 'source_seed': 1000},
+            {**_result('imaml', 1, {'gamma': 1.0}, 0, {0.1: 3.0, 0.2: 0.5}), 'source_seed': 1001}]
+    (score,) = robust_scores(runs)
+    # means per step size: 0.1 -> 2.0, 0.2 -> 2.25; the best step size is 0.1
+    assert score['best_lr'] == 0.1 and score['score'] == pytest.approx(2.0)
+    assert score['score_per_seed'] == [1.0, 3.0] and score['source_seeds'] == [1000, 1001]
+    failed = [{'method': 'maml', 'index': 0, 'hyper': {}, 'adapt': [], 'source_seed': 1000}]
+    assert robust_scores(failed)[0]['score'] == math.inf
+
+
+def test_winner_fields_are_request_fields():
+    best = best_of('imaml', [_result('imaml', 0, {'gamma': 0.1, 'cg_steps': 10}, 0.2),
+                             _result('imaml', 1, {'gamma': 3.0, 'cg_steps': 5}, 0.1)])
+    best['best_lr'] = 0.3
+    fields = request_fields(best, 300, 16, 20)
+    assert fields['meta_train'] == {'iterations': 300, 'batch_size': 16, 'gamma': 3.0,
+                                    'cg_steps': 5}
+    assert fields['adapt'] == {'steps': 20, 'lr': 0.3}
+    sup = request_fields({'method': 'supervised', 'index': 0, 'score': 1.0, 'best_lr': 0.5},
+                         300, 16, 20)
+    assert 'meta_train' not in sup
+
+
+@pytest.mark.parametrize('name, value', [('k', 0), ('jobs', 0), ('refine', -1),
+                                         ('robust_seeds', 0)])
+def test_bad_settings_are_refused(name, value):
+    with pytest.raises(ValueError, match=name):
+        TuneConfig(**{name: value}).validate()
+
+
+def test_k_beyond_the_grid_is_refused():
+    size = math.prod(len(v) for v in SHARED_GRID.values())
+    with pytest.raises(ValueError, match='exceeds the grid'):
+        tuning.draw_jobs(size + 1, 10, 0)

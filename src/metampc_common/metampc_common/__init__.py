@@ -1,0 +1,1 @@
+"""What every metampc node shares: main() and parameter declaration, typed parameters, QoS."""

@@ -1,0 +1,23 @@
+"""The QoS profiles of the metampc graph, each defined once so that both ends of a topic agree.
+
+Every profile is reliable: the lockstep plant waits for the answer to each sample, and a lost
+sample or model would make a seeded run irreproducible. docs/plant.md, controller.md and
+learner.md list the profile of every topic.
+"""
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+# The samples and answers of the loop (y, u, mpc_status, /clock): volatile, and deep enough
+# that a recorder a few hundred samples behind a fast lockstep run loses nothing.
+STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.VOLATILE)
+# Latched state (plant_info, nssm_weights): only the newest message counts, and a node that
+# starts later still gets it.
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# Occasional messages of which a reader needs the newest (reference set-points, training
+# progress): rclpy's default profile, keep_last 10.
+SPARSE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# The orchestrator's experiment events: transient_local and deep, so a recorder that matches
+# late still gets the events published before (the analysis reads the phases from them).
+EVENTS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -1,0 +1,74 @@
+"""The NSSM as the controller runs it at every tick: numpy, physical units.
+
+:func:`latent_model` turns the parameters of eqs. (z_next), (haty) and the normalisation into
+the affine latent model in physical units; :class:`NssmPredictor` adds the encoder of eq. (z)
+on physical histories (same index convention as ``nssm.py``).
+"""
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from metampc_controller.latent_model import LatentModel
+from metampc_controller.normalisation import Normalisation
+from metampc_controller.nssm import NssmConfig
+
+
+def latent_model(params: Mapping[str, torch.Tensor], norm: Normalisation) -> LatentModel:
+    """Eqs. (z_next), (haty) in physical units (see ``latent_model.py`` for the mapping).
+
+    A = A_n, B = B_n / u_std, e = -B_n (u_mean / u_std), C = diag(y_std) C_n, d = y_mean.
+    """
+    a_n, b_n, c_n = (params[k].detach().cpu().double().numpy() for k in ('A', 'B', 'C'))
+    return LatentModel(A=a_n.copy(), B=b_n / norm.u_std[None, :],
+                       e=-b_n @ (norm.u_mean / norm.u_std), C=norm.y_std[:, None] * c_n,
+                       d=norm.y_mean.copy())
+
+
+class NssmPredictor:
+    """Numpy NSSM for the controller tick: encode physical histories, latent model, predict.
+
+    Args:
+        config, norm: as the model's.
+        params: parameter dict (any float dtype); copied to float64 numpy arrays.
+    """
+
+    def __init__(self, config: NssmConfig, norm: Normalisation,
+                 params: Mapping[str, torch.Tensor]):
+        self.config = config
+        self.norm = norm
+        n_layers = len(config.hidden) + 1
+        self._layers = [(params[f'encoder.{i}.weight'].detach().cpu().double().numpy().copy(),
+                         params[f'encoder.{i}.bias'].detach().cpu().double().numpy().copy())
+                        for i in range(n_layers)]
+        self.latent = latent_model(params, norm)
+
+    def encode(self, u_hist: np.ndarray, y_hist: np.ndarray) -> np.ndarray:
+        """Eq. (z) from physical histories u_{t-H+1..t} (H, n_u), y_{t-H+1..t} (H, n_y).
+
+        Returns z_t, shape (n_z,), float64. Rows are oldest first; row k of u_hist is the
+        input that produced row k of y_hist.
+        """
+        cfg = self.config
+        u_n = (np.asarray(u_hist, dtype=np.float64).reshape(cfg.history, cfg.n_u)
+               - self.norm.u_mean) / self.norm.u_std
+        y_n = (np.asarray(y_hist, dtype=np.float64).reshape(cfg.history, cfg.n_y)
+               - self.norm.y_mean) / self.norm.y_std
+        h = np.concatenate([u_n, y_n], axis=1).reshape(-1)
+        last = len(self._layers) - 1
+        for i, (w, b) in enumerate(self._layers):
+            h = w @ h + b
+            if i < last:
+                np.maximum(h, 0.0, out=h)
+        return h
+
+    def predict(self, u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray
+                ) -> np.ndarray:
+        """Physical y_{t+1..t+K} (K, n_y) from the histories and u_{t+1..t+K} (K, n_u)."""
+        z = self.encode(u_hist, y_hist)
+        u_future = np.asarray(u_future, dtype=np.float64).reshape(-1, self.config.n_u)
+        out = np.empty((u_future.shape[0], self.config.n_y))
+        for k, u in enumerate(u_future):
+            z = self.latent.step(z, u)
+            out[k] = self.latent.output(z)
+        return out
