@@ -9,7 +9,7 @@ import metampc_msgs.srv
 
 MESSAGES = ['PlantOutput', 'PlantInfo', 'ControlInput', 'NssmWeights', 'MpcStatus',
             'TrainingProgress']
-SERVICES = ['ResetPlant', 'MetaTrain', 'Adapt']
+SERVICES = ['ResetPlant', 'MetaTrain', 'Adapt', 'SetActive', 'SetBuffering']
 
 
 def _value(type_name: str, seed: int):

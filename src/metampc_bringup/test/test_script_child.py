@@ -30,7 +30,10 @@ def test_reads_the_childs_output_and_arguments(tmp_path):
     ''')
     with script_child(script, ['--rate', '5']) as child:
         assert child.stdout.readline() == 'start\n'
-        out, _ = child.communicate(timeout=30)
+        # the rest from the same buffered reader: communicate(timeout) reads the pipe's fd
+        # directly and would miss what readline() had already buffered
+        out = child.stdout.read()
+        child.wait(30)
     assert last_json_line(out) == {'args': ['--rate', '5']}
     assert child.returncode == 0
 
@@ -38,8 +41,8 @@ def test_reads_the_childs_output_and_arguments(tmp_path):
 def test_a_running_child_gets_sigint(tmp_path):
     script = _script(tmp_path, '''
         import time
-        print('ready', flush=True)
         try:
+            print('ready', flush=True)     # inside: the SIGINT may come right after it
             time.sleep(60)
         except KeyboardInterrupt:
             raise SystemExit(3)
