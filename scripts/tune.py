@@ -6,7 +6,7 @@ to stderr (tqdm); stdout gets ONE JSON line (configurations with scores, robustn
 winners, wall time, CPU time of the jobs, load average), also written to ``--out``. Bad
 arguments: one line on stderr, exit status 2.
 
-Usage: python scripts/tune.py [--k 8] [--refine 4] [--finalists 2] [--robust-seeds 3]
+Usage: python scripts/tune.py [--k 8] [--refine 4] [--finalists 3] [--robust-seeds 3]
        [--jobs 2] [--out config/tuning.json]
 """
 import argparse

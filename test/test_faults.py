@@ -10,9 +10,11 @@ ends with the same checks (:meth:`Rig.finish`):
 * no NaN published: every ``y`` (output and applied input), ``u`` and ``mpc_status`` (planned
   inputs) the probe received from the nodes is finite;
 * nothing recorded lost: where a recorder runs, its finished file holds every message of its
-  topics that the probe received from the first one recorded on (the recorded topics have one
-  publisher for the whole test: a restarted publisher is matched anew by every subscriber, and
-  what it sends before the recorder has matched it is not recorded, as with rosbag2).
+  topics that the probe received from the first one recorded on until the nodes are stopped
+  (the recorded topics have one publisher for the whole test: a restarted publisher is matched
+  anew by every subscriber, and what it sends before the recorder has matched it is not
+  recorded, as with rosbag2; a sample published as its node is being stopped can go down with
+  the node's writer, whose context SIGINT has shut down, before it reaches any subscriber).
 """
 import math
 import os
@@ -178,19 +180,21 @@ class Rig:
             assert self.nodes[name].poll() is None, (
                 f'{name} ended by itself (status {self.nodes[name].returncode}):\n'
                 f'{self.output(name)}')
+        heard = {topic: len(msgs) for topic, msgs in self.heard.items()}   # before any stop
         outputs = {name: self.stop(name) for name in reversed(running) if name != 'recorder'}
         for topic, msgs in self.heard.items():
             bad = [m for m in msgs if not finite(m)]
             assert not bad, f'{len(bad)} non-finite messages on {topic}, first: {bad[0]}'
         if 'recorder' in running:
             deadline = time.monotonic() + 30.0
-            while self._unrecorded() and time.monotonic() < deadline:
+            while self._unrecorded(heard=heard) and time.monotonic() < deadline:
                 time.sleep(0.1)
-            assert not self._unrecorded(), f'heard but not recorded: {self._unrecorded()}'
+            lost = self._unrecorded(heard=heard)
+            assert not lost, f'heard but not recorded: {lost}'
             outputs['recorder'] = self.stop('recorder')
             recording = read_recording(self.recording)
             assert recording.complete, 'the stopped recorder did not finish its file'
-            assert not self._unrecorded(recording)
+            assert not self._unrecorded(recording, heard)
         return outputs
 
     def recorded(self, recording=None) -> Dict[str, list]:
@@ -201,8 +205,10 @@ class Rig:
             out[topic.name[1:]].append(msg)
         return out
 
-    def _unrecorded(self, recording=None) -> Dict[str, str]:
-        """Per recorded topic: messages heard from the first recorded one on, not recorded."""
+    def _unrecorded(self, recording=None, heard: Optional[Dict[str, int]] = None
+                    ) -> Dict[str, str]:
+        """Per recorded topic: messages heard from the first recorded one on (the first
+        heard[topic] heard, if given), not recorded."""
         if not os.path.exists(self.recording):
             return {'(all)': 'no file yet'}
         missing = {}
@@ -211,7 +217,8 @@ class Rig:
                 continue
             keys = {(stamp_ns(m), m.step) for m in msgs}
             first = min(keys, default=(math.inf, 0))[0]
-            lost = [m for m in self.heard[topic]
+            upto = self.heard[topic][:(heard or {}).get(topic)]
+            lost = [m for m in upto
                     if stamp_ns(m) >= first and (stamp_ns(m), m.step) not in keys]
             if lost or not keys:
                 missing[topic] = (f'{len(lost)} of {len(self.heard[topic])} heard, '

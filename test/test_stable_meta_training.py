@@ -1,9 +1,10 @@
 """Meta-training on the source set where the free latent A diverged stays stable.
 
-The experiment's seed 3 (source set 3, iMAML at the defaults of config/default.yaml): with A
-free, the spectral radius of A crossed 1 by outer step 40, the meta-test loss went from 0.14
-to 2.9 at step 40 and 168 at step 60 (measured before the stable parameterisation). With
-``stable_latent`` (the default) the loss must stay finite and below 1.0 over the same steps.
+The experiment's seed 3 (source set 3, iMAML at the request that was the default then,
+:data:`DIVERGED_WITH`): with A free, the spectral radius of A crossed 1 by outer step 40, the
+meta-test loss went from 0.14 to 2.9 at step 40 and 168 at step 60 (measured before the stable
+parameterisation). With ``stable_latent`` (the default) the loss must stay finite and below 1.0
+over the same steps.
 """
 import os
 from dataclasses import replace
@@ -12,7 +13,7 @@ import numpy as np
 import torch
 
 from metampc_bringup.experiment_config import load
-from metampc_bringup.offline import learner_config, request_meta_config
+from metampc_bringup.offline import learner_config
 from metampc_controller.nssm import Nssm
 from metampc_learner.data import normalisation_from, simulate_source, SourceSet
 from metampc_learner.meta_train import meta_train
@@ -21,6 +22,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SOURCE_SET = 3
 STEPS = 60
 LOSS_BOUND = 1.0     # free A: 2.9 at step 40, 168 at step 60
+# the iMAML request of config/default.yaml when the free A diverged (before the re-tune on the
+# stable model); pinned so that the test keeps measuring that case
+DIVERGED_WITH = {'batch_size': 16, 'inner_steps': 10, 'lr_inner': 0.05, 'gamma': 3.0,
+                 'lr_outer': 0.005, 'cg_steps': 5}
 
 
 def test_imaml_on_the_diverging_source_set_keeps_a_stable_and_the_loss_bounded():
@@ -31,9 +36,7 @@ def test_imaml_on_the_diverging_source_set_keeps_a_stable_and_the_loss_bounded()
     data = simulate_source(cfg.source)
     model = Nssm(cfg.nssm, normalisation_from([t for ts in data.trajectories for t in ts]))
     source = SourceSet(data, model.norm, cfg.nssm, cfg.train_fraction)
-    hyper = request_meta_config(experiment, 'imaml')
-    hyper.pop('iterations')
-    config = replace(cfg.meta, method='imaml', iterations=STEPS, **hyper)
+    config = replace(cfg.meta, method='imaml', iterations=STEPS, **DIVERGED_WITH)
     result = meta_train(model, source, config)
     losses = np.array(result.losses)
     assert len(losses) == STEPS and result.skipped == 0

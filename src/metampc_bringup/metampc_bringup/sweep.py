@@ -81,7 +81,8 @@ NAMES = {'imaml': 'iMAML', 'maml': 'first-order MAML', 'maml_unrolled': 'unrolle
 DEFAULT_MS = (1, 5, 10, 25, 50)
 UNROLLED_MAX_M = 10
 # Per (method, M) the same number of configurations, around the tuned values (iMAML lr_inner
-# 0.05, gamma 3; MAML lr_inner 0.02); lr_outer etc. from the experiment.
+# 0.1, gamma 1, and the earlier 0.05, 3; MAML lr_inner 0.02); lr_outer etc. from the
+# experiment.
 _MAML_GRID = tuple({'lr_inner': a} for a in (0.01, 0.02, 0.05, 0.1))
 GRIDS: Dict[str, Tuple[Dict[str, float], ...]] = {
     'imaml': tuple({'lr_inner': a, 'gamma': g} for a in (0.05, 0.1) for g in (1.0, 3.0)),

@@ -27,13 +27,16 @@ Every method gets the same search budget, spent on validation systems only (docs
   method's stage-1 winner (one hyperparameter moved one grid step, not tried yet) drawn at
   random, topped up from the neighbours of the next best configurations when the winner has
   too few; the winner is then the best of both stages.
-- Robustness (stage 3, the same budget per meta method): the ``finalists`` best
-  configurations of each meta method are meta-trained for ``full_iterations`` (the
-  experiment's 300) outer steps on each of ``robust_seeds`` validation source sets
-  (``source_seed`` = meta seed = 1000, 1001, ...) and scored with every step size; a
-  finalist's robust score is the mean over the source sets at its best step size, and the
-  winner of a meta method is its finalist with the lowest robust score. One source set is not
-  enough: a winner of the one-seed search (Adam 1e-2 for iMAML) diverged on another one.
+- Robustness (stage 3, the same budget per meta method): the ``finalists`` best configurations
+  of each meta method and the one in use (the incumbent: its request in ``config``, index -1,
+  unless it is a finalist already) are meta-trained for ``full_iterations`` (the experiment's
+  300) outer steps on each of ``robust_seeds`` validation source sets (``source_seed`` = meta
+  seed = 1000, 1001, ...) and scored with every step size; a finalist's robust score is the
+  mean over the source sets at its best step size, and the winner of a meta method is its
+  finalist with the lowest robust score. One source set is not enough: a winner of the one-seed
+  search (Adam 1e-2 for iMAML) diverged on another one, and on the stable model both finalists
+  of a 2-finalist search (gamma 0.01) diverged at 300 steps while the incumbent and the third
+  best did not (docs/tuning.md).
 
 Jobs run in ``jobs`` worker processes with ``threads`` torch threads each; every job is
 seeded (meta seed = source seed; supervised init seed 1000) and independent of the order in
@@ -48,11 +51,12 @@ import multiprocessing
 import os
 import time
 from dataclasses import dataclass
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from .analysis import json_safe
+from .experiment_config import load
 from .offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs, settings_from, THETA_STREAM,
                       VALIDATION_SEED)
 
@@ -69,6 +73,7 @@ CG_STEPS = {0.01: 20, 0.03: 20, 0.1: 10, 0.3: 10, 1.0: 5, 3.0: 5}
 AXES = {'imaml': {**SHARED_GRID, 'gamma': GAMMA_GRID}, 'maml': SHARED_GRID}
 ADAPT_LRS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
 META_METHODS = ('imaml', 'maml')
+INCUMBENT = -1               # index of the configuration in use in stage 3
 
 
 def draw_jobs(k: int, iterations: int, seed: int) -> List[Job]:
@@ -130,15 +135,34 @@ def refine_jobs(results: Sequence[dict], r: int, iterations: int, seed: int) -> 
 
 
 def robust_jobs(results: Sequence[dict], finalists: int, iterations: int,
-                seeds: Sequence[int]) -> List[Job]:
-    """Stage 3: the `finalists` best configurations of each meta method on every seed."""
+                seeds: Sequence[int], incumbents: Optional[Dict[str, dict]] = None
+                ) -> List[Job]:
+    """Stage 3: the `finalists` best configurations of each meta method, and its incumbent
+    (index -1; skipped when it is one of them), on every seed."""
     jobs = []
     for method in META_METHODS:
         ranked = sorted((r for r in results if r['method'] == method and
                          math.isfinite(r['score'])), key=lambda r: r['score'])
-        jobs.extend(Job(method, r['index'], r['hyper'], iterations, ADAPT_LRS, 'robust', seed)
-                    for r in ranked[:finalists] for seed in seeds)
+        picked = [(r['index'], r['hyper']) for r in ranked[:finalists]]
+        incumbent = (incumbents or {}).get(method)
+        if incumbent is not None and incumbent not in [h for _, h in picked]:
+            picked.append((INCUMBENT, incumbent))
+        jobs.extend(Job(method, index, hyper, iterations, ADAPT_LRS, 'robust', seed)
+                    for index, hyper in picked for seed in seeds)
     return jobs
+
+
+def incumbents(path: str) -> Dict[str, dict]:
+    """The configurations in use: each meta method's request fields in the experiment
+    YAML at `path`, as search configurations: the searched fields and iMAML's CG steps as the
+    request has them (a method whose request lacks a searched field has none)."""
+    requests = load(path).meta_train
+    out = {}
+    for method in META_METHODS:
+        fields = requests.get(method) or {}
+        if all(n in fields for n in AXES[method]):
+            out[method] = {n: fields[n] for n in (*AXES[method], 'cg_steps') if n in fields}
+    return out
 
 
 def robust_scores(runs: Sequence[dict]) -> List[dict]:
@@ -187,7 +211,7 @@ class TuneConfig:
     refine: int = 4
     iterations: int = 150
     full_iterations: int = 300
-    finalists: int = 2
+    finalists: int = 3
     robust_seeds: int = 3
     batch_size: int = 16
     adapt_steps: int = 20
@@ -225,7 +249,8 @@ def tune(cfg: TuneConfig) -> dict:
                                                   cfg.seed), 'refine', settings)
         search_s = time.monotonic() - start
         seeds = [VALIDATION_SEED + j for j in range(cfg.robust_seeds)]
-        finalists = robust_jobs(results, cfg.finalists, cfg.full_iterations, seeds)
+        finalists = robust_jobs(results, cfg.finalists, cfg.full_iterations, seeds,
+                                incumbents(cfg.config))
         robust_runs = run_jobs(pool, finalists, 'robust', settings) if cfg.finalists else []
     robust = robust_scores(robust_runs)
     best = {m: best_of(m, robust or results) for m in META_METHODS}

@@ -4,13 +4,19 @@ Pure functions on job lists and hand-made results; no training runs here (script
 runs them, docs/tuning.md has the measured search).
 """
 import math
+import os
 
 import pytest
+
+from metampc_bringup.experiment_config import load
 
 from metampc_bringup import tuning
 from metampc_bringup.tuning import (best_of, CALIBRATION, CG_STEPS, draw_jobs, GAMMA_GRID,
                                     neighbours, refine_jobs, request_fields, robust_jobs,
                                     robust_scores, SHARED_GRID, TuneConfig)
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
+    os.path.abspath(__file__)))))
 
 
 def _result(method, index, hyper, score, lrs=None):
@@ -124,3 +130,25 @@ def test_k_beyond_the_grid_is_refused():
     size = math.prod(len(v) for v in SHARED_GRID.values())
     with pytest.raises(ValueError, match='exceeds the grid'):
         tuning.draw_jobs(size + 1, 10, 0)
+
+
+def test_the_incumbent_joins_the_robust_stage_once():
+    results = [_result('maml', i, {'inner_steps': 5, 'lr_inner': 0.02, 'lr_outer': lr}, s)
+               for i, (lr, s) in enumerate([(1e-2, 0.1), (5e-3, 0.2), (2e-3, 0.3)])]
+    used = {'inner_steps': 5, 'lr_inner': 0.05, 'lr_outer': 1e-3}
+    jobs = robust_jobs(results, 2, 300, [1000], {'maml': used})
+    expected = [(0, results[0]['hyper']), (1, results[1]['hyper']), (tuning.INCUMBENT, used)]
+    assert [(j.index, j.hyper) for j in jobs] == expected
+    # an incumbent that is a finalist already is not run twice
+    again = robust_jobs(results, 2, 300, [1000], {'maml': results[1]['hyper']})
+    assert [j.index for j in again] == [0, 1]
+
+
+def test_incumbents_are_the_experiments_requests():
+    path = os.path.join(ROOT, 'config', 'default.yaml')
+    got = tuning.incumbents(path)
+    requests = load(path).meta_train
+    for method in ('imaml', 'maml'):
+        assert set(got[method]) >= set(tuning.AXES[method])
+        assert all(requests[method][n] == v for n, v in got[method].items())
+    assert got['imaml']['cg_steps'] == requests['imaml']['cg_steps']
