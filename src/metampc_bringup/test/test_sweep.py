@@ -52,8 +52,9 @@ def test_every_method_and_m_gets_the_same_budget():
     assert all(j.hyper['inner_steps'] <= UNROLLED_MAX_M for j in jobs
                if j.method == 'maml_unrolled')
     # lr_outer stays at the experiment's tuned value; unrolled MAML takes first-order MAML's.
-    assert {j.hyper['lr_outer'] for j in jobs if j.method == 'imaml'} == {0.005}
-    assert {j.hyper['lr_outer'] for j in jobs if j.method != 'imaml'} == {0.01}
+    tuned = {m: experiment.meta_train[m]['lr_outer'] for m in ('imaml', 'maml')}
+    assert {j.hyper['lr_outer'] for j in jobs if j.method == 'imaml'} == {tuned['imaml']}
+    assert {j.hyper['lr_outer'] for j in jobs if j.method != 'imaml'} == {tuned['maml']}
     assert {j.hyper['cg_steps'] for j in jobs if j.method == 'imaml'} == {5}
 
     # The winner of each cell (lowest score; inf = failed) goes to every test seed.

@@ -13,11 +13,13 @@ from typing import Callable, Dict, Mapping, Optional, Sequence
 
 from rcl_interfaces.msg import ParameterDescriptor
 import rclpy
-from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from metampc_common.params import ParameterError, ParamSpec, Value
+
+SHUTDOWN_POLL_S = 0.5    # s: longest a node can take to notice that SIGINT shut it down
 
 
 def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, Value]:
@@ -82,7 +84,7 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     Args:
         make_node: builds the node (may raise ParameterError).
         name: logger name for the error lines.
-        executor: factory of the executor to spin in (default: rclpy.spin's).
+        executor: factory of the executor to spin in (default: a SingleThreadedExecutor).
     """
     logger = rclpy.logging.get_logger(name)
     sigint = _SigintSeen()
@@ -102,12 +104,13 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     node = None
     try:
         node = make_node()
-        if executor is None:
-            rclpy.spin(node)
-        else:
-            ex = executor()
-            ex.add_node(node)
-            ex.spin()
+        ex = SingleThreadedExecutor() if executor is None else executor()
+        ex.add_node(node)
+        # Not ex.spin(): rclpy's signal thread wakes the executor, then shuts the context down
+        # in C, which wakes nobody; a wait that starts in between blocks for good (seen under
+        # load: a node deaf to SIGINT, its main thread in rcl_wait). A bounded wait sees it.
+        while ex.context.ok():
+            ex.spin_once(timeout_sec=SHUTDOWN_POLL_S)
     except ParameterError as err:
         logger.error(f'invalid parameter: {err}')
         return 2
