@@ -73,7 +73,8 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     """Init rclpy, build the node, spin it until Ctrl-C or shutdown; return the exit code.
 
     Ctrl-C: rclpy's signal handler (installed by rclpy.init) shuts the context down and wakes
-    the executor, which then returns. Python's KeyboardInterrupt on top of that would land
+    the executor; the spin loop's bounded wait (SHUTDOWN_POLL_S) sees the shutdown even when
+    that wake-up came before the wait began. Python's KeyboardInterrupt on top of that would land
     anywhere in the main thread, e.g. inside rclpy's Task.__init__, whose half-built object then
     prints a traceback when it is collected; so the Python-level handler that rclpy chains to
     only notes the signal (also one that arrives before rclpy.init: the node then exits at once).
