@@ -5,15 +5,21 @@ Meta-trains every method of ``--methods`` at the experiment's request fields (``
 on the source sets of seeds ``--first-seed`` .. ``--first-seed + --seeds - 1`` (the
 experiment's own: source seed = meta seed = the run's seed) and reports, per method, the final
 meta-test loss of every run, their median, the runs that diverged (final loss non-finite or
-above 10x the method's median) and the largest spectral radius of A. Each finished run is
+above 10x the method's median) and the largest spectral radius of A. ``--set NAME=VALUE``
+overrides a MetaConfig field of every run (e.g. ``--set lr_schedule=constant``); ``--adapt``
+also scores each meta-model by the held-out loss of the validation targets after 20 adaptation
+steps at the experiment's step size of its method (the tuning's criterion: use it with the
+validation source sets, ``--first-seed 1000``, when choosing a setting). Each finished run is
 cached in ``OUT/cache/``: run the same command again to resume.
 
 Usage: python scripts/robustness.py --out runs/robustness [--seeds 20] [--jobs 2]
-       [--methods imaml,maml] [--free-latent] [--rho-max 1.0]
+       [--methods imaml,maml] [--free-latent] [--rho-max 1.0] [--set NAME=VALUE ...]
+       [--adapt]
 Writes OUT/robustness.json and prints it as one JSON line. Exit 2 on bad arguments.
 """
 import argparse
 import concurrent.futures as futures
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -24,6 +30,28 @@ from metampc_bringup.analysis import json_safe
 from metampc_bringup.experiment_config import ConfigError, load, META_METHODS
 from metampc_bringup.offline import (init_worker, robustness_jobs, robustness_summary,
                                      run_jobs, settings_from)
+from metampc_learner.meta_train import MetaConfig
+
+ADAPT_TARGETS, ADAPT_STEPS = 3, 20     # the tuning's validation targets and adaptation steps
+FIXED = ('method', 'iterations', 'seed')  # set by the job, not by --set
+
+
+def override(text: str) -> tuple:
+    """'NAME=VALUE' -> (name, value typed like MetaConfig's default); ConfigError if bad."""
+    name, _, value = text.partition('=')
+    defaults = {f.name: f.default for f in dataclasses.fields(MetaConfig)
+                if f.name not in FIXED}
+    if name not in defaults or not value:
+        raise ConfigError(f'--set needs NAME=VALUE with NAME out of {", ".join(defaults)}, '
+                          f'got {text!r}')
+    kind = type(defaults[name])
+    try:
+        if kind is bool and value.lower() not in ('true', 'false'):
+            raise ValueError(value)
+        typed = value.lower() == 'true' if kind is bool else kind(value)
+    except ValueError:
+        raise ConfigError(f'--set {name}: {value!r} is not a {kind.__name__}') from None
+    return name, typed
 
 
 def main(argv=None) -> int:
@@ -38,6 +66,10 @@ def main(argv=None) -> int:
     parser.add_argument('--free-latent', action='store_true',
                         help='A unconstrained (stable_latent false), as before')
     parser.add_argument('--rho-max', type=float, help='bound of the spectral norm of A')
+    parser.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
+                        help='override a MetaConfig field of every run (repeatable)')
+    parser.add_argument('--adapt', action='store_true',
+                        help='also score each meta-model on the validation targets')
     args = parser.parse_args(argv)
     methods = args.methods.split(',')
     try:
@@ -50,7 +82,9 @@ def main(argv=None) -> int:
             raise ConfigError(f'--rho-max must be > 0, got {args.rho_max}')
         if os.path.exists(args.out) and not os.path.isdir(args.out):
             raise ConfigError(f'--out {args.out} exists and is not a folder')
-    except ConfigError as err:
+        overrides = dict(override(text) for text in args.set)
+        dataclasses.replace(MetaConfig(), **overrides).validate()
+    except ValueError as err:       # ConfigError is one
         print(f'robustness: {err}', file=sys.stderr)
         return 2
     nssm = {}
@@ -59,15 +93,16 @@ def main(argv=None) -> int:
     if args.rho_max is not None:
         nssm['rho_max'] = args.rho_max
     start, load_start = time.monotonic(), os.getloadavg()
-    settings = settings_from(args.config, 0, 0)
+    settings = (settings_from(args.config, ADAPT_TARGETS, ADAPT_STEPS) if args.adapt
+                else settings_from(args.config, 0, 0))
     seeds = range(args.first_seed, args.first_seed + args.seeds)
-    jobs = robustness_jobs(experiment, methods, seeds, nssm)
+    jobs = robustness_jobs(experiment, methods, seeds, nssm, overrides, args.adapt)
     context = multiprocessing.get_context('spawn')
     with futures.ProcessPoolExecutor(args.jobs, context, init_worker,
                                      (settings, args.threads)) as pool:
         runs = run_jobs(pool, jobs, 'robustness', settings, os.path.join(args.out, 'cache'))
     report = json_safe({
-        'config': args.config, 'nssm': nssm, 'seeds': list(seeds),
+        'config': args.config, 'nssm': nssm, 'overrides': overrides, 'seeds': list(seeds),
         'summary': robustness_summary(runs), 'runs': runs,
         'wall_s': round(time.monotonic() - start, 1),
         'cpu_s': round(sum(r['cpu_seconds'] for r in runs), 1),

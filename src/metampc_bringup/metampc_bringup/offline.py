@@ -338,21 +338,26 @@ DIVERGED_FACTOR = 10.0   # a run whose final loss exceeds 10x its method's media
 
 
 def robustness_jobs(experiment: ExperimentConfig, methods: Sequence[str], seeds: Sequence[int],
-                    nssm: Dict[str, Any]) -> List[Job]:
-    """Meta-training at the experiment's request fields on the source sets of `seeds` (the
-    experiment's own: source seed = meta seed = the run's seed), no adaptation."""
+                    nssm: Dict[str, Any], overrides: Optional[Dict[str, Any]] = None,
+                    adapt: bool = False) -> List[Job]:
+    """Meta-training at the experiment's request fields (with `overrides`, MetaConfig fields,
+    on top) on the source sets of `seeds` (the experiment's own: source seed = meta seed = the
+    run's seed); with `adapt`, each meta-model is also scored at the experiment's adaptation
+    step size of its method (on the settings' validation targets)."""
     jobs = []
     for method in methods:
-        hyper = request_meta_config(experiment, method)
+        hyper = {**request_meta_config(experiment, method), **(overrides or {})}
         iterations = int(hyper.pop('iterations', 0) or MetaConfig().iterations)
-        jobs.extend(Job(method, seed, hyper, iterations, (), 'robust', seed, dict(nssm))
+        lrs = (float(experiment.adapt[method]['lr']),) if adapt else ()
+        jobs.extend(Job(method, seed, hyper, iterations, lrs, 'robust', seed, dict(nssm))
                     for seed in seeds)
     return jobs
 
 
 def robustness_summary(results: Sequence[dict]) -> Dict[str, Any]:
     """Per method: final losses per seed, median, the runs that diverged (non-finite, failed,
-    or a final loss above DIVERGED_FACTOR x the median), and A's largest spectral radius."""
+    or a final loss above DIVERGED_FACTOR x the median), A's largest spectral radius, and
+    when every run was adapted, their scores (held-out loss after adaptation) and mean."""
     out: Dict[str, Any] = {}
     for method in dict.fromkeys(r['method'] for r in results):
         runs = [r for r in results if r['method'] == method]
@@ -369,4 +374,7 @@ def robustness_summary(results: Sequence[dict]) -> Dict[str, Any]:
             'a_radius': [r.get('a_radius', math.nan) for r in runs],
             'max_a_radius': max(r.get('a_radius', math.nan) for r in runs),
             'meta_seconds': [r.get('meta_seconds') for r in runs]}
+        if all(r.get('adapt') for r in runs):
+            scores = [r['score'] for r in runs]
+            out[method].update(score=scores, mean_score=float(np.mean(scores)))
     return out

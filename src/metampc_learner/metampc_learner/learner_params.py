@@ -21,7 +21,7 @@ from metampc_controller.nssm import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.curvature import CURVATURES
 from metampc_learner.data import SourceConfig
-from metampc_learner.meta_train import MetaConfig, METHODS
+from metampc_learner.meta_train import LR_SCHEDULES, MetaConfig, METHODS
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
 
@@ -38,7 +38,9 @@ PARAMETERS: Dict[str, ParamSpec] = {
     'inner_steps': ParamSpec(_META.inner_steps, 'M, inner gradient steps (>= 0)'),
     'gamma': ParamSpec(_META.gamma, 'proximal strength of eq. inner_imaml (> 0)'),
     'lr_inner': ParamSpec(_META.lr_inner, 'beta_in, inner step size (>= 0)'),
-    'lr_outer': ParamSpec(_META.lr_outer, 'beta_out, Adam step size (> 0)'),
+    'lr_outer': ParamSpec(_META.lr_outer, 'beta_out, initial Adam step size (> 0)'),
+    'lr_schedule': ParamSpec(_META.lr_schedule, 'beta_out over the outer steps: '
+                             f'{", ".join(LR_SCHEDULES)} (cosine: annealed to 0)'),
     'cg_steps': ParamSpec(_META.cg_steps, 'CG iterations of eq. cg (>= 0)'),
     'curvature': ParamSpec(_META.curvature, f'iMAML curvature: {", ".join(CURVATURES)}'),
     'windows_per_task': ParamSpec(_META.windows_per_task,
@@ -221,7 +223,8 @@ def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
     meta = _checked(lambda: MetaConfig(
         method=text['method'], iterations=num['iterations'], batch_size=num['batch_size'],
         inner_steps=num['inner_steps'], lr_inner=num['lr_inner'], lr_outer=num['lr_outer'],
-        gamma=num['gamma'], cg_steps=num['cg_steps'], curvature=text['curvature'],
+        lr_schedule=text['lr_schedule'], gamma=num['gamma'], cg_steps=num['cg_steps'],
+        curvature=text['curvature'],
         windows_per_task=num['windows_per_task'], seed=num['seed']))
     exc = _checked(lambda: ExcitationConfig(kind=text['excitation'], u_min=num['u_min'],
                                             u_max=num['u_max'], hold_s=num['hold_s']))

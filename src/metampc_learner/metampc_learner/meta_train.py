@@ -4,7 +4,10 @@ Each outer step samples B tasks from the source set (with replacement when B exc
 ``windows_per_task`` windows of each task's D_tr and D_test, computes the B per-task
 meta-gradients (imaml.py, maml.py) vectorised with ``torch.func.vmap`` (or a Python loop), and
 applies their mean with Adam (lr beta_out): eq. (outer) for iMAML, eq. (outer_maml) for
-first-order MAML.
+first-order MAML. With ``lr_schedule='cosine'`` beta_out is annealed from ``lr_outer`` to 0 over
+the outer steps (``torch.optim.lr_scheduler.CosineAnnealingLR``, as MAML++ does): at a constant
+rate the meta-test loss of some source sets keeps oscillating by 10x from step to step until the
+end, and the last outer step decides which model is published (docs/tuning.md).
 
 Non-finite tasks: a task whose test loss or meta-gradient is non-finite is skipped (left out
 of the mean) and counted; if more than ``max_skip_fraction`` of a batch is skipped for
@@ -35,6 +38,7 @@ from metampc_learner.progress import Progress, ProgressFn
 from metampc_learner.task_gradient import TaskGradient
 
 METHODS = ('imaml', 'maml', 'maml_unrolled')
+LR_SCHEDULES = ('cosine', 'constant')
 Collector = Callable[[int, float, Params], Sequence[Trajectory]]
 
 
@@ -52,7 +56,8 @@ class MetaConfig:
         batch_size: B, tasks per outer step.
         inner_steps: M.
         lr_inner: beta_in.
-        lr_outer: beta_out (Adam).
+        lr_outer: beta_out (Adam), the initial rate.
+        lr_schedule: 'cosine' (beta_out annealed to 0 over the outer steps) or 'constant'.
         gamma: proximal strength of eq. (inner_imaml), > 0 (iMAML only).
         cg_steps: CG iterations for eq. (cg) (iMAML only).
         curvature: 'gauss_newton' (default, PSD) or 'hessian' (iMAML only).
@@ -69,6 +74,7 @@ class MetaConfig:
     inner_steps: int = 10
     lr_inner: float = 0.05
     lr_outer: float = 1e-3
+    lr_schedule: str = 'cosine'
     gamma: float = 1.0
     cg_steps: int = 5
     curvature: str = 'gauss_newton'
@@ -82,6 +88,9 @@ class MetaConfig:
         """Raise ValueError naming the first field that is out of range."""
         if self.method not in METHODS:
             raise ValueError(f'unknown method {self.method!r}; expected one of {METHODS}')
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f'unknown lr_schedule {self.lr_schedule!r}; expected one of '
+                             f'{LR_SCHEDULES}')
         if self.curvature not in CURVATURES:
             raise ValueError(f'unknown curvature {self.curvature!r}; expected {CURVATURES}')
         for name in ('iterations', 'batch_size', 'windows_per_task', 'max_bad_steps'):
@@ -103,6 +112,7 @@ class MetaResult:
         params: the meta-trained weights omega_inf.
         losses: mean meta-test loss l_SSM(D_test; omega_b) per outer step (normalised units).
         cg_residuals: mean relative CG residual per outer step (NaN for MAML).
+        lr_outer: beta_out of each outer step.
         skipped: tasks skipped in all.
         collected_samples: collected samples held in the source set at the end.
         dropped_samples: collected samples dropped by the cap.
@@ -112,6 +122,7 @@ class MetaResult:
     params: Params
     losses: List[float] = field(default_factory=list)
     cg_residuals: List[float] = field(default_factory=list)
+    lr_outer: List[float] = field(default_factory=list)
     skipped: int = 0
     collected_samples: int = 0
     dropped_samples: int = 0
@@ -167,6 +178,8 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
         init = init_params(model.config, config.seed, dtype)
     omega = torch.nn.Parameter(objective.spec.flatten(init).detach().clone())
     optimiser = torch.optim.Adam([omega], lr=config.lr_outer)
+    schedule = (torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, config.iterations)
+                if config.lr_schedule == 'cosine' else None)
     batch_fn = batch_gradient_fn(objective, config)
     rng = np.random.default_rng(config.seed)
     result = MetaResult(params={})
@@ -179,12 +192,15 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
         train, test = source.sample(tasks, config.windows_per_task, rng)
         out = batch_fn(omega.detach(), train.u, train.y, test.u, test.y)
         ok = torch.isfinite(out.test_loss) & torch.isfinite(out.grad).all(dim=-1)
+        result.lr_outer.append(optimiser.param_groups[0]['lr'])
         n_bad = int((~ok).sum())
         result.skipped += n_bad
         if ok.any():
             omega.grad = out.grad[ok].mean(dim=0)
             optimiser.step()
             optimiser.zero_grad(set_to_none=True)
+        if schedule is not None:
+            schedule.step()
         if n_bad > config.max_skip_fraction * config.batch_size:
             bad_steps += 1
             bad_tasks.update(int(tasks[b]) for b in torch.nonzero(~ok).flatten().tolist())

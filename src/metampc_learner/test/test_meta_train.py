@@ -84,7 +84,8 @@ def test_outer_step_gets_the_mean_of_the_finite_task_gradients(monkeypatch):
 
     monkeypatch.setattr(torch.optim, 'Adam', RecordingSgd)
     model, source = _source(_poisoned(1))
-    config = _fast(method='imaml', batch_size=6, iterations=2, lr_outer=0.01)
+    config = _fast(method='imaml', batch_size=6, iterations=2, lr_outer=0.01,
+                   lr_schedule='constant')
     result = meta_train(model, source, config)
     objective = FlatObjective(model)
     task_fn = task_gradient_fn(objective, config)
@@ -147,8 +148,36 @@ def test_collector_receives_adapted_weights_and_growth_is_capped():
     assert result.dropped_samples > 0
 
 
+def test_cosine_schedule_anneals_the_outer_rate_to_zero(monkeypatch):
+    """Step k of N uses beta_out (1 + cos(pi k / N)) / 2 (SGDR's formula, written out here):
+    with a recording SGD the final weights are omega_0 - sum_k rate_k g_k."""
+    given = []
+
+    class RecordingSgd(torch.optim.SGD):
+        def step(self, closure=None):
+            given.append(self.param_groups[0]['params'][0].grad.clone())
+            return super().step(closure)
+
+    monkeypatch.setattr(torch.optim, 'Adam', RecordingSgd)
+    model, source = _source()
+    n, lr = 4, 0.02
+    result = meta_train(model, source, _fast(method='maml', iterations=n, lr_outer=lr))
+    rates = [lr * (1 + np.cos(np.pi * k / n)) / 2 for k in range(n)]
+    assert result.lr_outer == pytest.approx(rates, rel=1e-12)
+    objective = FlatObjective(model)
+    omega = objective.spec.flatten(init_params(TINY, 0))
+    for rate, g in zip(rates, given):
+        omega = omega - rate * g
+    got = objective.spec.flatten(result.params)
+    assert float((got - omega).norm()) <= 1e-5 * float(omega.norm())
+    constant = meta_train(*_source(), _fast(method='maml', iterations=n, lr_outer=lr,
+                                            lr_schedule='constant'))
+    assert constant.lr_outer == [lr] * n
+
+
 def test_config_validation():
     for bad in (dict(method='reptile'), dict(curvature='fisher'), dict(gamma=0.0),
+                dict(lr_schedule='linear'),
                 dict(batch_size=0), dict(lr_outer=0.0)):
         with pytest.raises(ValueError):
             MetaConfig(**bad).validate()
