@@ -30,9 +30,8 @@ from metampc_bringup.analysis import json_safe
 from metampc_bringup.experiment_config import ConfigError, load, META_METHODS
 from metampc_bringup.offline import (init_worker, robustness_jobs, robustness_summary,
                                      run_jobs, settings_from)
+from metampc_bringup.tuning import TuneConfig
 from metampc_learner.meta_train import MetaConfig
-
-ADAPT_TARGETS, ADAPT_STEPS = 3, 20     # the tuning's validation targets and adaptation steps
 FIXED = ('method', 'iterations', 'seed')  # set by the job, not by --set
 
 
@@ -93,7 +92,8 @@ def main(argv=None) -> int:
     if args.rho_max is not None:
         nssm['rho_max'] = args.rho_max
     start, load_start = time.monotonic(), os.getloadavg()
-    settings = (settings_from(args.config, ADAPT_TARGETS, ADAPT_STEPS) if args.adapt
+    tuning = TuneConfig()     # --adapt: the tuning's validation targets and adaptation steps
+    settings = (settings_from(args.config, tuning.thetas, tuning.adapt_steps) if args.adapt
                 else settings_from(args.config, 0, 0))
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     jobs = robustness_jobs(experiment, methods, seeds, nssm, overrides, args.adapt)

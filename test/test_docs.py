@@ -1,5 +1,6 @@
 """Docs for every command: each node parameter has a row on its node's page, each script and
 each config key of the experiment is named in the docs."""
+import ast
 import dataclasses
 import glob
 import importlib
@@ -28,6 +29,50 @@ def test_every_node_parameter_is_documented(module, page):
     names = importlib.import_module(module).PARAMETERS
     missing = [n for n in names if not re.search(rf'`{re.escape(n)}`', text)]
     assert not missing, f'docs/{page} lacks {missing}'
+
+
+def _cell_value(text: str):
+    """A default as the docs write it: `0.5`, 0.25 s, `''`, true, [128, 128], `cosine`."""
+    t = text.strip().replace('`', '')
+    t = t[:-2] if t.endswith(' s') else t
+    t = t[:-len(' (unset)')] if t.endswith(' (unset)') else t
+    if t.lower() in ('true', 'false'):
+        return t.lower() == 'true'
+    try:
+        return ast.literal_eval(t)
+    except (ValueError, SyntaxError):
+        return t
+
+
+@pytest.mark.parametrize('module, page', sorted(NODE_PAGES.items()))
+def test_every_documented_default_is_the_declared_one(module, page):
+    """The node's table (declared once on the config fields) and its page agree on defaults;
+    a row may name several parameters (`u_min`, `u_max` | -1.0, 1.0)."""
+    table = importlib.import_module(module).PARAMETERS
+    rows, wrong, header = 0, [], ''
+    for previous, line in zip([''] + _read('docs', page).splitlines(),
+                              _read('docs', page).splitlines()):
+        if line.startswith('|') and not previous.startswith('|'):
+            header = line.lower()
+        cells = line.split('|')
+        if 'default' not in header or len(cells) < 4 or not cells[1].strip().startswith('`'):
+            continue
+        names = re.findall(r'`([^`]+)`', cells[1])
+        if not names or not all(n in table for n in names) or '(required)' in cells[2]:
+            continue
+        values = [cells[2]] if len(names) == 1 else cells[2].split(',')
+        if len(values) != len(names):
+            wrong.append((names, cells[2]))
+            continue
+        for name, text in zip(names, values):
+            rows += 1
+            default = table[name].default
+            got = (text.strip().strip('`').replace("''", '') if isinstance(default, str)
+                   else _cell_value(text))
+            if got != default:
+                wrong.append((name, text.strip(), table[name].default))
+    assert rows >= len(table) - 1, f'docs/{page}: {rows} default cells for {len(table)}'
+    assert not wrong, f'docs/{page}: documented defaults differ from the declared ones: {wrong}'
 
 
 def test_every_script_and_page_is_reachable_from_the_readme_or_docs():

@@ -28,15 +28,20 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 import yaml
 
+from metampc_controller import controller_params
+from metampc_learner import learner_params
+from metampc_msgs.srv import Adapt, MetaTrain
+from metampc_plant import plant_params
+
 PROTOCOLS = ('tuned', 'paper')
 META_METHODS = ('imaml', 'maml', 'maml_unrolled')
 ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
 METHODS = (*ADAPT_METHODS, 'nmpc')
 SHARED = ('dt', 'u_min', 'u_max')
 _TAKES_SHARED = {'plant': SHARED, 'learner': SHARED, 'controller': ('u_min', 'u_max')}
-_META_FIELDS = {'iterations', 'batch_size', 'inner_steps', 'gamma', 'lr_inner', 'lr_outer',
-                'cg_steps', 'online_collection'}
-_ADAPT_FIELDS = {'steps', 'gamma', 'lr', 'n_samples'}
+# The request fields a config may set: the services' own (method and seed are the run's).
+_META_FIELDS = set(MetaTrain.Request.get_fields_and_field_types()) - {'method', 'seed'}
+_ADAPT_FIELDS = set(Adapt.Request.get_fields_and_field_types()) - {'method'}
 
 
 class ConfigError(ValueError):
@@ -183,7 +188,31 @@ class ExperimentConfig:
                               'meta_train.imaml.gamma')
         _check_requests('meta_train', self.meta_train, META_METHODS, _META_FIELDS)
         _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
+        for node, params in _NODE_PARAMS.items():
+            _check_node(node, self.node_parameters(node, self.first_seed), *params)
         return self
+
+
+# Each node's declared parameters and parse function (ROS ignores an undeclared parameter:
+# without this check a misspelt key in a node section would be dropped without a word).
+_NODE_PARAMS = {'plant': (plant_params.PARAMETERS, plant_params.parse_params),
+                'learner': (learner_params.PARAMETERS, learner_params.parse_params),
+                'controller': (controller_params.PARAMETERS, controller_params.parse_params)}
+_ROS_PARAMS = ('use_sim_time',)
+
+
+def _check_node(node: str, params: Dict[str, Any], table, parse) -> None:
+    """The node section's keys are declared parameters and its values parse."""
+    unknown = sorted(set(params) - set(table) - set(_ROS_PARAMS))
+    if unknown:
+        raise ConfigError(f'{node}: unknown parameter(s) {", ".join(unknown)} (docs/{node}.md '
+                          'lists them)')
+    values = {name: spec.default for name, spec in table.items()}
+    values.update({k: v for k, v in params.items() if k in table})
+    try:
+        parse(values)
+    except ValueError as err:
+        raise ConfigError(f'{node}: {err}') from None
 
 
 def _check_requests(section: str, requests: Dict[str, Dict[str, Any]], methods, allowed) -> None:

@@ -1,17 +1,17 @@
-"""Parameters of the recorder node: table, typed config and checks. No rclpy.
+"""Parameters of the recorder node, declared once on the fields of :class:`RecorderConfig`.
 
-The node declares every entry of :data:`PARAMETERS` through the shared runtime
+No rclpy. The node declares :data:`PARAMETERS` through the shared runtime
 (:func:`metampc_common.node_main.declare_parameters`) and hands the values to
 :func:`parse_params`; a bad value is one error line and exit status 2
 (:class:`~metampc_common.params.ParameterError`). The orchestrator builds a
 :class:`RecorderConfig` and turns it into ``--ros-args`` with :meth:`RecorderConfig.to_parameters`.
 """
 import json
-import math
-from dataclasses import dataclass, field
-from typing import Dict, List, Mapping
+from dataclasses import dataclass
+from typing import Dict, Mapping, Tuple
 
-from metampc_common.params import number, ParameterError, ParamSpec, Value
+from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
+                                   Value)
 
 from .mcap_writer import COMPRESSIONS, McapWriterConfig
 
@@ -20,30 +20,39 @@ MIB = 1024 * 1024
 
 @dataclass
 class RecorderConfig:
-    """Everything the recorder node is configured with (see :data:`PARAMETERS`).
+    """Everything the recorder node is configured with (each field is a parameter)."""
 
-    Attributes:
-        output: MCAP file to create (required; an existing file is an error).
-        topics: topics to record; empty: every topic of the node's namespace, as it appears.
-        record_clock: also record ``/clock``.
-        chunk_size: uncompressed bytes per MCAP chunk (>= 1).
-        compression: 'zstd', 'lz4' or 'none'.
-        metadata_json: the run's configuration, a JSON object (stored in the ``metampc``
-            metadata record).
-        discovery_period: s between two looks at the graph for new topics (> 0).
-        flush_period: s after which an open chunk is closed and written (0: only when full).
-        qos_depth: keep_last depth of the recording subscriptions (>= 1).
-    """
+    output: str = param('', 'MCAP file to create (required; parent folders are created; an '
+                            'existing file is an error)')
+    topics: Tuple[str, ...] = param((), 'topics to record (relative names resolve in the node '
+                                        'namespace); empty: every topic of the namespace, '
+                                        'subscribed as it appears', item=str)
+    record_clock: bool = param(False, 'also record /clock')
+    chunk_size: int = param(MIB, 'uncompressed bytes per MCAP chunk', ge=1)
+    compression: str = param('lz4', 'chunk compression', choices=sorted(COMPRESSIONS))
+    metadata_json: str = param('{}', "the run's configuration, a JSON object, stored in the "
+                                     "'metampc' metadata record")
+    discovery_period: float = param(0.25, 'wall time, s, between two looks for new topics',
+                                    gt=0)
+    flush_period: float = param(1.0, 'wall time, s, after which an open chunk is written '
+                                     '(0: only when full)', ge=0)
+    qos_depth: int = param(1000, 'keep_last depth of the recording subscriptions', ge=1)
 
-    output: str = ''
-    topics: List[str] = field(default_factory=list)
-    record_clock: bool = False
-    chunk_size: int = MIB
-    compression: str = 'lz4'
-    metadata_json: str = '{}'
-    discovery_period: float = 0.25
-    flush_period: float = 1.0
-    qos_depth: int = 1000
+    def __post_init__(self):
+        self.topics = tuple(self.topics)
+
+    def validate(self) -> None:
+        """What the ranges cannot say: an output, topic names, a JSON object."""
+        if not self.output:
+            raise ValueError('output (the MCAP file to write) is required')
+        if not all(self.topics):
+            raise ValueError(f'topics must be topic names, got {list(self.topics)!r}')
+        try:
+            run_config = json.loads(self.metadata_json)
+        except json.JSONDecodeError as err:
+            raise ValueError(f'metadata_json is not JSON: {err}') from None
+        if not isinstance(run_config, dict):
+            raise ValueError(f'metadata_json must be a JSON object, got {self.metadata_json!r}')
 
     def to_parameters(self) -> Dict[str, object]:
         """ROS parameters of the node, for :func:`metampc_bringup.processes.ros_args` (which
@@ -51,7 +60,7 @@ class RecorderConfig:
 
         Empty `topics` is left out: an empty list has no type on the command line.
         """
-        params: Dict[str, object] = dict(vars(self))
+        params: Dict[str, object] = dict(vars(self), topics=list(self.topics))
         if not self.topics:
             del params['topics']
         return params
@@ -62,32 +71,8 @@ class RecorderConfig:
                                 json.loads(self.metadata_json))
 
 
-_DEFAULT = RecorderConfig()
-PARAMETERS: Dict[str, ParamSpec] = {
-    'output': ParamSpec(_DEFAULT.output, 'MCAP file to create (required; parent folders are '
-                                         'created; an existing file is an error)'),
-    'topics': ParamSpec([], 'topics to record (relative names resolve in the node namespace); '
-                            'empty: every topic of the namespace, subscribed as it appears'),
-    'record_clock': ParamSpec(_DEFAULT.record_clock, 'also record /clock'),
-    'chunk_size': ParamSpec(_DEFAULT.chunk_size, 'uncompressed bytes per MCAP chunk (>= 1)'),
-    'compression': ParamSpec(_DEFAULT.compression, 'chunk compression: '
-                                                   + ', '.join(sorted(COMPRESSIONS))),
-    'metadata_json': ParamSpec(_DEFAULT.metadata_json, "the run's configuration, a JSON object, "
-                                                       "stored in the 'metampc' metadata record"),
-    'discovery_period': ParamSpec(_DEFAULT.discovery_period,
-                                  'wall time, s, between two looks for new topics (> 0)'),
-    'flush_period': ParamSpec(_DEFAULT.flush_period, 'wall time, s, after which an open chunk '
-                                                     'is written (0: only when full)'),
-    'qos_depth': ParamSpec(_DEFAULT.qos_depth, 'keep_last depth of the recording '
-                                               'subscriptions (>= 1)'),
-}
-
-
-def _positive(name: str, value: float, zero_ok: bool = False) -> float:
-    if not math.isfinite(value) or value < 0 or (value == 0 and not zero_ok):
-        bound = '>= 0' if zero_ok else '> 0'
-        raise ParameterError(f'{name} must be {bound}, got {value}')
-    return value
+SECTION = Section(RecorderConfig)
+PARAMETERS: Dict[str, ParamSpec] = table([SECTION])
 
 
 def parse_params(values: Mapping[str, Value]) -> RecorderConfig:
@@ -96,36 +81,8 @@ def parse_params(values: Mapping[str, Value]) -> RecorderConfig:
     Raises:
         ParameterError: naming the first parameter of the wrong type or out of range.
     """
-    output = values['output']
-    if not isinstance(output, str) or not output:
-        raise ParameterError('output (the MCAP file to write) is required')
-    topics = values['topics'] or []     # the empty default is declared as a byte array
-    if not isinstance(topics, list) or not all(isinstance(t, str) and t for t in topics):
-        raise ParameterError(f'topics must be a list of topic names, got {topics!r}')
-    record_clock = values['record_clock']
-    if not isinstance(record_clock, bool):
-        raise ParameterError(f'record_clock must be true or false, got {record_clock!r}')
-    compression = values['compression']
-    if compression not in COMPRESSIONS:
-        raise ParameterError(f'compression must be one of {", ".join(sorted(COMPRESSIONS))}, '
-                             f'got {compression!r}')
-    metadata_json = values['metadata_json']
-    try:
-        run_config = json.loads(metadata_json) if isinstance(metadata_json, str) else None
-    except json.JSONDecodeError as err:
-        raise ParameterError(f'metadata_json is not JSON: {err}') from None
-    if not isinstance(run_config, dict):
-        raise ParameterError(f'metadata_json must be a JSON object, got {metadata_json!r}')
-    chunk_size = number('chunk_size', values['chunk_size'], integer=True)
-    qos_depth = number('qos_depth', values['qos_depth'], integer=True)
-    for name, value in (('chunk_size', chunk_size), ('qos_depth', qos_depth)):
-        if value < 1:
-            raise ParameterError(f'{name} must be >= 1, got {value}')
-    return RecorderConfig(
-        output=output, topics=list(topics), record_clock=record_clock, chunk_size=chunk_size,
-        compression=compression, metadata_json=metadata_json,
-        discovery_period=_positive('discovery_period',
-                                   number('discovery_period', values['discovery_period'])),
-        flush_period=_positive('flush_period', number('flush_period', values['flush_period']),
-                               zero_ok=True),
-        qos_depth=qos_depth)
+    # ROS declares the empty default list as an empty byte array.
+    return build(SECTION, {**values, 'topics': values['topics'] or []})
+
+
+__all__ = ['MIB', 'RecorderConfig', 'PARAMETERS', 'parse_params', 'ParameterError']

@@ -55,6 +55,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from metampc_learner.meta_train import MetaConfig
+
 from .analysis import json_safe
 from .experiment_config import load
 from .offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs, settings_from, THETA_STREAM,
@@ -62,7 +64,8 @@ from .offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs, settings_from
 
 DRAW_STREAM = 0xd7a          # configuration draws: rng([--seed, DRAW_STREAM])
 CURVATURE = 'gauss_newton'
-CALIBRATION = {'inner_steps': 10, 'lr_inner': 0.05, 'lr_outer': 1e-3, 'gamma': 1.0}
+CALIBRATION = {n: getattr(MetaConfig(), n) for n in ('inner_steps', 'lr_inner', 'lr_outer',
+                                                     'gamma')}   # the learner's defaults
 SHARED_GRID = {'inner_steps': (5, 10, 20), 'lr_inner': (0.02, 0.05, 0.1, 0.2),
                'lr_outer': (1e-3, 2e-3, 5e-3, 1e-2)}
 GAMMA_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)

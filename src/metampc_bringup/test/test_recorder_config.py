@@ -19,7 +19,7 @@ def test_defaults_match_the_config_and_round_trip():
                             flush_period=0.0, qos_depth=10)
     assert parse_params(values(**config.to_parameters())) == config
     assert 'topics' not in RecorderConfig(output='x').to_parameters()
-    assert parse_params(values(output='x', topics=b'')).topics == []   # as rclpy declares []
+    assert parse_params(values(output='x', topics=b'')).topics == ()   # as rclpy declares []
     assert config.writer_config().run_config == {'seed': 3}
 
 

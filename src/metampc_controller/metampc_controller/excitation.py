@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from metampc_common.params import check_fields, param
+
 KINDS = ('random_hold', 'multisine', 'prbs')
 
 
@@ -27,21 +29,20 @@ class ExcitationConfig:
         n_sines: number of multisine components.
     """
 
-    kind: str = 'random_hold'
-    u_min: float = -1.0
-    u_max: float = 1.0
-    hold_s: float = 0.5
+    kind: str = param('random_hold', 'source excitation', choices=KINDS)
+    u_min: float = param(-1.0, 'input lower bound of the simulated systems')
+    u_max: float = param(1.0, 'input upper bound of the simulated systems')
+    hold_s: float = param(0.5, 'excitation hold time, s', gt=0)
     f_max_hz: float = 1.0
     n_sines: int = 8
 
     def validate(self) -> None:
         """Raise ValueError if a setting is out of range."""
-        if self.kind not in KINDS:
-            raise ValueError(f'unknown excitation kind {self.kind!r}; expected one of {KINDS}')
-        if not (np.isfinite(self.u_min) and np.isfinite(self.u_max)) or self.u_min > self.u_max:
-            raise ValueError(f'need finite u_min <= u_max, got [{self.u_min}, {self.u_max}]')
-        if self.hold_s <= 0 or self.f_max_hz <= 0 or self.n_sines < 1:
-            raise ValueError('hold_s, f_max_hz must be > 0 and n_sines >= 1')
+        check_fields(self)
+        if self.u_min > self.u_max:
+            raise ValueError(f'need u_min <= u_max, got [{self.u_min}, {self.u_max}]')
+        if not (self.f_max_hz > 0 and self.n_sines >= 1):
+            raise ValueError('f_max_hz must be > 0 and n_sines >= 1')
 
 
 def excitation(config: ExcitationConfig, batch: int, n_samples: int, dt: float,

@@ -47,6 +47,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from metampc_common.params import check_fields, param
 from metampc_controller.latent_model import LatentModel
 from metampc_controller.terminal_cost import terminal_cost, TerminalCost
 
@@ -89,16 +90,17 @@ class MpcConfig:
             the mean iterations of OSQP's 50 with a lower worst case (30 against 55).
     """
 
-    horizon: int = 20
-    q: Sequence[float] = (1.0, 0.0)
-    r: Weights = 0.05
-    u_min: Weights = -1.0
-    u_max: Weights = 1.0
+    horizon: int = param(20, 'MPC horizon N, samples', ge=1)
+    q: Sequence[float] = param((1.0, 0.0), 'output tracking weights Q = diag(q), one per plant '
+                                           'output (the default tracks x1 only)', ge=0)
+    r: Weights = param(0.05, 'Delta-u weight', gt=0)
+    u_min: Weights = param(-1.0, 'input lower bound (<= u_max)')
+    u_max: Weights = param(1.0, 'input upper bound (>= u_min)')
     terminal_reg: float = 1e-6
-    max_iter: int = 500
-    time_limit: float = 0.05
-    eps_abs: float = 1e-4
-    eps_rel: float = 1e-4
+    max_iter: int = param(500, 'OSQP iteration cap', ge=1)
+    time_limit: float = param(0.05, 'OSQP wall-time cap per solve, s', gt=0)
+    eps_abs: float = param(1e-4, 'OSQP absolute tolerance', gt=0)
+    eps_rel: float = param(1e-4, 'OSQP relative tolerance', ge=0)
     warm_start: bool = True
     polish: bool = False
     check_termination: int = 5
@@ -109,18 +111,15 @@ class MpcConfig:
         q = np.asarray(self.q, dtype=float)
         r = np.asarray(self.r, dtype=float)
         lo, hi = np.asarray(self.u_min, dtype=float), np.asarray(self.u_max, dtype=float)
-        if self.horizon < 1:
-            raise ValueError(f'horizon must be >= 1, got {self.horizon}')
+        check_fields(self, skip=('q', 'r', 'u_min', 'u_max'))   # vectors, checked here
         if q.ndim != 1 or not np.all(np.isfinite(q)) or np.any(q < 0):
             raise ValueError(f'q must be a vector of finite weights >= 0, got {self.q}')
         if not np.all(np.isfinite(r)) or np.any(r <= 0):
             raise ValueError(f'r must be finite and > 0, got {self.r}')
         if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo > hi):
             raise ValueError(f'need u_min <= u_max, got {self.u_min}, {self.u_max}')
-        if not (self.terminal_reg > 0 and self.max_iter >= 1 and self.time_limit > 0
-                and self.eps_abs >= 0 and self.eps_rel >= 0 and self.check_termination >= 1):
-            raise ValueError('need terminal_reg > 0, max_iter >= 1, time_limit > 0, '
-                             'eps_abs, eps_rel >= 0, check_termination >= 1')
+        if not (self.terminal_reg > 0 and self.check_termination >= 1):
+            raise ValueError('need terminal_reg > 0 and check_termination >= 1')
 
     def osqp_settings(self) -> dict:
         """Keyword settings for osqp.OSQP.setup (osqp >= 1.0 names)."""

@@ -25,7 +25,6 @@ a module: the units (``normalisation.py``), the numpy view the controller runs a
 vector that training steps (``metampc_learner.training_vector``).
 """
 from collections import OrderedDict
-import math
 from dataclasses import dataclass
 from typing import Dict, Mapping, Tuple
 
@@ -34,6 +33,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from metampc_common.params import check_fields, param
 from metampc_controller.latent_stability import bounded_transition
 from metampc_controller.normalisation import Normalisation
 
@@ -58,12 +58,13 @@ class NssmConfig:
 
     n_u: int = 1
     n_y: int = 2
-    n_z: int = 5
-    history: int = 10
-    hidden: Tuple[int, ...] = (128, 128)
-    horizon: int = 10
-    stable_latent: bool = True
-    rho_max: float = 1.0
+    n_z: int = param(5, 'latent dimension', ge=1)
+    history: int = param(10, 'H, samples the encoder reads', ge=1)
+    hidden: Tuple[int, ...] = param((128, 128), 'widths of the encoder ReLU layers', ge=1)
+    horizon: int = param(10, 'T, prediction steps of the loss', ge=1)
+    stable_latent: bool = param(True, 'bound the spectral norm of A by rho_max (false: A free, '
+                                      'as in the paper)')
+    rho_max: float = param(1.0, 'bound of the spectral norm of A', gt=0)
 
     def __post_init__(self):
         self.hidden = tuple(int(w) for w in self.hidden)
@@ -72,13 +73,10 @@ class NssmConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
-        for name in ('n_u', 'n_y', 'n_z', 'history', 'horizon'):
+        check_fields(self)
+        for name in ('n_u', 'n_y'):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-        if any(w < 1 for w in self.hidden):
-            raise ValueError(f'hidden widths must be >= 1, got {self.hidden}')
-        if not (0 < self.rho_max < math.inf):
-            raise ValueError(f'rho_max must be > 0 and finite, got {self.rho_max}')
 
     @property
     def window(self) -> int:

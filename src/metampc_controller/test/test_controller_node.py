@@ -13,10 +13,20 @@ subscriber that matches late misses the first messages, which would look like un
 steps). It listens to y only from the first input on (see Loop.start), so the ys it hears
 start later. The plant's own counters (stale, rejected, timed-out inputs) are a second
 witness.
+
+The probe paces the loop: the plant reads its input from `u_paced`, to which the probe passes
+each u_k of the controller, unchanged, once it has taken u_k, the mpc_status of step k and
+(when it listens to y) y_k. The plant steps only then, so the probe is never more than a step
+behind. Unpaced, a lockstep loop runs as fast as the two nodes can answer (hundreds of steps
+per second), and a probe starved of CPU on a loaded machine fell hundreds of messages behind:
+its lists lagged what the assertions took for the present, and a message beyond the depth of a
+history would be lost. Each publisher numbers its messages 1, 2, ...: the probe checks that it
+lost no input, and tells a restarted controller's inputs from those of the one before by it.
 """
 from collections import Counter
 import math
 import time
+from typing import List
 
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
 from metampc_msgs.srv import SetActive
@@ -31,8 +41,12 @@ RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # A long input timeout: a step the controller does not answer stalls the run (and the test
-# times out) instead of being covered up by the plant holding its input.
-PLANT = {'theta': 0.5, 'input_timeout': 30.0}
+# times out) instead of being covered up by the plant holding its input. No start timeout: the
+# plant starts once the probe's input publisher exists (Loop.start), however long that takes.
+PLANT = {'theta': 0.5, 'input_timeout': 30.0, 'start_timeout': 0.0}
+PACED = {'u': 'u_paced'}    # the plant's remap: its input comes through the probe
+# A node's start-up (imports, DDS discovery) took over 30 s on a loaded 2-core machine.
+START_TIMEOUT = 90.0
 # time_limit: OSQP's wall-clock cap (50 ms) trips when a loaded machine stalls the process;
 # the checks of 'solved' below are about the answer, not its speed.
 CONTROLLER = {'use_sim_time': True, 'reference': 'setpoint', 'reference_values': [0.5],
@@ -46,28 +60,79 @@ def weights(version: int, theta: float = 0.5, **model) -> NssmWeights:
 
 
 class Loop:
-    """Probe side of a closed loop: records y, u and mpc_status; publishes weights."""
+    """Probe side of a closed loop, which it paces (see the module docstring): records y, u
+    and mpc_status, passes each u on to the plant; publishes weights. Every callback runs on
+    the probe's one executor thread."""
 
     def __init__(self, probe):
         self.probe = probe
         self.ys, self.us, self.status = [], [], []
+        self._numbered_us = []      # (publication sequence number, u), in arrival order
+        self._pending = {}          # step -> u not passed on yet
+        self._status_steps = set()  # steps whose mpc_status came and whose u is not passed on
+        self._paced = None          # the plant's input publisher (Loop.start)
         node = probe.node
-        self._subs = [node.create_subscription(ControlInput, 'u', self.us.append, RELIABLE),
-                      node.create_subscription(MpcStatus, 'mpc_status', self.status.append,
+        self._subs = [node.create_subscription(ControlInput, 'u', self._on_u, RELIABLE),
+                      node.create_subscription(MpcStatus, 'mpc_status', self._on_status,
                                                RELIABLE)]
         self.weights = node.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
+
+    def _on_u(self, msg: ControlInput, info) -> None:
+        self._numbered_us.append((info['publication_sequence_number'], msg))
+        self.us.append(msg)
+        self._pending[msg.step] = msg
+        self._pass_on()
+
+    def _on_status(self, msg: MpcStatus) -> None:
+        self.status.append(msg)
+        self._status_steps.add(msg.step)
+        self._pass_on()
+
+    def _on_y(self, msg: PlantOutput) -> None:
+        self.ys.append(msg)
+        self._pass_on()
+
+    def _pass_on(self) -> None:
+        """Pass u_k on once the probe has its mpc_status and, once it hears y, y_k (the plant
+        steps no further than the probe has taken; its steps only grow in these tests)."""
+        if self._paced is None:
+            return
+        for step in sorted(self._pending):
+            if step in self._status_steps and (not self.ys or self.ys[-1].step >= step):
+                self._paced.publish(self._pending.pop(step))
+                self._status_steps.discard(step)
 
     def start(self, procs, plant_params: dict, controller_params: dict):
         """Start the controller, wait until the probe hears it, start the plant, and listen to
         y once the controller has answered y_0: the plant sends y_0 when y has a subscriber
-        (and u a publisher), and that subscriber must be the controller, not the probe."""
+        (and u a publisher), and that subscriber must be the controller, not the probe. The
+        plant's input publisher is created once the probe knows the plant's subscription, so
+        it is matched from its first message on (and the plant's start gate opens on it)."""
         ctl = procs.start('metampc_controller', 'controller', params=controller_params)
         self.probe.wait_for(lambda: all(s.get_publisher_count() > 0 for s in self._subs),
-                            30.0, 'the controller publishers matched')
-        plant = procs.start('metampc_plant', 'plant', params=plant_params)
-        self.probe.wait_for(lambda: self.us, 30.0, 'the answer to y_0')
-        self.probe.node.create_subscription(PlantOutput, 'y', self.ys.append, RELIABLE)
+                            START_TIMEOUT, 'the controller publishers matched')
+        plant = procs.start('metampc_plant', 'plant', params=plant_params, remaps=PACED)
+        self.probe.wait_for(lambda: self.probe.node.count_subscribers(PACED['u']) > 0,
+                            START_TIMEOUT, 'the plant subscribed to its input')
+        self._paced = self.probe.node.create_publisher(ControlInput, PACED['u'], RELIABLE)
+        self.probe.wait_for(lambda: self.us, START_TIMEOUT, 'the answer to y_0')
+        self.probe.node.create_subscription(PlantOutput, 'y', self._on_y, RELIABLE)
         return plant, ctl
+
+    def controller_runs(self) -> List[List[ControlInput]]:
+        """The inputs heard, one list per controller process, in order: a publisher numbers its
+        messages 1, 2, ..., a new one from 1 again. Asserts that the probe lost none after the
+        first it heard of each (it may miss the first answers of a controller started while
+        the loop runs, before discovery matched them: the plant then holds its input)."""
+        runs, last = [], None
+        for seq, msg in list(self._numbered_us):
+            if last is None or seq <= last:
+                runs.append([])
+            else:
+                assert seq == last + 1, f'inputs {last + 1}..{seq - 1} of a controller lost'
+            runs[-1].append(msg)
+            last = seq
+        return runs
 
     def wait_steps(self, n: int, timeout: float = 30.0) -> None:
         """Until the plant has published n more samples than now."""
@@ -103,6 +168,7 @@ class Loop:
         ys = list(self.ys)
         last = ys[-1].step
         sent = self.inputs(last)
+        assert len(self.controller_runs()) == 1, 'one controller'
         us = list(self.us)      # the loop goes on: it may hold answers beyond `last` by now
         answers = Counter(m.step for m in us)
         assert all(answers[k] == 1 for k in range(last)), 'each step answered exactly once'
@@ -126,8 +192,8 @@ def stop_cleanly(procs, proc) -> str:
 
 def test_excitation_tracking_swaps_rejections_and_restart(procs, probe):
     loop = Loop(probe)
-    # input_timeout 1 s: the restart below leaves the step of the stopped controller to it.
-    plant, ctl = loop.start(procs, {**PLANT, 'input_timeout': 1.0},
+    # input_timeout 3 s: the restart below leaves the step of the stopped controller to it.
+    plant, ctl = loop.start(procs, {**PLANT, 'input_timeout': 3.0},
                             {**CONTROLLER, 'pre_model_input': 'excitation',
                              'excitation_amplitude': 0.4, 'excitation_seed': 3})
     # Before a model: the seeded excitation, within +-0.4, held 0.5 s = 5 samples from step 0.
@@ -174,15 +240,22 @@ def test_excitation_tracking_swaps_rejections_and_restart(procs, probe):
     # Restarted mid-run, the controller gets the latched model 4 without a new publish.
     out = stop_cleanly(procs, ctl)
     assert 'rejected weights version 2' in out and 'rejected weights version 3' in out, out
-    n_before = len(loop.us)
     ctl = procs.start('metampc_controller', 'controller', params=CONTROLLER)
+
+    def restarted() -> List[ControlInput]:
+        runs = loop.controller_runs()
+        assert len(runs) <= 2, f'{len(runs)} controllers'
+        return runs[1] if len(runs) == 2 else []
+
     # Its first answers may come before discovery has delivered the latched model.
-    probe.wait_for(lambda: len(loop.us) > n_before + 20 and loop.us[-1].model_version == 4,
-                   30.0, 'inputs with model 4 after the restart')
-    versions = [m.model_version for m in loop.us[n_before:]]
+    probe.wait_for(lambda: len(restarted()) > 20 and restarted()[-1].model_version == 4,
+                   START_TIMEOUT, 'inputs with model 4 after the restart')
+    new = restarted()
+    versions = [m.model_version for m in new]
     assert versions == sorted(versions) and set(versions) <= {0, 4}
-    steps = [m.step for m in loop.us[n_before:]]
+    steps = [m.step for m in new]
     assert steps == list(range(steps[0], steps[0] + len(steps)))
+    assert steps[0] > max(m.step for m in loop.controller_runs()[0]), 'answers y after restart'
     stop_cleanly(procs, ctl)
     out = stop_cleanly(procs, plant)
     assert '0 stale, 0 rejected' in out, out

@@ -17,6 +17,7 @@ from typing import List, Optional
 
 import torch
 
+from metampc_common.params import check_fields, param
 from metampc_controller.nssm import init_params, Nssm, Params
 from metampc_learner.data import Windows
 from metampc_learner.objective import FlatObjective
@@ -27,13 +28,13 @@ from metampc_learner.progress import Progress, ProgressFn
 class AdaptConfig:
     """Attributes: steps (m), lr (beta_in), gamma (>= 0) of eq. (infer)."""
 
-    steps: int = 20
-    lr: float = 0.05
-    gamma: float = 0.0
+    steps: int = param(20, 'adaptation gradient steps', ge=0)
+    lr: float = param(0.05, 'adaptation step size', gt=0)
+    gamma: float = param(0.0, 'proximal strength of eq. infer (0: plain gradient steps)', ge=0)
 
     def validate(self) -> None:
-        if self.steps < 0 or not self.lr >= 0 or not self.gamma >= 0:
-            raise ValueError(f'need steps >= 0, lr >= 0, gamma >= 0; got {self}')
+        """Raise ValueError naming the first field that is out of range."""
+        check_fields(self)
 
 
 @dataclass

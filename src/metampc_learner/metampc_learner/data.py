@@ -20,6 +20,7 @@ from typing import Deque, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from metampc_common.params import check_fields, param
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.normalisation import Normalisation
 from metampc_controller.nssm import NssmConfig
@@ -172,17 +173,25 @@ class SourceConfig:
         seed: seed of thetas, initial states and inputs.
     """
 
-    n_systems: int = 100
-    episodes_per_system: int = 2
-    episode_samples: int = 200
-    dt: float = 0.1
-    substeps: int = 10
-    theta_mean: float = 0.0
-    theta_std: float = 1.0
-    x0_bound: float = 1.0
-    state_bound: float = 10.0
+    n_systems: int = param(100, 'N_s, source systems', ge=1)
+    episodes_per_system: int = param(2, 'episodes per system', ge=1)
+    episode_samples: int = param(200, 'samples per episode', ge=2)
+    dt: float = param(0.1, "sample time, s; must equal the plant's", gt=0)
+    substeps: int = param(10, 'RK4 steps per sample', ge=1)
+    theta_mean: float = param(0.0, 'mean of Theta = N(mean, std^2)')
+    theta_std: float = param(1.0, 'std of Theta', ge=0)
+    x0_bound: float = param(1.0, 'initial states uniform in [-b, b]^2', ge=0)
+    state_bound: float = param(10.0, 'episodes end when |x|_inf exceeds this; target samples '
+                                     'beyond it are dropped', gt=0)
     excitation: ExcitationConfig = field(default_factory=ExcitationConfig)
-    seed: int = 0
+    seed: int = param(0, 'seed of the source systems and their data', ge=0)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field that is out of range."""
+        check_fields(self)
+        self.excitation.validate()
+        if self.x0_bound > self.state_bound:
+            raise ValueError(f'x0_bound {self.x0_bound} exceeds state_bound {self.state_bound}')
 
 
 def simulate_episodes(thetas: Sequence[float], config: SourceConfig, seed: int

@@ -5,9 +5,9 @@ Each outer step samples B tasks from the source set (with replacement when B exc
 meta-gradients (imaml.py, maml.py) vectorised with ``torch.func.vmap`` (or a Python loop), and
 applies their mean with Adam (lr beta_out): eq. (outer) for iMAML, eq. (outer_maml) for
 first-order MAML. With ``lr_schedule='cosine'`` beta_out is annealed from ``lr_outer`` to 0 over
-the outer steps (``torch.optim.lr_scheduler.CosineAnnealingLR``, as MAML++ does): at a constant
-rate the meta-test loss of some source sets keeps oscillating by 10x from step to step until the
-end, and the last outer step decides which model is published (docs/tuning.md).
+the outer steps (``torch.optim.lr_scheduler.CosineAnnealingLR``, as MAML++ does); the default
+stays constant: on the validation source sets cosine annealing left both methods worse after
+adaptation (docs/tuning.md).
 
 Non-finite tasks: a task whose test loss or meta-gradient is non-finite is skipped (left out
 of the mean) and counted; if more than ``max_skip_fraction`` of a batch is skipped for
@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch.func import vmap
 
+from metampc_common.params import check_fields, param
 from metampc_controller.nssm import init_params, Nssm, Params
 from metampc_learner.curvature import CURVATURES
 from metampc_learner.data import SourceSet, Trajectory
@@ -38,7 +39,7 @@ from metampc_learner.progress import Progress, ProgressFn
 from metampc_learner.task_gradient import TaskGradient
 
 METHODS = ('imaml', 'maml', 'maml_unrolled')
-LR_SCHEDULES = ('cosine', 'constant')
+LR_SCHEDULES = ('constant', 'cosine')
 Collector = Callable[[int, float, Params], Sequence[Trajectory]]
 
 
@@ -58,7 +59,7 @@ class MetaConfig:
         lr_inner: beta_in.
         lr_outer: beta_out (Adam), the initial rate.
         lr_schedule: 'cosine' (beta_out annealed to 0 over the outer steps) or 'constant'.
-        gamma: proximal strength of eq. (inner_imaml), > 0 (iMAML only).
+        gamma: proximal strength of eq. (inner_imaml) (iMAML only).
         cg_steps: CG iterations for eq. (cg) (iMAML only).
         curvature: 'gauss_newton' (default, PSD) or 'hessian' (iMAML only).
         windows_per_task: windows sampled from each of D_tr and D_test per task and step.
@@ -68,40 +69,29 @@ class MetaConfig:
         max_bad_steps: consecutive bad steps that stop training.
     """
 
-    method: str = 'imaml'
-    iterations: int = 300
-    batch_size: int = 16
-    inner_steps: int = 10
-    lr_inner: float = 0.05
-    lr_outer: float = 1e-3
-    lr_schedule: str = 'cosine'
-    gamma: float = 1.0
-    cg_steps: int = 5
-    curvature: str = 'gauss_newton'
-    windows_per_task: int = 64
+    method: str = param('imaml', 'meta-training method', choices=METHODS)
+    iterations: int = param(300, 'outer steps', ge=1)
+    batch_size: int = param(16, 'B, tasks per outer step', ge=1)
+    inner_steps: int = param(10, 'M, inner gradient steps', ge=0)
+    lr_inner: float = param(0.05, 'beta_in, inner step size', ge=0)
+    lr_outer: float = param(1e-3, 'beta_out, initial Adam step size', gt=0)
+    lr_schedule: str = param('constant', 'beta_out over the outer steps (cosine: annealed to '
+                                         '0)', choices=LR_SCHEDULES)
+    gamma: float = param(1.0, 'proximal strength of eq. inner_imaml', gt=0)
+    cg_steps: int = param(5, 'CG iterations of eq. cg', ge=0)
+    curvature: str = param('gauss_newton', 'iMAML curvature', choices=CURVATURES)
+    windows_per_task: int = param(64, 'windows of D_tr and of D_test per task and step', ge=1)
     vectorise: bool = True
-    seed: int = 0
+    seed: int = param(0, 'seed of initial weights, task sampling, collection and the '
+                         'supervised/oracle initialisation', ge=0)
     max_skip_fraction: float = 0.5
     max_bad_steps: int = 3
 
     def validate(self) -> None:
-        """Raise ValueError naming the first field that is out of range."""
-        if self.method not in METHODS:
-            raise ValueError(f'unknown method {self.method!r}; expected one of {METHODS}')
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f'unknown lr_schedule {self.lr_schedule!r}; expected one of '
-                             f'{LR_SCHEDULES}')
-        if self.curvature not in CURVATURES:
-            raise ValueError(f'unknown curvature {self.curvature!r}; expected {CURVATURES}')
-        for name in ('iterations', 'batch_size', 'windows_per_task', 'max_bad_steps'):
-            if getattr(self, name) < 1:
-                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-        if self.inner_steps < 0 or self.cg_steps < 0 or self.seed < 0:
-            raise ValueError('inner_steps, cg_steps and seed must be >= 0')
-        if not (self.lr_inner >= 0 and self.lr_outer > 0):
-            raise ValueError('need lr_inner >= 0 and lr_outer > 0')
-        if self.method == 'imaml' and not self.gamma > 0:
-            raise ValueError(f'iMAML needs gamma > 0, got {self.gamma}')
+        """Raise ValueError (a ParameterError) naming the first field that is out of range."""
+        check_fields(self)
+        if self.max_bad_steps < 1:
+            raise ValueError(f'max_bad_steps must be >= 1, got {self.max_bad_steps}')
 
 
 @dataclass

@@ -30,6 +30,7 @@ from typing import List
 import numpy as np
 import torch
 
+from metampc_common.params import check_fields, param
 from metampc_controller.excitation import excitation
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.nssm import Nssm, Params
@@ -55,28 +56,22 @@ class OnlineCollectionConfig:
         seed: seed of initial states, warm-up inputs, set-points and noise.
     """
 
-    episodes: int = 1
-    episode_samples: int = 60
-    noise_std: float = 0.2
-    horizon: int = 20
+    episodes: int = param(1, 'episodes per task and outer step', ge=1)
+    episode_samples: int = param(60, 'closed-loop samples per episode after H warm-up', ge=1)
+    noise_std: float = param(0.2, 'exploration std of eq. ub', ge=0)
+    horizon: int = param(20, 'MPC horizon N of the collection', ge=1)
     q: float = 1.0
-    r: float = 0.05
+    r: float = param(0.05, 'MPC Delta-u weight of the collection', gt=0)
     tracked_output: int = 0
-    ref_bound: float = 1.0
-    ref_hold_s: float = 2.0
+    ref_bound: float = param(1.0, 'x1 set-points uniform in [-b, b]', ge=0)
+    ref_hold_s: float = param(2.0, 'set-point hold time, s', gt=0)
     seed: int = 0
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
-        for name in ('episodes', 'episode_samples', 'horizon'):
-            if getattr(self, name) < 1:
-                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-        if not (self.noise_std >= 0 and np.isfinite(self.noise_std)):
-            raise ValueError(f'noise_std must be finite and >= 0, got {self.noise_std}')
-        if not (self.q > 0 and self.r > 0 and self.ref_hold_s > 0 and self.ref_bound >= 0):
-            raise ValueError('need q > 0, r > 0, ref_hold_s > 0 and ref_bound >= 0')
-        if self.tracked_output < 0 or self.seed < 0:
-            raise ValueError('tracked_output and seed must be >= 0')
+        check_fields(self)
+        if not (self.q > 0 and self.tracked_output >= 0 and self.seed >= 0):
+            raise ValueError('need q > 0, tracked_output >= 0 and seed >= 0')
 
 
 @dataclass

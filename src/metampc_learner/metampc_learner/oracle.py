@@ -19,6 +19,7 @@ from typing import List, Optional
 import numpy as np
 import torch
 
+from metampc_common.params import check_fields, param
 from metampc_controller.nssm import Nssm, Params
 from metampc_learner.adapt import AdaptResult
 from metampc_learner.data import simulate_episodes, SourceConfig, Trajectory, Windows
@@ -31,17 +32,17 @@ class OracleConfig:
     """Attributes: episodes simulated, Adam steps, Adam lr, windows per step, evaluation subset
     size of the training loss."""
 
-    episodes: int = 100
-    steps: int = 500
-    lr: float = 3e-3
-    batch_windows: int = 256
+    episodes: int = param(100, 'simulated target episodes of the oracle', ge=1)
+    steps: int = param(500, 'oracle Adam steps', ge=0)
+    lr: float = param(3e-3, 'oracle Adam step size', gt=0)
+    batch_windows: int = param(256, 'oracle windows per Adam step', ge=1)
     eval_windows: int = 1024
 
     def validate(self) -> None:
-        if (self.episodes < 1 or self.steps < 0 or not self.lr > 0 or self.batch_windows < 1
-                or self.eval_windows < 1):
-            raise ValueError(f'need episodes >= 1, steps >= 0, lr > 0, batch_windows >= 1, '
-                             f'eval_windows >= 1; got {self}')
+        """Raise ValueError naming the first field that is out of range."""
+        check_fields(self)
+        if self.eval_windows < 1:
+            raise ValueError(f'eval_windows must be >= 1, got {self.eval_windows}')
 
 
 def oracle_data(theta: float, source: SourceConfig, episodes: int, seed: int

@@ -28,8 +28,7 @@ def test_imaml_adaptation_beats_supervised_on_unseen_targets():
     model = Nssm(config, norm)
     meta = meta_train(model, SourceSet(data, norm, config),
                       MetaConfig(iterations=120, batch_size=8, inner_steps=5,
-                                 windows_per_task=32, lr_outer=3e-3, lr_schedule='constant',
-                                 seed=0))
+                                 windows_per_task=32, lr_outer=3e-3, seed=0))
     assert meta.skipped == 0
     assert np.mean(meta.losses[-10:]) < 0.5 * np.mean(meta.losses[:10])
     steps = AdaptConfig(steps=20, lr=0.05)

@@ -109,8 +109,8 @@ class PlantNode(Node):
             self._gate_timer = self.create_timer(GATE_PERIOD_S, self._on_gate,
                                                  clock=self._steady)
         else:
-            self._tick_timer = self.create_timer(1.0 / self.cfg.rate_hz, self._on_tick,
-                                                 clock=self._steady)
+            period = 1.0 / self.cfg.sample_rate_hz()
+            self._tick_timer = self.create_timer(period, self._on_tick, clock=self._steady)
         self._publish_info()
         vdp = self.cfg.vdp
         self.get_logger().info(
@@ -118,7 +118,7 @@ class PlantNode(Node):
             f'x0={list(vdp.x0)}, u in [{vdp.u_min}, {vdp.u_max}]'
             + (f'; y_0 goes out once y has a subscriber and u a publisher (at the latest '
                f'after start_timeout = {self.cfg.start_timeout} s)' if lockstep
-               else f', {self.cfg.rate_hz} Hz'))
+               else f', {self.cfg.sample_rate_hz()} Hz'))
         if not lockstep:
             self._start()
 
@@ -157,7 +157,7 @@ class PlantNode(Node):
             u_max=vdp.u_max, process_noise_std=vdp.process_noise_std,
             measurement_noise_std=vdp.measurement_noise_std, seed=vdp.seed,
             clock_mode=self.cfg.mode,
-            rate_hz=0.0 if self.lockstep is not None else self.cfg.rate_hz,
+            rate_hz=0.0 if self.lockstep is not None else self.cfg.sample_rate_hz(),
             state_bound=vdp.state_bound, diverged=self.plant.diverged,
             n_resets=self._n_resets, header=Header(stamp=self._stamp())))
 

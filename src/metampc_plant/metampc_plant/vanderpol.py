@@ -25,6 +25,8 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from metampc_common.params import check_fields, param
+
 N_X = 2
 N_U = 1
 N_Y = 2
@@ -48,36 +50,27 @@ class VdpConfig:
         seed: seed of the noise generator.
     """
 
-    theta: float = 0.0
-    dt: float = 0.1
-    substeps: int = 10
-    x0: Tuple[float, float] = (0.0, 0.0)
-    u_min: float = -1.0
-    u_max: float = 1.0
-    process_noise_std: float = 0.0
-    measurement_noise_std: float = 0.0
-    state_bound: float = 10.0
-    seed: int = 0
+    theta: float = param(0.0, 'van der Pol damping, dimensionless')
+    dt: float = param(0.1, 'sample time, s', gt=0)
+    substeps: int = param(10, 'RK4 steps per sample', ge=1)
+    x0: Tuple[float, float] = param((0.0, 0.0), 'initial state [x1, x2] (inside state_bound)',
+                                    length=N_X)
+    u_min: float = param(-1.0, 'input lower bound (<= u_max)')
+    u_max: float = param(1.0, 'input upper bound (>= u_min)')
+    process_noise_std: float = param(0.0, 'std of the noise added to x2 per sample, times '
+                                          'sqrt(dt)', ge=0)
+    measurement_noise_std: float = param(0.0, 'std of the noise added to each output', ge=0)
+    state_bound: float = param(10.0, 'the plant is declared diverged when |x|_inf exceeds this',
+                               gt=0)
+    seed: int = param(0, 'noise seed', ge=0)
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
-        if not np.isfinite(self.theta):
-            raise ValueError(f'theta must be finite, got {self.theta}')
-        if not (self.dt > 0 and np.isfinite(self.dt)):
-            raise ValueError(f'dt must be > 0 s, got {self.dt}')
-        if int(self.substeps) != self.substeps or self.substeps < 1:
-            raise ValueError(f'substeps must be an integer >= 1, got {self.substeps}')
-        if len(self.x0) != N_X or not np.all(np.isfinite(self.x0)):
-            raise ValueError(f'x0 must be {N_X} finite numbers, got {list(self.x0)}')
-        if not (np.isfinite(self.u_min) and np.isfinite(self.u_max)) or self.u_min > self.u_max:
-            raise ValueError(f'need finite u_min <= u_max, got [{self.u_min}, {self.u_max}]')
-        if not (0 <= self.process_noise_std < np.inf and 0 <= self.measurement_noise_std < np.inf):
-            raise ValueError('noise standard deviations must be finite and >= 0, got '
-                             f'{self.process_noise_std}, {self.measurement_noise_std}')
-        if not self.state_bound > 0:
-            raise ValueError(f'state_bound must be > 0, got {self.state_bound}')
-        if self.seed < 0:
-            raise ValueError(f'seed must be >= 0, got {self.seed}')
+        check_fields(self)
+        if self.u_min > self.u_max:
+            raise ValueError(f'need u_min <= u_max, got [{self.u_min}, {self.u_max}]')
+        if max(abs(v) for v in self.x0) > self.state_bound:
+            raise ValueError(f'x0 {list(self.x0)} lies outside state_bound {self.state_bound}')
 
 
 def vdp_rhs(x: np.ndarray, u: np.ndarray, theta: np.ndarray) -> np.ndarray:

@@ -286,7 +286,8 @@ def _raw(**overrides):
 
 def test_parse_params_defaults_and_coercion():
     cfg = parse_params(_raw())
-    assert cfg.vdp == VdpConfig() and cfg.mode == 'lockstep' and cfg.rate_hz == 1 / cfg.vdp.dt
+    assert cfg.vdp == VdpConfig() and cfg.mode == 'lockstep'
+    assert cfg.sample_rate_hz() == 1 / cfg.vdp.dt
     cfg = parse_params(_raw(dt=1, x0=[1, 0], rate_hz=50, mode='realtime', start_timeout=0))
     assert cfg.vdp.dt == 1.0 and cfg.vdp.x0 == (1.0, 0.0) and cfg.rate_hz == 50.0
     assert cfg.start_timeout == 0.0 and cfg.input_timeout == 1.0
