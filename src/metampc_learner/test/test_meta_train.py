@@ -69,12 +69,8 @@ def test_non_finite_task_is_skipped_and_counted():
     assert all(torch.isfinite(v).all() for v in result.params.values())
 
 
-def test_outer_step_gets_the_mean_of_the_finite_task_gradients(monkeypatch):
-    """Eq. (outer): the optimiser is handed 1/B' sum of the B' finite tasks' meta-gradients.
-
-    Adam is replaced by a recording SGD (Adam's update is invariant to the gradient's scale, so
-    it would hide a wrong average); the steps are redone by hand with a Python loop over tasks.
-    """
+def _record_sgd(monkeypatch):
+    """Replace Adam by plain SGD that records the gradient of every step; the record."""
     given = []
 
     class RecordingSgd(torch.optim.SGD):
@@ -83,6 +79,16 @@ def test_outer_step_gets_the_mean_of_the_finite_task_gradients(monkeypatch):
             return super().step(closure)
 
     monkeypatch.setattr(torch.optim, 'Adam', RecordingSgd)
+    return given
+
+
+def test_outer_step_gets_the_mean_of_the_finite_task_gradients(monkeypatch):
+    """Eq. (outer): the optimiser is handed 1/B' sum of the B' finite tasks' meta-gradients.
+
+    Adam is replaced by a recording SGD (Adam's update is invariant to the gradient's scale, so
+    it would hide a wrong average); the steps are redone by hand with a Python loop over tasks.
+    """
+    given = _record_sgd(monkeypatch)
     model, source = _source(_poisoned(1))
     config = _fast(method='imaml', batch_size=6, iterations=2, lr_outer=0.01,
                    lr_schedule='constant')
@@ -151,14 +157,7 @@ def test_collector_receives_adapted_weights_and_growth_is_capped():
 def test_cosine_schedule_anneals_the_outer_rate_to_zero(monkeypatch):
     """Step k of N uses beta_out (1 + cos(pi k / N)) / 2 (SGDR's formula, written out here):
     with a recording SGD the final weights are omega_0 - sum_k rate_k g_k."""
-    given = []
-
-    class RecordingSgd(torch.optim.SGD):
-        def step(self, closure=None):
-            given.append(self.param_groups[0]['params'][0].grad.clone())
-            return super().step(closure)
-
-    monkeypatch.setattr(torch.optim, 'Adam', RecordingSgd)
+    given = _record_sgd(monkeypatch)
     model, source = _source()
     n, lr = 4, 0.02
     result = meta_train(model, source, _fast(method='maml', iterations=n, lr_outer=lr,
