@@ -604,6 +604,31 @@ def test_out_of_range_parameters_at_startup_one_line_exit_2(procs):
         assert BAD_START[name][3] in lines[0], (name, lines)
 
 
+MISSPELT = {  # node: (package, executable, parameters with one misspelt, what the line says)
+    'plant': ('metampc_plant', 'plant', {'thetaa': 1.0}, 'unknown parameter thetaa; did you '
+              'mean theta?'),
+    'controller': ('metampc_controller', 'controller', {'horizn': 5},
+                   'unknown parameter horizn; did you mean horizon?'),
+    'learner': ('metampc_learner', 'learner', {'iteration': 5},
+                'unknown parameter iteration; did you mean iterations?'),
+    'recorder': ('metampc_bringup', 'recorder', {'output': '/tmp/never.mcap', 'topic': ['y']},
+                 'unknown parameter topic; did you mean topics?'),
+}
+
+
+def test_misspelt_parameter_at_startup_one_line_exit_2(procs):
+    """ROS ignores a parameter a node does not declare; the nodes refuse it by name, so a typo
+    cannot run the default without a word."""
+    started = {name: procs.start(pkg, exe, params=params, name=name)
+               for name, (pkg, exe, params, _) in MISSPELT.items()}
+    for name, proc in started.items():
+        code = proc.wait(120.0)
+        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        assert code == 2, (name, code, lines)
+        assert len(lines) == 1 and MISSPELT[name][3] in lines[0], (name, lines)
+    assert not os.path.exists('/tmp/never.mcap')
+
+
 def test_existing_output_path_is_never_overwritten(procs, tmp_path):
     """The recorder refuses an existing file (exit 2, one line, the file untouched);
     run_experiment refuses a non-empty run folder before starting anything (exit 2)."""
