@@ -7,15 +7,17 @@ winners, wall time, CPU time of the jobs, load average), also written to ``--out
 arguments: one line on stderr, exit status 2.
 
 Usage: python scripts/tune.py [--k 8] [--refine 4] [--finalists 3] [--robust-seeds 3]
-       [--jobs 2] [--out config/tuning.json]
+       [--jobs 2] --out runs/tuning.json
 """
 import argparse
 import json
+import os
+import sys
 
 from metampc_bringup.tuning import TuneConfig, tune
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     d = TuneConfig()
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--config', default=d.config,
@@ -39,20 +41,26 @@ def main(argv=None) -> None:
     parser.add_argument('--jobs', type=int, default=d.jobs, help='worker processes')
     parser.add_argument('--threads', type=int, default=d.threads,
                         help='torch threads per worker')
-    parser.add_argument('--out', default='config/tuning.json')
+    parser.add_argument('--out', required=True,
+                        help='JSON file to write (must not exist: config/tuning.json is the '
+                             'committed record)')
     args = vars(parser.parse_args(argv))
     out = args.pop('out')
     cfg = TuneConfig(**args)
     try:
         cfg.validate()
+        if os.path.exists(out):
+            raise ValueError(f'--out {out} exists; results are never overwritten')
     except ValueError as err:
-        parser.error(str(err))
+        print(f'tune: {err}', file=sys.stderr)
+        return 2
     report = tune(cfg)
     with open(out, 'w') as f:
         json.dump(report, f, indent=1)
         f.write('\n')
     print(json.dumps(report))
+    return 0
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -647,6 +647,15 @@ def test_existing_output_path_is_never_overwritten(procs, tmp_path):
     assert 'exists and is not empty; runs are never overwritten' in script.stderr
     assert os.listdir(run) == ['report.md'] and (run / 'report.md').read_text() == (
         'an earlier report')
+    as_file = subprocess.run(         # --out naming an existing file: the same, not a traceback
+        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+         os.path.join(ROOT, 'config', 'ci.yaml'), '--out', str(run / 'report.md'),
+         '--no-progress'], capture_output=True, text=True, timeout=120)
+    assert as_file.returncode == 2, as_file.stderr
+    assert as_file.stderr.strip().splitlines() == [
+        f'run_experiment: {run / "report.md"} exists and is not a folder; runs are never '
+        'overwritten']
+    assert (run / 'report.md').read_text() == 'an earlier report'
     assert recorder.wait(120) == 2
     lines = [line for line in procs.output(recorder).splitlines() if line.strip()]
     assert len(lines) == 1 and 'exists' in lines[0] and str(taken) in lines[0], lines

@@ -46,6 +46,9 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
         with terminate_as_interrupt(), split_hosts(hosts) as net:
             return call_in_namespace(net.orchestrator, run_experiment, config, out_dir,
                                      progress, net.prefix())
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise FileExistsError(f'{out_dir} exists and is not a folder; runs are never '
+                              'overwritten')
     if os.path.exists(out_dir) and os.listdir(out_dir):
         raise FileExistsError(f'{out_dir} exists and is not empty; runs are never overwritten')
     os.makedirs(out_dir, exist_ok=True)

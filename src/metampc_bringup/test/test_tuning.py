@@ -3,8 +3,10 @@
 Pure functions on job lists and hand-made results; no training runs here (scripts/tune.py
 runs them, docs/tuning.md has the measured search).
 """
+import importlib.util
 import math
 import os
+from pathlib import Path
 
 import pytest
 
@@ -152,3 +154,21 @@ def test_incumbents_are_the_experiments_requests():
         assert set(got[method]) >= set(tuning.AXES[method])
         assert all(requests[method][n] == v for n, v in got[method].items())
     assert got['imaml']['cg_steps'] == requests['imaml']['cg_steps']
+
+
+@pytest.mark.parametrize('args', [['--out', 'EXISTING'], ['--out', 'NEW', '--k', '0'],
+                                  ['--out', 'NEW', '--jobs', '0']])
+def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path, capsys, args):
+    """scripts/tune.py: exit 2, one line, nothing written (config/tuning.json, the committed
+    record, was its old default --out and got overwritten without a word)."""
+    spec = importlib.util.spec_from_file_location(
+        'tune', Path(__file__).resolve().parents[3] / 'scripts' / 'tune.py')
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    existing = tmp_path / 'tuning.json'
+    existing.write_text('{"an": "earlier record"}')
+    paths = {'EXISTING': str(existing), 'NEW': str(tmp_path / 'new.json')}
+    assert script.main([paths.get(a, a) for a in args]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert existing.read_text() == '{"an": "earlier record"}'
+    assert not (tmp_path / 'new.json').exists()
