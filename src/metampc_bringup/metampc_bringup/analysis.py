@@ -109,11 +109,15 @@ def analyse(path: str, out_dir: Optional[str] = None, tracked: Optional[Sequence
         ``metrics`` (see :func:`metrics.compute_metrics`), ``plots`` (file names).
 
     Raises:
-        FileNotFoundError, ValueError: see :func:`recording_reader.resolve_recording`.
+        FileNotFoundError, ValueError: see :func:`recording_reader.resolve_recording`; a
+            recording without messages; a tracked output the plant does not have.
         FileExistsError: `out_dir` holds a report_name file that is not a report of this
             module (nothing is written then).
     """
     recording = read_recording(path)
+    if not recording.messages:
+        raise ValueError(f'{recording.path} holds no message ({os.path.getsize(recording.path)} '
+                         'bytes: cut short before the first one?); nothing to analyse')
     config = recording.run_config()
     out_dir = out_dir or os.path.dirname(os.path.abspath(recording.path))
     if report_name:
@@ -122,6 +126,10 @@ def analyse(path: str, out_dir: Optional[str] = None, tracked: Optional[Sequence
     if tracked is None and 'tracked_outputs' in config:
         tracked = [int(i) for i in config['tracked_outputs']]
     series = series_from_recording(recording, overrides)
+    bad = [i for i in tracked or () if not 0 <= int(i) < series.n_y]
+    if bad:
+        raise ValueError(f'tracked output(s) {bad} out of range: the plant has {series.n_y} '
+                         f'outputs, 0..{series.n_y - 1}')
     metrics = compute_metrics(series, tracked, u_bounds)
     written: List[str] = []
     if plots:

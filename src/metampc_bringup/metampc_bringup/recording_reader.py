@@ -9,12 +9,14 @@ the file, so no ROS installation is needed. No rclpy here.
 import glob
 import json
 import os
+import struct
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Tuple
 
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema, Statistics
-from mcap.stream_reader import StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.stream_reader import read_magic, StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from .mcap_writer import RUN_METADATA_NAME
@@ -119,13 +121,25 @@ def resolve_recording(path: str) -> str:
 
     Raises:
         FileNotFoundError: no such file, or a folder without an MCAP file.
-        ValueError: a folder with several MCAP files.
+        ValueError: a folder with several MCAP files, an experiment's run folder (its
+            recordings are one per seed), a file that is not MCAP.
     """
     if os.path.isfile(path):
+        with open(path, 'rb') as f:
+            try:
+                read_magic(ReadDataStream(f))
+            except (McapError, struct.error):
+                raise ValueError(f'{path} is not an MCAP file (it does not start with the MCAP '
+                                 'magic bytes)') from None
         return path
     if not os.path.isdir(path):
         raise FileNotFoundError(f'no such file or folder: {path}')
     found = sorted(glob.glob(os.path.join(path, '*.mcap')))
+    seeds = sorted(glob.glob(os.path.join(path, 'seed_*', '*.mcap')))
+    if not found and seeds:
+        raise ValueError(f'{path} is an experiment run folder with one recording per seed: '
+                         f'replay one of them ({seeds[0]}, ...), or rebuild its reports with '
+                         f'run_experiment.py --report {path}')
     if not found:
         raise FileNotFoundError(f'no .mcap file in {path}')
     if len(found) > 1:

@@ -119,6 +119,43 @@ def test_replay_never_overwrites_a_report_it_did_not_write(closed_loop, tmp_path
         analyse(str(tmp_path / 'nothing'))
 
 
+BAD_INPUTS = {   # case: (how to make the input from a good recording, what the line says)
+    'markdown': (lambda good, d: _write(d / 'notes.md', b'# notes'), 'is not an MCAP file'),
+    'fake mcap': (lambda good, d: _write(d / 'fake.mcap', b'not mcap'), 'is not an MCAP file'),
+    'cut to 5 bytes': (lambda good, d: _write(d / 'cut.mcap', good[:5]), 'is not an MCAP file'),
+    'cut to 100 bytes': (lambda good, d: _write(d / 'cut.mcap', good[:100]), 'holds no message'),
+    'tracked 5': (lambda good, d: _write(d / 'run.mcap', good), 'tracked output(s) [5] out of '
+                  'range: the plant has 2 outputs'),
+    'experiment folder': (lambda good, d: _write(d / 'seed_0' / 'recording.mcap', good).parent
+                          .parent, 'is an experiment run folder with one recording per seed'),
+    'play a fake file': (lambda good, d: _write(d / 'fake.mcap', b'not mcap'),
+                         'is not an MCAP file'),
+}
+
+
+def _write(path, data):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data)
+    return path
+
+
+@pytest.mark.parametrize('case', list(BAD_INPUTS))
+def test_bad_input_one_line_exit_2_nothing_written(closed_loop, tmp_path, case):
+    make, says = BAD_INPUTS[case]
+    folder = tmp_path / 'in'
+    target = make(closed_loop.path.read_bytes(), folder)
+    before = sorted(p.relative_to(folder) for p in folder.rglob('*'))
+    extra = (['--tracked', '5'] if case == 'tracked 5' else
+             ['--play'] if case.startswith('play') else [])
+    result = subprocess.run([sys.executable, REPLAY, str(target), *extra], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('replay: error: ') and says in lines[0], lines
+    assert result.stdout == ''
+    assert sorted(p.relative_to(folder) for p in folder.rglob('*')) == before
+
+
 def record(path, procs, probe, recorders, run, spacing):
     """Publish `run` [(topic, message)] from the probe while a recorder records it."""
     recorder = recorders.start(path, flush_period=0.2)
