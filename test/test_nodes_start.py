@@ -1,6 +1,7 @@
 """Each node started with `ros2 run` joins the graph and exits 0 on SIGINT, with no traceback."""
 import os
 import signal
+import time
 
 import pytest
 
@@ -48,3 +49,16 @@ def test_a_learner_expecting_another_dt_than_the_plants_refuses_at_start_up(proc
     assert 'invalid parameter: dt: the plant samples at dt = 0.1 s' in out, out
     assert 'Traceback' not in out, out
     assert procs.interrupt(plant) == 0
+
+
+@pytest.mark.parametrize('pkg,exe', NODES[1:3], ids=[exe for _, exe in NODES[1:3]])
+def test_ctrl_c_while_the_node_module_imports_is_a_clean_exit(procs, pkg, exe):
+    """The controller and the learner import torch for 1.5-2 s before any node exists; Ctrl-C
+    then is exit 0 without a traceback too (metampc_common.entry), as the docs promise."""
+    proc = procs.start(pkg, exe)
+    time.sleep(0.3)
+    assert proc.poll() is None
+    code = procs.interrupt(proc)
+    out = procs.output(proc)
+    assert code == 0, out
+    assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out

@@ -1,0 +1,7 @@
+"""`ros2 run metampc_bringup recorder` (see metampc_common.entry)."""
+from metampc_common.entry import run
+
+
+def recorder(args=None) -> int:
+    """The recorder node; its exit code."""
+    return run('metampc_bringup.recorder_node', args)

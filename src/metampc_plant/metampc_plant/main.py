@@ -1,0 +1,7 @@
+"""`ros2 run metampc_plant plant` (see metampc_common.entry)."""
+from metampc_common.entry import run
+
+
+def plant(args=None) -> int:
+    """The plant node; its exit code."""
+    return run('metampc_plant.plant_node', args)
