@@ -56,9 +56,13 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
         yaml.safe_dump(config.to_dict(), f, sort_keys=False)
     started = time.monotonic()
     reports = []
+    exported = os.environ.get('ROS_DOMAIN_ID')
     with terminate_as_interrupt(), (contextlib.nullcontext() if prefix else isolated()) as domain:
         if domain is not None:
-            log.info('ROS_DOMAIN_ID=%d (localhost discovery)', domain)
+            log.info('ROS_DOMAIN_ID=%d (localhost discovery)%s', domain,
+                     f'; not the exported ROS_DOMAIN_ID={exported}: each experiment claims a '
+                     'free domain of its own, so that two never share one'
+                     if exported not in (None, str(domain)) else '')
         for seed in config.seed_list():
             seed_dir = os.path.join(out_dir, f'seed_{seed}')
             SeedRun(config, seed, seed_dir, progress, prefix).run()
