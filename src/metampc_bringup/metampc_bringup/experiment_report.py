@@ -450,6 +450,10 @@ def markdown(report: Dict[str, Any]) -> str:
     for k, entry in cl['b_adaptation_order'].items():
         if not {'imaml', 'maml', 'supervised'} <= compared:
             break
+        if all(math.isnan(x) for v in entry['losses'] for x in v.values()):
+            lines.append(f'| (b) held-out target loss after {k} steps | not measured '
+                         '(adaptation ran fewer steps) | | | |')
+            continue
         lines.append(f"| (b) held-out target loss after {k} steps: iMAML < MAML < supervised "
                      f"| {entry['holds']}/{n} | | | |")
         lines += [_claim_row(f'(b) after {k} steps: {_claim_name(key)}', stats)

@@ -196,6 +196,27 @@ def test_claims_table_has_statistics():
     assert '| (c) tracking cost of supervised (escaped 1/5) |' in text
 
 
+def test_claims_at_steps_no_adaptation_ran_are_not_measured():
+    """Adaptation with 5 steps: the K = 20 row says 'not measured', not '0/5' (failing)."""
+    rng = np.random.default_rng(2)
+    reports = [_fake_seed_report(seed, rng) for seed in range(5)]
+    for r in reports:
+        for entry in r['methods'].values():
+            if 'adapt' in entry:
+                entry['adapt']['loss_curve'] = entry['adapt']['loss_curve'][:6]
+    report = json_safe({
+        'methods': ['imaml', 'maml', 'supervised', 'oracle', 'nmpc'],
+        'seeds': [r['seed'] for r in reports], 'thetas': [r['theta'] for r in reports],
+        'wall_time_s': 10.0, 'claims': claims(reports), 'figures': [],
+        'config': {k: {} for k in ('meta_train', 'adapt', 'learner', 'controller')},
+        'per_seed': reports})
+    text = markdown(_restore(report))
+    assert ('| (b) held-out target loss after 20 steps | not measured (adaptation ran fewer '
+            'steps) | | | |') in text
+    assert '(b) after 20 steps:' not in text
+    assert '| (b) held-out target loss after 5 steps: iMAML < MAML < supervised | 5/5 |' in text
+
+
 def test_claims_leave_out_methods_not_run():
     rng = np.random.default_rng(1)
     reports = [_fake_seed_report(seed, rng) for seed in range(3)]
