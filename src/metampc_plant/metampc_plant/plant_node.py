@@ -118,7 +118,8 @@ class PlantNode(Node):
             f'x0={list(vdp.x0)}, u in [{vdp.u_min}, {vdp.u_max}]'
             + (f'; y_0 goes out once y has a subscriber and u a publisher (at the latest '
                f'after start_timeout = {self.cfg.start_timeout} s)' if lockstep
-               else f', {self.cfg.sample_rate_hz()} Hz'))
+               else f', {self.cfg.sample_rate_hz()} Hz: '
+               f'{self.cfg.sample_rate_hz() * vdp.dt:g}x real time'))
         if not lockstep:
             self._start()
 
