@@ -16,6 +16,7 @@ Run from the repository root after `source scripts/env.sh`.
 """
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -113,6 +114,7 @@ def main() -> int:
         echo(args.echo)
         return 0
     isolate()
+    load_start = os.getloadavg()
     result = bench_core(args.core_seconds)
     try:
         rate = bench_lockstep(args.steps, args.timeout)
@@ -121,6 +123,8 @@ def main() -> int:
         return 1
     result['lockstep_round_trips_per_s'] = round(rate, 1)
     result['lockstep_steps'] = args.steps
+    result['load_avg_start'] = [round(v, 2) for v in load_start]
+    result['load_avg_end'] = [round(v, 2) for v in os.getloadavg()]
     print(json.dumps(result))
     return 0
 
