@@ -116,8 +116,9 @@ class PlantNode(Node):
         self.get_logger().info(
             f'{self.cfg.mode} van der Pol plant: theta={vdp.theta}, dt={vdp.dt} s, '
             f'x0={list(vdp.x0)}, u in [{vdp.u_min}, {vdp.u_max}]'
-            + (f'; y_0 goes out once y has a subscriber and u a publisher (at the latest '
-               f'after start_timeout = {self.cfg.start_timeout} s)' if lockstep
+            + (f'; y_0 goes out once y has {self.cfg.start_subscribers} subscriber(s) and u a '
+               f'publisher (at the latest after start_timeout = {self.cfg.start_timeout} s)'
+               if lockstep
                else f', {self.cfg.sample_rate_hz()} Hz: '
                f'{self.cfg.sample_rate_hz() * vdp.dt:g}x real time'))
         if not lockstep:
@@ -224,7 +225,7 @@ class PlantNode(Node):
         self._advance(self._held_u)
 
     def _on_gate(self) -> None:
-        matched = (self._pub_y.get_subscription_count() > 0
+        matched = (self._pub_y.get_subscription_count() >= self.cfg.start_subscribers
                    and self._sub_u.get_publisher_count() > 0)
         if self.lockstep.gate(time.monotonic(), matched):
             self._start()

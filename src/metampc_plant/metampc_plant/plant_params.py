@@ -30,6 +30,7 @@ class PlantNodeConfig:
         start_timeout: lockstep: wall time, s, to wait for a controller (a subscriber on y
             and a publisher on u) before the first step; 0 waits forever. It covers the
             controller's start-up and DDS discovery, which took up to ~4 s here.
+        start_subscribers: lockstep: subscribers on y before the first step.
     """
 
     vdp: VdpConfig = field(default_factory=VdpConfig)
@@ -44,6 +45,9 @@ class PlantNodeConfig:
     start_timeout: float = param(10.0, 'lockstep: wall time, s, to wait for a subscriber on y '
                                        'and a publisher on u before publishing y_0 anyway '
                                        '(0: wait forever)', ge=0)
+    start_subscribers: int = param(1, 'lockstep: subscribers y must have before y_0 goes out '
+                                      '(2: the controller and a recorder, so that the recording '
+                                      'starts at step 0)', ge=1)
 
     def sample_rate_hz(self) -> float:
         """The realtime rate: rate_hz, or 1/dt when it is 0."""

@@ -107,6 +107,22 @@ def test_lockstep_one_y_per_input_and_bit_exact(procs, probe):
     assert '0 stale, 0 rejected, 0 timeouts' in out, out
 
 
+def test_start_gate_waits_for_the_named_number_of_subscribers(procs, probe):
+    """start_subscribers 2 (a controller and a recorder): with one subscriber on y y_0 does not
+    go out; once a second one subscribes, the first y both receive is y_0."""
+    ctl = Controller(probe, lambda m: [(m.step, [0.1])] if m.step < 20 else [])
+    proc = start_plant(procs, {'start_subscribers': 2, 'start_timeout': 0.0,
+                               'input_timeout': 30.0})
+    probe.wait_for(lambda: 'subscriber(s)' in procs.output(proc), 60.0, 'the plant up')
+    time.sleep(2.0)     # the gate settles in well under a second once matched
+    assert ctl.ys == []
+    recorded = []
+    probe.node.create_subscription(PlantOutput, 'y', recorded.append, RELIABLE)
+    probe.wait_for(lambda: len(ctl.ys) > 20 and len(recorded) > 20, 60.0, '20 steps')
+    assert ctl.ys[0].step == 0 and recorded[0].step == 0
+    stop_cleanly(procs, proc)
+
+
 def test_lockstep_bad_and_stale_inputs_and_timeout(procs, probe):
     script = {  # y_k -> the inputs sent in reply, in order
         0: [(5, [0.2]), (0, [0.3])],     # an input for another step is stale: ignored
