@@ -262,11 +262,20 @@ def plot_loss_figure(reports: List[Dict], methods: Sequence[str], kind: str, pat
 
 
 def plot_tracking(series: Dict[str, RunSeries], tracked: Sequence[int], path: str) -> str:
-    """Tracked outputs of each method's run and the reference, against time since reset."""
-    fig, axes = plt.subplots(len(tracked) + 1, 1, figsize=(8, 2.6 * (len(tracked) + 1)),
+    """Tracked outputs of each method's run and the reference, against time since reset.
+
+    The widest-swinging run is drawn first, so that a method that lost the plant (supervised,
+    usually) lies behind the others instead of hiding them; the legend sits outside the axes.
+    """
+    fig, axes = plt.subplots(len(tracked) + 1, 1, figsize=(9, 2.6 * (len(tracked) + 1)),
                              sharex=True, squeeze=False)
     reference_drawn = False
-    for method, s in series.items():
+
+    def spread(item) -> float:
+        y = item[1].outputs.y
+        return float(np.abs(y[:, list(tracked)]).max()) if y.size else 0.0
+
+    for method, s in sorted(series.items(), key=spread, reverse=True):
         if not s.outputs.step.size:
             continue
         dt = s.plant_info['dt'] if s.plant_info else 1.0
@@ -281,7 +290,7 @@ def plot_tracking(series: Dict[str, RunSeries], tracked: Sequence[int], path: st
         axes[-1, 0].step(s.inputs.step * dt, s.inputs.u[:, 0], where='post', label=method)
     for row, i in enumerate(tracked):
         axes[row, 0].set_ylabel(f'y[{i}]')
-        axes[row, 0].legend(loc='upper right', fontsize='small')
+        axes[row, 0].legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize='small')
         axes[row, 0].grid(alpha=0.3)
     axes[-1, 0].set_ylabel('u')
     axes[-1, 0].set_xlabel('time since reset, s')
