@@ -21,11 +21,15 @@ def _save(fig, path: str) -> str:
     return path
 
 
-def _time_axis(series: RunSeries) -> np.ndarray:
-    """Time of each output sample, s since the first one (header stamps: the plant's sim time
-    in lockstep, which never goes back across resets). Shape [n]."""
+def _time_axis(series: RunSeries) -> Tuple[np.ndarray, str]:
+    """Time of each output sample (shape [n]) and its axis label: a lockstep plant's header
+    stamps are its sim time (n dt, never going back across resets), drawn as they are; a
+    realtime plant's are wall-clock time, drawn from the first recorded sample."""
     stamp = series.outputs.stamp
-    return stamp - stamp[0] if stamp.size else stamp
+    if (series.plant_info or {}).get('clock_mode') == 'lockstep':
+        return stamp, 'plant time [s] (dotted: reset)'
+    return (stamp - stamp[0] if stamp.size else stamp,
+            'time since the first recorded sample [s] (dotted: reset)')
 
 
 def _broken(values: np.ndarray, episode: np.ndarray) -> np.ndarray:
@@ -50,7 +54,7 @@ def plot_outputs(series: RunSeries, path: str,
         return None
     tracked = range(series.n_y) if tracked is None else tracked
     oi, si = reference_pairs(out.step, series.status.step)
-    t, ep = _time_axis(series), episodes(out.step)
+    (t, label), ep = _time_axis(series), episodes(out.step)
     n_y = series.n_y
     fig, axes = plt.subplots(n_y, 1, figsize=(9, 2.6 * n_y), sharex=True, squeeze=False)
     for i, ax in enumerate(axes[:, 0]):
@@ -62,7 +66,7 @@ def plot_outputs(series: RunSeries, path: str,
         ax.set_ylabel(f'y[{i}]')
         ax.grid(True, alpha=0.3)
         ax.legend(loc='upper right')
-    axes[-1, 0].set_xlabel('plant time [s] (dotted: reset)')
+    axes[-1, 0].set_xlabel(label)
     axes[0, 0].set_title('Plant outputs and reference')
     return _save(fig, path)
 
@@ -75,7 +79,7 @@ def plot_inputs(series: RunSeries, path: str,
     out, inp = series.outputs, series.inputs
     if out.u_applied.size == 0:
         return None
-    t, ep = _time_axis(series), episodes(out.step)
+    (t, label), ep = _time_axis(series), episodes(out.step)
     fig, ax = plt.subplots(figsize=(9, 3.2))
     for j in range(out.u_applied.shape[1]):
         ax.plot(_broken(t, ep), _broken(out.u_applied[:, j], ep), drawstyle='steps-pre',
@@ -93,7 +97,7 @@ def plot_inputs(series: RunSeries, path: str,
         for bound in u_bounds:
             ax.axhline(bound, color='k', lw=0.8, ls=':')
     _mark_resets(ax, t, ep)
-    ax.set_xlabel('plant time [s] (dotted: reset)')
+    ax.set_xlabel(label)
     ax.set_ylabel('u')
     ax.set_title('Inputs')
     ax.grid(True, alpha=0.3)
@@ -120,21 +124,28 @@ def plot_solve_times(series: RunSeries, path: str) -> Optional[str]:
 
 
 def plot_training_loss(series: RunSeries, path: str) -> Optional[str]:
-    """Loss reported on `progress` against iteration, one line per (phase, method)."""
+    """Loss reported on `progress` against iteration: one panel per phase (meta-training's
+    outer steps and adaptation's steps are different axes), one line per method."""
     p = series.progress
     finite = np.isfinite(p.loss) & (p.loss > 0)
     if not np.any(finite):
         return None
-    fig, ax = plt.subplots(figsize=(9, 3.2))
-    for phase, method in sorted(set(zip(p.phase, p.method))):
-        sel = np.array([(a, b) == (phase, method) for a, b in zip(p.phase, p.method)]) & finite
-        if np.any(sel):
-            ax.semilogy(p.iteration[sel], p.loss[sel], '.-', ms=3, label=f'{phase} {method}')
-    ax.set_xlabel('iteration')
-    ax.set_ylabel('loss')
-    ax.set_title('Training progress')
-    ax.grid(True, which='both', alpha=0.3)
-    ax.legend(loc='upper right')
+    # 'done' repeats each job's final loss at its last step: not a curve of its own.
+    phases = sorted({phase for phase, ok in zip(p.phase, finite) if ok and phase != 'done'})
+    if not phases:
+        return None
+    fig, axes = plt.subplots(len(phases), 1, figsize=(9, 3.2 * len(phases)), squeeze=False)
+    for ax, phase in zip(axes[:, 0], phases):
+        for method in sorted({m for a, m in zip(p.phase, p.method) if a == phase}):
+            sel = np.array([(a, b) == (phase, method)
+                            for a, b in zip(p.phase, p.method)]) & finite
+            if np.any(sel):
+                ax.semilogy(p.iteration[sel], p.loss[sel], '.-', ms=3, label=method)
+        ax.set_xlabel(f'{phase} step')
+        ax.set_ylabel('loss')
+        ax.set_title(f'Training progress: {phase}')
+        ax.grid(True, which='both', alpha=0.3)
+        ax.legend(loc='upper right')
     return _save(fig, path)
 
 
