@@ -1,0 +1,91 @@
+"""Every command the README and docs/*.md show for copying still matches the code: each
+`python scripts/X.py --flag` names a flag the script's --help lists, and each `ros2 run PKG EXE
+--ros-args -p name:=value` names an executable and a parameter that node declares. The
+commands are read from fenced and indented code blocks and from inline code spans."""
+import functools
+import glob
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+from metampc_bringup import recorder_config
+from metampc_common.node_main import QOS_OVERRIDES, ROS_PARAMETERS
+from metampc_controller import controller_params
+from metampc_learner import learner_params
+from metampc_plant import plant_params
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+NODES = {('metampc_plant', 'plant'): plant_params.PARAMETERS,
+         ('metampc_controller', 'controller'): controller_params.PARAMETERS,
+         ('metampc_learner', 'learner'): learner_params.PARAMETERS,
+         ('metampc_bringup', 'recorder'): recorder_config.PARAMETERS}
+# A usage template, not a command: `ros2 run PKG EXE`, `-p name:=value`.
+TEMPLATE = re.compile(r'ros2 run [A-Z_]+ |-p name:=value')
+PAGES = ['README.md'] + sorted(os.path.relpath(p, ROOT)
+                               for p in glob.glob(os.path.join(ROOT, 'docs', '*.md')))
+
+
+def _commands(text: str):
+    """Command lines of a page: code blocks (fenced or indented, continuation lines joined)
+    and inline code spans that start with `python scripts/` or `ros2 run`."""
+    lines, block, fenced = [], [], False
+    for line in text.splitlines():
+        if line.strip().startswith('```'):
+            fenced = not fenced
+            continue
+        if fenced or line.startswith('    '):
+            block.append(line.strip())
+    joined = '\n'.join(block).replace('\\\n', ' ')
+    lines += joined.splitlines()
+    lines += re.findall(r'`((?:python scripts/|ros2 run )[^`]+)`', text)
+    commands = [re.sub(r'\s#.*$', '', c).strip() for c in lines
+                if c.startswith(('python scripts/', 'ros2 run '))]
+    return [c for c in commands if not TEMPLATE.search(c)]
+
+
+def _all_commands():
+    out = []
+    for page in PAGES:
+        with open(os.path.join(ROOT, page)) as f:
+            out += [(page, c) for c in _commands(f.read())]
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _help(script: str) -> str:
+    result = subprocess.run([sys.executable, os.path.join(ROOT, 'scripts', script), '--help'],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, f'{script} --help: {result.stderr}'
+    return result.stdout
+
+
+COMMANDS = _all_commands()
+
+
+def test_the_docs_show_commands_of_both_kinds():
+    kinds = {c.split()[0] for _, c in COMMANDS}
+    assert kinds == {'python', 'ros2'} and len(COMMANDS) > 30, COMMANDS
+
+
+@pytest.mark.parametrize('page, command', [pc for pc in COMMANDS if pc[1].startswith('python')])
+def test_script_flags_exist(page, command):
+    script = command.split()[1].split('/', 1)[1]
+    assert os.path.exists(os.path.join(ROOT, 'scripts', script)), f'{page}: {command}'
+    flags = {re.sub(r'[\[\]=].*$', '', t.strip('[]')) for t in command.split()
+             if t.strip('[').startswith('--')}
+    listed = set(re.findall(r'(--[a-z][a-z0-9-]*)', _help(script)))
+    assert not flags - listed, f'{page}: `{command}` uses {sorted(flags - listed)}'
+
+
+@pytest.mark.parametrize('page, command', [pc for pc in COMMANDS if pc[1].startswith('ros2')])
+def test_ros2_run_names_declared_parameters(page, command):
+    tokens = command.split()
+    node = (tokens[2], tokens[3])
+    assert node in NODES, f'{page}: `{command}`: no such node'
+    names = re.findall(r'-p\s+["\']?([A-Za-z_][A-Za-z0-9_.]*):=', command)
+    unknown = [n for n in names if n not in NODES[node] and n not in ROS_PARAMETERS
+               and not n.startswith(QOS_OVERRIDES)]
+    assert not unknown, f'{page}: `{command}` sets undeclared {unknown}'
