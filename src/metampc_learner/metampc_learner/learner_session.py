@@ -122,6 +122,11 @@ def _samples(trajectories: List[Trajectory]) -> int:
     return sum(len(t) for t in trajectories)
 
 
+def _longest(trajectories: List[Trajectory]) -> int:
+    """The longest run of consecutive valid samples."""
+    return max((len(t) for t in trajectories), default=0)
+
+
 @dataclass
 class LearnerSession:
     """The learner's state: meta-models per method, versions, cached source data."""
@@ -294,7 +299,10 @@ class LearnerSession:
                     f'too few target samples: {len(samples)} buffered, {used} used, of which '
                     f'{_samples(train)} valid for training and {_samples(held)} held out; each '
                     f'part needs a run of H + T = {window} consecutive valid samples (about '
-                    f'{least} buffered samples in all)')
+                    f'{least} buffered samples in all without gaps); the longest runs are '
+                    f'{_longest(train)} and {_longest(held)} samples, broken by '
+                    f'{max(len(train) - 1, 0) + max(len(held) - 1, 0)} gap(s): steps that '
+                    'never reached the learner or left the state box')
             step_config = AdaptConfig(job.steps, job.lr, job.gamma)
             if meta is None:
                 result = supervised(model, train_w, held_w, step_config, seed, progress)

@@ -81,6 +81,13 @@ def test_adapt_methods_match_the_cores_on_the_same_split(tmp_path):
     with pytest.raises(LearnerError, match='too few target samples: 12 buffered, 12 used, of '
                                            'which 9 valid for training and 3 held out'):
         session.adapt(job, _target(cfg, 12), None)
+    # 40 samples with every 5th lost: 32 buffered, but no run of H + T = 6: the message says so.
+    full = _target(cfg, 40)
+    keep = np.arange(len(full.steps)) % 5 != 4
+    gappy = TargetSamples(full.steps[keep], full.u[keep], full.y[keep])
+    with pytest.raises(LearnerError, match=r'32 buffered.*the longest runs are 4 and 4 samples, '
+                                           r'broken by \d+ gap\(s\): steps that never reached'):
+        session.adapt(job, gappy, None)
 
     samples = _target(cfg, 40)
     out = session.adapt(job, samples, None)
