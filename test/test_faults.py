@@ -290,8 +290,11 @@ def test_plant_with_negative_theta_escapes_flagged_never_nan(procs, probe, tmp_p
 
     rig = Rig(procs, probe, tmp_path, watch=('y',))
     rig.record(['y'])
+    # start_subscribers 2: y_0 waits for the recorder too (under load its subscription had
+    # matched the plant only after the 30 steps of this run: nothing was recorded).
     rig.start('plant', 'metampc_plant', 'plant', {
-        'theta': theta, 'x0': x0, 'state_bound': bound, 'dt': dt, 'input_timeout': 0.05})
+        'theta': theta, 'x0': x0, 'state_bound': bound, 'dt': dt, 'input_timeout': 0.05,
+        'start_subscribers': 2})
     # A silent `u` publisher opens the plant's start gate once the probe has matched the
     # plant: the probe hears y from y_0 on.
     rig.wait_matched('y')
