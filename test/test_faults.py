@@ -596,15 +596,20 @@ BAD_START = {  # node: (package, executable, one parameter out of range, what th
 }
 
 
-def test_out_of_range_parameters_at_startup_one_line_exit_2(procs):
+def _each_refused_with_one_line(procs, cases) -> None:
+    """Start every node of `cases` at once; each exits 2 with the one line its case names."""
     started = {name: procs.start(pkg, exe, params=params, name=name)
-               for name, (pkg, exe, params, _) in BAD_START.items()}
+               for name, (pkg, exe, params, _) in cases.items()}
     for name, proc in started.items():
         code = proc.wait(120.0)
         lines = [line for line in procs.output(proc).splitlines() if line.strip()]
         assert code == 2, (name, code, lines)
         assert len(lines) == 1 and 'invalid parameter: ' in lines[0], (name, lines)
-        assert BAD_START[name][3] in lines[0], (name, lines)
+        assert cases[name][3] in lines[0], (name, lines)
+
+
+def test_out_of_range_parameters_at_startup_one_line_exit_2(procs):
+    _each_refused_with_one_line(procs, BAD_START)
 
 
 MISSPELT = {  # node: (package, executable, parameters with one misspelt, what the line says)
@@ -622,13 +627,7 @@ MISSPELT = {  # node: (package, executable, parameters with one misspelt, what t
 def test_misspelt_parameter_at_startup_one_line_exit_2(procs):
     """ROS ignores a parameter a node does not declare; the nodes refuse it by name, so a typo
     cannot run the default without a word."""
-    started = {name: procs.start(pkg, exe, params=params, name=name)
-               for name, (pkg, exe, params, _) in MISSPELT.items()}
-    for name, proc in started.items():
-        code = proc.wait(120.0)
-        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
-        assert code == 2, (name, code, lines)
-        assert len(lines) == 1 and MISSPELT[name][3] in lines[0], (name, lines)
+    _each_refused_with_one_line(procs, MISSPELT)
     assert not os.path.exists('/tmp/never.mcap')
 
 

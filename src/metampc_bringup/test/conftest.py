@@ -42,6 +42,26 @@ def _messages_in_complete_chunks(data: bytes) -> int:
     return count
 
 
+TINY_EXPERIMENT = """
+methods: [imaml, maml]
+target_samples: 60
+learner: {n_systems: 4, episodes_per_system: 1, episode_samples: 40, hidden: [8], n_z: 2,
+          history: 3, horizon: 3, windows_per_task: 4}
+meta_train:
+  imaml: {batch_size: 4, lr_outer: 0.005, cg_steps: 2}
+  maml: {batch_size: 4, lr_outer: 0.01}
+"""
+
+
+@pytest.fixture
+def tiny_config(tmp_path) -> Path:
+    """An experiment YAML small enough to meta-train in seconds (the offline scripts'
+    tests)."""
+    path = tmp_path / 'tiny.yaml'
+    path.write_text(TINY_EXPERIMENT)
+    return path
+
+
 @pytest.fixture
 def complete_chunk_messages():
     """f(data: bytes) -> number of messages in the complete chunks of an MCAP byte string."""

@@ -8,11 +8,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[3]
-TINY = """
-methods: [imaml, maml]
-target_samples: 60
-learner: {n_systems: 4, episodes_per_system: 1, episode_samples: 40, hidden: [8], n_z: 2,
-          history: 3, horizon: 3, windows_per_task: 4}
+# The shared tiny experiment (conftest), with short meta-training and MAML's adaptation.
+SHORT = """
 meta_train:
   imaml: {iterations: 4, batch_size: 2, lr_outer: 0.005, cg_steps: 2}
   maml: {iterations: 4, batch_size: 2, lr_outer: 0.01}
@@ -29,9 +26,9 @@ def _script():
     return module
 
 
-def test_override_adapt_and_resume(tmp_path, capsys):
-    config = tmp_path / 'tiny.yaml'
-    config.write_text(TINY)
+def test_override_adapt_and_resume(tmp_path, capsys, tiny_config):
+    config = tiny_config
+    config.write_text(config.read_text().split('meta_train:')[0] + SHORT)
     out = tmp_path / 'out'
     args = ['--config', str(config), '--out', str(out), '--methods', 'maml', '--seeds', '2',
             '--jobs', '1', '--adapt', '--set', 'lr_schedule=cosine', '--set', 'lr_inner=0.03']
@@ -57,9 +54,8 @@ def test_override_adapt_and_resume(tmp_path, capsys):
 
 @pytest.mark.parametrize('setting', ['foo=1', 'lr_schedule=linear', 'vectorise=maybe',
                                      'iterations=3', 'lr_outer=fast', 'lr_outer', 'gamma=-1'])
-def test_bad_set_exits_2_with_one_line(tmp_path, capsys, setting):
-    config = tmp_path / 'tiny.yaml'
-    config.write_text(TINY)
+def test_bad_set_exits_2_with_one_line(tmp_path, capsys, setting, tiny_config):
+    config = tiny_config
     out = tmp_path / 'out'
     assert _script().main(['--config', str(config), '--out', str(out), '--set', setting]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1

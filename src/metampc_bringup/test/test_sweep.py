@@ -20,15 +20,6 @@ from metampc_bringup.sweep import (ADAPT_LRS, estimate_cpu_s, evaluation_jobs, G
                                    UNROLLED_MAX_M, winners)
 
 ROOT = Path(__file__).resolve().parents[3]
-TINY = """
-methods: [imaml, maml]
-target_samples: 60
-learner: {n_systems: 4, episodes_per_system: 1, episode_samples: 40, hidden: [8], n_z: 2,
-          history: 3, horizon: 3, windows_per_task: 4}
-meta_train:
-  imaml: {batch_size: 4, lr_outer: 0.005, cg_steps: 2}
-  maml: {batch_size: 4, lr_outer: 0.01}
-"""
 
 
 def _tune_result(job: Job, score: float) -> dict:
@@ -139,9 +130,8 @@ class RefusingPool(futures.Executor):
         raise AssertionError('a cached run was started again')
 
 
-def test_tiny_sweep_runs_then_resumes_without_running_anything(tmp_path):
-    config = tmp_path / 'tiny.yaml'
-    config.write_text(TINY)
+def test_tiny_sweep_runs_then_resumes_without_running_anything(tmp_path, tiny_config):
+    config = tiny_config
     out = str(tmp_path / 'out')
     plan = Plan(('imaml', 'maml'), (1,), (0,), iterations=2, tune_iterations=2, thetas=1,
                 adapt_steps=5, heldout_samples=100)
@@ -175,9 +165,8 @@ def _script():
 @pytest.mark.parametrize('args', [
     ['--methods', 'imaml,reptile'], ['--ms', '0,5'], ['--ms', '1,x'], ['--seeds', '0'],
     ['--methods', 'maml_unrolled', '--ms', '25'], ['--out-is-a-file']])
-def test_bad_arguments_exit_2(tmp_path, capsys, args):
-    config = tmp_path / 'tiny.yaml'
-    config.write_text(TINY)
+def test_bad_arguments_exit_2(tmp_path, capsys, args, tiny_config):
+    config = tiny_config
     out = str(tmp_path / 'out')
     if args == ['--out-is-a-file']:
         out, args = str(config), []
