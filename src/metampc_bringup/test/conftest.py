@@ -193,7 +193,7 @@ class ProbeController:
                          NssmWeights, 'nssm_weights', qos(latched=True)),
                      '/progress': node.create_publisher(TrainingProgress, 'progress', qos()),
                      '/mpc_status': node.create_publisher(MpcStatus, 'mpc_status', qos())}
-        node.create_subscription(PlantOutput, 'y', self._on_y, qos())
+        self.y_subscription = node.create_subscription(PlantOutput, 'y', self._on_y, qos())
         node.create_subscription(PlantInfo, 'plant_info',
                                  lambda m: self._keep('/plant_info', m), qos(latched=True))
         node.create_subscription(Clock, '/clock', lambda m: self._keep('/clock', m), qos())
@@ -271,11 +271,16 @@ def run_closed_loop(procs, probe, path: Path) -> ClosedLoopRun:
     run_config = {'tracked_outputs': [0], 'seed': 7, 'note': "it's"}
     recorder = recorders.start(path, record_clock=True, compression='zstd', chunk_size=4096,
                                flush_period=0.2, metadata_json=json.dumps(run_config))
+    # start_subscribers 2 and the wait below: y_0 goes out only once the probe's own y
+    # subscription has matched the plant as well as the recorder's (under load the plant once
+    # opened its gate on the recorder alone, and the probe missed y_0: 59 samples, not 60).
     plant = procs.start('metampc_plant', 'plant', params={
         'theta': 0.5, 'dt': 0.1, 'x0': [0.0, 0.0], 'seed': 3, 'measurement_noise_std': 0.01,
-        'input_timeout': 0.5, 'start_timeout': 0.0})
+        'input_timeout': 0.5, 'start_timeout': 0.0, 'start_subscribers': 2})
     recorders.wait_matched(ctl.pubs.values())
     recorders.wait_subscribed(['/y', '/plant_info', '/clock'])
+    probe.wait_for(lambda: ctl.y_subscription.get_publisher_count() > 0, 60.0,
+                   "the probe's y subscription matched the plant")
     probe.wait_for(ctl.reset.service_is_ready, 30.0, 'the reset service')
     for i in range(1, 16):
         ctl.send('/progress', phase='meta_train', method='imaml', iteration=i, total=15,
