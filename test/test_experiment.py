@@ -207,6 +207,12 @@ def test_config_errors_name_the_key(tmp_path):
     bad.write_text('plant: {dt: 0.05}\n')
     with pytest.raises(ConfigError, match='top level'):
         load(str(bad))
+    bad.write_text('learner: {lr_outr: 0.01}\n')     # ROS would ignore it: refused here
+    with pytest.raises(ConfigError, match=r'learner: unknown parameter\(s\) lr_outr'):
+        load(str(bad))
+    bad.write_text('controller: {horizon: 0}\n')
+    with pytest.raises(ConfigError, match='controller: horizon must be >= 1, got 0'):
+        load(str(bad))
     with pytest.raises(ConfigError, match='methods'):
         load(None, {'methods': ['imaml', 'reptile']})
     config = load(None, {'seeds': 3, 'first_seed': 5})
