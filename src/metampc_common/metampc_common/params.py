@@ -202,8 +202,3 @@ def check_fields(config: Any, skip: Sequence[str] = ()) -> None:
     for f in param_fields(type(config)):
         if f.name not in skip:
             check_value(f.name, getattr(config, f.name), f.default, f.metadata[PARAM])
-
-
-def defaults(sections: Sequence[Section]) -> Dict[str, Value]:
-    """{parameter name: default} of a node's table (what ROS hands a node without -p)."""
-    return {name: spec.default for name, spec in table(sections).items()}
