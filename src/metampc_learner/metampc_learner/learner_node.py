@@ -11,7 +11,7 @@ Interfaces (relative names, so a namespace can wrap them):
   one error line and exit status 2.
 * ``set_buffering`` (metampc_msgs/SetBuffering): true clears D_target and (re)starts
   buffering, false stops it and keeps the samples; the response counts the samples cleared,
-  kept and skipped, and the publishers of ``y`` matched when it was sent.
+  kept, skipped and lost, and the publishers of ``y`` matched when it was sent.
 * ``meta_train`` (MetaTrain): Algorithm 1 on simulated source systems (``learner_session``);
   answers when done with the version, the loss curve and the final loss; publishes the
   meta-model on ``nssm_weights`` (stage 'meta').
@@ -120,7 +120,7 @@ class LearnerNode(Node):
     def _on_y(self, msg: PlantOutput) -> None:
         if self.buffer.add(msg.step, msg.u_applied, msg.y, msg.diverged) and self.buffer.full:
             self.get_logger().info(f'D_target full: {len(self.buffer)} samples '
-                                   f'({self.buffer.skipped} skipped)')
+                                   f'({self.buffer.skipped} skipped, {self.buffer.lost} lost)')
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
         plant = PlantFacts(theta=msg.theta, dt=msg.dt, substeps=msg.substeps, u_min=msg.u_min,
@@ -142,8 +142,8 @@ class LearnerNode(Node):
         else:
             buffer.freeze()
             response.message = (f'buffering stopped: {len(buffer)} samples kept '
-                                f'({buffer.skipped} skipped)')
-        response.kept, response.skipped = len(buffer), buffer.skipped
+                                f'({buffer.skipped} skipped, {buffer.lost} lost)')
+        response.kept, response.skipped, response.lost = len(buffer), buffer.skipped, buffer.lost
         response.capacity = buffer.capacity
         # Matched from our side: samples published before that never reach us, and the
         # graph alone (a subscriber listed) does not say so. Callers wait on it.

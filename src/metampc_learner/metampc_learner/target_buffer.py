@@ -4,7 +4,10 @@ Index convention of the plant's ``y`` topic: u_k (``u_applied``) was held over (
 produced y_k. The buffer keeps the first ``capacity`` valid samples after :meth:`start` and
 then ignores the rest, so D_target is fixed once collected; :meth:`freeze` stops it early.
 It skips (and counts) samples that are flagged diverged, non-finite, of the wrong size, or
-have step 0 (y_0 of an episode: no input produced it, its u_applied is a placeholder).
+have step 0 (y_0 of an episode: no input produced it, its u_applied is a placeholder). It also
+counts the samples that never arrived: where the step index of an episode jumps ahead between
+two offered samples (the transport or a full subscription queue dropped them); a step index
+that does not grow starts a new episode, whose y_0 is not a training sample.
 Thread-safe: the node adds from its subscription while training reads a snapshot.
 
 :func:`split_target` turns a snapshot into trajectories for the data core: the first
@@ -46,6 +49,8 @@ class TargetBuffer:
         self._y: List[np.ndarray] = []
         self._enabled = True
         self.skipped = 0
+        self.lost = 0
+        self._last_step = None      # step of the last sample offered while buffering
 
     @property
     def enabled(self) -> bool:
@@ -63,7 +68,8 @@ class TargetBuffer:
         with self._lock:
             cleared = len(self._steps)
             self._steps, self._u, self._y = [], [], []
-            self.skipped = 0
+            self.skipped = self.lost = 0
+            self._last_step = None
             self._enabled = True
             return cleared
 
@@ -76,11 +82,16 @@ class TargetBuffer:
         """Offer one sample; True if it was stored.
 
         Not stored: buffering off or full (not counted), or skipped and counted in `skipped`:
-        diverged, step 0, non-finite, or sizes differing from the first stored sample.
+        diverged, step 0, non-finite, or sizes differing from the first stored sample. Samples
+        missing before this one (its step more than one past the last offered one, or past 1
+        in a new episode) are counted in `lost`.
         """
         with self._lock:
             if not self._enabled or self.full:
                 return False
+            last, self._last_step = self._last_step, int(step)
+            if last is not None:
+                self.lost += max(step - last - 1, 0) if step > last else max(step - 1, 0)
             u = np.array(u, dtype=np.float64).reshape(-1)
             y = np.array(y, dtype=np.float64).reshape(-1)
             shape_ok = not self._steps or (u.shape == self._u[0].shape

@@ -134,8 +134,9 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 60.0,
                    'a full D_target')
     result = call(probe, buffering, SetBuffering.Request(buffering=False))
-    assert (result.kept, result.skipped, result.cleared) == (CAPACITY, 0, 0), result
-    assert result.message == f'buffering stopped: {CAPACITY} samples kept (0 skipped)'
+    # Nothing lost while the job trains: the step index never jumped ahead.
+    assert (result.kept, result.skipped, result.lost, result.cleared) == (CAPACITY, 0, 0, 0)
+    assert result.message == f'buffering stopped: {CAPACITY} samples kept (0 skipped, 0 lost)'
     assert not endless.done() and progress[-1].phase == 'meta_train'
 
     # Ctrl-C during the long job: the job is cancelled at its next step, the node exits 0.

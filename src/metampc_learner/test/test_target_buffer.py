@@ -27,6 +27,23 @@ def test_keeps_the_first_capacity_valid_samples_and_counts_the_skipped():
     assert not buf.add(20, [0.2], [0.0, 0.0]) and buf.skipped == 6, 'full: ignored, not skipped'
 
 
+def test_counts_the_samples_that_never_arrived():
+    buf = TargetBuffer(100)
+    for k in (5, 6, 9, 10):                 # 7, 8 lost
+        buf.add(k, [0.0], [0.0, 0.0])
+    assert buf.lost == 2
+    buf.add(0, [0.0], [0.0, 0.0])           # a reset: y_0 (skipped), no loss
+    buf.add(1, [0.0], [0.0, 0.0])
+    buf.add(3, [0.0], [0.0, 0.0], diverged=True)   # 2 lost; 3 skipped but it arrived
+    buf.add(4, [0.0], [0.0, 0.0])
+    assert (buf.lost, buf.skipped) == (3, 2)
+    buf.add(3, [0.0], [0.0, 0.0])           # a reset whose y_0, y_1 and y_2 never came: y_1, y_2
+    assert buf.lost == 5
+    assert buf.start() == 7 and buf.lost == 0
+    buf.add(50, [0.0], [0.0, 0.0])
+    assert buf.lost == 0, 'the first sample after a restart has nothing before it'
+
+
 def test_restart_clears_and_freeze_keeps():
     buf = TargetBuffer(10)
     for k in range(1, 4):
