@@ -102,6 +102,9 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     assert kinds[0] == 'start' and kinds[-1] == 'done'
     collected = next(e for e in events if e['event'] == 'collect_end')
     assert collected['samples'] >= config.target_samples
+    # The learner's D_target holds the collection whole: nothing lost between plant and learner.
+    held = next(e for e in events if e['event'] == 'buffering_stopped')
+    assert (held['kept'], held['lost']) == (config.target_samples, 0), held
     n = config.track_steps()
     for method in config.methods:
         start = next(e for e in events if e['event'] == 'track_start' and e['method'] == method)

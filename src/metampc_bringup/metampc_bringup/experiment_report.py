@@ -206,6 +206,7 @@ def seed_report(path: str, out_dir: Optional[str] = None, plots: bool = True) ->
         'complete': recording.complete and done is not None,
         'seed': start['seed'], 'theta': start['theta'], 'methods_compared': start['methods'],
         'collect': next((e for e in events if e['event'] == 'collect_end'), None),
+        'buffering': next((e for e in events if e['event'] == 'buffering_stopped'), None),
         'timings': done['timings'] if done else None,
         'heldout': heldout,
         'methods': methods,

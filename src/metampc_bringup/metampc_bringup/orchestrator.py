@@ -161,7 +161,12 @@ class SeedRun:
         # Only now, long after the plant paused: the learner has taken every sample of the
         # collection, and its buffer (capacity target_samples) holds the first ones, whatever
         # the timing (stopped at once, it kept however many it had processed by then).
-        self.client.set_buffering(False, 'collect: stop buffering')
+        kept = self.client.set_buffering(False, 'collect: stop buffering')
+        self.client.event('buffering_stopped', kept=kept.kept, skipped=kept.skipped,
+                          lost=kept.lost)
+        if kept.lost:
+            log.warning('seed %d: %d target samples never reached the learner', self.seed,
+                        kept.lost)
         for method in config.methods:
             if method == 'nmpc':
                 self._timed('track_nmpc', self._track, method, 'controller_nmpc', 0)
