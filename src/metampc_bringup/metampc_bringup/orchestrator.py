@@ -51,7 +51,7 @@ CONTROLLERS = {'controller': 'set_active', 'controller_nmpc': 'set_active_nmpc'}
 MAX_COLLECT_ESCAPES = 20
 MAX_EPISODE_STARTS = 5
 EPISODE_START_S = 3.0   # wall time for y_1 after an activation that found no y_0
-MATCH_POLL_S = 0.1       # how often to ask whether the learner has matched the plant
+MATCH_POLL_S = 0.1       # how often to ask whether a node's side has matched the plant
 _META_RESULT = ['model_version', 'final_loss', 'loss_curve', 'message']
 _ADAPT_RESULT = ['model_version', 'loss_before', 'loss_after', 'loss_curve', 'message']
 
@@ -144,7 +144,10 @@ class SeedRun:
         self.client = ExperimentClient(controllers, lambda: process_status(self.procs))
         subscribers = {topic: ['recorder'] for topic in RECORDED_TOPICS}
         subscribers['y'] += ['learner', *controllers]
+        subscribers['u'] += ['plant']
         self.client.wait_ready(subscribers, config.timeouts.startup)
+        for name in controllers:
+            self._wait_input_matched(name, len(subscribers['u']), t0 + config.timeouts.startup)
         self.timings['startup'] = time.monotonic() - t0
         self.client.event('start', seed=seed, theta=self.theta, methods=config.methods,
                           nodes=sorted(self.procs))
@@ -218,6 +221,22 @@ class SeedRun:
                             self.seed, what, controller, attempt)
         raise ExperimentError(f'{what}: {controller} never received y_0 in '
                               f'{MAX_EPISODE_STARTS} plant resets')
+
+    def _wait_input_matched(self, controller: str, readers: int, deadline: float) -> None:
+        """Wait until `controller`'s u publisher has matched the `readers` subscriptions of u
+        (the plant's, the recorder's) from its own side.
+
+        The graph lists a subscription before the publisher's side of the DDS match is
+        complete; an input sent in between never reaches the plant, and a lockstep plant then
+        waits for it forever (measured: with the nodes in three network namespaces, 1 of 11
+        runs on a loaded 2-core machine stalled so at step 0).
+        """
+        while self.client.set_active(controller, False).matched_subscribers < readers:
+            if time.monotonic() > deadline:
+                raise ExperimentError(f"start-up: {controller}'s u publisher never matched the "
+                                      f'{readers} subscriptions of u within '
+                                      f'{self.config.timeouts.startup:g} s')
+            time.sleep(MATCH_POLL_S)
 
     def _start_buffering(self) -> None:
         """Start the learner's D_target once its y subscription has matched the plant.

@@ -4,14 +4,10 @@ the receive time of every ``y``, ``u`` and ``mpc_status`` (the rclpy side of
 import time
 from typing import List
 
-from metampc_common.qos import LATCHED
+from metampc_common.qos import BACKLOG, LATCHED
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from .spun_node import SpunNode
-
-# Deeper than the nodes' STREAM: this observer must not lose a sample when it lags behind.
-OBSERVED = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class Observer:
@@ -24,9 +20,9 @@ class Observer:
         self.y: List[tuple] = []        # (t, step, u_applied)
         self.u: List[tuple] = []        # (t, step, u, model_version)
         self.status: List[tuple] = []   # (t, step, tick_time, solve_time, fallback)
-        node.create_subscription(PlantOutput, 'y', self._on_y, OBSERVED)
-        node.create_subscription(ControlInput, 'u', self._on_u, OBSERVED)
-        node.create_subscription(MpcStatus, 'mpc_status', self._on_status, OBSERVED)
+        node.create_subscription(PlantOutput, 'y', self._on_y, BACKLOG)
+        node.create_subscription(ControlInput, 'u', self._on_u, BACKLOG)
+        node.create_subscription(MpcStatus, 'mpc_status', self._on_status, BACKLOG)
         self.weights = node.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
         self.weights.publish(weights)
 

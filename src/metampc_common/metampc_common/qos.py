@@ -10,6 +10,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 # that a recorder a few hundred samples behind a fast lockstep run loses nothing.
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.VOLATILE)
+# The plant's y for readers outside the loop that must see every sample (the learner's D_target,
+# the soak observer): a lockstep loop runs at some 300 Hz and does not wait for them, so a
+# reader whose process gets no CPU falls behind, and keep_last drops its oldest unread samples.
+# 1000 deep: ~3 s behind before one is lost (with STREAM's 100, the learner of a CI experiment on
+# a loaded 2-core machine lost 12 of its 120 samples). Publisher and reader both keep that many.
+BACKLOG = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.VOLATILE)
 # Latched state (plant_info, nssm_weights): only the newest message counts, and a node that
 # starts later still gets it.
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,

@@ -11,7 +11,8 @@ TRANSIENT_LOCAL = DurabilityPolicy.TRANSIENT_LOCAL
 
 def test_profiles_as_documented():
     # name: (reliability, durability, keep_last depth), as written in the docs' QoS columns.
-    expected = {'STREAM': (RELIABLE, VOLATILE, 100), 'LATCHED': (RELIABLE, TRANSIENT_LOCAL, 1),
+    expected = {'STREAM': (RELIABLE, VOLATILE, 100), 'BACKLOG': (RELIABLE, VOLATILE, 1000),
+                'LATCHED': (RELIABLE, TRANSIENT_LOCAL, 1),
                 'SPARSE': (RELIABLE, VOLATILE, 10), 'EVENTS': (RELIABLE, TRANSIENT_LOCAL, 1000)}
     for name, (reliability, durability, depth) in expected.items():
         profile = getattr(qos, name)

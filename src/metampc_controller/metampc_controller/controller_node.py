@@ -18,7 +18,8 @@ Interfaces (relative names, so a namespace can wrap them):
 * ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it.
 * ``set_active`` (metampc_msgs/SetActive): inactive, nothing is published (a lockstep plant
   waits); activation answers the newest unanswered y at once. The response carries the step
-  answered at once (``answered_step``, -1: none) and ``model_version``, the model of the next
+  answered at once (``answered_step``, -1: none), ``matched_subscribers`` (subscriptions of ``u``
+  matched from this side) and ``model_version``, the model of the next
   tick (0: none).
 
 Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
@@ -154,6 +155,9 @@ class ControllerNode(Node):
         # The orchestrator reads the version to know the model for the next tick is ready.
         model = self.core.model
         response.model_version = model.version if model is not None else 0
+        # Matched from our side: an input published before the plant's u subscription matched
+        # never reaches it, and a lockstep plant would wait for it forever. Callers wait on it.
+        response.matched_subscribers = self._pub_u.get_subscription_count()
         response.message = (('active' if request.active else 'inactive: publishing nothing')
                             + (f', answered step {response.answered_step}' if answer_now
                                else '') + f'; model version {response.model_version}')

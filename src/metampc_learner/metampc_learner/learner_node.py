@@ -2,7 +2,7 @@
 
 Interfaces (relative names, so a namespace can wrap them):
 
-* ``y`` (PlantOutput, subscribed, reliable, depth 100): target samples (step k, u_applied =
+* ``y`` (PlantOutput, subscribed, reliable, depth 1000): target samples (step k, u_applied =
   u_k, y_k) go to D_target (:class:`TargetBuffer`): the first ``target_buffer_size`` valid
   samples after buffering (re)starts (at start-up if ``buffer_on_start``).
 * ``plant_info`` (PlantInfo, subscribed, latched): theta, dt and bounds of the target plant,
@@ -42,7 +42,7 @@ from typing import Optional
 
 from metampc_common.node_main import declare_parameters, run_node
 from metampc_common.params import ParameterError
-from metampc_common.qos import LATCHED, SPARSE, STREAM
+from metampc_common.qos import BACKLOG, LATCHED, SPARSE
 from metampc_msgs.msg import NssmWeights, PlantInfo, PlantOutput, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, SetBuffering
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
@@ -87,7 +87,7 @@ class LearnerNode(Node):
         self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
         self._pub_progress = self.create_publisher(TrainingProgress, 'progress', SPARSE)
         data = MutuallyExclusiveCallbackGroup()
-        self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, STREAM,
+        self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, BACKLOG,
                                                callback_group=data)
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED,
                                  callback_group=data)

@@ -2,7 +2,7 @@
 
 Interfaces (relative names, so a namespace can wrap them):
 
-* ``y`` (PlantOutput, published, reliable, depth 100): y_k, the input u_k held over
+* ``y`` (PlantOutput, published, reliable, depth 1000): y_k, the input u_k held over
   (k-1, k] that produced it (after saturation), the step k and the saturated/diverged flags.
 * ``plant_info`` (PlantInfo, published, reliable + transient_local, depth 1: latched): the
   configuration, the divergence flag and the number of resets; re-sent when those change.
@@ -53,7 +53,7 @@ from typing import Optional, Tuple
 
 from builtin_interfaces.msg import Time
 from metampc_common.node_main import declare_parameters, EventCounts, run_node
-from metampc_common.qos import LATCHED, STREAM
+from metampc_common.qos import BACKLOG, LATCHED, STREAM
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
 from metampc_plant.lockstep import Lockstep
@@ -89,7 +89,7 @@ class PlantNode(Node):
         self._clock_msg = ClockMsg()
 
         lockstep = self.cfg.mode == 'lockstep'
-        self._pub_y = self.create_publisher(PlantOutput, 'y', STREAM)
+        self._pub_y = self.create_publisher(PlantOutput, 'y', BACKLOG)
         self._pub_info = self.create_publisher(PlantInfo, 'plant_info', LATCHED)
         self._pub_clock = (self.create_publisher(ClockMsg, '/clock', STREAM)
                            if lockstep and self.cfg.publish_clock else None)
