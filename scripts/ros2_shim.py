@@ -12,12 +12,30 @@ share/ament_index/resource_index/packages/PKG; the executable is the one file na
 executable under <prefix>/lib/PKG (searched recursively). The exit status of the child is passed
 back. The child runs in a process group of its own and the shim forwards SIGINT and SIGTERM to
 it, so Ctrl-C (or a signal to the shim's process group) reaches the node exactly once; rclpy
-nodes treat a second SIGINT during shutdown as an error.
+nodes treat a second SIGINT during shutdown as an error. A SIGINT or SIGTERM that comes before
+the child started ends the shim without starting it (exit status 0, as a node stopped by Ctrl-C).
 """
-import os
 import signal
-import subprocess
-import sys
+
+# Before anything else: a Ctrl-C while the shim starts is noted, not a KeyboardInterrupt.
+PENDING = []
+CHILD = []
+
+
+def forward(signum, _frame):
+    """Pass a signal on to the child's process group once it runs; note it before."""
+    if CHILD and CHILD[0].poll() is None:
+        os.killpg(CHILD[0].pid, signum)
+    elif not CHILD:
+        PENDING.append(signum)
+
+
+signal.signal(signal.SIGINT, forward)
+signal.signal(signal.SIGTERM, forward)
+
+import os  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
 
 MARKER = os.path.join('share', 'ament_index', 'resource_index', 'packages')
 SUPPORTED = 'run, pkg list, pkg executables, pkg prefix'
@@ -69,21 +87,11 @@ def run(pkg, exe, args):
         for m in matches:
             print(f'- {m}', file=sys.stderr)
         return 1
-    # Handlers first: a signal that comes while the child starts is forwarded once it exists.
-    pending = []
-    child = []
-
-    def forward(signum, _frame):
-        if child and child[0].poll() is None:
-            os.killpg(child[0].pid, signum)
-        elif not child:
-            pending.append(signum)
-
-    signal.signal(signal.SIGINT, forward)
-    signal.signal(signal.SIGTERM, forward)
+    if PENDING:
+        return 0    # stopped before the node started
     proc = subprocess.Popen([matches[0]] + args, process_group=0)
-    child.append(proc)
-    for signum in pending:
+    CHILD.append(proc)
+    for signum in PENDING:  # came while Popen forked and exec'd the child
         os.killpg(proc.pid, signum)
     rc = proc.wait()
     # A child killed by a signal: report it as the shell would (128 + signal number).

@@ -106,3 +106,17 @@ def test_unsupported_verbs(tree, args):
     r = _ros2(tree, *args)
     assert r.returncode == 2
     assert 'supported: run, pkg list, pkg executables, pkg prefix' in r.stderr
+
+
+def test_sigint_before_the_child_starts_ends_the_shim_with_status_0(tree):
+    """A signal noted while the shim starts (its handler is installed before its imports):
+    the child is never started and the exit status is 0, as for a node stopped by Ctrl-C."""
+    script = (f'import runpy, signal, os, sys; sys.argv = ["ros2", "run", "pkg_a", "trap"]; '
+              f'g = runpy.run_path({str(SHIM)!r}, run_name="shim"); '
+              f'os.kill(os.getpid(), signal.SIGINT); '
+              f'sys.exit(g["main"]())')
+    result = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
+                            timeout=30, env={**os.environ,
+                                             'AMENT_PREFIX_PATH': tree['AMENT_PREFIX_PATH']})
+    assert result.returncode == 0 and not result.stderr, result
+    assert 'ready' not in result.stdout, 'the child was not started'

@@ -44,8 +44,14 @@ class Sample:
     diverged: bool
 
 
+def time_seconds(stamp: Any) -> float:
+    """A builtin_interfaces/Time in s."""
+    return stamp.sec + 1e-9 * stamp.nanosec
+
+
 def stamp_seconds(msg: Any) -> float:
-    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+    """A message's header stamp in s."""
+    return time_seconds(msg.header.stamp)
 
 
 class ExperimentClient(SpunNode):

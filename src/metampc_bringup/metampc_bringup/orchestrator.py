@@ -37,7 +37,7 @@ from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant
 from tqdm import tqdm
 
 from .experiment_client import (EVENTS_TOPIC, ExperimentClient, ExperimentError,
-                                process_status, response_dict)
+                                process_status, response_dict, time_seconds)
 from .experiment_config import ExperimentConfig
 from .processes import ProcessGroup
 from .recorder_config import RecorderConfig
@@ -50,7 +50,8 @@ RECORDING = 'recording.mcap'
 CONTROLLERS = {'controller': 'set_active', 'controller_nmpc': 'set_active_nmpc'}
 MAX_COLLECT_ESCAPES = 20
 MAX_EPISODE_STARTS = 5
-EPISODE_START_S = 3.0   # wall time for y_1 after an activation that found no y_0
+EPISODE_START_S = 3.0   # wall time for the controller to receive y_0 after a reset
+HOLD_POLL_S = 0.02       # how often to ask the controller for its newest y meanwhile
 MATCH_POLL_S = 0.1       # how often to ask whether a node's side has matched the plant
 _META_RESULT = ['model_version', 'final_loss', 'loss_curve', 'message']
 _ADAPT_RESULT = ['model_version', 'loss_before', 'loss_after', 'loss_curve', 'message']
@@ -192,12 +193,13 @@ class SeedRun:
         """Reset the plant to theta*, x0 and activate `controller` on the new episode;
         return the stamp of its y_0.
 
-        The controller must have y_0 to answer it. The graph says when a node has subscribed,
-        not when the plant's writer has matched that subscription; a y_0 sent in between is
-        lost and the lockstep loop never starts. The controller's activation answer says
-        whether it answered y_0 (an answer to another step is to the previous episode's last
-        sample: y_0 had not reached it, and the plant ignores that answer); if not and no y_1
-        follows, the episode is restarted (counted and logged).
+        The controller is activated once it holds this y_0 (its newest y, asked inactive):
+        activated before, it answers an older sample at once, and an older y_0 (the one the
+        plant sent at start-up) the plant takes for the answer to this one, since it matches
+        inputs by step; the controller's answer to the new y_0 is then stale and the loop
+        stalls (measured: 1 of 15 runs split over network namespaces on a loaded machine). A
+        y_0 that never reaches the controller (sent before the plant's writer matched its
+        subscription) restarts the episode (counted and logged).
         """
         client = self.client
         for attempt in range(1, MAX_EPISODE_STARTS + 1):
@@ -208,19 +210,29 @@ class SeedRun:
                               f'{what}: y_0 after the plant reset')
             start = client.last.stamp
             client.reset_counts()   # count the new episode only
-            if client.set_active(controller, True).answered_step == 0:
+            if self._holds(controller, start):
+                answered = client.set_active(controller, True).answered_step
+                if answered != 0:
+                    raise ExperimentError(f'{what}: {controller} answered step {answered} on '
+                                          'activation, not the y_0 it held')
                 return start
-            try:
-                client.wait_until(lambda: client.samples > 0, EPISODE_START_S,
-                                  f'{what}: y_1')
-                return start
-            except ExperimentError:
-                client.set_active(controller, False)
-                self.restarts += 1
-                log.warning('seed %d: %s: %s missed y_0 (attempt %d); restarting the episode',
-                            self.seed, what, controller, attempt)
+            self.restarts += 1
+            log.warning('seed %d: %s: %s missed y_0 (attempt %d); restarting the episode',
+                        self.seed, what, controller, attempt)
         raise ExperimentError(f'{what}: {controller} never received y_0 in '
                               f'{MAX_EPISODE_STARTS} plant resets')
+
+    def _holds(self, controller: str, stamp: float) -> bool:
+        """Whether the (inactive) `controller` receives the y_0 stamped `stamp` within
+        EPISODE_START_S s of wall time."""
+        deadline = time.monotonic() + EPISODE_START_S
+        while True:
+            answer = self.client.set_active(controller, False)
+            if answer.latest_step == 0 and time_seconds(answer.latest_stamp) == stamp:
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(HOLD_POLL_S)
 
     def _wait_input_matched(self, controller: str, readers: int, deadline: float) -> None:
         """Wait until `controller`'s u publisher has matched the `readers` subscriptions of u
@@ -228,7 +240,7 @@ class SeedRun:
 
         The graph lists a subscription before the publisher's side of the DDS match is
         complete; an input sent in between never reaches the plant, and a lockstep plant then
-        waits for it forever (measured: with the nodes in three network namespaces, 1 of 11
+        waits for it forever (measured: with the nodes in three network namespaces, 1 of 17
         runs on a loaded 2-core machine stalled so at step 0).
         """
         while self.client.set_active(controller, False).matched_subscribers < readers:

@@ -18,8 +18,9 @@ Interfaces (relative names, so a namespace can wrap them):
 * ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it.
 * ``set_active`` (metampc_msgs/SetActive): inactive, nothing is published (a lockstep plant
   waits); activation answers the newest unanswered y at once. The response carries the step
-  answered at once (``answered_step``, -1: none), ``matched_subscribers`` (subscriptions of ``u``
-  matched from this side) and ``model_version``, the model of the next
+  answered at once (``answered_step``, -1: none), the step and stamp of the newest y
+  (``latest_step``, ``latest_stamp``), ``matched_subscribers`` (subscriptions of ``u`` matched
+  from this side) and ``model_version``, the model of the next
   tick (0: none).
 
 Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
@@ -158,6 +159,11 @@ class ControllerNode(Node):
         # Matched from our side: an input published before the plant's u subscription matched
         # never reaches it, and a lockstep plant would wait for it forever. Callers wait on it.
         response.matched_subscribers = self._pub_u.get_subscription_count()
+        # Which sample an activation would answer: a caller activates once it is the one meant.
+        if self._stamp is not None:
+            response.latest_step, response.latest_stamp = self.core.history.step, self._stamp
+        else:
+            response.latest_step = -1
         response.message = (('active' if request.active else 'inactive: publishing nothing')
                             + (f', answered step {response.answered_step}' if answer_now
                                else '') + f'; model version {response.model_version}')

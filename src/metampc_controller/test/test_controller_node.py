@@ -315,3 +315,52 @@ def test_bad_parameter_one_line_and_exit_2(procs):
     lines = [line for line in procs.output(proc).splitlines() if line.strip()]
     assert code == 2, lines
     assert len(lines) == 1 and 'invalid parameter: horizon must be >= 1' in lines[0], lines
+
+
+def _loads_torch(session: int) -> bool:
+    """Whether a process of `session` (a `ros2 run` and its node) has mapped torch's library."""
+    for pid in session_pids(session):
+        try:
+            with open(f'/proc/{pid}/maps') as f:
+                if 'libtorch' in f.read():
+                    return True
+        except OSError:
+            pass
+    return False
+
+
+def test_send_model_publishes_the_hand_built_model_latched_and_stops_cleanly(procs, probe):
+    """`ros2 run metampc_controller send_model`: a late subscriber gets the model of
+    linearised_vdp_nssm(theta, dt, history) with the version asked for; Ctrl-C exits 0 (also
+    during the start-up, while it imports torch); a bad value is one line and exit status 2."""
+    from metampc_controller.weights_codec import fields_of, weights_from_fields
+    sender = procs.start('metampc_controller', 'send_model',
+                         params={'theta': 0.5, 'dt': 0.05, 'history': 6, 'version': 7})
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    got: List[NssmWeights] = []
+    probe.wait_for(lambda: 'published the hand-built model v7' in procs.output(sender), 60.0,
+                   'the published model')
+    probe.node.create_subscription(NssmWeights, 'nssm_weights', got.append, latched)
+    probe.wait_for(lambda: got, 30.0, 'the latched model')
+    msg = got[0]
+    assert (msg.version, msg.method, msg.stage) == (7, 'manual', 'adapted')
+    decoded = weights_from_fields(fields_of(msg))
+    config, norm, params = linearised_vdp_nssm(0.5, 0.05, history=6)
+    assert decoded.config == config
+    for name, value in params.items():
+        assert decoded.params[name].numpy().tolist() == value.numpy().tolist(), name
+    code = procs.interrupt(sender, timeout=30.0)
+    assert code == 0 and 'Traceback' not in procs.output(sender), procs.output(sender)
+
+    # Ctrl-C while the node imports torch (1-2 s): the entry point notes it. Waited for by
+    # torch's libraries appearing in the node's memory map, not by a guessed sleep.
+    early = procs.start('metampc_controller', 'send_model')
+    probe.wait_for(lambda: _loads_torch(early.pid), 60.0, 'the node importing torch')
+    assert procs.interrupt(early, timeout=30.0) == 0, procs.output(early)
+    assert 'Traceback' not in procs.output(early), procs.output(early)
+
+    bad = procs.start('metampc_controller', 'send_model', params={'dt': 0.0})
+    assert bad.wait(60.0) == 2
+    lines = [line for line in procs.output(bad).splitlines() if line.strip()]
+    assert len(lines) == 1 and 'invalid parameter: dt must be > 0' in lines[0], lines
