@@ -19,7 +19,8 @@ def main(argv=None) -> int:
                         "recording's folder)")
     parser.add_argument('--tracked', type=int, nargs='+',
                         help='output indices that track a reference (default: the run '
-                        "config's tracked_outputs, else all)")
+                        "config's tracked_outputs, else the outputs the controller "
+                        'weights (q > 0 in mpc_status), else all)')
     parser.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
     parser.add_argument('--json', action='store_true', help='print the report as JSON')
     parser.add_argument('--play', action='store_true',

@@ -97,7 +97,8 @@ def analyse(path: str, out_dir: Optional[str] = None, tracked: Optional[Sequence
         path: MCAP file or run folder with one ``.mcap``.
         out_dir: where report and plots go (default: the recording's folder).
         tracked: output indices with a reference (default: the run config's
-            ``tracked_outputs``, else all outputs).
+            ``tracked_outputs``, else those the controller weights, MpcStatus.q > 0, else all
+            outputs).
         u_bounds: (u_min, u_max) for the bound check (default: from PlantInfo).
         plots: write the PNGs.
         overrides: type name -> topic, see :func:`select_topics`.
@@ -126,6 +127,9 @@ def analyse(path: str, out_dir: Optional[str] = None, tracked: Optional[Sequence
     if tracked is None and 'tracked_outputs' in config:
         tracked = [int(i) for i in config['tracked_outputs']]
     series = series_from_recording(recording, overrides)
+    if tracked is None and series.status.q.size == series.n_y:
+        # No run metadata (a by-hand recording): the outputs the controller weighted.
+        tracked = [i for i, weight in enumerate(series.status.q) if weight > 0]
     bad = [i for i in tracked or () if not 0 <= int(i) < series.n_y]
     if bad:
         raise ValueError(f'tracked output(s) {bad} out of range: the plant has {series.n_y} '

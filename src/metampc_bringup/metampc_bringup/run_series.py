@@ -64,7 +64,8 @@ class InputSeries:
 @dataclass
 class StatusSeries:
     """MpcStatus per tick; ``y_ref0`` [n, n_y] is the first row of y_ref, the reference for
-    the output of step ``step + 1`` (NaN where a status has no reference)."""
+    the output of step ``step + 1`` (NaN where a status has no reference); ``q`` the output
+    weights of the controller's tracking cost, as its first status gives them ((0,): none)."""
 
     step: np.ndarray
     stamp: np.ndarray
@@ -79,6 +80,7 @@ class StatusSeries:
     solver_status: List[str]
     planner: List[str]
     y_ref0: np.ndarray
+    q: np.ndarray
 
 
 @dataclass
@@ -159,7 +161,8 @@ class SeriesBuilder:
             solver_status=[str(m.solver_status) for _, m in stats],
             planner=[str(m.planner) for _, m in stats],
             y_ref0=np.array([list(m.y_ref[:n_y]) if len(m.y_ref) >= n_y else [np.nan] * n_y
-                             for _, m in stats], dtype=float).reshape(len(stats), n_y))
+                             for _, m in stats], dtype=float).reshape(len(stats), n_y),
+            q=np.array(list(getattr(stats[0][1], 'q', ())) if stats else [], dtype=float))
         progress = ProgressSeries(
             log_time=np.array([t for t, _ in prog], dtype=np.int64),
             phase=[str(m.phase) for _, m in prog], method=[str(m.method) for _, m in prog],

@@ -215,3 +215,40 @@ def test_play_republishes_with_recorded_qos(tmp_path, procs, probe, recorders):
     assert [m.step for m in got['y']] == list(range(40))
     assert [list(m.y) for m in got['y']] == [[0.5 * k, -k] for k in range(40)]
     assert got['weights'][0].version == 4 and list(got['weights'][0].params) == [1.5, -2.0]
+
+
+def _by_hand_recording(path: Path, q):
+    """A recording without run metadata: 20 samples on /y, /u and /mpc_status, whose
+    controller weights the outputs with `q` (None: a status without weights)."""
+    from mcap_ros2._dynamic import serialize_dynamic
+    from metampc_bringup.mcap_writer import McapWriterConfig, Rosbag2McapWriter
+    from metampc_bringup.msg_schema import DefinitionSource
+    from metampc_bringup.rosbag2_qos import QosProfile
+    qos = [QosProfile(history='unknown', depth=0, liveliness='automatic')]
+    writer = Rosbag2McapWriter(McapWriterConfig(str(path), 4096, 'lz4', {}))
+    encoders = {}
+    for topic, kind in (('/y', 'PlantOutput'), ('/u', 'ControlInput'),
+                        ('/mpc_status', 'MpcStatus')):
+        name = f'metampc_msgs/msg/{kind}'
+        writer.add_topic(topic, name, qos)
+        encoders[topic] = serialize_dynamic(name, DefinitionSource().get(name).text)[name]
+    t = 1_000_000_000
+    for k in range(20):
+        header = {'stamp': {'sec': k // 10, 'nanosec': (k % 10) * 100_000_000}, 'frame_id': ''}
+        msgs = {'/y': {'header': header, 'step': k, 'y': [0.1 * k, 1.0], 'u_applied': [0.0]},
+                '/u': {'header': header, 'step': k, 'u': [0.0]},
+                '/mpc_status': {'header': header, 'step': k, 'solver_status': 'solved',
+                                'y_ref': [1.0, 0.0] * 3, **({'q': q} if q else {})}}
+        for topic, msg in msgs.items():
+            t += 1_000_000
+            writer.write(topic, encoders[topic](msg), t, t, k)
+    writer.close()
+
+
+@pytest.mark.parametrize('q, tracked', [([1.0, 0.0], [0]), ([0.0, 2.0], [1]), (None, [0, 1])])
+def test_without_run_metadata_the_outputs_the_controller_weights_are_tracked(tmp_path, q,
+                                                                             tracked):
+    path = tmp_path / 'by_hand.mcap'
+    _by_hand_recording(path, q)
+    report = analyse(str(path), out_dir=str(tmp_path / 'out'), plots=False)
+    assert report['metrics']['tracking']['tracked_outputs'] == tracked, report['metrics']

@@ -71,6 +71,7 @@ class ControllerNode(Node):
         self.cfg = parse_params(declare_parameters(self, PARAMETERS))
         self.core = ControllerCore(self.cfg)
         self.rule = AnswerRule(self.cfg.active)
+        self._q = [float(w) for w in self.cfg.mpc.q]    # which outputs are tracked
         self._events = EventCounts(self, COUNTERS)
         self._counts = self._events.counts
         self._warn = self._events.warn
@@ -141,7 +142,7 @@ class ControllerNode(Node):
             solver_status=res.solver_status, iterations=res.iterations, fallback=res.fallback,
             terminal_fallback=res.terminal_fallback, model_version=res.model_version,
             planner=res.planner, model_status=res.model_status, u_plan=_doubles(res.u_plan),
-            y_pred=_doubles(res.y_pred), y_ref=_doubles(res.y_ref))
+            y_pred=_doubles(res.y_pred), y_ref=_doubles(res.y_ref), q=self._q)
         status.header.stamp = self._stamp
         self._pub_status.publish(status)
 
