@@ -165,7 +165,9 @@ class ExperimentClient(SpunNode):
         future.add_done_callback(lambda _: self._notify())
         try:
             self.wait_until(future.done, timeout, what, tick)
-        except ExperimentError:
+        except BaseException:   # ExperimentError, or Ctrl-C while the call runs
+            # Cancelled, a pending call is dropped with the node; left pending, the node's
+            # destruction would fail it later with an exception nobody retrieves (printed).
             future.cancel()
             raise
         response = future.result()
