@@ -25,6 +25,9 @@ def _value(type_name: str, seed: int):
         return 1 + seed % 100
     if type_name == 'string':
         return f'text-{seed}'
+    if type_name == 'builtin_interfaces/Time':
+        from builtin_interfaces.msg import Time
+        return Time(sec=12 + seed, nanosec=345)
     if type_name == 'std_msgs/Header':
         from std_msgs.msg import Header
         h = Header(frame_id=f'frame-{seed}')
