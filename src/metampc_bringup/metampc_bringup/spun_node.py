@@ -42,7 +42,10 @@ class SpunNode:
         self.wait_for(lambda: name in self.node_names(), timeout, f'node {name!r}')
 
     def close(self) -> None:
+        """Stop spinning, then destroy the node: destroyed under a spinning executor, its
+        entities fail the executor's thread ('cannot use Destroyable because destruction was
+        requested', once printed at the Ctrl-C of an experiment)."""
         self.executor.shutdown()
+        self._thread.join(timeout=5.0)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
-        self._thread.join(timeout=5.0)
