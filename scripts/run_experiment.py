@@ -21,11 +21,6 @@ import os
 import signal
 import sys
 
-from metampc_bringup.experiment import rebuild_report, run_experiment
-from metampc_bringup.experiment_client import ExperimentError
-from metampc_bringup.experiment_config import ConfigError, load
-from metampc_bringup.netns import NetnsError, parse_hosts
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_CONFIG = os.path.join(ROOT, 'config', 'default.yaml')
 
@@ -51,6 +46,14 @@ def main(argv=None) -> int:
     # Ctrl-C is KeyboardInterrupt even when started from a non-interactive shell in the
     # background, which starts it with SIGINT ignored (and rclpy would chain to that).
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:    # torch, rclpy, matplotlib: 1-2 s, in which Ctrl-C is an interruption like later
+        from metampc_bringup.experiment import rebuild_report, run_experiment
+        from metampc_bringup.experiment_client import ExperimentError
+        from metampc_bringup.experiment_config import ConfigError, load
+        from metampc_bringup.netns import NetnsError, parse_hosts
+    except KeyboardInterrupt:
+        print('run_experiment: interrupted before it started; nothing written', file=sys.stderr)
+        return 130
     logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
                         datefmt='%H:%M:%S')
     if args.report:

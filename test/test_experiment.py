@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -197,6 +198,32 @@ def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
     assert _pids_in_domain(domain) == [], 'processes left behind'
     events, outputs, _, _ = _read(os.path.join(out, 'seed_0', 'recording.mcap'))
     assert events[0]['event'] == 'start' and len(outputs) >= 60
+
+
+def test_ctrl_c_while_the_script_imports_is_an_interruption(tmp_path):
+    """SIGINT while run_experiment.py imports torch (seen in its memory map, not guessed by a
+    sleep): exit 130 and the interruption line, no traceback, no process left."""
+    out = tmp_path / 'run'
+    proc = subprocess.Popen(
+        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+         CI_CONFIG, '--out', str(out), '--no-progress'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60.0
+        while proc.poll() is None and time.monotonic() < deadline:
+            with open(f'/proc/{proc.pid}/maps') as f:
+                if 'libtorch' in f.read():
+                    break
+            time.sleep(0.005)
+        os.killpg(proc.pid, signal.SIGINT)
+        text = proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            for pid in session_pids(proc.pid):
+                os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == 130 and 'Traceback' not in text, text
+    assert 'run_experiment: interrupted' in text, text
+    assert session_pids(proc.pid) == []
 
 
 def test_config_errors_name_the_key(tmp_path):
