@@ -226,6 +226,35 @@ def test_ctrl_c_while_the_script_imports_is_an_interruption(tmp_path):
     assert session_pids(proc.pid) == []
 
 
+def test_ctrl_c_while_the_nodes_start_leaves_no_process(tmp_path):
+    """SIGINT as soon as the first node of the run's domain exists, while the others start:
+    exit 130 and no process left in the domain (one was, when the signal came between a
+    node's fork and its registration in the process group)."""
+    proc = subprocess.Popen(
+        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+         CI_CONFIG, '--out', str(tmp_path / 'run'), '--no-progress'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            found = re.search(r'ROS_DOMAIN_ID=(\d+)', line)
+            if found:
+                break
+        domain = int(found.group(1))
+        deadline = time.monotonic() + 60.0
+        while not _pids_in_domain(domain) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        os.killpg(proc.pid, signal.SIGINT)
+        text = ''.join(lines) + proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            for pid in session_pids(proc.pid):
+                os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == 130 and 'Traceback' not in text, text
+    assert _pids_in_domain(domain) == [], 'processes left behind'
+
+
 def test_config_errors_name_the_key(tmp_path):
     bad = tmp_path / 'bad.yaml'
     bad.write_text('methods: [imaml]\nlearnr: {}\n')

@@ -9,8 +9,9 @@ import contextlib
 import os
 import signal
 import subprocess
+import threading
 import time
-from typing import Dict, Iterable, List, Optional
+from typing import Dict, Iterable, Iterator, List, Optional
 
 STACK_DUMP_S = 2.0    # s for a hung node to write its thread stacks (SIGUSR1) before SIGKILL
 LOG_TAIL = 6000       # characters of a hung node's output in the error
@@ -62,6 +63,25 @@ class StopTimeout(subprocess.TimeoutExpired):
         return f'{super().__str__()}; its output ends with:\n{self.output or ""}'
 
 
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM noted inside the block and raised again, to the handlers of before,
+    when it ends (main thread only; elsewhere Python delivers no signal anyway)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: List[int] = []
+    before = {s: signal.signal(s, lambda signum, _frame: held.append(signum))
+              for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+        for s in held[:1]:
+            signal.raise_signal(s)
+
+
 class ProcessGroup:
     """Nodes started for one run or test; `stop_all` stops every one (SIGINT, then SIGKILL)."""
 
@@ -82,13 +102,17 @@ class ProcessGroup:
         cmd = [*prefix, 'ros2', 'run', pkg, exe, *(extra_args or []),
                *ros_args(params, remaps, name)]
         log_path = os.path.join(self.log_dir, f'{name or exe}-{len(self.procs)}.log')
-        with open(log_path, 'w') as log:
+        # Ctrl-C (or SIGTERM) between the fork and the append would leave a node that
+        # stop_all does not know (measured: an experiment interrupted while starting its nodes
+        # left a controller running in a domain it no longer held). Such a signal is held and
+        # delivered once the process is in the group.
+        with _signals_held(), open(log_path, 'w') as log:
             proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, start_new_session=True,
                                     env={**os.environ, **self.env, **(env or {}),
                                          'PYTHONUNBUFFERED': '1'})
-        proc.log_path = log_path
-        self.procs.append(proc)
+            proc.log_path = log_path
+            self.procs.append(proc)
         return proc
 
     @staticmethod
