@@ -158,6 +158,11 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     rebuilt = rebuild_report(out)
     assert rebuilt['claims'] == report['claims']
     assert rebuilt['wall_time_s'] == pytest.approx(report['wall_time_s'])
+    # A folder assembled from seed folders (no report.json of its own): no wall time to give.
+    os.remove(os.path.join(out, 'report.json'))
+    assert rebuild_report(out)['claims'] == report['claims']
+    with open(os.path.join(out, 'report.md')) as f:
+        assert 'Wall time: not recorded (report rebuilt from the recordings).' in f.read()
 
 
 def _pids_in_domain(domain: int):

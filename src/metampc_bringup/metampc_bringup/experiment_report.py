@@ -435,10 +435,12 @@ def markdown(report: Dict[str, Any]) -> str:
     """report.md: set-up, timings, the claims table, per-method tracking, figures."""
     cl = report['claims']
     n = cl['seeds']
+    wall = report['wall_time_s']   # None: rebuilt from recordings of a folder without one
     lines = [f"# metampc experiment: {', '.join(report['methods'])}", '',
              f"Seeds: {report['seeds']} (theta* = "
              + ', '.join(f'{t:.3f}' for t in report['thetas']) + ')', '',
-             f"Wall time: {report['wall_time_s']:.0f} s in all.", '',
+             f'Wall time: {wall:.0f} s in all.' if wall is not None and math.isfinite(wall)
+             else 'Wall time: not recorded (report rebuilt from the recordings).', '',
              '## Claims of the paper, as measured', '',
              "Per claim 'a < b', over the seeds with both values (an escaped run costs inf): "
              'the seeds where it holds; the median of the ratio a/b (loss or tracking cost) '
