@@ -187,15 +187,24 @@ class ExperimentClient(SpunNode):
         return self.call('set_buffering', SetBuffering.Request(buffering=buffering), 10.0,
                          what)
 
+    def poll_inactive(self, controller: str, until: Callable[[SetActive.Response], bool],
+                      timeout: float, period: float) -> bool:
+        """Ask the controller (keeping it inactive) every `period` s until its answer meets
+        `until`; False after `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not until(self.set_active(controller, False)):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(period)
+        return True
+
     def wait_model(self, controller: str, version: int, timeout: float) -> None:
         """Wait until the (inactive) controller has model `version` ready for its next tick
         (it builds a model on a worker thread after the weights arrive; no topic says when)."""
-        deadline = time.monotonic() + timeout
-        while self.set_active(controller, False).model_version != version:
-            if time.monotonic() > deadline:
-                raise ExperimentError(f'{controller} did not take model version {version} '
-                                      f'within {timeout:g} s')
-            time.sleep(0.05)
+        if not self.poll_inactive(controller, lambda a: a.model_version == version, timeout,
+                                  0.05):
+            raise ExperimentError(f'{controller} did not take model version {version} '
+                                  f'within {timeout:g} s')
 
     # --- events ----------------------------------------------------------------------------
 

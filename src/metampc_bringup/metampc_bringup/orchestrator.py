@@ -225,14 +225,9 @@ class SeedRun:
     def _holds(self, controller: str, stamp: float) -> bool:
         """Whether the (inactive) `controller` receives the y_0 stamped `stamp` within
         EPISODE_START_S s of wall time."""
-        deadline = time.monotonic() + EPISODE_START_S
-        while True:
-            answer = self.client.set_active(controller, False)
-            if answer.latest_step == 0 and time_seconds(answer.latest_stamp) == stamp:
-                return True
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(HOLD_POLL_S)
+        return self.client.poll_inactive(
+            controller, lambda a: a.latest_step == 0 and time_seconds(a.latest_stamp) == stamp,
+            EPISODE_START_S, HOLD_POLL_S)
 
     def _wait_input_matched(self, controller: str, readers: int, deadline: float) -> None:
         """Wait until `controller`'s u publisher has matched the `readers` subscriptions of u
@@ -243,12 +238,11 @@ class SeedRun:
         waits for it forever (measured: with the nodes in three network namespaces, 1 of 17
         runs on a loaded 2-core machine stalled so at step 0).
         """
-        while self.client.set_active(controller, False).matched_subscribers < readers:
-            if time.monotonic() > deadline:
-                raise ExperimentError(f"start-up: {controller}'s u publisher never matched the "
-                                      f'{readers} subscriptions of u within '
-                                      f'{self.config.timeouts.startup:g} s')
-            time.sleep(MATCH_POLL_S)
+        if not self.client.poll_inactive(controller, lambda a: a.matched_subscribers >= readers,
+                                         max(deadline - time.monotonic(), 0.0), MATCH_POLL_S):
+            raise ExperimentError(f"start-up: {controller}'s u publisher never matched the "
+                                  f'{readers} subscriptions of u within '
+                                  f'{self.config.timeouts.startup:g} s')
 
     def _start_buffering(self) -> None:
         """Start the learner's D_target once its y subscription has matched the plant.
