@@ -53,8 +53,8 @@ class PlantLoop:
     """The plant core as the plant node runs it: y_k messages, a reset every EPISODE samples."""
 
     def __init__(self, theta: float):
-        from metampc_plant.vanderpol import VdpConfig, VdpPlant
-        self.plant = VdpPlant(VdpConfig(theta=theta, dt=DT))
+        from metampc_plant.simulator import Plant, PlantConfig
+        self.plant = Plant(PlantConfig(theta=(theta,), dt=DT))
         self.u = 0.0            # input held over (k-1, k]
         self.y = self.plant.output()
 
@@ -69,8 +69,8 @@ class PlantLoop:
         if self.plant.step_index + 1 >= EPISODE:
             self.y, self.u = self.plant.reset(), 0.0
         else:
-            self.u = self.plant.saturate(u)[0]
-            self.y = self.plant.step(self.u)
+            self.u = self.plant.saturate([u])[0][0]
+            self.y = self.plant.step([self.u])
 
 
 def bench_core(ticks: int, theta: float) -> dict:

@@ -2,8 +2,9 @@
 """Benchmark the plant: simulator core speed and lockstep round trips through ROS 2.
 
 Prints ONE JSON line:
-  core_steps_per_s_1        VdpPlant samples/s (one system, RK4 with the default substeps)
-  core_steps_per_s_1000     BatchVdp samples/s for 1000 systems stepped together
+  core_steps_per_s_1        Plant samples/s (one van der Pol system, RK4 with the default
+                            substeps)
+  core_steps_per_s_1000     BatchPlant samples/s for 1000 systems stepped together
   core_system_steps_per_s_1000   the same times 1000 (system-samples/s)
   lockstep_round_trips_per_s  y -> u -> y cycles/s between the `plant` node (ros2 run) and a
                               minimal echo controller process (this script with --echo)
@@ -42,12 +43,12 @@ def _rate(fn, min_seconds: float) -> float:
 
 
 def bench_core(seconds: float) -> dict:
-    from metampc_plant.vanderpol import BatchVdp, VdpConfig, VdpPlant
-    config = VdpConfig(theta=1.0, dt=0.05, x0=(1.0, 0.0))
-    plant = VdpPlant(config)
-    single = _rate(lambda: plant.step(0.1), seconds)
-    batch = BatchVdp(np.linspace(-0.5, 2.0, 1000), config)
-    u = np.full(1000, 0.1)
+    from metampc_plant.simulator import BatchPlant, Plant, PlantConfig
+    config = PlantConfig(theta=(1.0,), dt=0.05, x0=(1.0, 0.0))
+    plant = Plant(config)
+    single = _rate(lambda: plant.step((0.1,)), seconds)
+    batch = BatchPlant(np.linspace(-0.5, 2.0, 1000), config)
+    u = np.full((1000, 1), 0.1)
     many = _rate(lambda: batch.step(u), seconds)
     return {'core_steps_per_s_1': round(single), 'core_steps_per_s_1000': round(many, 1),
             'core_system_steps_per_s_1000': round(1000 * many)}

@@ -7,10 +7,12 @@ Examples:
     python scripts/run_experiment.py --seeds 5 --protocol paper   # Algorithm 1 as written
     python scripts/run_experiment.py --report runs/<time>     # recompute its reports
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
+    python scripts/run_experiment.py --family duffing --seeds 5   # config/duffing.yaml
     # As root: plant | controllers | learner and recorder, one network namespace each.
     python scripts/run_experiment.py --hosts 'plant|controller,controller_nmpc|learner,recorder'
 
-The defaults are config/default.yaml (tuned hyperparameters, see docs/experiments.md).
+The defaults are config/default.yaml (tuned hyperparameters, see docs/experiments.md);
+with --family F and no --config, config/F.yaml when it exists (docs/families.md).
 Exit status: 0 done, 1 a phase failed (the message names it), 2 bad arguments or
 configuration, 130 interrupted (the nodes are stopped, the recording stays readable).
 """
@@ -25,15 +27,34 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_CONFIG = os.path.join(ROOT, 'config', 'default.yaml')
 
 
+def config_path(family) -> str:
+    """config/<family>.yaml when it exists, else config/default.yaml."""
+    own = os.path.join(ROOT, 'config', f'{family}.yaml')
+    return own if family and os.path.exists(own) else DEFAULT_CONFIG
+
+
+def numbers(text):
+    """'0.2,-0.6,1.1' -> [0.2, -0.6, 1.1]; None stays None; ValueError names the text."""
+    if text is None:
+        return None
+    try:
+        return [float(v) for v in text.split(',')]
+    except ValueError:
+        raise ValueError(f'--theta needs comma-separated numbers, got {text!r}') from None
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--config', default=DEFAULT_CONFIG,
-                        help='YAML file with every hyperparameter (default: %(default)s)')
+    parser.add_argument('--config', help='YAML file with every hyperparameter (default: '
+                                         'config/<family>.yaml, else config/default.yaml)')
+    parser.add_argument('--family', help='plant family (docs/families.md); overrides the '
+                                         "config's family key")
     parser.add_argument('--methods', help='comma-separated: imaml,maml,maml_unrolled,'
                                           'supervised,oracle,nmpc')
     parser.add_argument('--seeds', type=int, help='number of seeds')
     parser.add_argument('--first-seed', type=int, help='seed of the first run')
-    parser.add_argument('--theta', type=float, help='target damping (default: drawn per seed)')
+    parser.add_argument('--theta', help="target theta*, comma-separated values of the family's "
+                                        'components (default: drawn per seed)')
     parser.add_argument('--protocol', help="'tuned' (default) or 'paper' (docs/experiments.md)")
     parser.add_argument('--out', help='run folder to create (default: runs/<time>)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bars')
@@ -65,12 +86,12 @@ def main(argv=None) -> int:
         print(f"report: {os.path.join(args.report, 'report.md')}")
         return 0
     try:
-        config = load(args.config, {
+        config = load(args.config or config_path(args.family), {
             'methods': args.methods.split(',') if args.methods else None,
-            'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': args.theta,
-            'protocol': args.protocol})
+            'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': numbers(args.theta),
+            'protocol': args.protocol, 'family': args.family})
         hosts = parse_hosts(args.hosts) if args.hosts else None
-    except (ConfigError, NetnsError) as err:
+    except (ConfigError, NetnsError, ValueError) as err:
         print(f'run_experiment: {err}', file=sys.stderr)
         return 2
     out = args.out or os.path.join(

@@ -39,7 +39,7 @@ from metampc_controller.manual_model import linearised_vdp_nssm
 from metampc_controller.normalisation import Normalisation
 from metampc_controller.nssm import init_params, NssmConfig
 from metampc_controller.weights_codec import fields_from_weights
-from metampc_plant.vanderpol import VdpConfig, VdpPlant
+from metampc_plant.simulator import Plant, PlantConfig
 from metampc_testing import session_pids
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -260,19 +260,19 @@ def test_plant_nan_inf_and_wrong_length_inputs_are_rejected(procs, probe, tmp_pa
     pub = probe.node.create_publisher(ControlInput, 'u', RELIABLE)    # opens the start gate
     probe.wait_for(lambda: rig.ys and rig.ys[-1].step == n, 60.0, f'y_{n}')
 
-    core = VdpPlant(VdpConfig(theta=0.5, x0=(0.5, 0.0)))
+    core = Plant(PlantConfig(theta=(0.5,), x0=(0.5, 0.0)))
     held, expected_u, expected_y = 0.0, [0.0], [core.output()]
     for k in range(n):
         held = answer(k)[0] if k % 6 == 5 else held
         expected_u.append(held)
-        expected_y.append(core.step(held))
+        expected_y.append(core.step([held]))
     ys = rig.ys[-(n + 1):]
     assert [m.step for m in ys] == list(range(n + 1))
     assert [m.u_applied[0] for m in ys] == expected_u
     assert np.array_equal([list(m.y) for m in ys], expected_y)
     out = rig.finish()['plant']
     assert f'0 stale, {sum(k % 6 < 5 for k in range(n))} rejected, 0 timeouts' in out, out
-    assert 'rejected the input for step 0 (non-finite input nan)' in out
+    assert 'rejected the input for step 0 (non-finite input [nan])' in out
 
 
 def test_plant_with_negative_theta_escapes_flagged_never_nan(procs, probe, tmp_path):
@@ -426,7 +426,8 @@ def call(probe, client, request, timeout: float = 30.0):
 BAD_RESETS = [  # (request fields, the reason)
     ({'x0': [1.0, 2.0, 3.0]}, 'x0 must have 2 values'),
     ({'x0': [NAN, 0.0]}, 'x0 must be finite'),
-    ({'theta': INF}, 'theta must be finite'),
+    ({'theta': [INF]}, 'theta of family vanderpol needs 1 finite value(s)'),
+    ({'theta': [0.1, 0.2]}, 'theta of family vanderpol needs 1 finite value(s)'),
     ({'x0': [50.0, 0.0]}, 'lies outside state_bound'),
 ]
 
@@ -445,12 +446,12 @@ def test_bad_and_concurrent_service_calls(procs, probe, tmp_path):
         assert client.wait_for_service(timeout_sec=60.0), client.srv_name
 
     for fields, reason in BAD_RESETS:
-        result = call(probe, reset, ResetPlant.Request(theta=fields.get('theta', NAN),
+        result = call(probe, reset, ResetPlant.Request(theta=fields.get('theta', []),
                                                        x0=fields.get('x0', [])))
         assert not result.success and result.message.startswith('reset rejected'), fields
         assert reason in result.message, result.message
     rig.wait_steps(3)
-    result = call(probe, reset, ResetPlant.Request(theta=0.3, x0=[0.1, 0.0]))
+    result = call(probe, reset, ResetPlant.Request(theta=[0.3], x0=[0.1, 0.0]))
     assert result.success, result.message
     probe.wait_for(lambda: any(m.step == 0 and list(m.y) == [0.1, 0.0] for m in rig.ys),
                    30.0, 'y_0 of the good reset')
@@ -588,7 +589,7 @@ def test_sigkill_of_the_learner_during_meta_train(procs, probe, tmp_path):
 # --- start-up and outputs --------------------------------------------------------------------
 
 BAD_START = {  # node: (package, executable, one parameter out of range, what the line says)
-    'plant': ('metampc_plant', 'plant', {'dt': -0.1}, 'dt must be > 0'),
+    'plant': ('metampc_plant', 'plant', {'dt': -0.1}, 'dt must be >= 0'),
     'controller': ('metampc_controller', 'controller', {'horizon': 0}, 'horizon must be >= 1'),
     'learner': ('metampc_learner', 'learner', {'iterations': 0}, 'iterations must be >= 1'),
     'recorder': ('metampc_bringup', 'recorder', {'output': '/tmp/x.mcap', 'chunk_size': 0},

@@ -15,9 +15,9 @@ e.g. an experiment's per-seed report in the same folder) is never overwritten:
 import json
 import math
 import os
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence
 
-from .metrics import compute_metrics
+from .metrics import Bounds, compute_metrics
 from .plots import write_plots
 from .recording_reader import read_recording, Recording, RecordedTopic
 from .run_series import DEFAULT_TOPICS, RunSeries, SeriesBuilder
@@ -88,7 +88,7 @@ def json_safe(value):
 
 
 def analyse(path: str, out_dir: Optional[str] = None, tracked: Optional[Sequence[int]] = None,
-            u_bounds: Optional[Tuple[float, float]] = None, plots: bool = True,
+            u_bounds: Optional[Bounds] = None, plots: bool = True,
             overrides: Optional[Dict[str, str]] = None,
             report_name: Optional[str] = REPORT_NAME) -> Dict:
     """Analyse one recording and write its report and plots.

@@ -4,9 +4,13 @@ A YAML file holds a mapping with the keys of :class:`ExperimentConfig`; the miss
 their defaults and an unknown key is an error, so a typo never passes silently. The node
 sections (``plant``, ``learner``, ``controller``, ``recorder``) are ROS parameters handed to
 the nodes as they are: the nodes check them and the orchestrator reports a node's one-line
-error if one is refused. The keys shared by several nodes (``dt``, ``u_min``, ``u_max``) are
-set once at the top and copied into every node that takes them; the per-seed values (seeds,
-target theta) are set by :meth:`ExperimentConfig.node_parameters`.
+error if one is refused. The keys shared by several nodes (``family``, ``dt``, ``u_min``,
+``u_max``) are set once at the top and copied into every node that takes them; the per-seed
+values (seeds, target theta) are set by :meth:`ExperimentConfig.node_parameters`.
+
+The plant family (``family``, docs/families.md) fills in what the file leaves out (null): dt,
+input bounds, initial states, tracked outputs, the controller's output weights q (1 for a
+tracked output, 0 otherwise), and the prior theta* is drawn from.
 
 Requests: ``meta_train.<method>`` are the fields of a ``MetaTrain`` request for each meta
 method, ``adapt.<method>`` those of an ``Adapt`` request for each method that adapts (a
@@ -21,9 +25,8 @@ and :meth:`ExperimentConfig.adapt_request`:
   meta-training (eq. ub, ``online_collection``), iMAML adapts by eq. (infer) with the gamma it
   was meta-trained with, first-order MAML and supervised training by plain steps (eq. inner).
 """
-from dataclasses import asdict, dataclass, field, fields
-import math
-from typing import Any, Dict, List, Optional
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any, Dict, List, Optional, Union
 
 import numpy as np
 import yaml
@@ -31,12 +34,14 @@ import yaml
 from metampc_controller import controller_params
 from metampc_learner import learner_params
 from metampc_msgs.srv import Adapt, MetaTrain
+from metampc_plant.family import PlantFamily
+from metampc_plant.registry import DEFAULT, get_family
 
 PROTOCOLS = ('tuned', 'paper')
 META_METHODS = ('imaml', 'maml', 'maml_unrolled')
 ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
 METHODS = (*ADAPT_METHODS, 'nmpc')
-SHARED = ('dt', 'u_min', 'u_max')
+SHARED = ('family', 'dt', 'u_min', 'u_max')
 _TAKES_SHARED = {'plant': SHARED, 'learner': SHARED, 'controller': ('u_min', 'u_max')}
 # The request fields a config may set: the services' own (method and seed are the run's).
 _META_FIELDS = set(MetaTrain.Request.get_fields_and_field_types()) - {'method', 'seed'}
@@ -64,13 +69,18 @@ class ExperimentConfig:
     Attributes:
         methods: what to compare, in order (:data:`METHODS`).
         seeds: number of seeds; seed ``first_seed + i`` seeds run i (its own bring-up).
-        theta: target damping theta*; None draws it per seed from N(theta_mean, theta_std^2).
+        family: the plant family (registered name, docs/families.md).
+        theta: target theta* (a list of the family's n_theta values, or a number for a
+            one-component family); None draws it per seed from the family's prior Theta.
         target_samples: samples of the target plant collected under the controller's
             exploration input before any model exists (D_target of eq. infer).
-        collect_x0 / track_x0: initial plant state of the collection / of every tracking run.
+        collect_x0 / track_x0: initial plant state of the collection / of every tracking run
+            (None: the family's x0).
         track_duration: tracking run length, s of plant time (the paper reference: 30 s).
-        tracked_outputs: output indices with a reference (metrics cover these).
-        dt, u_min, u_max: sample time (s) and input bounds, shared by the nodes.
+        tracked_outputs: output indices with a reference (metrics cover these; None: the
+            family's).
+        dt, u_min, u_max: sample time (s) and input bounds (a list, one per input, or one
+            number for every input), shared by the nodes; None: the family's.
         plant, learner, controller, recorder: ROS parameters of each node.
         meta_train / adapt: request fields per method (see the module docstring).
         protocol: 'tuned' or 'paper' (see the module docstring).
@@ -81,17 +91,16 @@ class ExperimentConfig:
         default_factory=lambda: ['imaml', 'maml', 'supervised', 'oracle', 'nmpc'])
     seeds: int = 1
     first_seed: int = 0
-    theta: Optional[float] = None
-    theta_mean: float = 0.0
-    theta_std: float = 1.0
+    family: str = DEFAULT
+    theta: Optional[Union[float, List[float]]] = None
     target_samples: int = 300
-    collect_x0: List[float] = field(default_factory=lambda: [0.5, 0.0])
-    track_x0: List[float] = field(default_factory=lambda: [0.0, 0.0])
+    collect_x0: Optional[List[float]] = None
+    track_x0: Optional[List[float]] = None
     track_duration: float = 30.0
-    tracked_outputs: List[int] = field(default_factory=lambda: [0])
-    dt: float = 0.1
-    u_min: float = -1.0
-    u_max: float = 1.0
+    tracked_outputs: Optional[List[int]] = None
+    dt: Optional[float] = None
+    u_min: Optional[Union[float, List[float]]] = None
+    u_max: Optional[Union[float, List[float]]] = None
     plant: Dict[str, Any] = field(default_factory=dict)
     learner: Dict[str, Any] = field(default_factory=dict)
     controller: Dict[str, Any] = field(default_factory=dict)
@@ -103,6 +112,32 @@ class ExperimentConfig:
 
     # --- derived ---------------------------------------------------------------------------
 
+    @property
+    def plant_family(self) -> PlantFamily:
+        """The family object (ConfigError if it is not installed)."""
+        try:
+            return get_family(self.family)
+        except ValueError as err:
+            raise ConfigError(f'family: {err}') from None
+
+    def resolved(self) -> 'ExperimentConfig':
+        """A copy with every null filled in from the family and the bounds as lists."""
+        fam = self.plant_family
+
+        def bounds(value, default):
+            if value is None:
+                return list(default)
+            values = [float(v) for v in np.atleast_1d(value)]
+            return values * fam.n_u if len(values) == 1 else values
+        out = replace(
+            self, dt=float(self.dt or fam.dt), u_min=bounds(self.u_min, fam.u_min),
+            u_max=bounds(self.u_max, fam.u_max),
+            collect_x0=list(self.collect_x0 if self.collect_x0 is not None else fam.x0),
+            track_x0=list(self.track_x0 if self.track_x0 is not None else fam.x0),
+            tracked_outputs=list(self.tracked_outputs if self.tracked_outputs is not None
+                                 else fam.tracked))
+        return out
+
     def meta_methods(self) -> List[str]:
         """Meta methods to meta-train: those compared, in order."""
         return [m for m in self.methods if m in META_METHODS]
@@ -110,12 +145,13 @@ class ExperimentConfig:
     def seed_list(self) -> List[int]:
         return [self.first_seed + i for i in range(self.seeds)]
 
-    def target_theta(self, seed: int) -> float:
-        """theta* of the run with `seed`: the given theta, else a seeded draw."""
+    def target_theta(self, seed: int) -> List[float]:
+        """theta* of the run with `seed` (n_theta values): the given theta, else a seeded draw
+        from the family's prior."""
         if self.theta is not None:
-            return float(self.theta)
+            return [float(v) for v in np.atleast_1d(self.theta)]
         rng = np.random.default_rng([seed, 0x7e7a])    # not the stream of any node
-        return float(rng.normal(self.theta_mean, self.theta_std))
+        return self.plant_family.sample_theta(rng, 1)[0].tolist()
 
     def track_steps(self) -> int:
         """Samples of one tracking run."""
@@ -123,17 +159,20 @@ class ExperimentConfig:
 
     def node_parameters(self, node: str, seed: int) -> Dict[str, Any]:
         """ROS parameters of `node` ('plant', 'learner', 'controller') for the run `seed`."""
-        params = {key: getattr(self, key) for key in _TAKES_SHARED[node]}
-        params.update(getattr(self, node))
+        cfg = self.resolved()
+        params = {key: getattr(cfg, key) for key in _TAKES_SHARED[node]}
+        if node == 'controller':
+            fam = cfg.plant_family
+            params['q'] = [1.0 if j in cfg.tracked_outputs else 0.0 for j in range(fam.n_y)]
+        params.update(getattr(cfg, node))
         if node == 'plant':
-            params.update(mode='lockstep', theta=self.target_theta(seed), seed=seed,
-                          x0=list(self.collect_x0), input_timeout=0.0)
+            params.update(mode='lockstep', theta=cfg.target_theta(seed), seed=seed,
+                          x0=list(cfg.collect_x0), input_timeout=0.0)
         elif node == 'learner':
-            params.update(seed=seed, source_seed=seed, target_buffer_size=self.target_samples,
-                          theta_mean=self.theta_mean, theta_std=self.theta_std)
+            params.update(seed=seed, source_seed=seed, target_buffer_size=cfg.target_samples)
         else:
             params.update(excitation_seed=seed, active=False, use_sim_time=True,
-                          rate_hz=1.0 / self.dt)
+                          rate_hz=1.0 / cfg.dt)
         return params
 
     def meta_request(self, method: str) -> Dict[str, Any]:
@@ -157,22 +196,37 @@ class ExperimentConfig:
     # --- checks ----------------------------------------------------------------------------
 
     def validate(self) -> 'ExperimentConfig':
-        """Raise ConfigError on a value the orchestrator cannot run with; return self."""
+        """Raise ConfigError on a value the orchestrator cannot run with; return the config
+        with the family's defaults filled in (:meth:`resolved`)."""
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown or not self.methods or len(set(self.methods)) != len(self.methods):
             raise ConfigError(f'methods must be distinct names out of {", ".join(METHODS)}; '
                               f'got {self.methods}')
         if self.seeds < 1 or self.first_seed < 0:
             raise ConfigError('seeds must be >= 1 and first_seed >= 0')
-        if self.theta is not None and not math.isfinite(self.theta):
-            raise ConfigError(f'theta must be finite, got {self.theta}')
-        if not (self.dt > 0 and self.track_duration >= self.dt and self.target_samples >= 2):
+        fam = self.plant_family
+        if self.theta is not None:
+            try:
+                fam.check_theta(self.target_theta(self.first_seed))
+            except (ValueError, TypeError) as err:
+                raise ConfigError(f'theta: {err}') from None
+        cfg = self.resolved()
+        if not (cfg.dt > 0 and cfg.track_duration >= cfg.dt and cfg.target_samples >= 2):
             raise ConfigError('need dt > 0, track_duration >= dt and target_samples >= 2')
-        if not self.u_min <= self.u_max:
-            raise ConfigError(f'u_min {self.u_min} > u_max {self.u_max}')
+        for name in ('u_min', 'u_max'):
+            if len(getattr(cfg, name)) != fam.n_u:
+                raise ConfigError(f'{name}: family {fam.name} has {fam.n_u} input(s), got '
+                                  f'{getattr(self, name)}')
+        if any(lo > hi for lo, hi in zip(cfg.u_min, cfg.u_max)):
+            raise ConfigError(f'u_min {cfg.u_min} > u_max {cfg.u_max}')
         for name in ('collect_x0', 'track_x0'):
-            if len(getattr(self, name)) != 2:
-                raise ConfigError(f'{name} must be [x1, x2]')
+            if len(getattr(cfg, name)) != fam.n_x:
+                raise ConfigError(f'{name} needs the {fam.n_x} states of family {fam.name} '
+                                  f'({", ".join(s.name for s in fam.states)}), got '
+                                  f'{getattr(self, name)}')
+        if any(j not in range(fam.n_y) for j in cfg.tracked_outputs) or not cfg.tracked_outputs:
+            raise ConfigError(f'tracked_outputs must be indices in [0, {fam.n_y}) (family '
+                              f'{fam.name}), got {self.tracked_outputs}')
         for node, shared in _TAKES_SHARED.items():
             clash = sorted(set(shared) & set(getattr(self, node)))
             if clash:
@@ -189,7 +243,7 @@ class ExperimentConfig:
         _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
         for node, params in _NODE_PARAMS.items():
             _check_node(node, self.node_parameters(node, self.first_seed), *params)
-        return self
+        return cfg
 
 
 # The learner's and the controller's declared parameters and parse functions: their sections
@@ -225,9 +279,19 @@ def _check_requests(section: str, requests: Dict[str, Dict[str, Any]], methods, 
                               f'(allowed: {", ".join(sorted(allowed))})')
 
 
+# Keys of earlier versions, with the only value the current code reproduces: the van der Pol
+# prior N(0, 1) is now the family's (so the run configs of older recordings still load).
+_RETIRED = {'theta_mean': 0.0, 'theta_std': 1.0}
+
+
 def from_mapping(data: Dict[str, Any]) -> ExperimentConfig:
     """An ExperimentConfig from a mapping (e.g. parsed YAML); ConfigError on unknown keys."""
     names = {f.name for f in fields(ExperimentConfig)}
+    data = dict(data)
+    for key, value in _RETIRED.items():
+        if key in data and data.pop(key) != value:
+            raise ConfigError(f'{key} is retired: theta* is drawn from the family\'s prior '
+                              '(docs/families.md: a variant of a family with another prior)')
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(f'unknown key(s) {", ".join(unknown)}; '

@@ -151,7 +151,7 @@ def heldout_losses(recording, events: List[Dict[str, Any]], config: Dict[str, An
     if plants:
         p = plants[-1]
         source = plant_source(source, p.dt, p.substeps, p.u_min, p.u_max, p.state_bound)
-    trajectories = target_heldout(float(start['theta']), source, seed)
+    trajectories = target_heldout(np.atleast_1d(start['theta']), source, seed)
     samples = sum(len(t) for t in trajectories)
     models = published_models(recording)
     losses: Dict[str, Dict[str, Any]] = {}
@@ -431,6 +431,13 @@ def _heldout_section(report: Dict[str, Any]) -> List[str]:
     return lines
 
 
+def theta_text(theta) -> str:
+    """'0.029' for one component, '(0.550, 0.610)' for more."""
+    values = np.atleast_1d(theta)
+    text = ', '.join(f'{v:.3f}' for v in values)
+    return text if values.size == 1 else f'({text})'
+
+
 def markdown(report: Dict[str, Any]) -> str:
     """report.md: set-up, timings, the claims table, per-method tracking, figures."""
     cl = report['claims']
@@ -438,7 +445,7 @@ def markdown(report: Dict[str, Any]) -> str:
     wall = report['wall_time_s']   # None: rebuilt from recordings of a folder without one
     lines = [f"# metampc experiment: {', '.join(report['methods'])}", '',
              f"Seeds: {report['seeds']} (theta* = "
-             + ', '.join(f'{t:.3f}' for t in report['thetas']) + ')', '',
+             + ', '.join(theta_text(t) for t in report['thetas']) + ')', '',
              f'Wall time: {wall:.0f} s in all.' if wall is not None and math.isfinite(wall)
              else 'Wall time: not recorded (report rebuilt from the recordings).', '',
              '## Claims of the paper, as measured', '',

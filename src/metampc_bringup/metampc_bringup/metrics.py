@@ -24,6 +24,9 @@ import numpy as np
 
 from .run_series import RunSeries
 
+# Input bounds (u_min, u_max), one value per input each.
+Bounds = Tuple[Sequence[float], Sequence[float]]
+
 
 def episodes(steps: Sequence[int]) -> np.ndarray:
     """Episode index per sample: starts at 0, +1 wherever the step decreases. Shape [n]."""
@@ -91,15 +94,21 @@ def percentile_summary(values: Sequence[float]) -> Dict:
             'max': float(np.max(v))}
 
 
-def bound_violations(u: np.ndarray, u_min: float, u_max: float, tol: float = 1e-9) -> Dict:
-    """Samples of `u` [n, n_u] with a component outside [u_min - tol, u_max + tol].
+def bound_violations(u: np.ndarray, u_min: Sequence[float], u_max: Sequence[float],
+                     tol: float = 1e-9) -> Dict:
+    """Samples of `u` [n, n_u] with a component outside its [u_min - tol, u_max + tol]
+    (bounds one per input, or one number for all).
 
-    Returns the count of such samples and the largest excess beyond the bounds (0 if none).
+    Returns the bounds (lists), the count of such samples and the largest excess beyond the
+    bounds (0 if none).
     """
     u = np.asarray(u, dtype=float)
+    u_min = np.atleast_1d(np.asarray(u_min, dtype=float)).tolist()
+    u_max = np.atleast_1d(np.asarray(u_max, dtype=float)).tolist()
     if u.size == 0:
         return {'u_min': u_min, 'u_max': u_max, 'violations': 0, 'max_excess': 0.0}
-    excess = np.maximum(u - u_max, u_min - u)
+    u = u.reshape(len(u), -1)
+    excess = np.maximum(u - np.asarray(u_max), np.asarray(u_min) - u)
     per_sample = np.max(excess.reshape(len(u), -1), axis=1)
     return {'u_min': u_min, 'u_max': u_max, 'violations': int(np.sum(per_sample > tol)),
             'max_excess': float(max(0.0, np.max(per_sample)))}
@@ -131,20 +140,23 @@ def training_summary(series: RunSeries) -> List[Dict]:
 
 
 def compute_metrics(series: RunSeries, tracked: Optional[Sequence[int]] = None,
-                    u_bounds: Optional[Tuple[float, float]] = None) -> Dict:
+                    u_bounds: Optional[Bounds] = None) -> Dict:
     """All metrics of a run, JSON-ready.
 
     Args:
         series: the run's series.
         tracked: output indices that follow a reference (default: all outputs).
-        u_bounds: (u_min, u_max); default from PlantInfo, else bound checks are skipped.
+        u_bounds: (u_min, u_max), one per input; default from PlantInfo, else bound checks
+            are skipped.
     """
     out, inp, st = series.outputs, series.inputs, series.status
     if tracked is None:
         tracked = list(range(series.n_y))
     oi, si = reference_pairs(out.step, st.step)
     if u_bounds is None and series.plant_info is not None:
-        u_bounds = (float(series.plant_info['u_min']), float(series.plant_info['u_max']))
+        # Older recordings hold one number per bound, newer ones a list per input.
+        u_bounds = tuple(np.atleast_1d(np.asarray(series.plant_info[key], dtype=float))
+                         for key in ('u_min', 'u_max'))
     diverged = np.flatnonzero(out.diverged)
     solved = st.iterations >= 0
     return {

@@ -7,8 +7,8 @@ that are never the experiment's test targets, and a job runner (worker processes
 thread count each, results cached on disk so that a long run stopped half-way resumes).
 
 Validation, never the test targets: the experiment's seed s uses ``source_seed = s`` and the
-target theta of ``rng([s, 0x7e7a])``; validation targets are ``theta_i = rng([1000 + i,
-0x5a1]).normal(theta_mean, theta_std)``, each with ``target_samples`` adaptation samples (one
+target theta of ``rng([s, 0x7e7a])``; validation targets theta_i are drawn from the family's
+prior with ``rng([1000 + i, 0x5a1])``, each with ``target_samples`` adaptation samples (one
 bounded excitation episode, like the experiment's collection) and an independent held-out set
 of :data:`HELDOUT_SAMPLES` samples.
 
@@ -36,6 +36,7 @@ from metampc_learner.data import (normalisation_from, simulate_source, simulate_
                                   SourceSet, Windows)
 from metampc_learner.learner_params import LearnerNodeConfig, PARAMETERS, parse_params
 from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
+from metampc_plant.family import PlantFamily
 
 from .experiment_config import ExperimentConfig, load
 
@@ -75,7 +76,7 @@ class Settings:
     """
 
     learner: LearnerNodeConfig
-    thetas: Tuple[float, ...]
+    thetas: Tuple[Tuple[float, ...], ...]
     target_samples: int
     adapt_steps: int
     meta_defaults: Dict[str, Any] = field(default_factory=dict)
@@ -117,7 +118,7 @@ class Job:
     stage: str
     source_seed: int = VALIDATION_SEED
     nssm: Dict[str, Any] = field(default_factory=dict)
-    target_theta: Optional[float] = None
+    target_theta: Optional[Tuple[float, ...]] = None
     heldout_samples: int = HELDOUT_SAMPLES
 
     def cost(self) -> float:
@@ -146,10 +147,12 @@ def target_data_seeds(source_seed: int) -> Tuple[int, int]:
     return int(words[0]), int(words[1])
 
 
-def validation_thetas(n: int, theta_mean: float, theta_std: float) -> Tuple[float, ...]:
-    """theta_i = rng([VALIDATION_SEED + i, THETA_STREAM]).normal(mean, std), i = 0..n-1."""
-    return tuple(float(np.random.default_rng([VALIDATION_SEED + i, THETA_STREAM])
-                       .normal(theta_mean, theta_std)) for i in range(n))
+def validation_thetas(n: int, family: PlantFamily) -> Tuple[Tuple[float, ...], ...]:
+    """theta_i drawn from the family's prior with rng([VALIDATION_SEED + i, THETA_STREAM]),
+    i = 0..n-1 (van der Pol: the normal draw N(0, 1) of that generator)."""
+    return tuple(tuple(family.sample_theta(
+        np.random.default_rng([VALIDATION_SEED + i, THETA_STREAM]), 1)[0].tolist())
+        for i in range(n))
 
 
 def settings_from(config_path: str, n_thetas: int, adapt_steps: int,
@@ -157,12 +160,12 @@ def settings_from(config_path: str, n_thetas: int, adapt_steps: int,
     """Settings from an experiment YAML: its learner set-up, validation targets."""
     experiment = load(config_path)
     return Settings(learner_config(experiment, VALIDATION_SEED),
-                    validation_thetas(n_thetas, experiment.theta_mean, experiment.theta_std),
+                    validation_thetas(n_thetas, experiment.plant_family),
                     experiment.target_samples, adapt_steps, dict(meta_defaults or {}))
 
 
 def build_validation(settings: Settings, source_seed: int, nssm: Dict[str, Any],
-                     target_theta: Optional[float] = None,
+                     target_theta: Optional[Sequence[float]] = None,
                      heldout_samples: int = HELDOUT_SAMPLES) -> Validation:
     """Simulate a source set and the targets' adaptation and held-out data: the validation
     targets (the same data for every source set), or the one test target `target_theta`
@@ -203,7 +206,8 @@ def init_worker(settings: Settings, threads: int) -> None:
     _SETTINGS = settings
 
 
-def validation(source_seed: int, nssm: Dict[str, Any], target_theta: Optional[float] = None,
+def validation(source_seed: int, nssm: Dict[str, Any],
+               target_theta: Optional[Sequence[float]] = None,
                heldout_samples: int = HELDOUT_SAMPLES) -> Validation:
     """The set-up of a source seed, NSSM and targets (see :func:`build_validation`), built
     once per worker."""

@@ -152,8 +152,8 @@ class SeedRun:
         self.timings['startup'] = time.monotonic() - t0
         self.client.event('start', seed=seed, theta=self.theta, methods=config.methods,
                           nodes=sorted(self.procs))
-        log.info('seed %d: graph ready in %.1f s (theta* = %.4f)', seed,
-                 self.timings['startup'], self.theta)
+        log.info('seed %d: graph ready in %.1f s (theta* = %s)', seed,
+                 self.timings['startup'], ', '.join(f'{v:.4f}' for v in self.theta))
 
     # --- phases ----------------------------------------------------------------------------
 
@@ -204,7 +204,8 @@ class SeedRun:
         client = self.client
         for attempt in range(1, MAX_EPISODE_STARTS + 1):
             client.reset_counts()
-            client.call('reset', ResetPlant.Request(theta=self.theta, x0=list(map(float, x0))),
+            client.call('reset', ResetPlant.Request(theta=list(map(float, self.theta)),
+                                                    x0=list(map(float, x0))),
                         10.0, f'{what}: plant reset')
             client.wait_until(lambda: client.samples > 0 and client.last.step == 0, 10.0,
                               f'{what}: y_0 after the plant reset')

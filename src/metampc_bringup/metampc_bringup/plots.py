@@ -10,7 +10,7 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
 import numpy as np  # noqa: E402
 
-from .metrics import episodes, keys, reference_pairs  # noqa: E402
+from .metrics import Bounds, episodes, keys, reference_pairs  # noqa: E402
 from .run_series import RunSeries  # noqa: E402
 
 
@@ -72,7 +72,7 @@ def plot_outputs(series: RunSeries, path: str,
 
 
 def plot_inputs(series: RunSeries, path: str,
-                u_bounds: Optional[Tuple[float, float]] = None) -> Optional[str]:
+                u_bounds: Optional[Bounds] = None) -> Optional[str]:
     """Inputs against plant time: the applied input u_applied of sample k, held over
     (k-1, k], as a staircase, and each requested input (ControlInput answering step k) drawn
     at the end of the interval (k, k+1] it was meant for; input bounds dotted."""
@@ -93,8 +93,8 @@ def plot_inputs(series: RunSeries, path: str,
         x, rows = (np.array(v) for v in zip(*placed))
         for j in range(inp.u.shape[1]):
             ax.plot(t[x], inp.u[rows, j], '.', ms=4, label=f'u requested[{j}]')
-    if u_bounds is not None:
-        for bound in u_bounds:
+    if u_bounds is not None:    # one value per input and side
+        for bound in np.unique(np.concatenate([np.atleast_1d(b) for b in u_bounds])):
             ax.axhline(bound, color='k', lw=0.8, ls=':')
     _mark_resets(ax, t, ep)
     ax.set_xlabel(label)
@@ -150,7 +150,7 @@ def plot_training_loss(series: RunSeries, path: str) -> Optional[str]:
 
 
 def write_plots(series: RunSeries, out_dir: str,
-                u_bounds: Optional[Tuple[float, float]] = None,
+                u_bounds: Optional[Bounds] = None,
                 tracked: Optional[Sequence[int]] = None) -> List[str]:
     """All plots into `out_dir` (outputs.png, inputs.png, solve_times.png,
     training_loss.png); returns the paths written (a plot without data is left out)."""

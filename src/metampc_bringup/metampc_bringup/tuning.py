@@ -6,7 +6,7 @@ Every method gets the same search budget, spent on validation systems only (docs
 
 - Validation, never the test targets: the source set is drawn with ``source_seed`` 1000 (the
   experiment's seeds 0..9 use ``source_seed = seed``) and ``thetas`` validation targets with
-  theta_i = rng([1000 + i, 0x5a1]).normal(theta_mean, theta_std) (the experiment's test
+  theta_i drawn from the family's prior with rng([1000 + i, 0x5a1]) (the experiment's test
   targets come from rng([seed, 0x7e7a])). Each validation target gets ``target_samples`` (300)
   adaptation samples (one bounded excitation episode, like the experiment's collection) and an
   independent held-out set of 600 samples (three further episodes).

@@ -198,7 +198,7 @@ class ProbeController:
                                  lambda m: self._keep('/plant_info', m), qos(latched=True))
         node.create_subscription(Clock, '/clock', lambda m: self._keep('/clock', m), qos())
         self.reset = node.create_client(ResetPlant, 'reset')
-        self._reset_request = ResetPlant.Request(theta=math.nan, x0=[0.0, 0.0])
+        self._reset_request = ResetPlant.Request(theta=[], x0=[0.0, 0.0])
 
     def _keep(self, topic: str, msg) -> None:
         self.published[topic].append(msg)

@@ -38,8 +38,12 @@ def test_percentiles_bounds_and_ticks():
     assert s == {'count': 4, 'mean': 2.5, 'p50': 2.5, 'p99': pytest.approx(3.97), 'max': 4.0}
     assert percentile_summary([])['p50'] is None
     u = np.array([[0.5], [1.0 + 1e-12], [1.25], [-1.5]])
-    assert bound_violations(u, -1.0, 1.0) == {'u_min': -1.0, 'u_max': 1.0, 'violations': 2,
+    assert bound_violations(u, -1.0, 1.0) == {'u_min': [-1.0], 'u_max': [1.0], 'violations': 2,
                                               'max_excess': 0.5}
+    # Bounds per input: the second input of the third sample is 0.5 above its own bound.
+    two = np.array([[0.5, 9.0], [0.0, 10.0], [0.2, 10.5]])
+    assert bound_violations(two, [0.0, 0.0], [1.0, 10.0]) == {
+        'u_min': [0.0, 0.0], 'u_max': [1.0, 10.0], 'violations': 1, 'max_excess': 0.5}
     # Steps 0-1 unanswered (start-up), then step 4 and step 1 of episode 1 missed; the last
     # output (episode 1, step 3) is outside the window.
     outputs = [0, 1, 2, 3, 4, 5, 0, 1, 2, 3]

@@ -78,7 +78,7 @@ def test_replay_metrics_equal_those_computed_live(closed_loop):
     assert m['saturated_samples'] == sum(y.saturated for y in pub['/y']) > 0
     info = pub['/plant_info'][-1]
     u = [msg.u[0] for msg in pub['/u']]
-    violations = sum(1 for v in u if not info.u_min <= v <= info.u_max)
+    violations = sum(1 for v in u if not info.u_min[0] <= v <= info.u_max[0])
     assert m['input_bounds']['violations'] == violations > 0
     solved = [s.solve_time for s in pub['/mpc_status'] if s.iterations >= 0]
     for name, q in (('p50', 50), ('p99', 99)):

@@ -47,6 +47,7 @@ class Rule:
     choices: Tuple[str, ...] = ()
     item: Optional[type] = None      # element type of a list (default: the default's)
     length: Optional[int] = None     # exact length of a list
+    scalar: bool = False             # a lone number is a list of one (`-p theta:=0.7`)
 
     def bounds(self) -> str:
         """'> 0', '>= 1', 'in [0, 1)', 'one of a, b' or ''."""
@@ -66,7 +67,7 @@ class Rule:
 def param(default: Any, description: str, *, ge: Optional[float] = None,
           gt: Optional[float] = None, le: Optional[float] = None, lt: Optional[float] = None,
           choices: Sequence[str] = (), item: Optional[type] = None,
-          length: Optional[int] = None) -> Any:
+          length: Optional[int] = None, scalar: bool = False) -> Any:
     """A dataclass field that is a node parameter.
 
     Args:
@@ -77,8 +78,10 @@ def param(default: Any, description: str, *, ge: Optional[float] = None,
         choices: the accepted strings.
         item: element type of a list whose default is empty.
         length: exact length of a list.
+        scalar: a list that also takes a lone number, as a list of one (a one-input family's
+            bound, a one-component theta).
     """
-    rule = Rule(description, ge, gt, le, lt, tuple(choices), item, length)
+    rule = Rule(description, ge, gt, le, lt, tuple(choices), item, length, scalar)
     if isinstance(default, (list, tuple)):
         frozen = tuple(default)
         return dataclasses.field(default=frozen, metadata={PARAM: rule})
@@ -129,6 +132,8 @@ def check_value(name: str, value: Value, default: Any, rule: Rule) -> Any:
     if not isinstance(default, tuple):
         return _scalar(name, value, type(default), rule)
     kind = rule.item or (type(default[0]) if default else float)
+    if rule.scalar and isinstance(value, numbers.Real) and not isinstance(value, bool):
+        value = (value,)
     if isinstance(value, (str, bytes, bool)) or not hasattr(value, '__len__'):
         raise ParameterError(f'{name} must be a list of {_plural(kind)}, got {value!r}')
     if rule.length is not None and len(value) != rule.length:

@@ -23,7 +23,7 @@ import numpy as np
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.nmpc import N_U, Nmpc, NmpcConfig
+from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
 from metampc_controller.predictor import NssmPredictor
 from metampc_controller.references import make_reference
 from metampc_controller.weights_codec import DecodedWeights, WeightsError
@@ -147,17 +147,17 @@ class PreModelInput:
 
     BLOCK = 1000
 
-    def __init__(self, kind: str, config: ExcitationConfig, seed: int, u_min: float,
-                 u_max: float):
+    def __init__(self, kind: str, config: ExcitationConfig, seed: int, u_min: np.ndarray,
+                 u_max: np.ndarray):
         self.kind = kind
         self.config = config
         self.seed = seed
-        self._zero = min(max(0.0, u_min), u_max)
+        self._zero = np.clip(0.0, u_min, u_max)
         self._key: Optional[Tuple[int, float]] = None
-        self._block = np.zeros(0)
+        self._block = np.zeros((0, len(u_min)))
 
-    def value(self, step: int, dt: float) -> float:
-        """The input answering step `step` at sample time dt (s)."""
+    def value(self, step: int, dt: float) -> np.ndarray:
+        """The input (n_u,) answering step `step` at sample time dt (s)."""
         if self.kind == 'zero':
             return self._zero
         hold = max(1, int(round(self.config.hold_s / dt)))
@@ -167,7 +167,7 @@ class PreModelInput:
             seed = int(np.random.SeedSequence([self.seed, block]).generate_state(1)[0])
             self._block = excitation(self.config, 1, length, dt, seed)[0]
             self._key = (block, dt)
-        return float(self._block[index])
+        return self._block[index].copy()
 
 
 @dataclass
@@ -237,12 +237,16 @@ class TickResult:
 
 @dataclass
 class PlantDescription:
-    """What the controller uses of PlantInfo: damping theta, sample time dt (s), bounds."""
+    """What the controller uses of PlantInfo: family name and theta (for the NMPC; theta
+    empty when unknown), sample time dt (s), input bounds (one per input), number of outputs,
+    clock mode."""
 
-    theta: float
+    family: str
+    theta: Tuple[float, ...]
     dt: float
-    u_min: float
-    u_max: float
+    u_min: Tuple[float, ...]
+    u_max: Tuple[float, ...]
+    n_y: int
     lockstep: bool
 
 
@@ -257,17 +261,16 @@ class ControllerCore:
 
     def __init__(self, config: ControllerConfig):
         self.config = config
-        self.n_u, self.n_y = N_U, config.n_y
+        self.n_u, self.n_y = config.n_u, config.n_y
         self.history = History(MAX_HISTORY, self.n_u, self.n_y)
+        self.u_min, self.u_max = config.mpc.bounds(self.n_u)
         self.pre_model = PreModelInput(config.pre_model_input, config.excitation,
-                                       config.excitation_seed, config.mpc.u_min,
-                                       config.mpc.u_max)
+                                       config.excitation_seed, self.u_min, self.u_max)
         self.reference = make_reference(config.reference_kind, **config.reference_params)
         self.plant: Optional[PlantDescription] = None
         self._override: Optional[np.ndarray] = None
         self._nmpc: Optional[Nmpc] = None
         self._model: Tuple[Optional[ModelBundle], str] = (None, 'none')
-        self._lo, self._hi = config.mpc.u_min, config.mpc.u_max
 
     # --- inputs from other callbacks ----------------------------------------------------
 
@@ -296,19 +299,32 @@ class ControllerCore:
         """Take the plant's description; returns warnings about disagreeing settings."""
         cfg = self.config
         warnings = []
-        if cfg.mpc.u_min < plant.u_min or cfg.mpc.u_max > plant.u_max:
-            warnings.append(f'input bounds [{cfg.mpc.u_min}, {cfg.mpc.u_max}] exceed the '
-                            f"plant's [{plant.u_min}, {plant.u_max}]: the plant will saturate "
-                            'what the MPC plans')
+        if (len(plant.u_min), plant.n_y) != (self.n_u, self.n_y):
+            warnings.append(f'the plant ({plant.family or "unnamed"}) has {len(plant.u_min)} '
+                            f'input(s) and {plant.n_y} output(s), this controller {self.n_u} '
+                            f'and {self.n_y} (u_min / u_max / r and q): its inputs will be '
+                            'rejected')
+            self.plant = plant
+            return warnings
+        if np.any(self.u_min < plant.u_min) or np.any(self.u_max > plant.u_max):
+            warnings.append(f'input bounds [{self.u_min.tolist()}, {self.u_max.tolist()}] exceed '
+                            f"the plant's [{list(plant.u_min)}, {list(plant.u_max)}]: the plant "
+                            'will saturate what the MPC plans')
         if plant.lockstep and cfg.rate_hz * plant.dt < 1.0 - 1e-9:
             warnings.append(f'rate_hz {cfg.rate_hz} is below the lockstep plant\'s 1/dt = '
                             f'{1.0 / plant.dt}: steps will wait for input timeouts')
-        if cfg.planner == 'nmpc' and (self.plant is None or (self.plant.theta, self.plant.dt)
-                                      != (plant.theta, plant.dt)):
-            mpc = cfg.mpc
-            self._nmpc = Nmpc(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=float(mpc.r),
-                                         u_min=mpc.u_min, u_max=mpc.u_max, dt=plant.dt),
-                              plant.theta)
+        if cfg.planner == 'nmpc' and (self.plant is None or (
+                self.plant.family, self.plant.theta, self.plant.dt) != (
+                plant.family, plant.theta, plant.dt)):
+            self._nmpc = None
+            try:
+                mpc = cfg.mpc
+                self._nmpc = for_plant(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r,
+                                                  u_min=self.u_min, u_max=self.u_max, dt=plant.dt),
+                                       plant.family, plant.theta)
+            except ValueError as err:     # unknown family, or no / a wrong theta
+                warnings.append(f'planner nmpc: the plant\'s model is not available ({err}); '
+                                'answering with the pre-model input')
         self.plant = plant
         return warnings
 
@@ -355,7 +371,7 @@ class ControllerCore:
         model, model_status = self._model
         planner = self.config.planner
         if planner == 'nmpc' and self._nmpc is not None:
-            res = self._nmpc.solve(self.history.y, float(u_prev[0]), y_ref)
+            res = self._nmpc.solve(self.history.y, u_prev, y_ref)
             out = dict(model_version=0, fallback=False, terminal_fallback=False)
         elif planner == 'latent_mpc' and model is not None:
             u_hist, y_hist = self.history.window(model.history)
@@ -367,7 +383,7 @@ class ControllerCore:
             out = dict(model_version=0, fallback=False, terminal_fallback=False,
                        solver_status='no_model' if planner == 'latent_mpc' else 'no_plant_info',
                        cost=math.nan, iterations=-1, solve_time=0.0,
-                       u=np.full(self.n_u, self.pre_model.value(step, self.dt)),
+                       u=self.pre_model.value(step, self.dt),
                        u_plan=np.zeros((0, self.n_u)), y_pred=np.zeros((0, self.n_y)))
         if res is not None:
             out.update(solver_status=res.status, cost=float(res.cost),
@@ -377,6 +393,6 @@ class ControllerCore:
         if not np.all(np.isfinite(u)):    # the planners promise this; the plant must get it
             u = np.where(np.isfinite(u_prev), u_prev, 0.0)
             out['fallback'] = True
-        out['u'] = np.clip(u, self._lo, self._hi)
+        out['u'] = np.clip(u, self.u_min, self.u_max)
         return TickResult(step=step, planner=planner, model_status=model_status, y_ref=y_ref,
                           **out)

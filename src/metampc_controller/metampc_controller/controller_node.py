@@ -96,7 +96,8 @@ class ControllerNode(Node):
         mpc = self.cfg.mpc
         self.get_logger().info(
             f'{self.cfg.planner} controller at {self.cfg.rate_hz} Hz: N={mpc.horizon}, '
-            f'q={list(mpc.q)}, r={mpc.r}, u in [{mpc.u_min}, {mpc.u_max}], reference '
+            f'q={list(mpc.q)}, r={list(np.atleast_1d(mpc.r))}, u in '
+            f'[{self.core.u_min.tolist()}, {self.core.u_max.tolist()}], reference '
             f'{self.cfg.reference_kind}, pre-model input {self.cfg.pre_model_input}'
             + ('' if self.cfg.active else '; inactive until set_active'))
 
@@ -174,11 +175,16 @@ class ControllerNode(Node):
     # --- configuration from other nodes ---------------------------------------------------
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
-        if not (math.isfinite(msg.theta) and msg.dt > 0 and math.isfinite(msg.dt)):
-            self.get_logger().warning(f'ignored plant_info with theta={msg.theta}, dt={msg.dt}')
+        bounds = list(msg.u_min) + list(msg.u_max)
+        if not (all(map(math.isfinite, list(msg.theta) + bounds)) and msg.dt > 0
+                and math.isfinite(msg.dt) and len(msg.u_min) == len(msg.u_max)):
+            self.get_logger().warning(f'ignored plant_info with theta={list(msg.theta)}, '
+                                      f'dt={msg.dt}, bounds {list(msg.u_min)}, '
+                                      f'{list(msg.u_max)}')
             return
         warnings = self.core.set_plant(PlantDescription(
-            theta=msg.theta, dt=msg.dt, u_min=msg.u_min, u_max=msg.u_max,
+            family=msg.family, theta=tuple(msg.theta), dt=msg.dt, u_min=tuple(msg.u_min),
+            u_max=tuple(msg.u_max), n_y=len(msg.output_names),
             lockstep=msg.clock_mode == 'lockstep'))
         for text in set(warnings) - self._plant_warnings:  # once each, not at every reset
             self.get_logger().warning(text)

@@ -9,14 +9,15 @@ of :class:`ReferenceParams` (prefix ``reference_``), the pre-model excitation's 
 :class:`ParameterError`.
 """
 from dataclasses import dataclass, field
-from typing import Any, Dict, Mapping, Tuple
+from typing import Any, Dict, Mapping, Sequence, Tuple
+
+import numpy as np
 
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 
 from metampc_controller.excitation import ExcitationConfig
 from metampc_controller.mpc import MpcConfig
-from metampc_controller.nmpc import N_Y
 from metampc_controller.references import make_reference, PaperConfig
 
 PLANNERS = ('latent_mpc', 'nmpc')
@@ -85,20 +86,18 @@ class ExcitationParams:
 
     kind: str = param('random_hold', 'excitation signal: random_hold is uniform levels, prbs '
                                      'a binary sequence', choices=EXCITATION_KINDS)
-    amplitude: float = param(1.0, 'excitation within [-a, a] and the bounds', gt=0)
+    amplitude: float = param(1.0, 'excitation within the middle a of each input range (1: '
+                                  'the whole range [u_min, u_max])', gt=0, le=1)
     hold_s: float = param(0.5, 'excitation hold time, s', gt=0)
     seed: int = param(0, 'excitation seed', ge=0)
 
-    def within(self, u_min: float, u_max: float) -> ExcitationConfig:
-        """The excitation signal's settings: bounds [u_min, u_max] within +-amplitude."""
-        config = ExcitationConfig(kind=self.kind, u_min=max(u_min, -self.amplitude),
-                                  u_max=min(u_max, self.amplitude), hold_s=self.hold_s)
-        try:
-            config.validate()
-        except ValueError as err:
-            raise ParameterError(f'excitation: {err} (bounds are [u_min, u_max] within '
-                                 '+-excitation_amplitude)') from None
-        return config
+    def within(self, u_min: Sequence[float], u_max: Sequence[float]) -> ExcitationConfig:
+        """The excitation signal's settings: per input, the centre of [u_min, u_max] plus or
+        minus amplitude times its half-width (with bounds +-1: within +-amplitude)."""
+        lo, hi = np.asarray(u_min, dtype=float), np.asarray(u_max, dtype=float)
+        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        return ExcitationConfig(kind=self.kind, u_min=tuple(mid - self.amplitude * half),
+                                u_max=tuple(mid + self.amplitude * half), hold_s=self.hold_s)
 
 
 @dataclass
@@ -109,7 +108,9 @@ class ControllerConfig:
         rate_hz: tick rate on the node clock, Hz.
         mpc: latent MPC settings (horizon, weights, bounds, OSQP); also the NMPC's horizon,
             weights and bounds.
-        n_y: plant outputs (= len(mpc.q)); n_u is 1 (the van der Pol plant).
+        n_y: plant outputs (= len(mpc.q)).
+        n_u: plant inputs (= the length of mpc's bounds and r; one value stands for every
+            input, so 1 when all are single values).
         planner: 'latent_mpc' or 'nmpc'.
         reference_kind, reference_params: arguments of references.make_reference.
         pre_model_input: 'zero' or 'excitation'.
@@ -123,7 +124,8 @@ class ControllerConfig:
     rate_hz: float = param(10.0, 'tick rate on the node clock, Hz (sim time under a lockstep '
                                  'plant: set it to 1/dt)', gt=0)
     mpc: MpcConfig = field(default_factory=MpcConfig)
-    n_y: int = N_Y
+    n_y: int = 2
+    n_u: int = 1
     planner: str = param('latent_mpc', 'latent_mpc is eq. mpc on the NSSM, nmpc the true-model '
                                        'yardstick (theta from plant_info)', choices=PLANNERS)
     reference_kind: str = 'paper'
@@ -157,10 +159,7 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
         raise ParameterError(str(err)) from None
     if not mpc.q:
         raise ParameterError('q needs one weight per plant output, got []')
-    node = build(NODE, values, mpc=mpc, n_y=len(mpc.q))
-    if node.planner == 'nmpc' and len(mpc.q) != N_Y:
-        raise ParameterError(f'planner nmpc needs {N_Y} weights in q (the van der Pol '
-                             f'outputs), got {list(mpc.q)}')
+    node = build(NODE, values, mpc=mpc, n_y=len(mpc.q), n_u=mpc.n_u)
     reference = build(REFERENCE, values)
     try:
         reference_params = reference.resolve(len(mpc.q))
@@ -168,7 +167,7 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
         raise ParameterError(str(err)) from None
     excitation = build(EXCITATION, values)
     node.reference_kind, node.reference_params = reference.kind, reference_params
-    node.excitation = excitation.within(mpc.u_min, mpc.u_max)
+    node.excitation = excitation.within(*mpc.bounds(node.n_u))
     node.excitation_seed = excitation.seed
     return node
 

@@ -41,7 +41,7 @@ Use::
 from dataclasses import dataclass, field
 import math
 import time
-from typing import Optional, Sequence, Union
+from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 import osqp
@@ -93,9 +93,12 @@ class MpcConfig:
     horizon: int = param(20, 'MPC horizon N, samples', ge=1)
     q: Sequence[float] = param((1.0, 0.0), 'output tracking weights Q = diag(q), one per plant '
                                            'output (the default tracks x1 only)', ge=0)
-    r: Weights = param(0.05, 'Delta-u weight', gt=0)
-    u_min: Weights = param(-1.0, 'input lower bound (<= u_max)')
-    u_max: Weights = param(1.0, 'input upper bound (>= u_min)')
+    r: Weights = param((0.05,), 'Delta-u weights, one per input (one value: every input)',
+                       gt=0, scalar=True)
+    u_min: Weights = param((-1.0,), 'input lower bounds, one per input (one value: every '
+                                    'input; <= u_max)', scalar=True)
+    u_max: Weights = param((1.0,), 'input upper bounds, one per input (one value: every '
+                                   'input; >= u_min)', scalar=True)
     terminal_reg: float = 1e-6
     max_iter: int = param(500, 'OSQP iteration cap', ge=1)
     time_limit: float = param(0.05, 'OSQP wall-time cap per solve, s', gt=0)
@@ -116,10 +119,24 @@ class MpcConfig:
             raise ValueError(f'q must be a vector of finite weights >= 0, got {self.q}')
         if not np.all(np.isfinite(r)) or np.any(r <= 0):
             raise ValueError(f'r must be finite and > 0, got {self.r}')
+        sizes = {v.size for v in (r, lo, hi)} - {1}
+        if len(sizes) > 1 or any(v.ndim > 1 for v in (r, lo, hi)):
+            raise ValueError(f'r, u_min and u_max need one value per input (or one for all), '
+                             f'got {self.r}, {self.u_min}, {self.u_max}')
         if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo > hi):
             raise ValueError(f'need u_min <= u_max, got {self.u_min}, {self.u_max}')
         if not (self.terminal_reg > 0 and self.check_termination >= 1):
             raise ValueError('need terminal_reg > 0 and check_termination >= 1')
+
+    @property
+    def n_u(self) -> int:
+        """Inputs the weights and bounds are for: their longest length (1: any)."""
+        return max(np.size(self.r), np.size(self.u_min), np.size(self.u_max))
+
+    def bounds(self, n_u: int) -> Tuple[np.ndarray, np.ndarray]:
+        """(u_min, u_max), each broadcast to shape (n_u,)."""
+        return tuple(np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
+                     for v in (self.u_min, self.u_max))
 
     def osqp_settings(self) -> dict:
         """Keyword settings for osqp.OSQP.setup (osqp >= 1.0 names)."""

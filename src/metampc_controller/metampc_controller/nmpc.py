@@ -1,28 +1,38 @@
-"""Nonlinear MPC on the true van der Pol model: the tracking yardstick (not the paper's method).
+"""Nonlinear MPC on the true plant model: the tracking yardstick (not the paper's method).
 
-Same horizon, cost and bounds as the latent MPC of eq. (mpc), but the prediction is the plant's
-own RK4 model (metampc_plant.vanderpol) with the true theta, so its tracking cost is the
-physical limit for this cost. Single shooting over the N inputs u_{t+1..t+N}::
+Same horizon, cost and bounds as the latent MPC of eq. (mpc), but the prediction is the plant
+family's own equations (``metampc_plant``, the RK4 core) with the true theta, so its tracking
+cost is the physical limit for this cost. Single shooting over the N input vectors
+u_{t+1..t+N}::
 
     J(u) = sum_{k=1..N} (y_{t+k} - r_{t+k})' Q (y_{t+k} - r_{t+k})
            + sum_{k=0..N-1} (u_{t+k+1} - u_{t+k})' R (u_{t+k+1} - u_{t+k}),
     u_min <= u <= u_max,
 
 with u_t the previous applied input. Solved by L-BFGS-B (scipy) with a forward-difference
-gradient whose N + 1 rollouts run as one batch of the vectorised plant model, warm-started from
-the shifted previous plan. The terminal output term uses Q: the DARE weight of the latent MPC
-belongs to a linear model this controller does not have.
+gradient whose N n_u + 1 rollouts run as one batch of the vectorised plant model, warm-started
+from the shifted previous plan. The terminal output term uses Q: the DARE weight of the latent
+MPC belongs to a linear model this controller does not have.
+
+The state: the yardstick knows the equations, not the state. Where y = x (van der Pol,
+Duffing, pendulum) the measured y is the state. Otherwise the family fills in the unmeasured
+components from the model's one-step prediction of the previous estimate
+(``PlantFamily.state_from_output``; the quadruple tank's lower levels), starting from the
+family's x0 at each episode: exact without noise once the model's transient has died out.
 """
 from dataclasses import dataclass
 import time
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import numpy as np
 from scipy.optimize import minimize
 
-# The plant's equations: the one module of the controller that imports the plant package. Its
-# input and output counts are also those the controller checks samples and parameters against.
-from metampc_plant.vanderpol import N_U, N_Y, rk4_sample
+# The plant's equations: the one module of the controller that imports the plant package.
+from metampc_plant.family import PlantFamily
+from metampc_plant.integrate import rk4_sample
+from metampc_plant.registry import get_family
+
+Weights = Union[float, Sequence[float]]
 
 
 @dataclass
@@ -31,21 +41,22 @@ class NmpcConfig:
 
     Attributes:
         horizon: N, samples.
-        q: output weights (n_y,), >= 0 (default: track x1 only).
-        r: Delta-u weight, > 0.
-        u_min, u_max: input bounds.
+        q: output weights (n_y,), >= 0 (default: track the first of two outputs).
+        r: Delta-u weights (n_u,) or one for all inputs, > 0.
+        u_min, u_max: input bounds (n_u,) or one for all inputs.
         dt: sample time, s.
-        substeps: RK4 steps per sample of the prediction. 2 (h = 0.05 s) predicts the plant's
-            10-substep trajectory to ~1e-5 over a 2 s horizon at a fifth of the cost.
+        substeps: RK4 steps per sample of the prediction. 2 (h = 0.05 s) predicts the van der
+            Pol plant's 10-substep trajectory to ~1e-5 over a 2 s horizon at a fifth of the
+            cost.
         max_iter: L-BFGS-B iteration cap per solve.
         fd_step: forward-difference step on u.
     """
 
     horizon: int = 20
     q: Sequence[float] = (1.0, 0.0)
-    r: float = 0.05
-    u_min: float = -1.0
-    u_max: float = 1.0
+    r: Weights = 0.05
+    u_min: Weights = -1.0
+    u_max: Weights = 1.0
     dt: float = 0.1
     substeps: int = 2
     max_iter: int = 50
@@ -54,8 +65,8 @@ class NmpcConfig:
 
 @dataclass
 class NmpcResult:
-    """One solve: u (first input, shape (1,)), u_plan (N, 1), y_pred (N, n_y), cost, status,
-    iterations, solve_time (s)."""
+    """One solve: u (first input, shape (n_u,)), u_plan (N, n_u), y_pred (N, n_y), cost,
+    status, iterations, solve_time (s)."""
 
     u: np.ndarray
     u_plan: np.ndarray
@@ -67,67 +78,105 @@ class NmpcResult:
 
 
 class Nmpc:
-    """Receding-horizon nonlinear MPC on the van der Pol model with damping theta."""
+    """Receding-horizon nonlinear MPC on the plant family's model with parameters theta."""
 
-    def __init__(self, config: NmpcConfig, theta: float):
-        if config.horizon < 1 or config.r <= 0 or config.u_min > config.u_max:
+    def __init__(self, config: NmpcConfig, family: PlantFamily, theta: Sequence[float]):
+        self.family = family
+        self.theta = np.asarray(family.check_theta(theta))
+        n_u = family.n_u
+        self.r, self.u_min, self.u_max = (
+            np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
+            for v in (config.r, config.u_min, config.u_max))
+        if config.horizon < 1 or np.any(self.r <= 0) or np.any(self.u_min > self.u_max):
             raise ValueError('need horizon >= 1, r > 0 and u_min <= u_max')
         self.config = config
-        self.theta = float(theta)
-        self.q = np.asarray(config.q, dtype=float).reshape(N_Y)
-        self._plan: Optional[np.ndarray] = None
+        self.q = np.asarray(config.q, dtype=float).reshape(family.n_y)
+        self._plan: Optional[np.ndarray] = None     # (N n_u,)
+        self._x: Optional[np.ndarray] = None        # state estimate at the last solve
 
     def reset(self) -> None:
-        """Forget the previous plan: the next solve starts from u_prev held (a new episode)."""
+        """Forget the previous plan and state estimate: the next solve starts from u_prev held
+        (a new episode)."""
         self._plan = None
+        self._x = None
 
     def rollout(self, x0: np.ndarray, plans: np.ndarray) -> np.ndarray:
-        """Outputs y_{t+1..t+N} for a batch of input plans (P, N); returns (P, N, n_y)."""
-        cfg = self.config
-        n_p, n = plans.shape
+        """Outputs y_{t+1..t+N} for a batch of input plans (P, N, n_u); returns (P, N, n_y)."""
+        cfg, fam = self.config, self.family
+        n_p, n = plans.shape[:2]
         x = np.tile(np.asarray(x0, dtype=float), (n_p, 1))
-        theta = np.full(n_p, self.theta)
-        ys = np.empty((n_p, n, N_Y))
+        theta = np.tile(self.theta, (n_p, 1))
+        ys = np.empty((n_p, n, fam.n_y))
         with np.errstate(over='ignore', invalid='ignore'):
             for k in range(n):
-                x = rk4_sample(x, plans[:, k], theta, cfg.dt, cfg.substeps)
-                ys[:, k] = x
+                x = rk4_sample(fam, x, plans[:, k], theta, cfg.dt, cfg.substeps)
+                ys[:, k] = np.stack(fam.output(x.T, plans[:, k].T, theta.T), axis=1)
         return ys
 
-    def costs(self, x0: np.ndarray, u_prev: float, y_ref: np.ndarray,
+    def costs(self, x0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
               plans: np.ndarray) -> np.ndarray:
-        """J for each plan of a batch (P, N); non-finite predictions cost +inf."""
+        """J for each plan of a batch (P, N n_u); non-finite predictions cost +inf."""
+        n_p, n_u = plans.shape[0], self.family.n_u
+        plans = plans.reshape(n_p, -1, n_u)
         err = self.rollout(x0, plans) - y_ref[None]
         track = np.einsum('pkj,j,pkj->p', err, self.q, err)
-        du = np.diff(np.concatenate([np.full((plans.shape[0], 1), u_prev), plans], axis=1))
-        total = track + self.config.r * np.sum(du * du, axis=1)
+        du = np.diff(np.concatenate([np.broadcast_to(u_prev, (n_p, 1, n_u)), plans], axis=1),
+                     axis=1)
+        # Summed over the horizon along a contiguous axis: one input sums as a 1-D plan did.
+        total = track + np.sum(np.ascontiguousarray(np.swapaxes(du * du, 1, 2)), axis=2) @ self.r
         return np.where(np.isfinite(total), total, np.inf)
 
-    def solve(self, x0: np.ndarray, u_prev: float, y_ref: np.ndarray) -> NmpcResult:
-        """Plan from state x0 (2,) and previous input u_prev for references y_ref (N, n_y)."""
-        cfg = self.config
+    def estimate(self, y: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """The state behind the measured y_t (see the module docstring), shape (n_x,)."""
+        fam = self.family
+        if self._x is None:
+            x_pred = np.asarray(fam.x0, dtype=float)
+        else:
+            x_pred = self.rollout_state(self._x, u_prev)
+        self._x = fam.state_from_output(np.asarray(y, dtype=float), x_pred)
+        return self._x
+
+    def rollout_state(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The state one sample after x (n_x,) with u (n_u,) held."""
+        with np.errstate(over='ignore', invalid='ignore'):
+            return rk4_sample(self.family, x[None], np.asarray(u, dtype=float)[None],
+                              self.theta[None], self.config.dt, self.config.substeps)[0]
+
+    def solve(self, y: np.ndarray, u_prev: Sequence[float], y_ref: np.ndarray) -> NmpcResult:
+        """Plan from the measured y_t (n_y,) and the previous input u_t (n_u,) for references
+        y_ref (N, n_y)."""
+        cfg, n_u = self.config, self.family.n_u
         n = cfg.horizon
         start = time.perf_counter()
+        u_prev = np.asarray(u_prev, dtype=float).reshape(n_u)
+        x0 = self.estimate(y, u_prev)
+        lo, hi = np.tile(self.u_min, n), np.tile(self.u_max, n)
         if self._plan is None:
-            guess = np.full(n, np.clip(u_prev, cfg.u_min, cfg.u_max))
+            guess = np.tile(np.clip(u_prev, self.u_min, self.u_max), n)
         else:
-            guess = np.append(self._plan[1:], self._plan[-1])
-        eye = cfg.fd_step * np.eye(n)
+            guess = np.concatenate([self._plan[n_u:], self._plan[-n_u:]])
+        eye = cfg.fd_step * np.eye(n * n_u)
 
         def fun(u):
-            # Row 0 is the plan itself, rows 1..N perturb one input each (forward differences).
+            # Row 0 is the plan itself, the others perturb one input each (forward differences).
             j = self.costs(x0, u_prev, y_ref, np.vstack([u, u + eye]))
             return j[0], (j[1:] - j[0]) / cfg.fd_step
 
-        res = minimize(fun, guess, jac=True, method='L-BFGS-B',
-                       bounds=[(cfg.u_min, cfg.u_max)] * n,
+        res = minimize(fun, guess, jac=True, method='L-BFGS-B', bounds=list(zip(lo, hi)),
                        options={'maxiter': cfg.max_iter})
-        plan = np.clip(res.x, cfg.u_min, cfg.u_max)
+        plan = np.clip(res.x, lo, hi)
         if not np.isfinite(res.fun):
-            plan = np.clip(guess, cfg.u_min, cfg.u_max)
+            plan = np.clip(guess, lo, hi)
         self._plan = plan
-        y_pred = self.rollout(x0, plan[None])[0]
-        return NmpcResult(u=plan[:1].copy(), u_plan=plan.reshape(n, N_U), y_pred=y_pred,
+        plans = plan.reshape(1, n, n_u)
+        y_pred = self.rollout(x0, plans)[0]
+        return NmpcResult(u=plan[:n_u].copy(), u_plan=plans[0].copy(), y_pred=y_pred,
                           cost=float(self.costs(x0, u_prev, y_ref, plan[None])[0]),
                           status='solved' if res.success else f'stopped: {res.message}',
                           iterations=int(res.nit), solve_time=time.perf_counter() - start)
+
+
+def for_plant(config: NmpcConfig, family: str, theta: Sequence[float]) -> Nmpc:
+    """The NMPC of the plant family registered as `family` with parameters theta (as
+    plant_info names them); ValueError if the family is not installed or theta does not fit."""
+    return Nmpc(config, get_family(family), theta)

@@ -1,6 +1,7 @@
 """The controller's tick without ROS: history, answer rule, pre-model input, model checks, and
 closed loops of ControllerCore on the plant core, checked against independent answers."""
 from collections import Counter
+import dataclasses
 import math
 
 import numpy as np
@@ -13,7 +14,7 @@ from metampc_controller.excitation import ExcitationConfig
 from metampc_controller.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.weights_codec import DecodedWeights, WeightsError
-from metampc_plant.vanderpol import VdpConfig, VdpPlant
+from metampc_plant.simulator import Plant, PlantConfig
 
 
 # OSQP's wall-clock cap (MpcConfig.time_limit, 50 ms) trips when a loaded machine stalls the
@@ -96,25 +97,27 @@ def test_answer_rule_inactive_from_start_answers_on_activation():
 
 
 def test_pre_model_zero_is_clipped_into_the_bounds():
-    assert PreModelInput('zero', ExcitationConfig(), 0, -1.0, 1.0).value(7, 0.1) == 0.0
-    assert PreModelInput('zero', ExcitationConfig(), 0, 0.2, 1.0).value(7, 0.1) == 0.2
+    zero = PreModelInput('zero', ExcitationConfig(), 0, np.array([-1.0, 0.2]),
+                         np.array([1.0, 5.0]))
+    assert zero.value(7, 0.1).tolist() == [0.0, 0.2]
 
 
 def test_pre_model_excitation_holds_is_bounded_seeded_and_random_access():
-    cfg = ExcitationConfig(kind='random_hold', u_min=-0.4, u_max=0.3, hold_s=0.5)
-    seq = PreModelInput('excitation', cfg, 7, -1.0, 1.0)
-    values = np.array([seq.value(k, 0.1) for k in range(2600)])  # 3 blocks of 1000
+    cfg = ExcitationConfig(kind='random_hold', u_min=(-0.4,), u_max=(0.3,), hold_s=0.5)
+    lo, hi = np.array([-1.0]), np.array([1.0])
+    seq = PreModelInput('excitation', cfg, 7, lo, hi)
+    values = np.array([seq.value(k, 0.1)[0] for k in range(2600)])  # 3 blocks of 1000
     levels = values.reshape(-1, 5)                                # 0.5 s = 5 samples
     assert np.all(levels == levels[:, :1]), 'held for 5 samples from step 0 on'
     assert np.all((values >= -0.4) & (values <= 0.3))
     # Uniform levels: their mean and spread (std of U(-0.4, 0.3) = 0.7/sqrt(12) = 0.202).
     assert abs(levels[:, 0].mean() + 0.05) < 0.03 and abs(levels[:, 0].std() - 0.202) < 0.02
-    fresh = PreModelInput('excitation', cfg, 7, -1.0, 1.0)
-    assert fresh.value(2503, 0.1) == values[2503] and fresh.value(12, 0.1) == values[12]
-    other = PreModelInput('excitation', cfg, 8, -1.0, 1.0)
-    assert [other.value(k, 0.1) for k in range(0, 50, 5)] != values[:50:5].tolist()
+    fresh = PreModelInput('excitation', cfg, 7, lo, hi)
+    assert fresh.value(2503, 0.1)[0] == values[2503] and fresh.value(12, 0.1)[0] == values[12]
+    other = PreModelInput('excitation', cfg, 8, lo, hi)
+    assert [other.value(k, 0.1)[0] for k in range(0, 50, 5)] != values[:50:5].tolist()
     # Another sample time: another hold in samples (0.5 s = 10 samples of 0.05 s).
-    fine = np.array([seq.value(k, 0.05) for k in range(40)]).reshape(-1, 10)
+    fine = np.array([seq.value(k, 0.05)[0] for k in range(40)]).reshape(-1, 10)
     assert np.all(fine == fine[:, :1]) and len(set(fine[:, 0])) == 4
 
 
@@ -128,7 +131,13 @@ def test_build_model_rejects_models_that_do_not_fit():
     assert (bundle.version, bundle.history) == (3, 10)
 
 
-def closed_loop(core: ControllerCore, plant: VdpPlant, steps: int, start: int = 0):
+def vdp_plant(theta: float, **fields) -> PlantDescription:
+    """plant_info of a lockstep van der Pol plant at dt = 0.1 s, |u| <= 1 (fields override)."""
+    return PlantDescription(**{**dict(family='vanderpol', theta=(theta,), dt=0.1, u_min=(-1.0,),
+                                      u_max=(1.0,), n_y=2, lockstep=True), **fields})
+
+
+def closed_loop(core: ControllerCore, plant: Plant, steps: int, start: int = 0):
     """Run core against the plant core as the node does; returns the TickResults."""
     results = []
     y, u = plant.output(), 0.0
@@ -137,7 +146,7 @@ def closed_loop(core: ControllerCore, plant: VdpPlant, steps: int, start: int = 
         res = core.tick()
         results.append(res)
         u = float(res.u[0])
-        y = plant.step(u)
+        y = plant.step([u])
     return results
 
 
@@ -146,7 +155,7 @@ def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
     settle there, whatever theta, with the hand-built model linearised at the origin."""
     core = ControllerCore(ControllerConfig(reference_kind='setpoint',
                                            reference_params={'value': 0.6}))
-    plant = VdpPlant(VdpConfig(theta=0.8))
+    plant = Plant(PlantConfig(theta=(0.8,)))
     before = closed_loop(core, plant, 3)
     assert [(r.solver_status, r.iterations, r.u[0]) for r in before] == [('no_model', -1, 0.0)] * 3
     core.offer_model(manual_bundle(version=2, theta=0.8))
@@ -168,8 +177,8 @@ def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
 def test_reference_time_restarts_with_each_episode_and_override():
     """'paper' reference: x1 = 0.8 until 7.5 s, then -0.5; times are step * dt."""
     core = ControllerCore(ControllerConfig(mpc=MpcConfig(horizon=2)))
-    core.set_plant(PlantDescription(theta=0.0, dt=0.1, u_min=-1, u_max=1, lockstep=True))
-    plant = VdpPlant(VdpConfig())
+    core.set_plant(vdp_plant(0.0))
+    plant = Plant(PlantConfig())
     res = closed_loop(core, plant, 76)
     assert res[0].y_ref[:, 0].tolist() == [0.8, 0.8]
     assert res[73].y_ref[:, 0].tolist() == [0.8, -0.5]       # r at 7.4 s and 7.5 s
@@ -188,10 +197,9 @@ def test_nmpc_planner_waits_for_plant_info_then_predicts_the_plant():
     cfg = ControllerConfig(planner='nmpc', mpc=MpcConfig(horizon=10), reference_kind='setpoint',
                            reference_params={'value': -0.4})
     core = ControllerCore(cfg)
-    plant = VdpPlant(VdpConfig(theta=1.2, x0=(0.5, 0.5)))
+    plant = Plant(PlantConfig(theta=(1.2,), x0=(0.5, 0.5)))
     assert closed_loop(core, plant, 1)[0].solver_status == 'no_plant_info'
-    warnings = core.set_plant(PlantDescription(theta=1.2, dt=0.1, u_min=-0.5, u_max=0.5,
-                                               lockstep=True))
+    warnings = core.set_plant(vdp_plant(1.2, u_min=(-0.5,), u_max=(0.5,)))
     assert len(warnings) == 1 and 'exceed the plant' in warnings[0]
     for k in range(1, 4):
         y_before = plant.output()
@@ -200,16 +208,30 @@ def test_nmpc_planner_waits_for_plant_info_then_predicts_the_plant():
         assert (res.iterations > 0 or k > 1) and np.abs(res.u_plan).max() <= 1.0
         np.testing.assert_allclose(res.y_pred[0], plant.output(), atol=1e-5)
         assert np.abs(res.y_pred[0] - y_before).max() > 1e-2   # it did move
-    core.set_plant(PlantDescription(theta=0.0, dt=0.1, u_min=-1, u_max=1, lockstep=True))
+    core.set_plant(vdp_plant(0.0))
     res = closed_loop(core, plant, 1, start=4)[0]
     assert np.abs(res.y_pred[0] - plant.output()).max() > 1e-4
 
 
 def test_set_plant_warns_about_a_rate_below_the_lockstep_sample_rate():
     core = ControllerCore(ControllerConfig(rate_hz=5.0))
-    warnings = core.set_plant(PlantDescription(0.0, 0.1, -1.0, 1.0, lockstep=True))
+    warnings = core.set_plant(vdp_plant(0.0))
     assert len(warnings) == 1 and 'below the lockstep' in warnings[0]
-    assert core.set_plant(PlantDescription(0.0, 0.1, -1.0, 1.0, lockstep=False)) == []
+    assert core.set_plant(vdp_plant(0.0, lockstep=False)) == []
+
+
+def test_set_plant_warns_about_a_plant_of_other_dimensions_and_an_unknown_model():
+    core = ControllerCore(ControllerConfig(planner='nmpc'))
+    tank = PlantDescription('quadruple_tank', (0.7, 0.6), 5.0, (0.0, 0.0), (10.0, 10.0), 2,
+                            True)
+    warnings = core.set_plant(tank)
+    assert len(warnings) == 1
+    assert 'has 2 input(s) and 2 output(s), this controller 1 and 2' in warnings[0]
+    real = dataclasses.replace(vdp_plant(0.0), family='my_robot', theta=())
+    warnings = core.set_plant(real)
+    assert len(warnings) == 1 and "planner nmpc: the plant's model is not available" in (
+        warnings[0])
+    assert closed_loop(core, Plant(PlantConfig()), 1)[0].solver_status == 'no_plant_info'
 
 
 @pytest.mark.parametrize('planner', ['latent_mpc', 'nmpc'])
@@ -219,7 +241,7 @@ def test_each_episode_starts_cold_whatever_came_before(planner):
     adapted rho are reset when a new episode starts. Without the reset the warm-started
     solves differ within the solver tolerance."""
     def episode(core):
-        plant = VdpPlant(VdpConfig(theta=0.5, x0=(0.3, -0.2)))
+        plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, -0.2)))
         return np.array([r.u_plan for r in closed_loop(core, plant, 25)])
 
     def fresh():
@@ -227,14 +249,14 @@ def test_each_episode_starts_cold_whatever_came_before(planner):
                                mpc=MpcConfig(horizon=10, time_limit=NO_TIME_LIMIT),
                                reference_kind='setpoint', reference_params={'value': 0.6})
         core = ControllerCore(cfg)
-        core.set_plant(PlantDescription(theta=0.5, dt=0.1, u_min=-1, u_max=1, lockstep=True))
+        core.set_plant(vdp_plant(0.5))
         if planner == 'latent_mpc':
             core.offer_model(manual_bundle(theta=0.5, mpc=cfg.mpc))
         return core
 
     reference = episode(fresh())
     core = fresh()
-    closed_loop(core, VdpPlant(VdpConfig(theta=-0.4, x0=(1.0, 1.0))), 30)   # another episode
+    closed_loop(core, Plant(PlantConfig(theta=(-0.4,), x0=(1.0, 1.0))), 30)   # another episode
     core.observe(30, [0.7], [0.9, -0.3])                                      # a stale answer
     core.tick()
     np.testing.assert_array_equal(episode(core), reference)

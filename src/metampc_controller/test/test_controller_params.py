@@ -18,10 +18,10 @@ def values(**changes):
 def test_defaults_are_the_paper_task_at_10_hz():
     cfg = parse_params(values())
     mpc = cfg.mpc
-    assert (cfg.rate_hz, cfg.planner, cfg.n_y, cfg.active, cfg.history) == (
-        10.0, 'latent_mpc', 2, True, 0)
-    assert (mpc.horizon, tuple(mpc.q), mpc.r, mpc.u_min, mpc.u_max) == (20, (1.0, 0.0), 0.05,
-                                                                        -1.0, 1.0)
+    assert (cfg.rate_hz, cfg.planner, cfg.n_y, cfg.n_u, cfg.active, cfg.history) == (
+        10.0, 'latent_mpc', 2, 1, True, 0)
+    assert (mpc.horizon, tuple(mpc.q), mpc.r, mpc.u_min, mpc.u_max) == (
+        20, (1.0, 0.0), (0.05,), (-1.0,), (1.0,))
     assert cfg.reference_kind == 'paper'
     assert cfg.reference_params == {'n_y': 2, 'outputs': (0,), 'setpoints': (0.8, -0.5, 0.3, -0.8),
                                     'segment': 7.5, 'start': 0.0}
@@ -36,8 +36,12 @@ def test_values_are_converted_and_combined():
                               reference_outputs=[0, 1], active=False))
     assert isinstance(cfg.rate_hz, float) and cfg.rate_hz == 50.0   # an integer for a double
     assert cfg.mpc.horizon == 10 and tuple(cfg.mpc.q) == (2.0, 0.5)
-    # The excitation stays within the input bounds and the amplitude.
-    assert (cfg.excitation.u_min, cfg.excitation.u_max) == (-0.5, 0.8)
+    # The excitation: the middle 0.8 of the input range [-0.5, 1].
+    assert cfg.excitation.u_min == pytest.approx((-0.35,)) and cfg.n_u == 1
+    assert cfg.excitation.u_max == pytest.approx((0.85,))
+    tank = parse_params(values(u_min=[0, 0], u_max=[10, 10], r=[0.1, 0.2], q=[1, 1]))
+    assert (tank.n_u, tank.n_y, tank.mpc.r) == (2, 2, (0.1, 0.2))
+    assert (tank.excitation.u_min, tank.excitation.u_max) == ((0.0, 0.0), (10.0, 10.0))
     assert cfg.reference_params == {'n_y': 2, 'outputs': (0, 1), 'initial': 0.1,
                                     'steps': ((1.0, 0.5), (2.5, -0.5))}
     assert not cfg.active and cfg.pre_model_input == 'excitation'
@@ -60,7 +64,8 @@ BAD = {
     'r 0': ({'r': 0.0}, 'r must be > 0'),
     'bounds': ({'u_min': 1.0, 'u_max': 0.0}, 'need u_min <= u_max'),
     'planner': ({'planner': 'pid'}, 'planner must be one of latent_mpc, nmpc'),
-    'nmpc q': ({'planner': 'nmpc', 'q': [1.0]}, 'planner nmpc needs 2 weights in q'),
+    'bounds length': ({'u_min': [0.0, 0.0], 'u_max': [1.0, 1.0, 1.0]},
+                      'need one value per input'),
     'reference': ({'reference': 'ramp'}, 'reference must be one of'),
     'outputs': ({'reference_outputs': [2]}, 'outputs must be indices in [0, 2)'),
     'setpoint values': ({'reference': 'setpoint', 'reference_values': [1.0, 2.0]},
@@ -72,9 +77,9 @@ BAD = {
     'paper segment': ({'reference_segment': -1.0}, 'reference_segment must be > 0'),
     'pre-model': ({'pre_model_input': 'noise'}, 'pre_model_input must be one of'),
     'excitation kind': ({'excitation_kind': 'multisine'}, 'excitation_kind must be one of'),
-    'amplitude': ({'excitation_amplitude': 0.0}, 'excitation_amplitude must be > 0'),
-    'excitation bounds': ({'u_min': 0.5, 'u_max': 1.0, 'excitation_amplitude': 0.2},
-                          'excitation: need u_min <= u_max'),
+    'amplitude': ({'excitation_amplitude': 0.0}, 'excitation_amplitude must be in (0, 1]'),
+    'amplitude above 1': ({'excitation_amplitude': 1.5},
+                          'excitation_amplitude must be in (0, 1]'),
     'hold': ({'excitation_hold_s': 0.0}, 'hold_s'),
     'seed': ({'excitation_seed': -1}, 'excitation_seed must be >= 0'),
     'max_iter': ({'max_iter': 0}, 'max_iter must be >= 1'),

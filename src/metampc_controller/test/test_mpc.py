@@ -147,7 +147,7 @@ def test_terminal_weight_solves_the_dare(seed, radius):
     c = np.hstack([model.C, np.zeros((2, 1))])
     q_out = c.T @ np.diag(cfg.q) @ c
     q_bar = q_out + cfg.terminal_reg * np.linalg.norm(q_out, 2) * np.eye(n_z + 1)
-    r = np.array([[cfg.r]])
+    r = np.diag(np.atleast_1d(cfg.r))
     assert dare_residual(a, b, q_bar, r, term.P) <= 1e-8
     assert term.residual <= 1e-8
     np.testing.assert_allclose(term.P, term.P.T, atol=0)

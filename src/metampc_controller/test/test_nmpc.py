@@ -4,7 +4,10 @@ from scipy.linalg import expm
 from scipy.optimize import lsq_linear
 
 from metampc_controller.nmpc import Nmpc, NmpcConfig
-from metampc_plant.vanderpol import VdpConfig, VdpPlant
+from metampc_plant.registry import get_family
+from metampc_plant.simulator import Plant, PlantConfig
+
+VDP = get_family('vanderpol')
 
 
 def _lsq_plan(cfg: NmpcConfig, x0, u_prev, y_ref):
@@ -36,7 +39,7 @@ def test_linear_case_matches_bounded_least_squares():
     cfg = NmpcConfig(horizon=15, q=(1.0, 0.1), r=0.05, max_iter=200)
     y_ref = np.tile([0.8, 0.0], (cfg.horizon, 1))
     for x0, u_prev in (([0.0, 0.0], 0.0), ([-1.0, 0.5], 0.3), ([2.0, -1.0], -1.0)):
-        plan = Nmpc(cfg, theta=0.0).solve(np.array(x0), u_prev, y_ref).u_plan[:, 0]
+        plan = Nmpc(cfg, VDP, [0.0]).solve(np.array(x0), [u_prev], y_ref).u_plan[:, 0]
         expected = _lsq_plan(cfg, x0, u_prev, y_ref)
         assert np.max(np.abs(plan - expected)) < 2e-3, (x0, plan, expected)
     # The third case saturates: the bounds are active and respected.
@@ -46,16 +49,40 @@ def test_linear_case_matches_bounded_least_squares():
 def test_closed_loop_tracks_a_setpoint_on_an_unstable_plant():
     theta = -0.5  # unstable origin, as for half of N(0, 1)
     cfg = NmpcConfig(horizon=20, r=0.05)
-    plant = VdpPlant(VdpConfig(theta=theta, dt=cfg.dt, substeps=10))
-    ctrl = Nmpc(cfg, theta)
+    plant = Plant(PlantConfig(theta=(theta,), dt=cfg.dt, substeps=10))
+    ctrl = Nmpc(cfg, VDP, [theta])
     y, u_prev = plant.reset(), 0.0
     ref = np.tile([0.5, 0.0], (cfg.horizon, 1))
     us = []
     for _ in range(50):
-        res = ctrl.solve(plant.x, u_prev, ref)
+        res = ctrl.solve(plant.x, [u_prev], ref)
         assert cfg.u_min <= res.u[0] <= cfg.u_max
         u_prev = float(res.u[0])
         us.append(u_prev)
-        y = plant.step(u_prev)
+        y = plant.step([u_prev])
     assert not plant.diverged
     assert abs(y[0] - 0.5) < 0.02
+
+
+def test_two_inputs_and_unmeasured_states_on_the_quadruple_tank():
+    """The 4-state, 2-input family: the NMPC sees only 0.5 (h1, h2) and fills in h3, h4 from its
+    model; it brings both measured levels to set-points off the operating point (reachable:
+    the steady state of v = (4, 3.5) V for this theta, computed below by the simulator)."""
+    tank = get_family('quadruple_tank')
+    theta = (0.7, 0.6)                       # minimum phase (g1 + g2 > 1)
+    steady = Plant(PlantConfig(family='quadruple_tank', theta=theta))
+    for _ in range(400):                     # 2000 s at v = (4, 3.5) V: settled
+        target = steady.step([4.0, 3.5])
+    cfg = NmpcConfig(horizon=10, q=(1.0, 1.0), r=0.01, u_min=0.0, u_max=10.0, dt=tank.dt)
+    ctrl = Nmpc(cfg, tank, theta)
+    plant = Plant(PlantConfig(family='quadruple_tank', theta=theta))
+    y, u = plant.output(), np.array([3.0, 3.0])
+    ref = np.tile(target, (cfg.horizon, 1))
+    for _ in range(80):                      # 400 s
+        res = ctrl.solve(y, u, ref)
+        assert res.u.shape == (2,) and np.all((0.0 <= res.u) & (res.u <= 10.0))
+        u = res.u
+        y = plant.step(u)
+    assert np.abs(y - target).max() < 0.02, (y, target)
+    # The estimate of the unmeasured levels converged to the plant's.
+    assert np.abs(ctrl._x - plant.x).max() < 1e-3

@@ -14,7 +14,9 @@ from metampc_controller.nssm import init_params, NssmConfig
 from metampc_controller.predictor import NssmPredictor
 from metampc_controller.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
                                               weights_from_fields, WeightsError)
-from metampc_plant.vanderpol import rk4_sample, VdpConfig, VdpPlant
+from metampc_plant.integrate import rk4_sample
+from metampc_plant.registry import get_family
+from metampc_plant.simulator import Plant, PlantConfig
 
 CONFIG = NssmConfig(n_z=5, history=10, hidden=(128, 128))
 NORM = Normalisation([0.1], [0.5], [0.2, -0.1], [1.5, 2.0])
@@ -108,8 +110,9 @@ def test_linearisation_is_the_plants_jacobian_at_the_origin(theta):
     eps = 1e-6
     cols = []
     for dx in (np.array([eps, 0.0, 0.0]), np.array([0.0, eps, 0.0]), np.array([0.0, 0.0, eps])):
-        plus = rk4_sample(dx[None, :2], dx[2:], np.array([theta]), 0.1, 10)[0]
-        minus = rk4_sample(-dx[None, :2], -dx[2:], np.array([theta]), 0.1, 10)[0]
+        vdp, th = get_family('vanderpol'), np.array([[theta]])
+        plus = rk4_sample(vdp, dx[None, :2], dx[None, 2:], th, 0.1, 10)[0]
+        minus = rk4_sample(vdp, -dx[None, :2], -dx[None, 2:], th, 0.1, 10)[0]
         cols.append((plus - minus) / (2 * eps))
     np.testing.assert_allclose(np.column_stack(cols), np.hstack([a, b]), atol=1e-8)
 
@@ -126,9 +129,9 @@ def test_manual_model_encodes_the_last_output_and_predicts_the_linear_plant(mode
     u_hist, y_hist = rng.uniform(-1, 1, (h, 1)), rng.uniform(-2, 2, (h, 2))
     z = predictor.encode(u_hist, y_hist)
     np.testing.assert_allclose(z, np.r_[y_hist[-1], np.zeros(config.n_z - 2)], atol=1e-6)
-    plant = VdpPlant(VdpConfig(theta=0.0, x0=tuple(y_hist[-1])))
+    plant = Plant(PlantConfig(theta=(0.0,), x0=tuple(y_hist[-1])))
     u_future = rng.uniform(-1, 1, (15, 1))
-    actual = np.array([plant.step(float(u)) for u in u_future[:, 0]])
+    actual = np.array([plant.step(u) for u in u_future])
     np.testing.assert_allclose(predictor.predict(u_hist, y_hist, u_future), actual, atol=1e-5)
 
 

@@ -1,19 +1,21 @@
 """Data sets of the NSSM: trajectories, (H + T)-sample windows, source and target sets.
 
 A :class:`Trajectory` is a run of consecutive samples ``(step k, u_k, y_k)`` in physical units,
-all finite, with step indices without gaps (index convention of ``metampc_plant.vanderpol``:
+all finite, with step indices without gaps (index convention of ``metampc_plant.simulator``:
 ``u_k`` produced ``y_k``). Windows (paper, sec. NSSM, step 1) are cut from one trajectory only,
 so a window never spans an invalid sample, a divergence or a gap in step indices.
 
-Non-finite data never enters a data set: simulated episodes that leave the state box (the
-escaping theta < 0 systems of docs/architecture.md, 'Calibration') are dropped whole and
-counted, and buffered samples are split at gaps, non-finite values and out-of-box outputs.
+Non-finite data never enters a data set: simulated episodes that leave the state box (e.g. the
+escaping theta < 0 van der Pol systems of docs/architecture.md, 'Calibration') are dropped whole
+and counted, and buffered samples are split at gaps, non-finite values and out-of-box outputs.
 
-Source set (sec. Meta-learning framework): N_s simulated van der Pol systems, theta ~ N(0, 1),
-excitation inputs, bounded episodes; each task's episodes are cut in time into D_tr (first
-part) and D_test (rest), so the two never share a sample. Target set: ~300 samples of one theta.
+Source set (sec. Meta-learning framework): N_s simulated systems of the plant family (the
+paper's: van der Pol, theta ~ N(0, 1)), theta drawn from the family's Theta, excitation inputs,
+bounded episodes; each task's episodes are cut in time into D_tr (first part) and D_test
+(rest), so the two never share a sample. Target set: ~300 samples of one theta.
 """
 from collections import deque
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Deque, List, Optional, Sequence, Tuple
 
@@ -24,7 +26,9 @@ from metampc_common.params import check_fields, param
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.normalisation import Normalisation
 from metampc_controller.nssm import NssmConfig
-from metampc_plant.vanderpol import sample_thetas, simulate, VdpConfig
+from metampc_plant.family import PlantFamily
+from metampc_plant.registry import DEFAULT, get_family
+from metampc_plant.simulator import PlantConfig, simulate
 
 
 @dataclass
@@ -159,56 +163,86 @@ class Windows:
 
 @dataclass
 class SourceConfig:
-    """Simulated source (and target) systems.
+    """Simulated source (and target) systems of one plant family.
+
+    Zeros and empty bounds mean "the family's"; :meth:`resolved` fills them in.
 
     Attributes:
+        family: the plant family (registered name): Theta, equations, x0 box, defaults.
         n_systems: N_s.
         episodes_per_system: bounded episodes simulated per system.
         episode_samples: samples per episode (K; episode length K * dt s).
-        dt, substeps: sampling of the simulator, s.
-        theta_mean, theta_std: Theta = N(theta_mean, theta_std^2).
-        x0_bound: initial states uniform in [-x0_bound, x0_bound]^2.
-        state_bound: box |x|_inf <= state_bound; an episode leaving it is dropped.
-        excitation: input signal (within the input bounds).
+        dt, substeps: sampling of the simulator, s (dt 0: the family's).
+        state_bound: box |x|_inf <= state_bound; an episode leaving it is dropped (0: the
+            family's).
+        excitation: input signal (within the input bounds; empty bounds: the family's).
         seed: seed of thetas, initial states and inputs.
     """
 
+    family: str = param(DEFAULT, 'plant family of the source systems (registered name; see '
+                                 'docs/families.md)')
     n_systems: int = param(100, 'N_s, source systems', ge=1)
     episodes_per_system: int = param(2, 'episodes per system', ge=1)
     episode_samples: int = param(200, 'samples per episode', ge=2)
-    dt: float = param(0.1, "sample time, s; must equal the plant's", gt=0)
+    dt: float = param(0.0, "sample time, s; must equal the plant's (0: the family's)", ge=0)
     substeps: int = param(10, 'RK4 steps per sample', ge=1)
-    theta_mean: float = param(0.0, 'mean of Theta = N(mean, std^2)')
-    theta_std: float = param(1.0, 'std of Theta', ge=0)
-    x0_bound: float = param(1.0, 'initial states uniform in [-b, b]^2', ge=0)
-    state_bound: float = param(10.0, 'episodes end when |x|_inf exceeds this; target samples '
-                                     'beyond it are dropped', gt=0)
+    state_bound: float = param(0.0, "episodes end when |x|_inf exceeds this; target samples "
+                                    "beyond it are dropped (0: the family's)", ge=0)
     excitation: ExcitationConfig = field(default_factory=ExcitationConfig)
     seed: int = param(0, 'seed of the source systems and their data', ge=0)
 
+    @property
+    def plant_family(self) -> PlantFamily:
+        """The family object (UnknownFamily, a ValueError, if it is not installed)."""
+        return get_family(self.family)
+
+    def resolved(self) -> 'SourceConfig':
+        """A copy with dt, state_bound and the excitation bounds filled in from the family,
+        checked against it (ValueError naming the field)."""
+        check_fields(self)
+        fam = self.plant_family
+        exc = self.excitation
+        exc = dataclasses.replace(exc, u_min=tuple(exc.u_min or fam.u_min),
+                                  u_max=tuple(exc.u_max or fam.u_max))
+        exc.validate()
+        out = dataclasses.replace(self, dt=self.dt or fam.dt,
+                                  state_bound=self.state_bound or fam.state_bound, excitation=exc)
+        # The plant's own checks: bounds per input and within the family's.
+        out.plant_config().resolved()
+        if max(np.abs(fam.x0_low).max(), np.abs(fam.x0_high).max()) > out.state_bound:
+            raise ValueError(f'the initial states of family {fam.name} reach beyond state_bound '
+                             f'{out.state_bound}')
+        return out
+
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
-        check_fields(self)
-        self.excitation.validate()
-        if self.x0_bound > self.state_bound:
-            raise ValueError(f'x0_bound {self.x0_bound} exceeds state_bound {self.state_bound}')
+        self.resolved()
+
+    def plant_config(self) -> PlantConfig:
+        """The simulator settings of these systems (bounds: the excitation's)."""
+        exc = self.excitation
+        return PlantConfig(family=self.family, dt=self.dt, substeps=self.substeps,
+                           u_min=tuple(exc.u_min), u_max=tuple(exc.u_max),
+                           state_bound=self.state_bound)
 
 
-def simulate_episodes(thetas: Sequence[float], config: SourceConfig, seed: int
+def simulate_episodes(thetas: np.ndarray, config: SourceConfig, seed: int
                       ) -> Tuple[List[Optional[Trajectory]], int]:
     """One bounded episode per theta (seeded): (trajectories, None where it escaped; escapes).
 
+    thetas: shape (B, n_theta) (or (B,) for one component); initial states uniform in the
+    family's x0 box.
+
     The trajectory holds samples 1..K (sample 0 has no input that produced it).
     """
-    thetas = np.asarray(thetas, dtype=float).reshape(-1)
+    config = config.resolved()
+    fam = config.plant_family
+    thetas = np.asarray(thetas, dtype=float).reshape(-1, fam.n_theta)
     rng = np.random.default_rng(seed)
-    x0 = rng.uniform(-config.x0_bound, config.x0_bound, size=(thetas.shape[0], 2))
-    exc = config.excitation
-    u_seq = excitation(exc, thetas.shape[0], config.episode_samples, config.dt,
+    x0 = rng.uniform(fam.x0_low, fam.x0_high, size=(thetas.shape[0], fam.n_x))
+    u_seq = excitation(config.excitation, thetas.shape[0], config.episode_samples, config.dt,
                        int(rng.integers(2**31)))
-    vdp = VdpConfig(dt=config.dt, substeps=config.substeps, u_min=exc.u_min, u_max=exc.u_max,
-                    state_bound=config.state_bound)
-    u, y, valid = simulate(thetas, x0, u_seq, vdp)
+    u, y, valid = simulate(thetas, x0, u_seq, config.plant_config())
     out: List[Optional[Trajectory]] = []
     for b in range(thetas.shape[0]):
         ok = valid[b].all() and np.all(np.isfinite(y[b])) and np.all(np.isfinite(u[b]))
@@ -219,7 +253,8 @@ def simulate_episodes(thetas: Sequence[float], config: SourceConfig, seed: int
 
 @dataclass
 class SourceData:
-    """Raw source data: thetas (N_s,), per-system trajectories, count of dropped episodes."""
+    """Raw source data: thetas (N_s, n_theta), per-system trajectories, count of dropped
+    episodes."""
 
     thetas: np.ndarray
     trajectories: List[List[Trajectory]]
@@ -229,8 +264,8 @@ class SourceData:
 def simulate_source(config: SourceConfig) -> SourceData:
     """N_s systems with theta ~ Theta, `episodes_per_system` episodes each, escapes dropped."""
     rng = np.random.default_rng(config.seed)
-    thetas = sample_thetas(config.n_systems, rng, config.theta_mean, config.theta_std)
-    all_thetas = np.repeat(thetas, config.episodes_per_system)
+    thetas = config.plant_family.sample_theta(rng, config.n_systems)
+    all_thetas = np.repeat(thetas, config.episodes_per_system, axis=0)
     episodes, escaped = simulate_episodes(all_thetas, config, int(rng.integers(2**31)))
     per_system = [[t for t in episodes[i * config.episodes_per_system:
                                        (i + 1) * config.episodes_per_system] if t is not None]
@@ -238,15 +273,17 @@ def simulate_source(config: SourceConfig) -> SourceData:
     return SourceData(thetas, per_system, escaped)
 
 
-def simulate_target(theta: float, config: SourceConfig, n_samples: int = 300, seed: int = 0,
-                    max_attempts: int = 20) -> List[Trajectory]:
-    """About n_samples samples of the system theta, episodes of config.episode_samples.
+def simulate_target(theta: Sequence[float], config: SourceConfig, n_samples: int = 300,
+                    seed: int = 0, max_attempts: int = 20) -> List[Trajectory]:
+    """About n_samples samples of the system theta (n_theta values, or one number for a
+    one-component family), episodes of config.episode_samples.
 
     max_attempts episodes are simulated in one batch (seeded); the bounded ones are taken in
     order until n_samples are reached, the last one shortened. RuntimeError if too few stay
     bounded.
     """
-    episodes, _ = simulate_episodes(np.full(max_attempts, float(theta)), config, seed)
+    theta = np.atleast_1d(np.asarray(theta, dtype=float))
+    episodes, _ = simulate_episodes(np.tile(theta, (max_attempts, 1)), config, seed)
     out: List[Trajectory] = []
     have = 0
     for traj in episodes:
@@ -258,8 +295,8 @@ def simulate_target(theta: float, config: SourceConfig, n_samples: int = 300, se
         out.append(Trajectory(traj.steps[:keep], traj.u[:keep], traj.y[:keep]))
         have += keep
     if have < n_samples:
-        raise RuntimeError(f'theta={theta}: only {have} of {n_samples} bounded samples in '
-                           f'{max_attempts} episodes')
+        raise RuntimeError(f'theta={theta.tolist()}: only {have} of {n_samples} bounded samples '
+                           f'in {max_attempts} episodes')
     return out
 
 
@@ -288,7 +325,7 @@ class SourceSet:
         self.train_fraction = train_fraction
         self.max_collected = max_collected
         self.dtype = dtype
-        self.thetas: List[float] = []
+        self.thetas: List[np.ndarray] = []     # per task: theta, shape (n_theta,)
         self.system_index: List[int] = []
         self.left_out: List[int] = []
         self._base: List[Tuple[Windows, Windows]] = []
@@ -301,7 +338,7 @@ class SourceSet:
             if len(tr) == 0 or len(te) == 0:
                 self.left_out.append(i)
                 continue
-            self.thetas.append(float(data.thetas[i]))
+            self.thetas.append(np.asarray(data.thetas[i], dtype=float))
             self.system_index.append(i)
             self._base.append((tr, te))
         if not self._base:

@@ -20,7 +20,7 @@ SSM, normalised units): the number the learner's loss curves report. No rclpy he
 """
 import math
 from dataclasses import replace
-from typing import List, Mapping
+from typing import List, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -42,16 +42,17 @@ def heldout_seed(run_seed: int) -> int:
     return int(state[0])
 
 
-def plant_source(source: SourceConfig, dt: float, substeps: int, u_min: float, u_max: float,
-                 state_bound: float) -> SourceConfig:
+def plant_source(source: SourceConfig, dt: float, substeps: int, u_min: Sequence[float],
+                 u_max: Sequence[float], state_bound: float) -> SourceConfig:
     """The source settings with the target plant's sampling (dt s, RK4 substeps), input bounds
-    and state box, as the learner simulates the target for its oracle."""
+    (one per input) and state box, as the learner simulates the target for its oracle."""
     return replace(source, dt=float(dt), substeps=int(substeps), state_bound=float(state_bound),
-                   excitation=replace(source.excitation, u_min=float(u_min),
-                                      u_max=float(u_max)))
+                   excitation=replace(source.excitation,
+                                      u_min=tuple(np.atleast_1d(u_min).astype(float)),
+                                      u_max=tuple(np.atleast_1d(u_max).astype(float))))
 
 
-def target_heldout(theta: float, source: SourceConfig, run_seed: int,
+def target_heldout(theta: Sequence[float], source: SourceConfig, run_seed: int,
                    n_samples: int = HELDOUT_SAMPLES) -> List[Trajectory]:
     """`n_samples` samples of the system theta in bounded episodes of
     ``source.episode_samples`` (the last one shortened), physical units, seeded by

@@ -123,13 +123,15 @@ class LearnerNode(Node):
                                    f'({self.buffer.skipped} skipped, {self.buffer.lost} lost)')
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
-        plant = PlantFacts(theta=msg.theta, dt=msg.dt, substeps=msg.substeps, u_min=msg.u_min,
-                           u_max=msg.u_max, state_bound=msg.state_bound)
+        plant = PlantFacts(family=msg.family, theta=tuple(msg.theta), dt=msg.dt,
+                           substeps=msg.substeps, u_min=tuple(msg.u_min),
+                           u_max=tuple(msg.u_max), n_y=len(msg.output_names),
+                           state_bound=msg.state_bound)
         try:
             self.session.check_plant(plant)
         except LearnerError as err:
             # Refuse at once (exit 2 through run_node), not at the first adapt.
-            raise ParameterError(f'dt: {err}') from None
+            raise ParameterError(str(err)) from None
         self._plant = plant
 
     def _on_set_buffering(self, request: SetBuffering.Request, response: SetBuffering.Response

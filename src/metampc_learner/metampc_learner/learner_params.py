@@ -107,8 +107,10 @@ def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
         ParameterError: naming the first parameter of the wrong type or out of range.
     """
     meta = build(META, values)
-    source = build(SOURCE, values, excitation=build(EXCITATION, values))
-    return build(NODE, values, meta=meta, nssm=build(NSSM, values), source=source,
+    source = build(SOURCE, values, excitation=build(EXCITATION, values)).resolved()
+    family = source.plant_family
+    nssm = replace(build(NSSM, values), n_u=family.n_u, n_y=family.n_y)
+    return build(NODE, values, meta=meta, nssm=nssm, source=source,
                  online=build(ONLINE, values, seed=meta.seed), adapt=build(ADAPT, values),
                  oracle=build(ORACLE, values))
 

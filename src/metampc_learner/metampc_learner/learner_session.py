@@ -26,7 +26,7 @@ import math
 import os
 import re
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -80,14 +80,17 @@ class ModelRecord:
 
 @dataclass
 class PlantFacts:
-    """The target plant as plant_info describes it: theta, dt (s), RK4 substeps, input
-    bounds, state box."""
+    """The target plant as plant_info describes it: family name, theta (n_theta values; empty
+    when unknown, e.g. a real plant), dt (s), RK4 substeps, input bounds (one per input), the
+    number of outputs, state box."""
 
-    theta: float
+    family: str
+    theta: Tuple[float, ...]
     dt: float
     substeps: int
-    u_min: float
-    u_max: float
+    u_min: Tuple[float, ...]
+    u_max: Tuple[float, ...]
+    n_y: int
     state_bound: float
 
 
@@ -252,10 +255,17 @@ class LearnerSession:
 
     def check_plant(self, plant: PlantFacts) -> None:
         """LearnerError unless the plant samples at the dt the source systems are simulated at
-        (the plant's plant_info is the one source of truth for dt)."""
-        if not math.isclose(plant.dt, self.config.source.dt, rel_tol=1e-9):
-            raise LearnerError(f'the plant samples at dt = {plant.dt} s, the source systems '
-                               f'at dt = {self.config.source.dt} s: set dt:={plant.dt}')
+        (the plant's plant_info is the one source of truth for dt) and has the source
+        family's numbers of inputs and outputs."""
+        source = self.config.source
+        if not math.isclose(plant.dt, source.dt, rel_tol=1e-9):
+            raise LearnerError(f'dt: the plant samples at dt = {plant.dt} s, the source '
+                               f'systems at dt = {source.dt} s: set dt:={plant.dt}')
+        fam = source.plant_family
+        if (len(plant.u_min), plant.n_y) != (fam.n_u, fam.n_y):
+            raise LearnerError(f'family: the plant ({plant.family or "unnamed"}) has '
+                               f'{len(plant.u_min)} input(s) and {plant.n_y} output(s), the '
+                               f'source family {fam.name} {fam.n_u} and {fam.n_y}')
 
     def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantFacts],
               progress: Optional[ProgressFn] = None) -> AdaptOutcome:
@@ -267,8 +277,10 @@ class LearnerSession:
         cfg = self.config
         if plant is not None:
             self.check_plant(plant)
-        if job.method == 'oracle' and plant is None:
-            raise LearnerError("the oracle needs the target's theta: no plant_info received")
+        if job.method == 'oracle' and (plant is None or not plant.theta):
+            raise LearnerError("the oracle needs the target's theta: no plant_info received"
+                               if plant is None else "the oracle needs the target's theta: "
+                               'plant_info gives none (not a simulated plant)')
         meta = None if job.method in ('supervised', 'oracle') else self._meta_for(job.method)
         model = self._fresh_model() if meta is None else meta.model
         train, held, used = split_target(samples, job.n_samples, cfg.heldout_fraction,
@@ -287,7 +299,7 @@ class LearnerSession:
                                                                  model.config)
             if len(train_w) == 0:
                 raise LearnerError(f'oracle: all {cfg.oracle.episodes} simulated episodes of '
-                                   f'theta = {plant.theta} left the state box')
+                                   f'theta = {list(plant.theta)} left the state box')
             result = fit_oracle(model, init_params(model.config, seed), train_w, held_w,
                                 replace(cfg.oracle, steps=job.steps, lr=job.lr), seed,
                                 progress)

@@ -196,7 +196,8 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
             bad_tasks.update(int(tasks[b]) for b in torch.nonzero(~ok).flatten().tolist())
             if bad_steps >= config.max_bad_steps:
                 names = ', '.join(f'{t} (system {source.system_index[t]}, theta='
-                                  f'{source.thetas[t]:.3f})' for t in sorted(bad_tasks))
+                                  f'{np.round(source.thetas[t], 3).tolist()})'
+                                  for t in sorted(bad_tasks))
                 raise MetaTrainingError(
                     f'{config.method}: more than {config.max_skip_fraction:.0%} of the batch '
                     f'non-finite for {bad_steps} consecutive steps (up to step {it}); '

@@ -4,7 +4,8 @@ After the inner loop of task b (adapted weights omega_b, eq. inner_imaml), the m
 core calls the collector with (task, theta_b, omega_b). The collector turns omega_b into the
 latent model of eq. (SSM) (``Nssm.predictor``: encoder + affine latent model in physical
 units), sets up the latent MPC of eq. (mpc) (``metampc_controller.mpc.LatentMpc``) and runs it
-on the source system theta_b (the plant core, ``VdpPlant``) for bounded episodes with
+on the source system theta_b (the plant core, ``metampc_plant.simulator.Plant``) for bounded
+episodes with
 exploration noise, eq. (ub)::
 
     u^b = clip(u^b_* + u^b_0, u_min, u_max),     u^b_0 ~ N(0, Sigma),  Sigma = noise_std^2 I
@@ -12,11 +13,12 @@ exploration noise, eq. (ub)::
 and returns the trajectories (u^b, y^b) that the core adds to D_source (SourceSet.add, capped).
 
 Episode (index convention of ``metampc_controller.nssm``: u_k was held over (k-1, k] and
-produced y_k): x_0 uniform in [-x0_bound, x0_bound]^2; samples 1..H are driven by the
+produced y_k): x_0 uniform in the family's initial-state box; samples 1..H are driven by the
 source excitation (the encoder needs H pairs before the MPC can run); from t = H on, every
 tick encodes z_t from (u, y)_{t-H+1..t}, solves eq. (mpc) for u_{t+1} with the applied u_t and
-the reference r_{t+1..t+N} (x1 set-points uniform in [-ref_bound, ref_bound], each held
-ref_hold_s), adds the noise and steps the plant. An episode ends after ``warmup +
+the reference r_{t+1..t+N} (set-points of the family's tracked outputs uniform within
++-ref_bound of the family's reference, each held ref_hold_s), adds the noise and steps the
+plant. An episode ends after ``warmup +
 episode_samples`` samples or at the first sample that leaves the state box (the plant core
 flags it); only the finite samples before it are returned, so no window spans an escape.
 A model the MPC cannot use (non-finite weights, bad shapes) gives no data for that call.
@@ -24,6 +26,7 @@ A model the MPC cannot use (non-finite weights, bad shapes) gives no data for th
 Pure numpy/torch/osqp, no rclpy. Determinism: episode k of call n for task b draws from
 ``numpy.random.default_rng((seed, b, n, k))``.
 """
+import dataclasses
 from dataclasses import dataclass, field
 from typing import List
 
@@ -36,7 +39,7 @@ from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.nssm import Nssm, Params
 from metampc_controller.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig, Trajectory
-from metampc_plant.vanderpol import VdpConfig, VdpPlant
+from metampc_plant.simulator import Plant
 
 
 @dataclass
@@ -48,10 +51,10 @@ class OnlineCollectionConfig:
         episode_samples: closed-loop samples per episode (after the H warm-up samples).
         noise_std: exploration std of eq. (ub), input units (Sigma = noise_std^2 I).
         horizon: N of the MPC, samples.
-        q: weight of the tracked output (x1); the other outputs get weight 0.
+        q: weight of each of the family's tracked outputs; the others get weight 0.
         r: Delta-u weight of the MPC.
-        tracked_output: index of the output that follows the reference.
-        ref_bound: set-points uniform in [-ref_bound, ref_bound] (output units).
+        ref_bound: set-points uniform within +-ref_bound of the family's reference (output
+            units).
         ref_hold_s: time each set-point is held, s.
         seed: seed of initial states, warm-up inputs, set-points and noise.
     """
@@ -62,16 +65,16 @@ class OnlineCollectionConfig:
     horizon: int = param(20, 'MPC horizon N of the collection', ge=1)
     q: float = 1.0
     r: float = param(0.05, 'MPC Delta-u weight of the collection', gt=0)
-    tracked_output: int = 0
-    ref_bound: float = param(1.0, 'x1 set-points uniform in [-b, b]', ge=0)
+    ref_bound: float = param(1.0, "set-points uniform within +-b of the family's reference",
+                             ge=0)
     ref_hold_s: float = param(2.0, 'set-point hold time, s', gt=0)
     seed: int = 0
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
         check_fields(self)
-        if not (self.q > 0 and self.tracked_output >= 0 and self.seed >= 0):
-            raise ValueError('need q > 0, tracked_output >= 0 and seed >= 0')
+        if not (self.q > 0 and self.seed >= 0):
+            raise ValueError('need q > 0 and seed >= 0')
 
 
 @dataclass
@@ -103,7 +106,7 @@ class OnlineCollector:
         model: the NSSM being meta-trained (architecture and normalisation; its own weights are
             not used).
         config: collection settings.
-        source: simulator settings shared with the source set (dt, substeps, x0_bound,
+        source: simulator settings shared with the source set (family, dt, substeps,
             state_bound, excitation with the input bounds).
         stats: counters, updated by every call.
     """
@@ -115,17 +118,21 @@ class OnlineCollector:
 
     def __post_init__(self):
         self.config.validate()
+        self.source = self.source.resolved()
+        self.family = self.source.plant_family
         n_y = self.model.config.n_y
-        if self.config.tracked_output >= n_y:
-            raise ValueError(f'tracked_output {self.config.tracked_output} >= n_y = {n_y}')
+        if (n_y, self.model.config.n_u) != (self.family.n_y, self.family.n_u):
+            raise ValueError(f'the model has n_y = {n_y}, n_u = {self.model.config.n_u}; family '
+                             f'{self.family.name} has {self.family.n_y}, {self.family.n_u}')
         exc = self.source.excitation
         q = np.zeros(n_y)
-        q[self.config.tracked_output] = self.config.q
+        q[list(self.family.tracked)] = self.config.q
         self._mpc_config = MpcConfig(horizon=self.config.horizon, q=tuple(q), r=self.config.r,
                                      u_min=exc.u_min, u_max=exc.u_max)
 
-    def __call__(self, task: int, theta: float, params: Params) -> List[Trajectory]:
-        """Run `episodes` closed-loop episodes of source system `task` with omega_b = params."""
+    def __call__(self, task: int, theta: np.ndarray, params: Params) -> List[Trajectory]:
+        """Run `episodes` closed-loop episodes of source system `task` with omega_b = params;
+        theta is its parameter vector (n_theta,) (a number: one component)."""
         call = self.stats.calls
         self.stats.calls += 1
         mpc = LatentMpc(self._mpc_config)
@@ -141,26 +148,25 @@ class OnlineCollector:
         for episode in range(self.config.episodes):
             rng = np.random.default_rng((self.config.seed, task, call, episode))
             mpc.reset()
-            traj = self._episode(float(theta), predictor, mpc, rng)
+            traj = self._episode(theta, predictor, mpc, rng)
             self.stats.episodes += 1
             if traj is not None:
                 self.stats.samples += len(traj)
                 out.append(traj)
         return out
 
-    def _episode(self, theta: float, predictor, mpc: LatentMpc, rng: np.random.Generator):
+    def _episode(self, theta: np.ndarray, predictor, mpc: LatentMpc,
+                 rng: np.random.Generator):
         """One bounded episode; the finite samples 1..K as a Trajectory (None if none)."""
-        cfg, src, n_h = self.config, self.source, self.model.config.history
-        exc = src.excitation
+        cfg, src, n_h, fam = self.config, self.source, self.model.config.history, self.family
         n_total = n_h + cfg.episode_samples
-        plant = VdpPlant(VdpConfig(theta=theta, dt=src.dt, substeps=src.substeps,
-                                   x0=tuple(rng.uniform(-src.x0_bound, src.x0_bound, 2)),
-                                   u_min=exc.u_min, u_max=exc.u_max,
-                                   state_bound=src.state_bound))
-        warmup = excitation(exc, 1, n_h, src.dt, int(rng.integers(2**31)))[0]
+        x0 = tuple(rng.uniform(fam.x0_low, fam.x0_high, fam.n_x))
+        plant = Plant(dataclasses.replace(src.plant_config(), theta=tuple(np.atleast_1d(theta)),
+                                          x0=x0))
+        warmup = excitation(src.excitation, 1, n_h, src.dt, int(rng.integers(2**31)))[0]
         ref = self._reference(n_total + cfg.horizon, rng)
         n_y = self.model.config.n_y
-        u = np.zeros((n_total + 1, 1))          # row k: u_k (row 0 unused: no input yet)
+        u = np.zeros((n_total + 1, fam.n_u))   # row k: u_k (row 0 unused: no input yet)
         y = np.zeros((n_total + 1, n_y))
         y[0] = plant.output()
         n = 0
@@ -172,7 +178,7 @@ class OnlineCollector:
                 z = predictor.encode(u[t - n_h + 1:t + 1], y[t - n_h + 1:t + 1])
                 result = mpc.solve(z, u[t], ref[t + 1:t + 1 + cfg.horizon])
                 self.stats.mpc_fallbacks += int(result.fallback)
-                u_k = result.u[0] + cfg.noise_std * rng.standard_normal()     # eq. (ub)
+                u_k = result.u + cfg.noise_std * rng.standard_normal(fam.n_u)  # eq. (ub)
             u_k, _ = plant.saturate(u_k)
             y_k = plant.step(u_k)
             if plant.diverged:
@@ -185,12 +191,16 @@ class OnlineCollector:
         return Trajectory(np.arange(1, n + 1), u[1:n + 1], y[1:n + 1])
 
     def _reference(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """References r_0..r_{n-1}, shape (n, n_y): piecewise-constant set-points."""
-        cfg = self.config
+        """References r_0..r_{n-1}, shape (n, n_y): piecewise-constant set-points of the
+        tracked outputs around the family's reference (untracked outputs: the reference)."""
+        cfg, fam = self.config, self.family
         hold = max(1, int(round(cfg.ref_hold_s / self.source.dt)))
-        levels = rng.uniform(-cfg.ref_bound, cfg.ref_bound, size=-(-n // hold))
-        ref = np.zeros((n, self.model.config.n_y))
-        ref[:, cfg.tracked_output] = np.repeat(levels, hold)[:n]
+        tracked = list(fam.tracked)
+        centre = np.asarray(fam.reference)[tracked]
+        levels = rng.uniform(centre - cfg.ref_bound, centre + cfg.ref_bound,
+                             size=(-(-n // hold), len(tracked)))
+        ref = np.tile(np.asarray(fam.reference, dtype=float), (n, 1))
+        ref[:, tracked] = np.repeat(levels, hold, axis=0)[:n]
         return ref
 
 

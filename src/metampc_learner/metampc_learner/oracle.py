@@ -14,7 +14,7 @@ every step: held-out loss on the given windows, training loss on a fixed subset 
 """
 import time
 from dataclasses import dataclass
-from typing import List, Optional
+from typing import List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -45,10 +45,12 @@ class OracleConfig:
             raise ValueError(f'eval_windows must be >= 1, got {self.eval_windows}')
 
 
-def oracle_data(theta: float, source: SourceConfig, episodes: int, seed: int
+def oracle_data(theta: Sequence[float], source: SourceConfig, episodes: int, seed: int
                 ) -> List[Trajectory]:
-    """`episodes` bounded excitation episodes of system theta (escaped ones dropped)."""
-    trajs, _ = simulate_episodes(np.full(episodes, float(theta)), source, seed)
+    """`episodes` bounded excitation episodes of system theta (n_theta values; escaped ones
+    dropped)."""
+    theta = np.atleast_1d(np.asarray(theta, dtype=float))
+    trajs, _ = simulate_episodes(np.tile(theta, (episodes, 1)), source, seed)
     return [t for t in trajs if t is not None]
 
 

@@ -1,4 +1,6 @@
 """Data sets: windows never span gaps or escapes, non-finite data never enters, splits, caps."""
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -8,8 +10,19 @@ from metampc_learner.data import (normalisation_from, simulate_episodes, simulat
                                   simulate_target, SourceConfig, SourceData, SourceSet,
                                   split_by_time, Trajectory, trajectories_from_samples,
                                   Windows, windows)
+from metampc_plant.family import ThetaComponent
+from metampc_plant.registry import get_family, register
 
 SMALL = NssmConfig(history=3, horizon=4, hidden=(8,))
+VDP = get_family('vanderpol')
+
+
+def vdp_variant(name: str, x0_bound: float, theta=None) -> str:
+    """Register van der Pol with initial states in [-x0_bound, x0_bound]^2 (and another
+    Theta); return its name."""
+    register(dataclasses.replace(VDP, name=name, x0_low=(-x0_bound,) * 2,
+                                 x0_high=(x0_bound,) * 2, theta=theta or VDP.theta))
+    return name
 
 
 def _traj(start, n, value=0.0):
@@ -54,7 +67,8 @@ def test_split_by_time_is_disjoint():
 
 
 def test_escaping_episode_never_produces_a_window():
-    config = SourceConfig(episode_samples=150, x0_bound=3.0, state_bound=5.0)
+    config = SourceConfig(family=vdp_variant('vdp_x0_3', 3.0), episode_samples=150,
+                          state_bound=5.0)
     thetas = np.full(40, -1.0)   # unstable limit cycle; x0 up to 3 lies outside it
     episodes, escaped = simulate_episodes(thetas, config, seed=3)
     assert escaped > 0, 'the set-up must produce escapes'
@@ -68,8 +82,9 @@ def test_escaping_episode_never_produces_a_window():
 
 
 def test_source_set_from_escaping_systems():
-    config = SourceConfig(n_systems=30, episodes_per_system=1, episode_samples=120,
-                          theta_mean=-1.5, theta_std=0.2, x0_bound=2.5, state_bound=5.0, seed=4)
+    unstable = (ThetaComponent('theta', '', 'damping', 'normal', -1.5, 0.2),)
+    config = SourceConfig(family=vdp_variant('vdp_unstable', 2.5, unstable), n_systems=30,
+                          episodes_per_system=1, episode_samples=120, state_bound=5.0, seed=4)
     data = simulate_source(config)
     assert data.escaped > 0
     norm = normalisation_from([t for ts in data.trajectories for t in ts])
@@ -103,7 +118,7 @@ def test_normalisation_from_source():
 
 
 def test_collected_data_is_capped_oldest_first():
-    data = SourceData(np.array([0.5, 1.0]), [[_traj(0, 40)], [_traj(0, 40, 1.0)]], 0)
+    data = SourceData(np.array([[0.5], [1.0]]), [[_traj(0, 40)], [_traj(0, 40, 1.0)]], 0)
     norm = normalisation_from([_traj(0, 40), _traj(0, 40, 1.0)])
     source = SourceSet(data, norm, SMALL, max_collected=50)
     base = len(source._tasks[0][0])
@@ -122,11 +137,12 @@ def test_target_set_has_the_requested_bounded_samples():
     for theta in (-0.8, 0.3, 2.0):
         trajs = simulate_target(theta, config, n_samples=300, seed=2)
         assert sum(len(t) for t in trajs) == 300
-        assert all(np.abs(t.y).max() <= config.state_bound for t in trajs)
+        assert all(np.abs(t.y).max() <= VDP.state_bound for t in trajs)
     again, other = simulate_target(0.3, config, 300, seed=2), simulate_target(0.3, config, 300, 3)
     assert [t.steps[0] for t in again] == [1, 1, 1]
     assert all(np.array_equal(a.u, b.u) and np.array_equal(a.y, b.y)
                for a, b in zip(again, simulate_target(0.3, config, 300, seed=2)))
     assert not np.array_equal(again[0].y, other[0].y)
     with pytest.raises(RuntimeError, match='bounded samples'):
-        simulate_target(-3.0, SourceConfig(x0_bound=4.0, state_bound=4.5), 300, max_attempts=3)
+        simulate_target(-3.0, SourceConfig(family=vdp_variant('vdp_x0_4', 4.0), state_bound=4.5),
+                        300, max_attempts=3)

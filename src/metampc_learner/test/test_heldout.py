@@ -12,10 +12,11 @@ from metampc_learner.data import simulate_target, SourceConfig, Trajectory, Wind
 from metampc_learner.heldout import (HELDOUT_SAMPLES, heldout_loss, heldout_seed,
                                      model_heldout_loss, plant_source, target_heldout)
 from metampc_learner.oracle import oracle_data
-from metampc_plant.vanderpol import rk4_sample
+from metampc_plant.integrate import rk4_sample
+from metampc_plant.registry import get_family
 
 torch.set_num_threads(1)
-SOURCE = SourceConfig(episode_samples=60)
+SOURCE = SourceConfig(episode_samples=60).resolved()    # the family's dt, bounds and box
 THETA = -0.7
 
 
@@ -47,8 +48,8 @@ def test_the_set_has_the_samples_of_bounded_theta_star_episodes():
     for t in trajs:     # every step is the plant core's RK4 sample of theta* under u_{k+1}
         assert np.abs(t.y).max() <= SOURCE.state_bound
         assert np.all((SOURCE.excitation.u_min <= t.u) & (t.u <= SOURCE.excitation.u_max))
-        x_next = rk4_sample(t.y[:-1], t.u[1:, 0], np.full(len(t) - 1, THETA), SOURCE.dt,
-                            SOURCE.substeps)
+        x_next = rk4_sample(get_family('vanderpol'), t.y[:-1], t.u[1:],
+                            np.full((len(t) - 1, 1), THETA), SOURCE.dt, SOURCE.substeps)
         np.testing.assert_allclose(x_next, t.y[1:], rtol=0, atol=1e-12)
 
 
@@ -69,9 +70,10 @@ def test_seeded_and_apart_from_the_runs_own_seeds():
 
 
 def test_plant_source_takes_the_plants_sampling_bounds_and_box():
-    source = plant_source(SOURCE, dt=0.05, substeps=4, u_min=-2.0, u_max=0.5, state_bound=6.0)
+    source = plant_source(SOURCE, dt=0.05, substeps=4, u_min=[-0.8], u_max=[0.5],
+                          state_bound=6.0)
     assert (source.dt, source.substeps, source.state_bound) == (0.05, 4, 6.0)
-    assert (source.excitation.u_min, source.excitation.u_max) == (-2.0, 0.5)
+    assert (source.excitation.u_min, source.excitation.u_max) == ((-0.8,), (0.5,))
     assert source.excitation.kind == SOURCE.excitation.kind
     assert source.episode_samples == SOURCE.episode_samples and SOURCE.dt == 0.1
 

@@ -27,7 +27,8 @@ def _raw(**overrides):
 
 def test_defaults_are_those_of_the_cores():
     cfg = parse_params(_raw())
-    assert cfg.meta == MetaConfig() and cfg.nssm == NssmConfig() and cfg.source == SourceConfig()
+    assert cfg.meta == MetaConfig() and cfg.nssm == NssmConfig() and (
+        cfg.source == SourceConfig().resolved())
     assert cfg.adapt == AdaptConfig() and cfg.oracle == OracleConfig()
     assert cfg.online == OnlineCollectionConfig()
     assert (cfg.target_buffer_size, cfg.buffer_on_start, cfg.online_collection) == (300, True,
@@ -39,7 +40,7 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     cfg = parse_params(_raw(method='maml', iterations=7, batch_size=3, inner_steps=4, gamma=2,
                             lr_inner=1, lr_outer=0.01, cg_steps=6, curvature='hessian',
                             windows_per_task=5, seed=11, n_z=4, history=6, horizon=7,
-                            hidden=[32, 8], n_systems=9, dt=1, u_min=-2, u_max=3,
+                            hidden=[32, 8], n_systems=9, dt=1, u_min=-0.5, u_max=1,
                             excitation='prbs', hold_s=1, source_seed=5,
                             online_collection=True, online_noise_std=0, online_samples=40,
                             target_buffer_size=120, buffer_on_start=False, adapt_steps=3,
@@ -50,8 +51,8 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
                                cg_steps=6, curvature='hessian', windows_per_task=5, seed=11)
     assert cfg.nssm == NssmConfig(n_z=4, history=6, horizon=7, hidden=(32, 8))
     assert (cfg.source.n_systems, cfg.source.dt, cfg.source.seed) == (9, 1.0, 5)
-    assert (cfg.source.excitation.kind, cfg.source.excitation.u_min,
-            cfg.source.excitation.u_max, cfg.source.excitation.hold_s) == ('prbs', -2.0, 3.0, 1.0)
+    exc = cfg.source.excitation
+    assert (exc.kind, exc.u_min, exc.u_max, exc.hold_s) == ('prbs', (-0.5,), (1.0,), 1.0)
     assert cfg.online_collection and cfg.online.noise_std == 0.0 and cfg.online.seed == 11
     assert cfg.online.episode_samples == 40
     assert (cfg.target_buffer_size, cfg.buffer_on_start) == (120, False)
@@ -67,7 +68,7 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     ({'gamma': 0.0}, 'gamma must be > 0'),
     ({'lr_outer': -1.0}, 'lr_outer must be > 0'),
     ({'dt': NAN}, 'dt must be finite'),
-    ({'theta_std': INF}, 'theta_std must be finite'),
+    ({'family': 'tank'}, "unknown plant family 'tank'; installed: duffing"),
     ({'method': 'reptile'}, 'method must be one of imaml, maml, maml_unrolled'),
     ({'curvature': 'fisher'}, 'curvature must be one of gauss_newton, hessian'),
     ({'hidden': [16, 0]}, 'hidden must be >= 1'),
@@ -83,7 +84,8 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     ({'progress_period': 1.5}, 'progress_period must be in (0, 1]'),
     ({'u_min': 2.0}, 'u_min <= u_max'),
     ({'excitation': 'chirp'}, 'excitation must be one of random_hold, multisine, prbs'),
-    ({'x0_bound': 20.0}, 'x0_bound 20.0 exceeds state_bound 10.0'),
+    ({'state_bound': 0.5}, 'initial states of family vanderpol reach beyond state_bound 0.5'),
+    ({'family': 'quadruple_tank', 'u_max': [12.0, 10.0]}, 'outside those of family'),
     ({'online_noise_std': -0.1}, 'online_noise_std must be >= 0'),
     ({'online_r': 0.0}, 'online_r must be > 0'),
     ({'oracle_batch': 0}, 'oracle_batch must be >= 1'),

@@ -22,7 +22,8 @@ TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'histor
         'cg_steps': 2, 'windows_per_task': 8, 'iterations': 12, 'target_buffer_size': 40,
         'heldout_fraction': 0.25, 'adapt_steps': 4, 'oracle_episodes': 3, 'oracle_steps': 15,
         'oracle_batch': 32, 'online_samples': 20, 'online_horizon': 5, 'seed': 2}
-PLANT = PlantFacts(theta=0.4, dt=0.1, substeps=10, u_min=-1.0, u_max=1.0, state_bound=10.0)
+PLANT = PlantFacts(family='vanderpol', theta=(0.4,), dt=0.1, substeps=10, u_min=(-1.0,),
+                   u_max=(1.0,), n_y=2, state_bound=10.0)
 
 
 def _config(**overrides):

@@ -22,7 +22,7 @@ def test_imaml_adaptation_beats_supervised_on_unseen_targets():
     torch.set_num_threads(1)
     source_config = SourceConfig(n_systems=40, episode_samples=120, seed=0)
     data = simulate_source(source_config)
-    assert not set(TARGETS) & set(data.thetas.tolist())
+    assert not set(TARGETS) & set(data.thetas[:, 0].tolist())
     config = NssmConfig(hidden=(64, 64))
     norm = normalisation_from([t for ts in data.trajectories for t in ts])
     model = Nssm(config, norm)

@@ -117,7 +117,7 @@ def test_training_stops_naming_the_tasks_when_most_of_a_batch_keeps_failing():
     message = str(err.value)
     assert '2 consecutive steps (up to step 2)' in message
     for i in range(4):
-        assert f'system {i}, theta={source.thetas[i]:.3f}' in message
+        assert f'system {i}, theta=[{source.thetas[i][0]:.3f}]' in message
     assert 'system 5' not in message
 
 

@@ -10,11 +10,13 @@ from metampc_controller.nssm import init_params, Nssm, NssmConfig
 from metampc_controller.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig
 from metampc_learner.online_collection import OnlineCollectionConfig, OnlineCollector
-from metampc_plant.vanderpol import rk4_sample_scalar
+from metampc_plant.integrate import rk4_components
+from metampc_plant.registry import get_family
 
 TINY = NssmConfig(history=3, horizon=3, hidden=(16,), n_z=3)
 NORM = Normalisation([0.0], [0.6], [0.0, 0.0], [3.0, 3.0])
-SOURCE = SourceConfig(dt=0.1, substeps=10)
+SOURCE = SourceConfig(dt=0.1, substeps=10, state_bound=10.0)
+VDP = get_family('vanderpol')
 CONFIG = OnlineCollectionConfig(episodes=2, episode_samples=30, horizon=5, noise_std=0.3,
                                 seed=4)
 # OSQP's wall-clock cap (MpcConfig.time_limit, 50 ms) trips when a loaded machine stalls the
@@ -41,8 +43,8 @@ def test_bounded_finite_trajectories_that_follow_the_plant():
         assert np.all(np.abs(traj.u) <= 1.0)
         # Index convention: u_{k+1} held over one sample takes y_k (= x_k, no noise) to y_{k+1}.
         for k in range(len(traj) - 1):
-            x = rk4_sample_scalar(*traj.y[k], traj.u[k + 1, 0], theta, SOURCE.dt,
-                                  SOURCE.substeps)
+            x = rk4_components(VDP, tuple(traj.y[k]), (traj.u[k + 1, 0],), (theta,), SOURCE.dt,
+                               SOURCE.substeps)
             assert np.array_equal(x, traj.y[k + 1])
     stats = collector.stats
     assert (stats.calls, stats.episodes, stats.samples) == (1, 2, sum(len(t) for t in trajs))
@@ -77,7 +79,7 @@ def test_without_noise_the_inputs_are_the_mpc_plan():
 
 def test_an_escape_ends_the_episode_before_the_box_is_left():
     # The theta = 1 limit cycle reaches |x2| ~ 2.7: a box of 1.5 is left in every episode.
-    source = replace(SOURCE, state_bound=1.5, x0_bound=1.0)
+    source = replace(SOURCE, state_bound=1.5)
     collector, trajs = _collect(theta=1.0, source=source)
     assert collector.stats.escaped == 2 and collector.stats.episodes == 2
     assert all(np.abs(t.y).max() <= 1.5 for t in trajs)

@@ -1,4 +1,4 @@
-"""The `plant` node: a thin ROS 2 adapter over the van der Pol core.
+"""The `plant` node: a thin ROS 2 adapter over the simulator core of any plant family.
 
 Interfaces (relative names, so a namespace can wrap them):
 
@@ -10,6 +10,10 @@ Interfaces (relative names, so a namespace can wrap them):
   y, so nodes started with ``use_sim_time:=true`` run on the plant's time.
 * ``u`` (ControlInput, subscribed, reliable): the input computed from y_k, held over (k, k+1].
 * ``reset`` (ResetPlant service): new theta and/or x0; the step restarts at 0 and y_0 is sent.
+
+The family (``-p family:=duffing``, see docs/families.md) fixes the dimensions, the equations
+and the defaults of theta, x0, the bounds and dt; a parameter that does not fit it (a theta of
+the wrong length, an input bound outside the family's) ends the node with one error line.
 
 Clock modes:
 
@@ -49,7 +53,7 @@ import math
 import sys
 import time
 from array import array
-from typing import Optional, Tuple
+from typing import Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
 from metampc_common.node_main import declare_parameters, EventCounts, run_node
@@ -58,7 +62,7 @@ from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
 from metampc_plant.lockstep import Lockstep
 from metampc_plant.plant_params import PARAMETERS, parse_params
-from metampc_plant.vanderpol import N_U, N_X, VdpPlant
+from metampc_plant.simulator import Plant
 import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -70,15 +74,17 @@ COUNTERS = ('stale', 'rejected', 'timeouts')
 
 
 class PlantNode(Node):
-    """ROS 2 front end of one :class:`VdpPlant` (see the module docstring)."""
+    """ROS 2 front end of one :class:`Plant` (see the module docstring)."""
 
     def __init__(self):
         super().__init__('plant')
         self.cfg = parse_params(declare_parameters(self, PARAMETERS))
-        self.plant = VdpPlant(self.cfg.vdp)
+        self.plant = Plant(self.cfg.plant)
+        self.family = self.plant.family
+        self._zero_u = (0.0,) * self.family.n_u
         self.lockstep: Optional[Lockstep] = None   # realtime: none
-        self._held_u = 0.0              # last applied (saturated) input
-        self._requested_u = 0.0         # realtime: latest accepted input, before saturation
+        self._held_u = self._zero_u     # last applied (saturated) input
+        self._requested_u = self._zero_u  # realtime: latest accepted input, before saturation
         self._y0 = self.plant.output()  # y_0 of the first episode, drawn before any step
         self._n_resets = 0
         self._events = EventCounts(self, COUNTERS)
@@ -100,7 +106,7 @@ class PlantNode(Node):
         self._gate_timer = None
         self._tick_timer = None
         if lockstep:
-            self.lockstep = Lockstep(self.cfg.vdp.dt, self.cfg.input_timeout,
+            self.lockstep = Lockstep(self.cfg.plant.dt, self.cfg.input_timeout,
                                      self.cfg.start_timeout, time.monotonic())
             if self.lockstep.timeout_s is not None:
                 self._timeout_timer = self.create_timer(
@@ -112,15 +118,15 @@ class PlantNode(Node):
             period = 1.0 / self.cfg.sample_rate_hz()
             self._tick_timer = self.create_timer(period, self._on_tick, clock=self._steady)
         self._publish_info()
-        vdp = self.cfg.vdp
+        sim = self.cfg.plant
         self.get_logger().info(
-            f'{self.cfg.mode} van der Pol plant: theta={vdp.theta}, dt={vdp.dt} s, '
-            f'x0={list(vdp.x0)}, u in [{vdp.u_min}, {vdp.u_max}]'
+            f'{self.cfg.mode} {self.family.name} plant: theta={list(sim.theta)}, dt={sim.dt} s, '
+            f'x0={list(sim.x0)}, u in [{list(sim.u_min)}, {list(sim.u_max)}]'
             + (f'; y_0 goes out once y has {self.cfg.start_subscribers} subscriber(s) and u a '
                f'publisher (at the latest after start_timeout = {self.cfg.start_timeout} s)'
                if lockstep
                else f', {self.cfg.sample_rate_hz()} Hz: '
-               f'{self.cfg.sample_rate_hz() * vdp.dt:g}x real time'))
+               f'{self.cfg.sample_rate_hz() * sim.dt:g}x real time'))
         if not lockstep:
             self._start()
 
@@ -133,7 +139,7 @@ class PlantNode(Node):
             return Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
         return self.get_clock().now().to_msg()
 
-    def _publish_y(self, y: np.ndarray, u_applied: float, saturated: bool) -> None:
+    def _publish_y(self, y: np.ndarray, u_applied: Sequence[float], saturated: bool) -> None:
         """Publish y_k (then /clock in lockstep) and restart the input timeout."""
         if self.lockstep is not None:
             self.lockstep.published()
@@ -141,7 +147,7 @@ class PlantNode(Node):
         msg.header.stamp = self._stamp()
         msg.step = self.plant.step_index
         msg.y = array('d', y)
-        msg.u_applied = array('d', (u_applied,))
+        msg.u_applied = array('d', u_applied)
         msg.saturated = saturated
         msg.diverged = self.plant.diverged
         self._pub_y.publish(msg)
@@ -153,14 +159,19 @@ class PlantNode(Node):
             self._timeout_timer.reset()
 
     def _publish_info(self) -> None:
-        vdp = self.cfg.vdp
+        sim, fam = self.cfg.plant, self.family
         self._pub_info.publish(PlantInfo(
-            theta=self.plant.theta, dt=vdp.dt, substeps=vdp.substeps, u_min=vdp.u_min,
-            u_max=vdp.u_max, process_noise_std=vdp.process_noise_std,
-            measurement_noise_std=vdp.measurement_noise_std, seed=vdp.seed,
+            family=fam.name, theta=list(self.plant.theta),
+            theta_names=[c.name for c in fam.theta], dt=sim.dt, substeps=sim.substeps,
+            u_min=list(sim.u_min), u_max=list(sim.u_max),
+            input_names=[s.name for s in fam.inputs], input_units=[s.unit for s in fam.inputs],
+            output_names=[s.name for s in fam.outputs],
+            output_units=[s.unit for s in fam.outputs],
+            process_noise_std=sim.process_noise_std,
+            measurement_noise_std=sim.measurement_noise_std, seed=sim.seed,
             clock_mode=self.cfg.mode,
             rate_hz=0.0 if self.lockstep is not None else self.cfg.sample_rate_hz(),
-            state_bound=vdp.state_bound, diverged=self.plant.diverged,
+            state_bound=sim.state_bound, diverged=self.plant.diverged,
             n_resets=self._n_resets, header=Header(stamp=self._stamp())))
 
     # --- stepping -----------------------------------------------------------------------
@@ -176,30 +187,31 @@ class PlantNode(Node):
     def _start(self) -> None:
         """Publish y_0 of the first episode."""
         self._end_gate()
-        self._publish_y(self._y0, 0.0, False)
+        self._publish_y(self._y0, self._zero_u, False)
 
-    def _advance(self, u_requested: float) -> None:
+    def _advance(self, u_requested: Tuple[float, ...]) -> None:
         """Hold u_requested (finite) over one sample, then publish y_{k+1}."""
         u, saturated = self.plant.saturate(u_requested)
         was_diverged = self.plant.diverged
         y = self.plant.step(u)
         self._held_u = u
         if self.plant.diverged and not was_diverged:
-            vdp = self.cfg.vdp
             self.get_logger().error(
-                f'plant diverged at step {self.plant.step_index} (theta={self.plant.theta}): '
-                f'the state left |x|_inf <= {vdp.state_bound} or turned non-finite; holding '
+                f'plant diverged at step {self.plant.step_index} (theta='
+                f'{list(self.plant.theta)}): the state left |x|_inf <= '
+                f'{self.cfg.plant.state_bound} or turned non-finite; holding '
                 'the last finite state until reset')
             self._publish_info()
         self._publish_y(y, u, saturated)
 
-    def _check_input(self, values) -> Tuple[Optional[float], str]:
+    def _check_input(self, values) -> Tuple[Optional[Tuple[float, ...]], str]:
         """(u, '') for a valid ControlInput.u, else (None, why it was rejected)."""
-        if len(values) != N_U:
-            return None, f'expected {N_U} input value, got {len(values)}'
-        u = float(values[0])
-        if not math.isfinite(u):
-            return None, f'non-finite input {u}'
+        n_u = self.family.n_u
+        if len(values) != n_u:
+            return None, f'expected {n_u} input value(s), got {len(values)}'
+        u = tuple(float(v) for v in values)
+        if not all(math.isfinite(v) for v in u):
+            return None, f'non-finite input {list(u)}'
         return u, ''
 
     def _on_input(self, msg: ControlInput) -> None:
@@ -210,7 +222,7 @@ class PlantNode(Node):
         u, why = self._check_input(msg.u)
         if u is None:
             self._warn('rejected', f'rejected the input for step {msg.step} ({why}); holding '
-                       f'u = {self._held_u}')
+                       f'u = {list(self._held_u)}')
             if self.lockstep is not None:
                 self._advance(self._held_u)
             return
@@ -221,7 +233,7 @@ class PlantNode(Node):
 
     def _on_timeout(self) -> None:
         self._warn('timeouts', f'no input for step {self.plant.step_index} within '
-                   f'{self.cfg.input_timeout} s; holding u = {self._held_u}')
+                   f'{self.cfg.input_timeout} s; holding u = {list(self._held_u)}')
         self._advance(self._held_u)
 
     def _on_gate(self) -> None:
@@ -235,15 +247,20 @@ class PlantNode(Node):
 
     # --- reset --------------------------------------------------------------------------
 
-    def _reset_error(self, theta: float, x0) -> str:
+    def _reset_error(self, theta, x0) -> str:
         """Why a reset request is invalid, or '' if it is fine."""
-        if math.isinf(theta):
-            return f'theta must be finite (NaN keeps the current one), got {theta}'
-        if len(x0) not in (0, N_X):
-            return f'x0 must have {N_X} values (or none to use the parameter), got {len(x0)}'
+        fam = self.family
+        if len(theta):
+            try:
+                fam.check_theta(theta)
+            except ValueError as err:
+                return f'{err} (or none to keep the current one)'
+        if len(x0) not in (0, fam.n_x):
+            return (f'x0 must have {fam.n_x} values (or none to use the parameter), got '
+                    f'{len(x0)}')
         if not all(math.isfinite(v) for v in x0):
             return f'x0 must be finite, got {list(x0)}'
-        bound = self.cfg.vdp.state_bound
+        bound = self.cfg.plant.state_bound
         if any(abs(v) > bound for v in x0):
             return f'x0 {list(x0)} lies outside state_bound {bound}'
         return ''
@@ -255,17 +272,16 @@ class PlantNode(Node):
             response.success, response.message = False, f'reset rejected: {why}'
             self.get_logger().warning(response.message)
             return response
-        y0 = self.plant.reset(None if math.isnan(request.theta) else request.theta,
-                              list(request.x0) or None)
-        self._held_u = self._requested_u = 0.0
+        y0 = self.plant.reset(list(request.theta) or None, list(request.x0) or None)
+        self._held_u = self._requested_u = self._zero_u
         self._n_resets += 1
         self._publish_info()
         self._end_gate()  # a reset before the lockstep start starts it
-        self._publish_y(y0, 0.0, False)
+        self._publish_y(y0, self._zero_u, False)
         if self._tick_timer is not None:  # realtime: y_1 one full period after y_0
             self._tick_timer.reset()
         response.success = True
-        response.message = (f'reset {self._n_resets}: theta={self.plant.theta}, '
+        response.message = (f'reset {self._n_resets}: theta={list(self.plant.theta)}, '
                             f'x0={self.plant.x.tolist()}')
         self.get_logger().info(response.message)
         return response

@@ -1,7 +1,7 @@
 """Parameters of the `plant` node, declared once on the fields of its configs.
 
 Pure Python (no rclpy). The simulated plant's parameters are the fields of
-:class:`~metampc_plant.vanderpol.VdpConfig`, the node's own those of :class:`PlantNodeConfig`
+:class:`~metampc_plant.simulator.PlantConfig`, the node's own those of :class:`PlantNodeConfig`
 (field metadata: default, description, range; see :mod:`metampc_common.params`). The node
 declares :data:`PARAMETERS`, hands the values to :func:`parse_params` and exits with one error
 line if that raises :class:`ParameterError`.
@@ -11,7 +11,7 @@ from typing import Dict, Mapping
 
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
-from metampc_plant.vanderpol import VdpConfig
+from metampc_plant.simulator import PlantConfig
 
 MODES = ('lockstep', 'realtime')
 
@@ -21,7 +21,8 @@ class PlantNodeConfig:
     """Everything the plant node is configured with.
 
     Attributes:
-        vdp: the simulated plant (see :class:`VdpConfig`).
+        plant: the simulated plant (see :class:`PlantConfig`), its defaults filled in from its
+            family.
         mode: 'lockstep' or 'realtime'.
         rate_hz: realtime sample rate, Hz; 0: 1/dt (see :meth:`sample_rate_hz`).
         publish_clock: lockstep only: publish /clock.
@@ -33,7 +34,7 @@ class PlantNodeConfig:
         start_subscribers: lockstep: subscribers on y before the first step.
     """
 
-    vdp: VdpConfig = field(default_factory=VdpConfig)
+    plant: PlantConfig = field(default_factory=lambda: PlantConfig().resolved())
     mode: str = param('lockstep', 'clock mode: lockstep steps per answered input and publishes '
                                   '/clock, realtime on a wall-clock timer', choices=MODES)
     rate_hz: float = param(0.0, 'realtime sample rate, Hz (0: 1/dt, i.e. real time)', ge=0)
@@ -51,10 +52,10 @@ class PlantNodeConfig:
 
     def sample_rate_hz(self) -> float:
         """The realtime rate: rate_hz, or 1/dt when it is 0."""
-        return self.rate_hz or 1.0 / self.vdp.dt
+        return self.rate_hz or 1.0 / self.plant.dt
 
 
-SECTIONS = (Section(VdpConfig), Section(PlantNodeConfig))
+SECTIONS = (Section(PlantConfig), Section(PlantNodeConfig))
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -64,8 +65,9 @@ def parse_params(values: Mapping[str, Value]) -> PlantNodeConfig:
     Raises:
         ParameterError: naming the first parameter that is of the wrong type or out of range.
     """
-    vdp_section, node_section = SECTIONS
-    return build(node_section, values, vdp=build(vdp_section, values))
+    plant_section, node_section = SECTIONS
+    plant = build(plant_section, values)
+    return build(node_section, values, plant=plant.resolved())
 
 
 __all__ = ['MODES', 'PlantNodeConfig', 'SECTIONS', 'PARAMETERS', 'parse_params',

@@ -6,6 +6,7 @@ import math
 import time
 
 from builtin_interfaces.msg import Time
+from family_equations import OUTPUT_GAIN, one_step
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
 import numpy as np
@@ -14,7 +15,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from metampc_plant.plant_params import parse_params, ParameterError, PARAMETERS
-from metampc_plant.vanderpol import VdpConfig, VdpPlant
+from metampc_plant.registry import get_family
+from metampc_plant.simulator import Plant, PlantConfig
 from metampc_testing import session_pids
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -68,8 +70,8 @@ def u_of(k: int) -> float:
 
 def test_lockstep_one_y_per_input_and_bit_exact(procs, probe):
     n = 500
-    cfg = VdpConfig(theta=0.7, dt=0.05, x0=(0.5, -0.2), process_noise_std=0.05,
-                    measurement_noise_std=0.01, seed=42)
+    cfg = PlantConfig(theta=(0.7,), dt=0.05, x0=(0.5, -0.2), process_noise_std=0.05,
+                      measurement_noise_std=0.01, seed=42)
     clocks, infos = [], []
     probe.node.create_subscription(Clock, '/clock', lambda m: clocks.append(ns(m.clock)),
                                    RELIABLE)
@@ -77,7 +79,7 @@ def test_lockstep_one_y_per_input_and_bit_exact(procs, probe):
     ctl = Controller(probe, lambda m: [(m.step, [u_of(m.step)])] if m.step < n else [])
     # A long input_timeout: every step below must have been answered, none timed out.
     proc = start_plant(procs, {
-        'theta': cfg.theta, 'dt': cfg.dt, 'x0': list(cfg.x0), 'seed': cfg.seed,
+        'theta': list(cfg.theta), 'dt': cfg.dt, 'x0': list(cfg.x0), 'seed': cfg.seed,
         'process_noise_std': cfg.process_noise_std,
         'measurement_noise_std': cfg.measurement_noise_std, 'input_timeout': 30.0})
     probe.wait_for(lambda: len(ctl.ys) > n and clocks and clocks[-1] == n * 50_000_000, 60.0,
@@ -91,8 +93,8 @@ def test_lockstep_one_y_per_input_and_bit_exact(procs, probe):
     assert set(np.diff(clocks)) == {50_000_000}
 
     # Same seed, same inputs: the node reproduces the core bit for bit.
-    plant = VdpPlant(cfg)
-    expected = [plant.output()] + [plant.step(u_of(k)) for k in range(n)]
+    plant = Plant(cfg)
+    expected = [plant.output()] + [plant.step([u_of(k)]) for k in range(n)]
     assert np.array_equal(np.array([list(m.y) for m in ys]), np.array(expected))
     u_expected = [0.0] + [min(max(u_of(k), -1.0), 1.0) for k in range(n)]
     assert [m.u_applied[0] for m in ys] == u_expected
@@ -100,11 +102,54 @@ def test_lockstep_one_y_per_input_and_bit_exact(procs, probe):
     assert not any(m.diverged for m in ys)
 
     info = infos[-1]
-    assert (info.theta, info.dt, info.substeps, info.seed) == (0.7, 0.05, 10, 42)
+    assert (info.family, list(info.theta), info.dt, info.substeps, info.seed) == (
+        'vanderpol', [0.7], 0.05, 10, 42)
+    assert (list(info.u_min), list(info.u_max), list(info.output_names),
+            list(info.input_names), list(info.theta_names)) == (
+        [-1.0], [1.0], ['x1', 'x2'], ['u'], ['theta'])
     assert (info.clock_mode, info.rate_hz, info.diverged, info.n_resets) == ('lockstep', 0.0,
                                                                              False, 0)
     out = stop_cleanly(procs, proc)
     assert '0 stale, 0 rejected, 0 timeouts' in out, out
+
+
+FAMILY_RUNS = {  # family: (theta, x0), a target drawn by hand from each prior
+    'vanderpol': ([0.8], [0.5, -0.2]),
+    'duffing': ([0.2, -0.6, 1.1], [0.3, 0.0]),
+    'pendulum': ([0.9, 1.2, 0.1], [0.4, 0.0]),
+    'quadruple_tank': ([0.7, 0.4], [12.4, 12.7, 1.8, 1.4]),
+}
+
+
+@pytest.mark.parametrize('name', sorted(FAMILY_RUNS))
+def test_lockstep_node_matches_scipy_for_each_family(procs, probe, name):
+    """The node in lockstep, answered with a known input sequence within the bounds, against
+    scipy (DOP853, rtol 1e-12) of the equations in test/family_equations.py: each y_{k+1}
+    within 1e-6 of the one-step integration from y_k (y = x families), or, for the quadruple
+    tank whose tank 3 and 4 levels are not measured, of the reference integrated along the
+    whole input sequence from x0."""
+    n = 40
+    family = get_family(name)
+    theta, x0 = FAMILY_RUNS[name]
+    levels = np.random.default_rng(5).uniform(family.u_min, family.u_max,
+                                              size=(n // 5, family.n_u))
+    inputs = np.repeat(levels, 5, axis=0)
+    ctl = Controller(probe, lambda m: [(m.step, list(inputs[m.step]))] if m.step < n else [])
+    proc = start_plant(procs, {'family': name, 'theta': theta, 'x0': x0, 'input_timeout': 30.0})
+    probe.wait_for(lambda: len(ctl.ys) > n, 60.0, f'{n} answered steps of {name}')
+    ys = np.array([list(m.y) for m in ctl.ys[:n + 1]])
+    assert [m.step for m in ctl.ys[:n + 1]] == list(range(n + 1))
+    dt = family.dt
+    gain = OUTPUT_GAIN.get(name, np.eye(family.n_x))
+    x_ref = np.asarray(x0, dtype=float)
+    worst = 0.0
+    for k in range(n):
+        start = ys[k] if name in ('vanderpol', 'duffing', 'pendulum') else x_ref
+        x_ref = one_step(name, start, inputs[k], theta, dt)
+        worst = max(worst, np.abs(ys[k + 1] - gain @ x_ref).max())
+        assert list(ctl.ys[k + 1].u_applied) == list(inputs[k])
+    assert worst < 1e-6, f'{name}: worst error {worst:.2e}'
+    stop_cleanly(procs, proc)
 
 
 def test_start_gate_waits_for_the_named_number_of_subscribers(procs, probe):
@@ -146,7 +191,7 @@ def test_lockstep_bad_and_stale_inputs_and_timeout(procs, probe):
     assert proc.poll() is None
     out = stop_cleanly(procs, proc)
     assert 'ignored an input for step 5: waiting for step 0' in out
-    assert 'rejected the input for step 1 (non-finite input nan)' in out
+    assert 'rejected the input for step 1 (non-finite input [nan])' in out
     assert 'no input for step 7 within 0.5 s' in out
     assert '2 stale, 4 rejected' in out, out
 
@@ -187,8 +232,8 @@ def test_realtime_rate_and_held_input(procs, probe):
     assert '0 stale, 2 rejected' in out, out
 
 
-def call(probe, client, theta=NAN, x0=()):
-    future = client.call_async(ResetPlant.Request(theta=theta, x0=list(x0)))
+def call(probe, client, theta=(), x0=()):
+    future = client.call_async(ResetPlant.Request(theta=list(theta), x0=list(x0)))
     probe.wait_for(future.done, 10.0, 'the reset response')
     return future.result()
 
@@ -219,15 +264,15 @@ def test_divergence_flagged_then_reset(procs, probe):
     probe.wait_for(lambda: infos and infos[-1].diverged, 10.0, 'plant_info diverged')
 
     assert client.wait_for_service(timeout_sec=10.0)
-    for bad in [dict(x0=[1.0, 2.0, 3.0]), dict(x0=[NAN, 0.0]), dict(theta=INF),
-                dict(x0=[20.0, 0.0])]:
+    for bad in [dict(x0=[1.0, 2.0, 3.0]), dict(x0=[NAN, 0.0]), dict(theta=[INF]),
+                dict(theta=[0.5, 0.5]), dict(x0=[20.0, 0.0])]:
         result = call(probe, client, **bad)
         assert not result.success and result.message.startswith('reset rejected'), bad
     assert proc.poll() is None
 
     phase['drive'] = False
     n_before = len(ctl.ys)
-    result = call(probe, client, theta=0.5, x0=[0.5, 0.0])
+    result = call(probe, client, theta=[0.5], x0=[0.5, 0.0])
     assert result.success, result.message
     probe.wait_for(lambda: any(m.step == 5 and not m.diverged for m in ctl.ys[n_before:]),
                    10.0, 'the first steps after the reset')
@@ -235,7 +280,7 @@ def test_divergence_flagged_then_reset(procs, probe):
     assert [m.step for m in after[:6]] == list(range(6))
     assert list(after[0].y) == [0.5, 0.0] and list(after[0].u_applied) == [0.0]
     probe.wait_for(lambda: not infos[-1].diverged, 10.0, 'plant_info after the reset')
-    assert (infos[-1].n_resets, infos[-1].theta) == (1, 0.5)
+    assert (infos[-1].n_resets, list(infos[-1].theta)) == (1, [0.5])
     out = stop_cleanly(procs, proc)
     assert out.count('plant diverged at step') == 1, out
 
@@ -254,7 +299,7 @@ def test_plant_alone_keeps_stepping_in_a_namespace(procs, probe):
     assert steps == list(range(steps[0], steps[0] + len(steps)))
     assert all(list(m.u_applied) == [0.0] for m in ys)
     out = stop_cleanly(procs, proc)
-    assert 'no input for step 0 within 0.2 s; holding u = 0.0' in out
+    assert 'no input for step 0 within 0.2 s; holding u = [0.0]' in out
 
 
 def test_sigint_while_stepping_fast(procs, probe):
@@ -269,14 +314,17 @@ def test_sigint_while_stepping_fast(procs, probe):
 
 
 BAD_PARAMS = {
-    'dt': ({'dt': -0.1}, 'dt must be > 0'),
+    'dt': ({'dt': -0.1}, 'dt must be >= 0'),
     'substeps': ({'substeps': 0}, 'substeps'),
     'bounds': ({'u_min': 2.0}, 'u_min <= u_max'),
     'mode': ({'mode': 'fast'}, 'mode must be one of'),
-    'x0': ({'x0': [1.0]}, 'x0 must be a list of 2'),
+    'x0': ({'x0': [1.0]}, 'x0 of family vanderpol needs 2 values'),
+    'family': ({'family': 'tank'}, "unknown plant family 'tank'; installed: duffing"),
+    'theta': ({'family': 'duffing', 'theta': [0.1]}, 'theta of family duffing needs 3'),
+    'wide': ({'family': 'pendulum', 'u_max': 5.0}, 'outside those of family pendulum'),
     'rate': ({'rate_hz': -5.0}, 'rate_hz'),
     'timeout': ({'input_timeout': -1.0}, 'input_timeout'),
-    'type': ({'theta': 'abc'}, 'theta must be a number'),
+    'type': ({'theta': 'abc'}, 'theta must be a list of numbers'),
     'start': ({'start_timeout': -1}, 'start_timeout'),
     # Not even parsed by rcl (YAML lists hold one type): rcl logs a generic line first.
     'yaml': ({'x0': [1, 0.5]}, 'invalid arguments: Couldn\'t parse parameter override rule'),
@@ -302,11 +350,16 @@ def _raw(**overrides):
 
 def test_parse_params_defaults_and_coercion():
     cfg = parse_params(_raw())
-    assert cfg.vdp == VdpConfig() and cfg.mode == 'lockstep'
-    assert cfg.sample_rate_hz() == 1 / cfg.vdp.dt
-    cfg = parse_params(_raw(dt=1, x0=[1, 0], rate_hz=50, mode='realtime', start_timeout=0))
-    assert cfg.vdp.dt == 1.0 and cfg.vdp.x0 == (1.0, 0.0) and cfg.rate_hz == 50.0
+    assert cfg.plant == PlantConfig(theta=(0.0,), dt=0.1, x0=(0.0, 0.0), u_min=(-1.0,),
+                                    u_max=(1.0,), state_bound=10.0)
+    assert cfg.mode == 'lockstep' and cfg.sample_rate_hz() == 1 / cfg.plant.dt
+    cfg = parse_params(_raw(dt=1, x0=[1, 0], rate_hz=50, mode='realtime', start_timeout=0,
+                            theta=0.5))
+    assert cfg.plant.dt == 1.0 and cfg.plant.x0 == (1.0, 0.0) and cfg.rate_hz == 50.0
+    assert cfg.plant.theta == (0.5,), 'a lone number is a theta of one component'
     assert cfg.start_timeout == 0.0 and cfg.input_timeout == 1.0
+    cfg = parse_params(_raw(family='quadruple_tank', u_max=[5, 6]))
+    assert (cfg.plant.u_min, cfg.plant.u_max, cfg.plant.dt) == ((0.0, 0.0), (5.0, 6.0), 5.0)
 
 
 @pytest.mark.parametrize('overrides,match', [

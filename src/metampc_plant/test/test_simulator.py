@@ -1,10 +1,12 @@
-"""The van der Pol core against references: scipy's RK45, the closed form at theta = 0, itself."""
+"""The simulator core (van der Pol, the paper's family) against references: scipy's RK45, the
+closed form at theta = 0, itself (batch vs single, seeded noise)."""
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from metampc_plant.vanderpol import (BatchVdp, rk4_sample, rk4_sample_scalar, sample_thetas,
-                                     simulate, vdp_rhs, VdpConfig, VdpPlant)
+from metampc_plant.families.vanderpol import FAMILY as VDP
+from metampc_plant.integrate import rk4_components, rk4_sample
+from metampc_plant.simulator import BatchPlant, Plant, PlantConfig, simulate
 
 DT = 0.05
 N_SAMPLES = 400  # 20 s at DT
@@ -32,10 +34,10 @@ def test_default_substeps_match_rk45_within_1e6():
     thetas = [-1.5, -0.5, 0.0, 0.7, 2.0]
     x0 = np.array([[0.5, -0.3]] * len(thetas))
     u = np.tile(held_inputs(N_SAMPLES, seed=1), (len(thetas), 1))
-    cfg = VdpConfig(dt=DT)  # default substeps
+    cfg = PlantConfig(dt=DT)  # default substeps
     u_out, y, valid = simulate(thetas, x0, u, cfg)
     assert valid.all()
-    np.testing.assert_array_equal(u_out[:, 1:], u)
+    np.testing.assert_array_equal(u_out[:, 1:, 0], u)
     for b, theta in enumerate(thetas):
         ref = reference(theta, x0[b], u[b], DT)
         err = np.abs(y[b] - ref).max()
@@ -45,14 +47,14 @@ def test_default_substeps_match_rk45_within_1e6():
 def test_theta_zero_is_the_harmonic_oscillator():
     # x1'' = -x1 + u: with u held over a sample, the state rotates about (u, 0) by dt rad.
     u = held_inputs(N_SAMPLES, seed=2, hold=7)
-    plant = VdpPlant(VdpConfig(theta=0.0, dt=DT, x0=(1.0, -0.5)))
+    plant = Plant(PlantConfig(theta=(0.0,), dt=DT, x0=(1.0, -0.5)))
     c, s = np.cos(DT), np.sin(DT)
     x = np.array([1.0, -0.5])
     worst = 0.0
     for u_k in u:
         d = x[0] - u_k
         x = np.array([u_k + c * d + s * x[1], -s * d + c * x[1]])
-        worst = max(worst, np.abs(plant.step(u_k) - x).max())
+        worst = max(worst, np.abs(plant.step([u_k]) - x).max())
     assert worst <= 1e-9
 
 
@@ -60,40 +62,42 @@ def test_batch_equals_single_simulations_bit_for_bit():
     thetas = [-1.5, -0.5, 0.0, 0.7, 2.0, -1.2]
     x0 = np.array([[0.5, -0.3], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.5], [2.0, 0.0], [2.5, 2.5]])
     u = np.stack([held_inputs(200, seed=b, amplitude=1.5) for b in range(len(thetas))])
-    cfg = VdpConfig(dt=DT, state_bound=5.0)
+    cfg = PlantConfig(dt=DT, state_bound=5.0)
     _, y_batch, valid = simulate(thetas, x0, u, cfg)
     assert not valid[-1].all(), 'the last system should escape (it starts outside its cycle)'
     for b, theta in enumerate(thetas):
-        plant = VdpPlant(VdpConfig(theta=theta, dt=DT, x0=tuple(x0[b]), state_bound=5.0))
-        y_single = np.array([plant.output()] + [plant.step(u_k) for u_k in u[b]])
+        plant = Plant(PlantConfig(theta=(theta,), dt=DT, x0=tuple(x0[b]), state_bound=5.0))
+        y_single = np.array([plant.output()] + [plant.step([u_k]) for u_k in u[b]])
         assert np.array_equal(y_batch[b], y_single), f'system {b} (theta={theta}) differs'
         assert plant.diverged == (not valid[b, -1])
 
 
 def test_scalar_and_vector_kernels_agree_bit_for_bit():
     rng = np.random.default_rng(3)
-    x, u, theta = rng.normal(size=(50, 2)), rng.normal(size=50), rng.normal(size=50)
-    batch = rk4_sample(x, u, theta, 0.1, 7)
-    single = [rk4_sample_scalar(*x[b], u[b], theta[b], 0.1, 7) for b in range(50)]
+    x, u, theta = rng.normal(size=(50, 2)), rng.normal(size=(50, 1)), rng.normal(size=(50, 1))
+    batch = rk4_sample(VDP, x, u, theta, 0.1, 7)
+    single = [[float(v) for v in rk4_components(VDP, tuple(x[b]), (float(u[b, 0]),),
+                                                (float(theta[b, 0]),), 0.1, 7)]
+              for b in range(50)]
+    assert batch.shape == (50, 2)
     assert np.array_equal(batch, np.array(single))
-    assert vdp_rhs(x, u, theta).shape == (50, 2)
 
 
 def test_single_plant_equals_a_batch_of_one_with_noise():
-    cfg = VdpConfig(theta=0.7, dt=DT, x0=(0.2, 0.1), process_noise_std=0.1,
-                    measurement_noise_std=0.05, seed=11)
+    cfg = PlantConfig(theta=(0.7,), dt=DT, x0=(0.2, 0.1), process_noise_std=0.1,
+                      measurement_noise_std=0.05, seed=11)
     u = held_inputs(300, seed=4, amplitude=2.0)
-    plant, batch = VdpPlant(cfg), BatchVdp([cfg.theta], cfg, np.array([cfg.x0]))
+    plant, batch = Plant(cfg), BatchPlant(np.array([cfg.theta]), cfg, np.array([cfg.x0]))
     for u_k in u:
-        assert np.array_equal(plant.step(u_k), batch.step(np.array([u_k]))[0])
+        assert np.array_equal(plant.step([u_k]), batch.step(np.array([[u_k]]))[0])
 
 
 def test_noise_is_seeded():
     def run(seed):
-        cfg = VdpConfig(theta=1.0, dt=DT, process_noise_std=0.1, measurement_noise_std=0.1,
-                        seed=seed)
-        plant = VdpPlant(cfg)
-        return np.array([plant.step(0.1) for _ in range(50)])
+        cfg = PlantConfig(theta=(1.0,), dt=DT, process_noise_std=0.1,
+                          measurement_noise_std=0.1, seed=seed)
+        plant = Plant(cfg)
+        return np.array([plant.step([0.1]) for _ in range(50)])
     assert np.array_equal(run(5), run(5))
     assert not np.allclose(run(5), run(6))
 
@@ -106,22 +110,22 @@ def test_process_noise_variance_is_std_squared_times_dt(simulator):
     estimate of that variance with a relative standard error of sqrt(2 / N) = 1 %."""
     std, dt, theta, n = 0.3, 0.05, 1.0, 20000
     # One RK4 step per sample: the noise does not depend on it, and it is 10x cheaper.
-    cfg = VdpConfig(theta=theta, dt=dt, substeps=1, x0=(1.0, 0.0), process_noise_std=std,
-                    seed=3)
+    cfg = PlantConfig(theta=(theta,), dt=dt, substeps=1, x0=(1.0, 0.0), process_noise_std=std,
+                      seed=3)
     if simulator == 'single':
-        plant, noise = VdpPlant(cfg), []
+        plant, noise = Plant(cfg), []
         for _ in range(n):
-            x1, x2 = rk4_sample_scalar(*plant.x, 0.0, theta, dt, cfg.substeps)
-            y = plant.step(0.0)
+            x1, x2 = rk4_components(VDP, tuple(plant.x), (0.0,), (theta,), dt, cfg.substeps)
+            y = plant.step([0.0])
             assert y[0] == x1, 'x1 carries no noise'
             noise.append(y[1] - x2)
         assert not plant.diverged
     else:
         batch = 500     # 40 steps of 500 systems
-        sim = BatchVdp(np.full(batch, theta), cfg)
+        sim = BatchPlant(np.full(batch, theta), cfg)
         noise = []
         for _ in range(n // batch):
-            free = rk4_sample(sim.x, np.zeros(batch), sim.theta, dt, cfg.substeps)
+            free = rk4_sample(VDP, sim.x, np.zeros((batch, 1)), sim.theta, dt, cfg.substeps)
             y = sim.step(np.zeros(batch))
             assert np.array_equal(y[:, 0], free[:, 0]), 'x1 carries no noise'
             noise.extend(y[:, 1] - free[:, 1])
@@ -137,7 +141,7 @@ def test_process_noise_variance_is_std_squared_times_dt(simulator):
 def test_escaping_state_is_flagged_never_nan(state_bound):
     # theta < 0: the limit cycle is unstable and a state outside it escapes in finite time;
     # with a huge bound the state overflows to inf/NaN before it leaves the box.
-    cfg = VdpConfig(dt=0.1, state_bound=state_bound)
+    cfg = PlantConfig(dt=0.1, state_bound=state_bound)
     u = np.zeros((2, 300))
     _, y, valid = simulate([-1.5, -1.5], np.array([[2.5, 0.0], [0.5, 0.0]]), u, cfg)
     assert np.isfinite(y).all()
@@ -148,38 +152,43 @@ def test_escaping_state_is_flagged_never_nan(state_bound):
     assert (y[0, first_bad:] == y[0, first_bad - 1]).all()
     assert np.abs(y[0]).max() <= state_bound
 
-    plant = VdpPlant(VdpConfig(theta=-1.5, dt=0.1, x0=(2.5, 0.0), state_bound=state_bound))
-    outputs = [plant.step(0.0) for _ in range(300)]
+    plant = Plant(PlantConfig(theta=(-1.5,), dt=0.1, x0=(2.5, 0.0), state_bound=state_bound))
+    outputs = [plant.step([0.0]) for _ in range(300)]
     assert plant.diverged and np.isfinite(outputs).all()
-    plant.reset(theta=0.5, x0=(0.1, 0.0))
-    assert not plant.diverged and plant.step_index == 0 and plant.theta == 0.5
+    plant.reset(theta=(0.5,), x0=(0.1, 0.0))
+    assert not plant.diverged and plant.step_index == 0 and plant.theta == (0.5,)
 
 
 def test_saturation_and_non_finite_inputs():
-    plant = VdpPlant(VdpConfig(u_min=-0.5, u_max=0.8))
-    assert plant.saturate(2.0) == (0.8, True)
-    assert plant.saturate(-2.0) == (-0.5, True)
-    assert plant.saturate(0.1) == (0.1, False)
-    for bad in (float('nan'), float('inf')):
+    plant = Plant(PlantConfig(u_min=(-0.5,), u_max=(0.8,)))
+    assert plant.saturate([2.0]) == ((0.8,), True)
+    assert plant.saturate([-2.0]) == ((-0.5,), True)
+    assert plant.saturate([0.1]) == ((0.1,), False)
+    for bad in ([float('nan')], [float('inf')], [0.1, 0.2]):
         with pytest.raises(ValueError):
             plant.step(bad)
     with pytest.raises(ValueError):
-        BatchVdp([0.0], VdpConfig()).step(np.array([np.nan]))
+        BatchPlant([0.0], PlantConfig()).step(np.array([np.nan]))
 
 
 @pytest.mark.parametrize('field,value,match', [
-    ('dt', 0.0, 'dt'), ('dt', -0.1, 'dt'), ('dt', float('inf'), 'dt'),
-    ('substeps', 0, 'substeps'), ('substeps', 2.5, 'substeps'), ('theta', float('nan'), 'theta'),
-    ('x0', (0.0,), 'x0'), ('x0', (0.0, float('nan')), 'x0'), ('u_min', 2.0, 'u_min <= u_max'),
+    ('dt', -0.1, 'dt'), ('dt', float('inf'), 'dt'),
+    ('substeps', 0, 'substeps'), ('substeps', 2.5, 'substeps'),
+    ('theta', (float('nan'),), 'theta'), ('theta', (0.1, 0.2), 'theta of family vanderpol'),
+    ('x0', (0.0,), 'x0'), ('x0', (0.0, float('nan')), 'x0'), ('x0', (11.0, 0.0), 'x0'),
+    ('u_max', (-1.5,), 'u_min <= u_max'), ('u_min', (-2.0,), 'outside those of family'),
+    ('u_max', (1.0, 1.0), 'u_max of family'),
     ('process_noise_std', -1.0, 'noise'), ('measurement_noise_std', float('nan'), 'noise'),
-    ('state_bound', 0.0, 'state_bound'),
+    ('state_bound', -1.0, 'state_bound'), ('family', 'vanderpool', 'unknown plant family'),
     ('seed', -1, 'seed')])
 def test_bad_config_is_rejected(field, value, match):
     with pytest.raises(ValueError, match=match):
-        VdpConfig(**{field: value}).validate()
+        PlantConfig(**{field: value}).validate()
 
 
-def test_sample_thetas_is_seeded_normal():
-    a = sample_thetas(10000, np.random.default_rng(0))
-    assert np.array_equal(a, sample_thetas(10000, np.random.default_rng(0)))
+def test_the_paper_prior_is_seeded_standard_normal():
+    a = VDP.sample_theta(np.random.default_rng(0), 10000)
+    assert a.shape == (10000, 1)
+    assert np.array_equal(a, VDP.sample_theta(np.random.default_rng(0), 10000))
+    assert np.array_equal(a[:, 0], np.random.default_rng(0).standard_normal(10000))
     assert abs(a.mean()) < 0.05 and abs(a.std() - 1.0) < 0.05

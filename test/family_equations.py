@@ -1,0 +1,46 @@
+"""The shipped plant families' equations written out again from docs/families.md (not imported
+from the families), and their integration by scipy: the independent reference of the family
+tests (core and node)."""
+import math
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+
+def vanderpol(x, u, th):
+    return [x[1], th[0] * x[1] * (1 - x[0] ** 2) - x[0] + u[0]]
+
+
+def duffing(x, u, th):
+    delta, alpha, beta = th
+    return [x[1], -delta * x[1] - alpha * x[0] - beta * x[0] ** 3 + u[0]]
+
+
+def pendulum(x, u, th):
+    m, length, b = th
+    return [x[1], -(9.81 / length) * math.sin(x[0]) - b / (m * length ** 2) * x[1]
+            + u[0] / (m * length ** 2)]
+
+
+def quadruple_tank(x, u, th):
+    big_a = [28.0, 32.0, 28.0, 32.0]
+    a = [0.071, 0.057, 0.071, 0.057]
+    k1, k2 = 3.33, 3.35
+    g1, g2 = th
+    s = [math.sqrt(2 * 981 * max(h, 0.0)) for h in x]
+    return [-a[0] / big_a[0] * s[0] + a[2] / big_a[0] * s[2] + g1 * k1 / big_a[0] * u[0],
+            -a[1] / big_a[1] * s[1] + a[3] / big_a[1] * s[3] + g2 * k2 / big_a[1] * u[1],
+            -a[2] / big_a[2] * s[2] + (1 - g2) * k2 / big_a[2] * u[1],
+            -a[3] / big_a[3] * s[3] + (1 - g1) * k1 / big_a[3] * u[0]]
+
+
+EQUATIONS = {'vanderpol': vanderpol, 'duffing': duffing, 'pendulum': pendulum,
+             'quadruple_tank': quadruple_tank}
+OUTPUT_GAIN = {'quadruple_tank': np.array([[0.5, 0, 0, 0], [0, 0.5, 0, 0]])}
+
+
+def one_step(name, x, u, theta, dt):
+    """The state after dt from x with u held, by DOP853 at tight tolerances."""
+    sol = solve_ivp(lambda _t, z: EQUATIONS[name](z, u, theta), (0.0, dt), x,
+                    method='DOP853', rtol=1e-12, atol=1e-12)
+    return sol.y[:, -1]
