@@ -1,11 +1,14 @@
 #!/usr/bin/env python3
 """Latency of the controller's tick, y in -> u out; prints ONE JSON line.
 
-Model: the default NSSM size (encoder 128-128, n_z = 5, H = 10) with the hand-built weights of
-metampc_controller.manual_model (the plant linearised at its theta; a dense matrix product
-costs the same whatever the values), latent MPC with N = 20 on the paper's set-point task,
-|u| <= 1, van der Pol plant core in the loop, dt = 0.1 s, one plant reset per 300 samples
-(the 30 s task). Each run of `ticks` answered samples starts after the model is in use.
+Model: the default NSSM size (encoder 128-128, n_z = 5, H = 10) with, for van der Pol, the
+hand-built weights of metampc_controller.manual_model (the plant linearised at its theta), for
+another plant family (`--family`, docs/families.md) seeded random weights of its numbers of
+inputs and outputs (a dense matrix product costs the same whatever the values); latent MPC
+with N = 20, the family's input bounds and sample time, van der Pol: the paper's set-point
+task, another family: a set-point at its reference on its tracked outputs; the plant core in
+the loop, one plant reset per 300 samples. Each run of `ticks` answered samples starts after
+the model is in use.
 
 core: the controller node object in this process, its callbacks called directly (no spinning,
 no other process): the timer tick, then PlantOutput y_k in -> ControlInput u_k published, then
@@ -23,64 +26,109 @@ The processes run in a ROS domain of their own (metampc_bringup.domain) and are 
 before the script returns. Wall-clock times include preemption by other processes: see the
 load average. Goal: core tick p99 <= 2 ms (wall clock; the CPU time shows what preemption adds).
 
-Usage: python scripts/bench_controller.py [--ticks 2000] [--ros-ticks 1000] [--theta 0.5]
+Usage: python scripts/bench_controller.py [--ticks 2000] [--ros-ticks 1000]
+       [--family vanderpol] [--theta 0.5 (comma-separated; default: 0.5 for van der Pol,
+       else the family's nominal)]
 """
 import argparse
+from dataclasses import dataclass
 import json
 import os
 import sys
 import tempfile
 import time
+from typing import List
 
 import numpy as np
 
 from metampc_bringup.percentiles import percentiles
 from metampc_bringup.weights_messages import manual_weights
 
-DT = 0.1
 EPISODE = 300       # samples per plant episode: the paper's 30 s task
+NSSM = {'history': 10, 'n_z': 5, 'hidden': (128, 128)}
 
 
 US = dict(points=(50, 99, 100), scale=1e6, digits=1)     # p50, p99, max of s in us
 
 
-def model_message(theta: float):
-    """The default-size hand-built NSSM as an NssmWeights message."""
-    return manual_weights(theta, DT, history=10, n_z=5, hidden=(128, 128))
+@dataclass
+class Setup:
+    """The benchmarked task: plant family, theta, the controller's parameters."""
+
+    family: str
+    theta: List[float]
+
+    @property
+    def plant_family(self):
+        from metampc_plant.registry import get_family
+        return get_family(self.family)
+
+    @property
+    def dt(self) -> float:
+        return self.plant_family.dt
+
+    def controller_params(self) -> dict:
+        """The family's bounds and tracked outputs; van der Pol: the node's defaults."""
+        fam = self.plant_family
+        if fam.name == 'vanderpol':
+            return {}
+        tracked = list(fam.tracked)
+        return {'u_min': list(fam.u_min), 'u_max': list(fam.u_max), 'rate_hz': 1.0 / fam.dt,
+                'q': [1.0 if j in tracked else 0.0 for j in range(fam.n_y)],
+                'reference': 'setpoint', 'reference_outputs': tracked,
+                'reference_values': [float(fam.reference[tracked[0]])]}
+
+    def model_message(self):
+        """The default-size NSSM as an NssmWeights message (see the module docstring)."""
+        fam = self.plant_family
+        if fam.name == 'vanderpol':
+            return manual_weights(self.theta[0], fam.dt, **NSSM)
+        from metampc_controller.normalisation import Normalisation
+        from metampc_controller.nssm import init_params, NssmConfig
+        from metampc_controller.weights_codec import fields_from_weights
+        from metampc_msgs.msg import NssmWeights
+        config = NssmConfig(n_u=fam.n_u, n_y=fam.n_y, **NSSM)
+        lo, hi = np.asarray(fam.u_min), np.asarray(fam.u_max)
+        norm = Normalisation(0.5 * (lo + hi), 0.5 * (hi - lo), np.asarray(fam.reference),
+                             np.ones(fam.n_y))
+        return NssmWeights(version=1, method='manual', stage='adapted',
+                           **fields_from_weights(config, norm, init_params(config, seed=0)))
 
 
 class PlantLoop:
     """The plant core as the plant node runs it: y_k messages, a reset every EPISODE samples."""
 
-    def __init__(self, theta: float):
+    def __init__(self, setup: Setup):
         from metampc_plant.simulator import Plant, PlantConfig
-        self.plant = Plant(PlantConfig(theta=(theta,), dt=DT))
-        self.u = 0.0            # input held over (k-1, k]
+        self.plant = Plant(PlantConfig(family=setup.family, theta=tuple(setup.theta)))
+        self.zero = [0.0] * self.plant.family.n_u
+        self.u = self.zero      # input held over (k-1, k]
         self.y = self.plant.output()
 
     def message(self, stamp_ns: int):
         from builtin_interfaces.msg import Time
         from metampc_msgs.msg import PlantOutput
-        msg = PlantOutput(step=self.plant.step_index, y=self.y.tolist(), u_applied=[self.u])
+        msg = PlantOutput(step=self.plant.step_index, y=self.y.tolist(), u_applied=self.u)
         msg.header.stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
         return msg
 
-    def advance(self, u: float) -> None:
+    def advance(self, u) -> None:
         if self.plant.step_index + 1 >= EPISODE:
-            self.y, self.u = self.plant.reset(), 0.0
+            self.y, self.u = self.plant.reset(), self.zero
         else:
-            self.u = self.plant.saturate([u])[0][0]
-            self.y = self.plant.step([self.u])
+            self.u = list(self.plant.saturate(list(u))[0])
+            self.y = self.plant.step(self.u)
 
 
-def bench_core(ticks: int, theta: float) -> dict:
+def bench_core(ticks: int, setup: Setup) -> dict:
     """Drive the node's callbacks in-process (see the module docstring)."""
     import rclpy
     from metampc_msgs.msg import ControlInput, MpcStatus
     from rclpy.executors import SingleThreadedExecutor
 
+    from metampc_bringup.processes import ros_args
     from metampc_controller.controller_node import ControllerNode
-    rclpy.init()
+    rclpy.init(args=['bench', *ros_args(setup.controller_params(), None, None)])
     rclpy.logging.set_logger_level('controller', rclpy.logging.LoggingSeverity.WARN)
     node = ControllerNode()
     # A listener in this process takes the published messages, so publishing serialises and
@@ -102,13 +150,13 @@ def bench_core(ticks: int, theta: float) -> dict:
     try:
         spin_until(lambda: node._pub_u.get_subscription_count()
                    and node._pub_status.get_subscription_count(), 'listener')
-        node._build(model_message(theta))     # synchronously (the node builds on a thread)
+        node._build(setup.model_message())    # synchronously (the node builds on a thread)
         if node.core.model is None:
             raise RuntimeError(f'the benchmark model was rejected: {node.core.model_status}')
-        loop = PlantLoop(theta)
+        loop = PlantLoop(setup)
         wall, cpu = [], []
         for k in range(ticks + 50):            # 50 warm-up ticks
-            msg = loop.message(k * round(DT * 1e9))
+            msg = loop.message(k * round(setup.dt * 1e9))
             node._on_timer()                   # the tick of time k dt finds no new y: pending
             c0, t0 = time.thread_time(), time.perf_counter()
             node._on_y(msg)                    # y_k in -> u_k and MpcStatus out
@@ -116,7 +164,7 @@ def bench_core(ticks: int, theta: float) -> dict:
             if k >= 50:
                 wall.append(t1 - t0)
                 cpu.append(c1 - c0)
-            loop.advance(node._u_msg.u[0])
+            loop.advance(node._u_msg.u)
             spin_until(lambda: len(got_status) > k, f'status of tick {k}')
         status = got_status[50:]
         if len(status) != ticks or len(got_u) != ticks + 50:
@@ -140,7 +188,7 @@ def bench_core(ticks: int, theta: float) -> dict:
         rclpy.try_shutdown()
 
 
-def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
+def bench_ros(ticks: int, setup: Setup, timeout: float) -> dict:
     """The controller as a process, this script as its lockstep plant."""
     from metampc_common.qos import LATCHED, STREAM
     from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
@@ -149,7 +197,7 @@ def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
     from rosgraph_msgs.msg import Clock
 
     from metampc_bringup.processes import ProcessGroup
-    dt_ns = round(DT * 1e9)
+    dt_ns = round(setup.dt * 1e9)
     with tempfile.TemporaryDirectory(prefix='bench_controller_') as log_dir:
         group = ProcessGroup(log_dir)
         rclpy.init()
@@ -158,11 +206,12 @@ def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
         spin.add_node(node)
         try:
             ctl = group.start('metampc_controller', 'controller',
-                              params={'use_sim_time': True, 'rate_hz': 1.0 / DT})
+                              params={'use_sim_time': True, 'rate_hz': 1.0 / setup.dt,
+                                      **setup.controller_params()})
             pub_y = node.create_publisher(PlantOutput, 'y', STREAM)
             pub_clock = node.create_publisher(Clock, '/clock', STREAM)
             pub_weights = node.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
-            loop = PlantLoop(theta)
+            loop = PlantLoop(setup)
             sent, rtt, status, state = {}, {}, {}, {'n': 0, 'version': 0}
 
             def publish_y() -> None:
@@ -181,7 +230,7 @@ def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
                     return
                 rtt[n] = (received - sent[n], msg.model_version)
                 state['n'] = n + 1
-                loop.advance(msg.u[0])
+                loop.advance(msg.u)
                 publish_y()
 
             def on_status(msg: MpcStatus) -> None:
@@ -201,7 +250,7 @@ def bench_ros(ticks: int, theta: float, timeout: float) -> dict:
 
             spin_until(lambda: (pub_y.get_subscription_count() and sub_u.get_publisher_count()
                                 and sub_status.get_publisher_count()), 'controller')
-            pub_weights.publish(model_message(theta))
+            pub_weights.publish(setup.model_message())
             publish_y()
             spin_until(lambda: any(v == 1 for _, v in rtt.values()), 'model in use')
             first = state['n'] + 50                 # 50 warm-up ticks with the model
@@ -224,19 +273,32 @@ def main() -> int:
     parser.add_argument('--ticks', type=int, default=2000, help='in-process ticks to time')
     parser.add_argument('--ros-ticks', type=int, default=1000,
                         help='round trips to time through ROS (0: skip)')
-    parser.add_argument('--theta', type=float, default=0.5, help='plant damping')
+    parser.add_argument('--family', default='vanderpol', help='plant family (docs/families.md)')
+    parser.add_argument('--theta', help="theta, comma-separated (default: 0.5 for van der Pol, "
+                                        "else the family's nominal)")
     parser.add_argument('--timeout', type=float, default=180.0,
                         help='give up on the ROS round trips after this many s')
     args = parser.parse_args()
+    from metampc_plant.registry import get_family
+    try:
+        family = get_family(args.family)
+        theta = ([float(v) for v in args.theta.split(',')] if args.theta
+                 else [0.5] if family.name == 'vanderpol' else list(family.nominal_theta))
+        family.check_theta(theta)
+    except ValueError as err:
+        print(f'bench_controller: {err}', file=sys.stderr)
+        return 2
+    setup = Setup(family.name, theta)
     from metampc_bringup.domain import isolate
     domain = isolate()
-    out = {'nssm': {'hidden': [128, 128], 'n_z': 5, 'history': 10}, 'horizon': 20,
-           'theta': args.theta, 'ticks': args.ticks, 'ros_ticks': args.ros_ticks,
+    out = {'family': family.name, 'n_u': family.n_u, 'n_y': family.n_y,
+           'nssm': {'hidden': [128, 128], 'n_z': 5, 'history': 10}, 'horizon': 20,
+           'theta': theta, 'ticks': args.ticks, 'ros_ticks': args.ros_ticks,
            'loadavg_1min_start': round(os.getloadavg()[0], 2)}
-    out['core'] = bench_core(args.ticks, args.theta)
+    out['core'] = bench_core(args.ticks, setup)
     if args.ros_ticks:
         try:
-            out['ros'] = bench_ros(args.ros_ticks, args.theta, args.timeout)
+            out['ros'] = bench_ros(args.ros_ticks, setup, args.timeout)
         except RuntimeError as err:
             print(f'bench_controller (domain {domain}): {err}', file=sys.stderr)
             return 1
