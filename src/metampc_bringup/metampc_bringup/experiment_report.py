@@ -55,6 +55,7 @@ from .experiment_config import from_mapping
 from .metrics import compute_metrics
 from .offline import learner_config
 from .paired_stats import claim_cells, paired_claim
+from .plots import signal_labels
 from .recording_reader import read_recording
 from .run_series import RunSeries, SeriesBuilder
 
@@ -263,13 +264,16 @@ def plot_loss_figure(reports: List[Dict], methods: Sequence[str], kind: str, pat
 
 
 def plot_tracking(series: Dict[str, RunSeries], tracked: Sequence[int], path: str) -> str:
-    """Tracked outputs of each method's run and the reference, against time since reset.
+    """Tracked outputs of each method's run and the reference, then each input, against
+    time since reset; one panel each, named with units as plant_info gives them.
 
     The widest-swinging run is drawn first, so that a method that lost the plant (supervised,
     usually) lies behind the others instead of hiding them; the legend sits outside the axes.
     """
-    fig, axes = plt.subplots(len(tracked) + 1, 1, figsize=(9, 2.6 * (len(tracked) + 1)),
-                             sharex=True, squeeze=False)
+    first = next(iter(series.values()))
+    n_u = first.inputs.u.shape[1] if first.inputs.u.ndim == 2 else 1
+    rows = len(tracked) + n_u
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.6 * rows), sharex=True, squeeze=False)
     reference_drawn = False
 
     def spread(item) -> float:
@@ -288,14 +292,17 @@ def plot_tracking(series: Dict[str, RunSeries], tracked: Sequence[int], path: st
                 axes[row, 0].step((s.status.step + 1) * dt, s.status.y_ref0[:, i], 'k--',
                                   where='post', label='reference')
             reference_drawn = True
-        axes[-1, 0].step(s.inputs.step * dt, s.inputs.u[:, 0], where='post', label=method)
-    for row, i in enumerate(tracked):
-        axes[row, 0].set_ylabel(f'y[{i}]')
-        axes[row, 0].legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize='small')
-        axes[row, 0].grid(alpha=0.3)
-    axes[-1, 0].set_ylabel('u')
+        for j in range(n_u):
+            axes[len(tracked) + j, 0].step(s.inputs.step * dt, s.inputs.u[:, j], where='post',
+                                           label=method)
+    outputs = signal_labels(first, 'output', first.n_y)
+    labels = [outputs[i] for i in tracked] + signal_labels(first, 'input', n_u)
+    for row, ax in enumerate(axes[:, 0]):
+        ax.set_ylabel(labels[row])
+        ax.grid(alpha=0.3)
+        if row < len(tracked):
+            ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize='small')
     axes[-1, 0].set_xlabel('time since reset, s')
-    axes[-1, 0].grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -14,6 +14,17 @@ from .metrics import Bounds, episodes, keys, reference_pairs  # noqa: E402
 from .run_series import RunSeries  # noqa: E402
 
 
+def signal_labels(series: RunSeries, kind: str, n: int) -> List[str]:
+    """'name [unit]' of each of the n inputs (kind 'input') or outputs ('output') as the
+    plant's plant_info names them, else 'u[j]' / 'y[i]'."""
+    info = series.plant_info or {}
+    names, units = list(info.get(f'{kind}_names') or []), list(info.get(f'{kind}_units') or [])
+    if len(names) != n:
+        return [f"{'u' if kind == 'input' else 'y'}[{i}]" for i in range(n)]
+    units = units if len(units) == n else [''] * n
+    return [f'{name} [{unit}]' if unit else name for name, unit in zip(names, units)]
+
+
 def _save(fig, path: str) -> str:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -56,14 +67,15 @@ def plot_outputs(series: RunSeries, path: str,
     oi, si = reference_pairs(out.step, series.status.step)
     (t, label), ep = _time_axis(series), episodes(out.step)
     n_y = series.n_y
+    names = signal_labels(series, 'output', n_y)
     fig, axes = plt.subplots(n_y, 1, figsize=(9, 2.6 * n_y), sharex=True, squeeze=False)
     for i, ax in enumerate(axes[:, 0]):
-        ax.plot(_broken(t, ep), _broken(out.y[:, i], ep), label=f'y[{i}]')
+        ax.plot(_broken(t, ep), _broken(out.y[:, i], ep), label=names[i])
         if oi.size and i in tracked:
             ax.plot(_broken(t[oi], ep[oi]), _broken(series.status.y_ref0[si, i], ep[oi]),
-                    '--', drawstyle='steps-mid', label=f'reference[{i}]')
+                    '--', drawstyle='steps-mid', label='reference')
         _mark_resets(ax, t, ep)
-        ax.set_ylabel(f'y[{i}]')
+        ax.set_ylabel(names[i])
         ax.grid(True, alpha=0.3)
         ax.legend(loc='upper right')
     axes[-1, 0].set_xlabel(label)
@@ -73,35 +85,37 @@ def plot_outputs(series: RunSeries, path: str,
 
 def plot_inputs(series: RunSeries, path: str,
                 u_bounds: Optional[Bounds] = None) -> Optional[str]:
-    """Inputs against plant time: the applied input u_applied of sample k, held over
-    (k-1, k], as a staircase, and each requested input (ControlInput answering step k) drawn
-    at the end of the interval (k, k+1] it was meant for; input bounds dotted."""
+    """Inputs against plant time, one panel per input: the applied input u_applied of sample
+    k, held over (k-1, k], as a staircase, and each requested input (ControlInput answering
+    step k) drawn at the end of the interval (k, k+1] it was meant for; its bounds dotted."""
     out, inp = series.outputs, series.inputs
     if out.u_applied.size == 0:
         return None
     (t, label), ep = _time_axis(series), episodes(out.step)
-    fig, ax = plt.subplots(figsize=(9, 3.2))
-    for j in range(out.u_applied.shape[1]):
-        ax.plot(_broken(t, ep), _broken(out.u_applied[:, j], ep), drawstyle='steps-pre',
-                label=f'u_applied[{j}]')
+    n_u = out.u_applied.shape[1]
+    names = signal_labels(series, 'input', n_u)
+    fig, axes = plt.subplots(n_u, 1, figsize=(9, 3.2 * n_u), sharex=True, squeeze=False)
     # Output sample k+1 of the same episode, where the input answering step k was applied.
     applied_at = {key: i + 1 for i, key in enumerate(keys(out.step))
                   if i + 1 < out.step.size and ep[i + 1] == ep[i]}
     placed = [(applied_at[key], n) for n, key in enumerate(keys(inp.step))
               if key in applied_at]
-    if placed:
-        x, rows = (np.array(v) for v in zip(*placed))
-        for j in range(inp.u.shape[1]):
-            ax.plot(t[x], inp.u[rows, j], '.', ms=4, label=f'u requested[{j}]')
-    if u_bounds is not None:    # one value per input and side
-        for bound in np.unique(np.concatenate([np.atleast_1d(b) for b in u_bounds])):
-            ax.axhline(bound, color='k', lw=0.8, ls=':')
-    _mark_resets(ax, t, ep)
-    ax.set_xlabel(label)
-    ax.set_ylabel('u')
-    ax.set_title('Inputs')
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc='upper right')
+    for j, ax in enumerate(axes[:, 0]):
+        ax.plot(_broken(t, ep), _broken(out.u_applied[:, j], ep), drawstyle='steps-pre',
+                label='applied')
+        if placed and j < inp.u.shape[1]:
+            x, rows = (np.array(v) for v in zip(*placed))
+            ax.plot(t[x], inp.u[rows, j], '.', ms=4, label='requested')
+        if u_bounds is not None:    # this input's bounds (one number: every input's)
+            for bound in u_bounds:
+                values = np.atleast_1d(bound)
+                ax.axhline(values[j if values.size > 1 else 0], color='k', lw=0.8, ls=':')
+        _mark_resets(ax, t, ep)
+        ax.set_ylabel(names[j])
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc='upper right')
+    axes[-1, 0].set_xlabel(label)
+    axes[0, 0].set_title('Inputs')
     return _save(fig, path)
 
 

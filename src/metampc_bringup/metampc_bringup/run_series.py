@@ -183,4 +183,8 @@ class SeriesBuilder:
                 'theta', 'dt', 'substeps', 'u_min', 'u_max', 'process_noise_std',
                 'measurement_noise_std', 'seed', 'clock_mode', 'rate_hz', 'state_bound',
                 'diverged', 'n_resets')}
+            # Fields of the plant families (absent in recordings made before them).
+            plant_info.update({name: list(getattr(info, name, [])) for name in (
+                'theta_names', 'input_names', 'input_units', 'output_names', 'output_units')})
+            plant_info['family'] = str(getattr(info, 'family', ''))
         return RunSeries(outputs, inputs, status, progress, weights, plant_info)
