@@ -32,6 +32,16 @@ def _save(fig, path: str) -> str:
     return path
 
 
+def _finish_panels(fig, axes, xlabel: str, title: str, path: str) -> str:
+    """Grid and legend on each panel of a column, the time axis below, the title above; save."""
+    for ax in axes[:, 0]:
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc='upper right')
+    axes[-1, 0].set_xlabel(xlabel)
+    axes[0, 0].set_title(title)
+    return _save(fig, path)
+
+
 def _time_axis(series: RunSeries) -> Tuple[np.ndarray, str]:
     """Time of each output sample (shape [n]) and its axis label: a lockstep plant's header
     stamps are its sim time (n dt, never going back across resets), drawn as they are; a
@@ -76,11 +86,7 @@ def plot_outputs(series: RunSeries, path: str,
                     '--', drawstyle='steps-mid', label='reference')
         _mark_resets(ax, t, ep)
         ax.set_ylabel(names[i])
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc='upper right')
-    axes[-1, 0].set_xlabel(label)
-    axes[0, 0].set_title('Plant outputs and reference')
-    return _save(fig, path)
+    return _finish_panels(fig, axes, label, 'Plant outputs and reference', path)
 
 
 def plot_inputs(series: RunSeries, path: str,
@@ -112,11 +118,7 @@ def plot_inputs(series: RunSeries, path: str,
                 ax.axhline(values[j if values.size > 1 else 0], color='k', lw=0.8, ls=':')
         _mark_resets(ax, t, ep)
         ax.set_ylabel(names[j])
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc='upper right')
-    axes[-1, 0].set_xlabel(label)
-    axes[0, 0].set_title('Inputs')
-    return _save(fig, path)
+    return _finish_panels(fig, axes, label, 'Inputs', path)
 
 
 def plot_solve_times(series: RunSeries, path: str) -> Optional[str]:
