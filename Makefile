@@ -12,7 +12,7 @@ help:
 	@echo "make test   set up, build and run every test"
 	@echo "make setup  create/update .venv (idempotent)"
 	@echo "make build  colcon build of src/ into build/ and install/ (incremental)"
-	@echo "make lint   flake8 over src/, scripts/ and test/"
+	@echo "make lint   flake8 over src/, scripts/, test/ and examples/"
 	@echo "make clean  remove build/, install/ and log/ (keeps .venv)"
 
 setup:
@@ -25,7 +25,7 @@ build: setup
 	  | { grep -vE '^(Starting|Finished) |local_setup' || true; }
 
 lint: setup
-	@$(ENV) && flake8 src scripts test
+	@$(ENV) && flake8 src scripts test examples
 
 test: build
 	@$(ENV) && python -m pytest $(PYTEST_ARGS)
