@@ -499,8 +499,9 @@ def markdown(report: Dict[str, Any]) -> str:
                        f"vs oracle {_fmt(_median(entry['vs_oracle']))}, "
                        f"vs NMPC {_fmt(_median(entry['vs_nmpc']))} |")
     lines += medians
-    lines += ['', '## Tracking (x1 RMSE per seed)', '', '| method | ' + ' | '.join(
-        f'seed {s}' for s in report['seeds']) + ' |', '|---|' + '---|' * len(report['seeds'])]
+    lines += ['', '## Tracking (RMSE of the tracked outputs, per seed)', '',
+              '| method | ' + ' | '.join(f'seed {s}' for s in report['seeds']) + ' |',
+              '|---|' + '---|' * len(report['seeds'])]
     for method in report['methods']:
         row = []
         for r in report['per_seed']:
