@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 import pytest
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from scipy.integrate import solve_ivp
 
 from metampc_bringup.experiment import run_experiment
@@ -73,7 +73,8 @@ def test_the_plant_node_simulates_it_in_lockstep(procs, probe, with_user_site):
             pub.publish(ControlInput(step=msg.step, u=[float(forces[msg.step])]))
     probe.node.create_subscription(PlantOutput, 'y', on_y, RELIABLE)
     probe.node.create_subscription(PlantInfo, 'plant_info', infos.append, QoSProfile(
-        depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=1))
+        depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
     proc = procs.start('metampc_plant', 'plant', params={
         'family': 'mass_spring_friction', 'theta': THETA, 'x0': [0.3, 0.0],
         'input_timeout': 30.0})

@@ -21,6 +21,7 @@ A family is a frozen dataclass: ``dataclasses.replace(family, theta=...)`` gives
 (e.g. another Theta) without a new class. Families are found by name through the entry-point
 group ``metampc.plant_families`` (:mod:`metampc_plant.registry`).
 """
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Sequence, Tuple
 
@@ -98,7 +99,7 @@ class ThetaComponent:
 
 
 @dataclass(frozen=True)
-class PlantFamily:
+class PlantFamily(ABC):
     """A family of parameterised plants; subclasses write :meth:`rhs` (and :meth:`output`
     when y is not x).
 
@@ -190,9 +191,9 @@ class PlantFamily:
                              f'value(s) ({names}), got {list(values)}')
         return values
 
+    @abstractmethod
     def rhs(self, x: Sequence, u: Sequence, theta: Sequence) -> Tuple:
         """dx/dt on components (floats or (B,) arrays); see the module docstring."""
-        raise NotImplementedError
 
     def output(self, x: Sequence, u: Sequence, theta: Sequence) -> Tuple:
         """y on components; default y = x."""

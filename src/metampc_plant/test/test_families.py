@@ -68,11 +68,18 @@ def test_quadruple_tank_targets_are_minimum_phase_or_not():
     assert 0.64 < share < 0.72   # 1 - 0.4^2 / 2 / 0.25 = 0.68; std of the share 0.007
 
 
+class Falling(PlantFamily):
+    """x' = u, the least a family has to write."""
+
+    def rhs(self, x, u, theta):
+        return (u[0],)
+
+
 def test_a_bad_family_definition_is_one_clear_error():
     with pytest.raises(ValueError, match='u_min needs 1 values'):
-        PlantFamily(name='bad', title='', states=(Signal('x'),), inputs=(Signal('u'),),
-                    outputs=(Signal('x'),), theta=(ThetaComponent('k'),), u_min=(), u_max=(1.0,),
-                    state_bound=1.0, x0=(0.0,), x0_low=(0.0,), x0_high=(0.0,), dt=0.1,
-                    noise_states=(), reference=(0.0,), tracked=(0,))
+        Falling(name='bad', title='', states=(Signal('x'),), inputs=(Signal('u'),),
+                outputs=(Signal('x'),), theta=(ThetaComponent('k'),), u_min=(), u_max=(1.0,),
+                state_bound=1.0, x0=(0.0,), x0_low=(0.0,), x0_high=(0.0,), dt=0.1,
+                noise_states=(), reference=(0.0,), tracked=(0,))
     with pytest.raises(ValueError, match='distribution must be one of'):
         ThetaComponent('k', distribution='lognormal')
