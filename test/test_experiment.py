@@ -279,6 +279,13 @@ def test_config_errors_name_the_key(tmp_path):
         load(str(bad))
     with pytest.raises(ConfigError, match='methods'):
         load(None, {'methods': ['imaml', 'reptile']})
+    # Family facts, checked as the plant node checks them, before anything starts.
+    with pytest.raises(ConfigError, match='theta of family duffing needs 3'):
+        load(None, {'family': 'duffing', 'theta': [0.1]})
+    with pytest.raises(ConfigError, match='collect_x0: x0 of family quadruple_tank needs 4'):
+        load(None, {'family': 'quadruple_tank', 'collect_x0': [0.5, 0.0]})
+    with pytest.raises(ConfigError, match='outside those of family pendulum'):
+        load(None, {'family': 'pendulum', 'u_max': 5.0})
     config = load(None, {'seeds': 3, 'first_seed': 5})
     thetas = [tuple(config.target_theta(s)) for s in config.seed_list()]
     assert config.seed_list() == [5, 6, 7] and len(set(thetas)) == 3

@@ -36,6 +36,7 @@ from metampc_learner import learner_params
 from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
+from metampc_plant.simulator import PlantConfig
 
 PROTOCOLS = ('tuned', 'paper')
 META_METHODS = ('imaml', 'maml', 'maml_unrolled')
@@ -205,25 +206,21 @@ class ExperimentConfig:
         if self.seeds < 1 or self.first_seed < 0:
             raise ConfigError('seeds must be >= 1 and first_seed >= 0')
         fam = self.plant_family
-        if self.theta is not None:
-            try:
-                fam.check_theta(self.target_theta(self.first_seed))
-            except (ValueError, TypeError) as err:
-                raise ConfigError(f'theta: {err}') from None
         cfg = self.resolved()
         if not (cfg.dt > 0 and cfg.track_duration >= cfg.dt and cfg.target_samples >= 2):
             raise ConfigError('need dt > 0, track_duration >= dt and target_samples >= 2')
-        for name in ('u_min', 'u_max'):
-            if len(getattr(cfg, name)) != fam.n_u:
-                raise ConfigError(f'{name}: family {fam.name} has {fam.n_u} input(s), got '
-                                  f'{getattr(self, name)}')
-        if any(lo > hi for lo, hi in zip(cfg.u_min, cfg.u_max)):
-            raise ConfigError(f'u_min {cfg.u_min} > u_max {cfg.u_max}')
+        # theta*, the bounds and the initial states as the plant node will check them.
+        try:
+            plant = PlantConfig(family=fam.name, dt=cfg.dt, u_min=tuple(cfg.u_min),
+                                u_max=tuple(cfg.u_max),
+                                theta=tuple(cfg.target_theta(cfg.first_seed))).resolved()
+        except (ValueError, TypeError) as err:
+            raise ConfigError(str(err)) from None
         for name in ('collect_x0', 'track_x0'):
-            if len(getattr(cfg, name)) != fam.n_x:
-                raise ConfigError(f'{name} needs the {fam.n_x} states of family {fam.name} '
-                                  f'({", ".join(s.name for s in fam.states)}), got '
-                                  f'{getattr(self, name)}')
+            try:
+                replace(plant, x0=tuple(getattr(cfg, name))).resolved()
+            except ValueError as err:
+                raise ConfigError(f'{name}: {err}') from None
         if any(j not in range(fam.n_y) for j in cfg.tracked_outputs) or not cfg.tracked_outputs:
             raise ConfigError(f'tracked_outputs must be indices in [0, {fam.n_y}) (family '
                               f'{fam.name}), got {self.tracked_outputs}')
