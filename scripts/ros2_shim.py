@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
 """A minimal `ros2` command for machines without ros2cli (ROS 2 Jazzy from PyPI wheels).
 
-Supported verbs (semantics of ros2run / ros2pkg, Jazzy):
+Verbs handled here (semantics of ros2run / ros2pkg, Jazzy):
   ros2 run PKG EXE [args...]      run an executable of a package, arguments passed through
   ros2 pkg list                   every package on AMENT_PREFIX_PATH
   ros2 pkg executables [PKG]      'PKG EXE' lines, for one package or all
   ros2 pkg prefix PKG             the install prefix of a package
+Every other verb (node, topic, service, param, interface, bag) is the package metampc_ros2cli
+(`ros2 -h` lists them), imported only then so that `ros2 run` starts as fast as before.
 
 Lookup rules (as ros2run): the package's prefix is the first entry of AMENT_PREFIX_PATH that has
 share/ament_index/resource_index/packages/PKG; the executable is the one file named EXE that is
@@ -99,16 +101,32 @@ def run(pkg, exe, args):
 
 
 def usage(message):
-    print(f'ros2: {message}\nThis ros2 is metampc\'s minimal shim; supported: {SUPPORTED}.\n'
+    print(f'ros2: {message}\nThis ros2 is metampc\'s; of run and pkg it has: {SUPPORTED} '
+          '(`ros2 -h` lists the other verbs).\n'
           'usage: ros2 run PKG EXE [args...] | ros2 pkg list | ros2 pkg executables [PKG] | '
           'ros2 pkg prefix PKG', file=sys.stderr)
     return 2
 
 
+def other_verbs(argv):
+    """Every verb but run and pkg: metampc_ros2cli, with Python's own Ctrl-C handling."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if PENDING:
+        return 0
+    try:
+        from metampc_ros2cli.cli import main as cli_main
+    except ImportError:
+        print('ros2: the package metampc_ros2cli is not on PYTHONPATH; build the workspace '
+              '(make build) and source scripts/env.sh', file=sys.stderr)
+        return 1
+    return cli_main(argv)
+
+
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] in ('-h', '--help'):
-        return usage('no verb given' if not argv else 'help')
+    if not argv or argv[0] not in ('run', 'pkg'):
+        return other_verbs(argv)
     verb, rest = argv[0], argv[1:]
     if verb == 'run':
         if len(rest) < 2:

@@ -1,0 +1,56 @@
+"""The short-lived node every verb talks through (ros2cli's DirectNode, without a daemon).
+
+It is created, spins for ``--spin-time`` seconds so that discovery sees the graph, and is
+destroyed with its context when the verb ends.
+"""
+import argparse
+import os
+from typing import Any
+
+DEFAULT_SPIN_TIME = 0.5     # s, as ros2cli's DirectNode
+NODE_NAME_PREFIX = '_ros2cli'
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """ros2cli's --spin-time and --use-sim-time."""
+    parser.add_argument('--spin-time', type=float, default=DEFAULT_SPIN_TIME,
+                        help='Spin time in seconds to wait for discovery')
+    parser.add_argument('-s', '--use-sim-time', action='store_true',
+                        help='Enable ROS simulation time')
+
+
+class DirectNode:
+    """``with DirectNode(args) as node:`` an rclpy node that has spun ``args.spin_time`` s."""
+
+    def __init__(self, args: Any, node_name: str = '') -> None:
+        import rclpy
+        from rclpy.parameter import Parameter
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(
+            node_name or f'{NODE_NAME_PREFIX}_{os.getpid()}', context=self.context,
+            start_parameter_services=False,
+            parameter_overrides=[Parameter('use_sim_time', value=getattr(args, 'use_sim_time',
+                                                                         False))])
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.spin_for(getattr(args, 'spin_time', DEFAULT_SPIN_TIME))
+
+    def spin_for(self, seconds: float) -> None:
+        """Spin the node's callbacks for `seconds` of wall time."""
+        import time
+        end = time.monotonic() + seconds
+        while self.context.ok():
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            self.executor.spin_once(timeout_sec=left)
+
+    def __enter__(self) -> Any:
+        return self.node
+
+    def __exit__(self, *exc: Any) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)

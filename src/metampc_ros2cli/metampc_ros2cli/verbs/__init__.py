@@ -1,0 +1,1 @@
+"""One module per `ros2` verb family; each has ``add_parser(subparsers)``."""
