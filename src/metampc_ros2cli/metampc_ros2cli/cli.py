@@ -2,11 +2,13 @@
 
 Each module of :mod:`metampc_ros2cli.verbs` adds its family with ``add_parser(subparsers)``;
 every sub-verb sets ``main(args) -> int | str`` as its default. As in ros2cli, a string is an
-error line: it goes to stderr and the exit status is 1; argparse's own errors exit with 2, and
+error line (so is a RuntimeError's text): it goes to stderr and the exit status is 1;
+argparse's own errors exit with 2, and
 Ctrl-C ends a verb (echo, hz, bag play...) with status 0 and no traceback.
 """
 import argparse
 import importlib
+import os
 import sys
 from typing import Any, List, Optional
 
@@ -50,6 +52,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         rc = handler(args)
     except KeyboardInterrupt:
+        return 0
+    except RuntimeError as err:     # ros2cli prints these as the error line
+        rc = str(err)
+    except BrokenPipeError:         # `ros2 ... | head`: the reader has gone, nothing to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     if isinstance(rc, str):
         print(rc, file=sys.stderr)

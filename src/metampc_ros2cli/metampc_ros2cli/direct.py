@@ -8,6 +8,11 @@ import os
 from typing import Any
 
 DEFAULT_SPIN_TIME = 0.5     # s, as ros2cli's DirectNode
+# s: how much longer a verb that names a topic, service or node waits for discovery to show it
+# (ros2cli asks its daemon, whose graph is already complete; a fresh node may not be after
+# --spin-time: with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, as the tests run, a new node
+# often sees the others only at their next announcement, about 3 s later).
+DISCOVERY_GRACE_S = 5.0
 NODE_NAME_PREFIX = '_ros2cli'
 
 
@@ -54,3 +59,15 @@ class DirectNode:
         self.executor.shutdown()
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.context)
+
+
+def wait_for(node: Any, found: Any, timeout: float = DISCOVERY_GRACE_S) -> Any:
+    """Spin `node` (a DirectNode's) until `found()` returns something true, returned, or
+    `timeout` s passed (then its last value)."""
+    import time
+    end = time.monotonic() + timeout
+    value = found()
+    while not value and node.context.ok() and time.monotonic() < end:
+        node.executor.spin_once(timeout_sec=0.05)
+        value = found()
+    return value
