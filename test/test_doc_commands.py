@@ -1,11 +1,14 @@
 """Every command the README and docs/*.md show for copying still matches the code: each
-`python scripts/X.py --flag` names a flag the script's --help lists, and each `ros2 run PKG EXE
---ros-args -p name:=value` names an executable and a parameter that node declares. The
-commands are read from fenced and indented code blocks and from inline code spans."""
+`python scripts/X.py --flag` names a flag the script's --help lists, each `ros2 run PKG EXE
+--ros-args -p name:=value` names an executable and a parameter that node declares, and each
+other `ros2 VERB ...` of a code block parses as written (metampc_ros2cli's parser, ros2cli's
+syntax). The commands are read from fenced and indented code blocks and from inline code
+spans (`python scripts/` and `ros2 run` only: a span may name a verb without its arguments)."""
 import functools
 import glob
 import os
 import re
+import shlex
 import subprocess
 import sys
 
@@ -43,7 +46,7 @@ def _commands(text: str):
     lines += joined.splitlines()
     lines += re.findall(r'`((?:python scripts/|ros2 run )[^`]+)`', text)
     commands = [re.sub(r'\s#.*$', '', c).strip() for c in lines
-                if c.startswith(('python scripts/', 'ros2 run '))]
+                if c.startswith(('python scripts/', 'ros2 '))]
     return [c for c in commands if not TEMPLATE.search(c)]
 
 
@@ -81,7 +84,8 @@ def test_script_flags_exist(page, command):
     assert not flags - listed, f'{page}: `{command}` uses {sorted(flags - listed)}'
 
 
-@pytest.mark.parametrize('page, command', [pc for pc in COMMANDS if pc[1].startswith('ros2')])
+@pytest.mark.parametrize('page, command',
+                         [pc for pc in COMMANDS if pc[1].startswith('ros2 run ')])
 def test_ros2_run_names_declared_parameters(page, command):
     tokens = command.split()
     node = (tokens[2], tokens[3])
@@ -90,3 +94,14 @@ def test_ros2_run_names_declared_parameters(page, command):
     unknown = [n for n in names if n not in NODES[node] and n not in ROS_PARAMETERS
                and not n.startswith(QOS_OVERRIDES)]
     assert not unknown, f'{page}: `{command}` sets undeclared {unknown}'
+
+
+@pytest.mark.parametrize('page, command', [
+    pc for pc in COMMANDS if pc[1].startswith('ros2 ')
+    and pc[1].split()[1] not in ('run', 'pkg')])
+def test_ros2_verbs_parse_as_written(page, command):
+    from metampc_ros2cli.cli import parser
+    try:
+        parser().parse_args(shlex.split(command)[1:])
+    except SystemExit:
+        pytest.fail(f'{page}: `{command}` is not a valid ros2 command line')
