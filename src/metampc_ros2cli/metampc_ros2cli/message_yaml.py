@@ -11,7 +11,7 @@ import array
 import importlib
 import sys
 from collections import OrderedDict
-from typing import Any, List, Mapping, Optional
+from typing import Any, List, Mapping, Optional, Tuple
 
 import numpy as np
 import yaml
@@ -127,8 +127,13 @@ def message_class_of(t: NamespacedType) -> type:
     return getattr(module, t.name)
 
 
-def set_fields(msg: Any, values: Mapping[str, Any]) -> None:
+def set_fields(msg: Any, values: Mapping[str, Any],
+               stamps: Optional[List[Tuple[Any, str]]] = None) -> None:
     """Set the fields named in `values` (a YAML mapping, nested for nested messages).
+
+    With a `stamps` list (`ros2 topic pub`), a std_msgs/Header given as ``auto`` and a
+    builtin_interfaces/Time given as ``now`` are left for the caller to stamp at each publish:
+    their (object, attribute) pairs are appended to `stamps`.
 
     Raises:
         ValueError: a name the message does not have, or a value its field cannot take; the
@@ -142,8 +147,17 @@ def set_fields(msg: Any, values: Mapping[str, Any]) -> None:
         if name not in slots:
             raise ValueError(f"'{type(msg).__name__}' object has no attribute '{name}'")
         t = slots[name]
+        if stamps is not None and isinstance(t, NamespacedType):
+            full = '/'.join(t.namespaced_name())
+            if (full, value) == ('std_msgs/msg/Header', 'auto'):
+                setattr(msg, name, type(getattr(msg, name))())
+                stamps.append((getattr(msg, name), 'stamp'))
+                continue
+            if (full, value) == ('builtin_interfaces/msg/Time', 'now'):
+                stamps.append((msg, name))
+                continue
         try:
-            setattr(msg, name, _typed(getattr(msg, name), t, value))
+            setattr(msg, name, _typed(getattr(msg, name), t, value, stamps))
         except (AssertionError, TypeError, ValueError, OverflowError) as err:
             raise ValueError(f'{name}: {_reason(err)}') from None
 
@@ -159,7 +173,8 @@ _INT_BITS = {'int8': (True, 8), 'uint8': (False, 8), 'int16': (True, 16),
              'int64': (True, 64), 'uint64': (False, 64), 'char': (False, 8)}
 
 
-def _typed(current: Any, t: Any, value: Any) -> Any:
+def _typed(current: Any, t: Any, value: Any,
+           stamps: Optional[List[Tuple[Any, str]]] = None) -> Any:
     """`value` converted to what field type `t` holds (`current` is the field's value).
 
     The generated setters of Jazzy check nothing unless ROS_PYTHON_CHECK_FIELDS=1, so a wrong
@@ -177,7 +192,7 @@ def _typed(current: Any, t: Any, value: Any) -> Any:
             out: List[Any] = []
             for item in value:
                 sub = cls()
-                set_fields(sub, item)
+                set_fields(sub, item, stamps)
                 out.append(sub)
             return out
         items = [_basic(t.value_type, v) for v in value]
@@ -188,7 +203,7 @@ def _typed(current: Any, t: Any, value: Any) -> Any:
         return items
     if isinstance(t, NamespacedType):
         sub = type(current)()
-        set_fields(sub, value)
+        set_fields(sub, value, stamps)
         return sub
     return _basic(t, value)
 
@@ -221,8 +236,9 @@ def _basic(t: Any, value: Any) -> Any:
     return float(value)
 
 
-def from_yaml(cls: type, text: str) -> Any:
-    """A message of class `cls` with the fields given as a YAML mapping in `text`.
+def from_yaml(cls: type, text: str, stamps: Optional[List[Tuple[Any, str]]] = None) -> Any:
+    """A message of class `cls` with the fields given as a YAML mapping in `text` (`stamps`:
+    see :func:`set_fields`).
 
     Raises:
         ValueError: text that is not YAML, or not a mapping ('The passed value needs to be a
@@ -237,5 +253,5 @@ def from_yaml(cls: type, text: str) -> Any:
     if not isinstance(values, dict):
         raise ValueError('The passed value needs to be a dictionary in YAML format')
     msg = cls()
-    set_fields(msg, values)
+    set_fields(msg, values, stamps)
     return msg

@@ -139,3 +139,20 @@ def test_bad_values_name_the_field(text, reason):
     with pytest.raises(ValueError) as err:
         my.from_yaml(PlantOutput, text)
     assert reason in str(err.value)
+
+
+def test_header_auto_and_time_now_are_left_for_the_publisher_to_stamp():
+    from builtin_interfaces.msg import Time
+    from metampc_msgs.msg import PlantOutput
+    from std_msgs.msg import Header
+    stamps = []
+    msg = my.from_yaml(PlantOutput, '{header: auto, step: 2}', stamps)
+    assert stamps == [(msg.header, 'stamp')] and msg.step == 2
+    stamps = []
+    header = my.from_yaml(Header, '{stamp: now, frame_id: a}', stamps)
+    assert stamps == [(header, 'stamp')] and header.frame_id == 'a'
+    for owner, attr in stamps:
+        setattr(owner, attr, Time(sec=5))
+    assert header.stamp.sec == 5
+    with pytest.raises(ValueError, match='header: '):      # without stamps: not a mapping
+        my.from_yaml(PlantOutput, '{header: auto}')

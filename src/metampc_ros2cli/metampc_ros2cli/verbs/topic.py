@@ -361,8 +361,9 @@ def pub(args: Any) -> Any:
                 '--wait-matching-subscriptions, --once or --times')
     cls = api.interface_class(args.message_type, 'msg')
     text = sys.stdin.read() if args.stdin else args.values
+    stamps: list = []       # `header: auto` and `stamp: now`, stamped at each publish
     try:
-        msg = message_yaml.from_yaml(cls, text)
+        msg = message_yaml.from_yaml(cls, text, stamps)
     except ValueError as err:
         reason = str(err)
         return reason if reason.startswith('The passed') else f'Failed to populate field: {reason}'
@@ -385,6 +386,9 @@ def pub(args: Any) -> Any:
         next_at = time.monotonic()
         while True:
             count += 1
+            now = node.get_clock().now().to_msg()
+            for owner, attr in stamps:
+                setattr(owner, attr, now)
             if args.print and count % args.print == 0:
                 print(f'publishing #{count}: {msg!r}\n')
             publisher.publish(msg)
