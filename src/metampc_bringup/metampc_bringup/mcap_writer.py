@@ -15,6 +15,10 @@ What a file written here contains, in rosbag2's layout:
 - chunks compressed with zstd or lz4, message indexes, and on :meth:`close` the summary:
   repeated schemas and channels, Statistics (per-channel counts), chunk and metadata indexes.
 
+A rosbag2 bag folder (what ``ros2 bag record -o NAME`` makes) is the file
+:func:`bag_folder_file` names plus the same bag metadata in ``metadata.yaml``
+(:func:`write_bag_metadata_file`).
+
 Crash safety: the file is written without a user-space buffer, so every chunk is in the
 operating system's hands as soon as it closes; a process killed with SIGKILL leaves a file that
 a streaming reader reads up to its last complete chunk (:meth:`flush` closes a chunk early,
@@ -36,6 +40,8 @@ COMPRESSIONS = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
                 'none': CompressionType.NONE}
 BAG_METADATA_VERSION = 9          # rosbag2 Jazzy
 RUN_METADATA_NAME = 'metampc'     # Metadata record holding the run configuration
+BAG_METADATA_NAME = 'rosbag2'     # Metadata record holding the bag metadata (rosbag2's name)
+BAG_METADATA_FILE = 'metadata.yaml'   # the bag metadata file of a rosbag2 bag folder
 LIBRARY = f'metampc_recorder; {LIBRARY_IDENTIFIER}'
 
 
@@ -239,5 +245,27 @@ class Rosbag2McapWriter:
             'custom_data': None,
             'ros_distro': self.config.ros_distro,
         }
-        self._writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
+        self._writer.add_metadata(BAG_METADATA_NAME, {'serialized_metadata': yaml.safe_dump(
             metadata, sort_keys=False, default_flow_style=False)})
+
+
+def bag_folder_file(folder: str) -> str:
+    """The MCAP file of rosbag2 bag folder `folder`: ``FOLDER/NAME_0.mcap``, NAME being the
+    folder's own name (rosbag2's ``SequentialWriter::format_storage_uri``, first file)."""
+    return os.path.join(folder, f'{os.path.basename(os.path.normpath(folder))}_0.mcap')
+
+
+def write_bag_metadata_file(folder: str, serialized_metadata: str) -> str:
+    """Write ``FOLDER/metadata.yaml`` from the bag metadata YAML a writer stored in its final
+    ``rosbag2`` record; returns its path.
+
+    rosbag2 writes the same metadata into the MCAP file and, under the key
+    ``rosbag2_bagfile_information``, into metadata.yaml when it closes a bag; rosbag2's tools
+    and ``rosbags`` open a folder through that file. An existing metadata.yaml is an error
+    (FileExistsError).
+    """
+    path = os.path.join(folder, BAG_METADATA_FILE)
+    document = {'rosbag2_bagfile_information': yaml.safe_load(serialized_metadata)}
+    with open(path, 'x') as f:
+        yaml.safe_dump(document, f, sort_keys=False, default_flow_style=False)
+    return path

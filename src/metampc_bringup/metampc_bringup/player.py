@@ -4,8 +4,9 @@ Each recorded topic gets a publisher with the QoS rosbag2 would offer for it
 (:func:`~metampc_bringup.rosbag2_qos.offer_for_recorded`: the recorded reliability, durability,
 deadline and liveliness, history keep_last 10), so a latched topic replays latched. The recorded
 CDR bytes are published unchanged (rclpy's ``Publisher.publish`` takes ``bytes`` as a serialized
-message) at the recorded log-time spacing divided by `rate`. Used by
-``scripts/replay.py --play``.
+message) at the recorded log-time spacing divided by `rate`, from `start_offset` s into the
+recording, once or (`loop`) until interrupted. Used by ``scripts/replay.py --play`` and
+``ros2 bag play``.
 
 As with ``ros2 bag play``, a volatile sample published before a subscriber has been discovered
 is lost for it; ``delay`` gives discovery a fixed time (``--delay``), ``wait_for_subscribers``
@@ -37,6 +38,10 @@ class PlayConfig:
         ack_timeout: seconds to wait at the end for reliable subscribers to acknowledge.
         wait_for_subscribers: after the delay, wait up to this many seconds until every
             volatile topic played has at least one matched subscriber (0: do not wait).
+        start_offset: seconds of the recording to skip: playback starts at the log time of
+            the first message played plus this (``ros2 bag play --start-offset``).
+        loop: start again from the beginning at the end, until interrupted (``--loop``); the
+            delay is slept before every pass, as rosbag2 does.
     """
 
     rate: float = 1.0
@@ -44,13 +49,15 @@ class PlayConfig:
     topics: List[str] = field(default_factory=list)
     ack_timeout: float = 2.0
     wait_for_subscribers: float = 0.0
+    start_offset: float = 0.0
+    loop: bool = False
 
     def validate(self) -> None:
-        """ValueError for a non-positive rate or a negative delay or timeout."""
-        if not self.rate > 0 or min(self.delay, self.ack_timeout,
-                                    self.wait_for_subscribers) < 0:
-            raise ValueError('rate must be positive; delay, ack_timeout and '
-                             'wait_for_subscribers non-negative')
+        """ValueError for a non-positive rate or a negative delay, timeout or offset."""
+        if not self.rate > 0 or min(self.delay, self.ack_timeout, self.wait_for_subscribers,
+                                    self.start_offset) < 0:
+            raise ValueError('rate must be positive; delay, ack_timeout, '
+                             'wait_for_subscribers and start_offset non-negative')
 
 
 def _offer(text: str) -> QosProfile:
@@ -82,14 +89,19 @@ def play(recording: Recording, node: Node, config: PlayConfig) -> Dict[str, int]
         time.sleep(0.01)
     counts = {name: 0 for name in names}
     messages = [m for m in recording.messages if m.topic in publishers]
-    start_wall = time.monotonic()
-    start_log = messages[0].log_time if messages else 0
-    for message in messages:
-        due = start_wall + (message.log_time - start_log) * 1e-9 / config.rate
-        if due > time.monotonic():
-            time.sleep(due - time.monotonic())
-        publishers[message.topic].publish(message.data)
-        counts[message.topic] += 1
+    start_log = (messages[0].log_time if messages else 0) + round(config.start_offset * 1e9)
+    messages = [m for m in messages if m.log_time >= start_log]
+    while True:
+        start_wall = time.monotonic()
+        for message in messages:
+            due = start_wall + (message.log_time - start_log) * 1e-9 / config.rate
+            if due > time.monotonic():
+                time.sleep(due - time.monotonic())
+            publishers[message.topic].publish(message.data)
+            counts[message.topic] += 1
+        if not (config.loop and messages):
+            break
+        time.sleep(config.delay)
     for publisher in publishers.values():
         publisher.wait_for_all_acked(Duration(seconds=config.ack_timeout))
     return counts
