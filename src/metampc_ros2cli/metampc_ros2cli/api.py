@@ -14,6 +14,15 @@ def visible(names_and_types: List[Tuple[str, List[str]]],
     return [(n, t) for n, t in names_and_types if include_hidden or not is_hidden(n)]
 
 
+def expand(node: Any, name: str) -> str:
+    """A topic or service name as given on the command line, made absolute ('y' -> '/y')."""
+    from rclpy.expand_topic_name import expand_topic_name
+    try:
+        return expand_topic_name(name, node.get_name(), node.get_namespace())
+    except ValueError as err:
+        raise RuntimeError(str(err)) from None
+
+
 def interface_class(type_name: str, kind: str) -> Any:
     """The Python class of 'pkg/msg/Type' or 'pkg/Type' (`kind` 'msg' or 'srv').
 

@@ -1,9 +1,9 @@
 """`ros2 topic list|info|type|find|echo|hz|bw|pub`, as ros2topic (Jazzy) prints and exits."""
 import sys
 import time
-from typing import Any, Callable, List, Optional
+from typing import Any, Callable, Optional
 
-from metampc_ros2cli import api, direct, message_yaml, rates
+from metampc_ros2cli import api, direct, message_yaml, names, rates
 from metampc_ros2cli.cli import add_family
 
 WAIT_POLL_S = 0.1
@@ -12,17 +12,11 @@ WAIT_POLL_S = 0.1
 def add_parser(subparsers: Any) -> None:
     verbs = add_family(subparsers, 'topic', 'Various topic related sub-commands')
 
-    p = verbs.add_parser('list', help='Output a list of available topics')
-    p.add_argument('-t', '--show-types', action='store_true',
-                   help='Additionally show the topic type')
-    p.add_argument('-c', '--count-topics', action='store_true',
-                   help='Only display the number of topics discovered')
-    p.add_argument('--include-hidden-topics', action='store_true',
-                   help='Consider hidden topics as well')
-    p.add_argument('-v', '--verbose', action='store_true',
-                   help='List full details about each topic')
-    direct.add_arguments(p)
-    p.set_defaults(main=list_topics)
+    listing = names.add_verbs(verbs, 'topic', lambda node: node.get_topic_names_and_types(),
+                              'rcl_interfaces/msg/Log')
+    listing['list'].add_argument('-v', '--verbose', action='store_true',
+                                 help='List full details about each topic')
+    listing['list'].set_defaults(main=list_topics)
 
     p = verbs.add_parser('info', help='Print information about a topic')
     p.add_argument('topic_name', help="Name of the ROS topic to get info (e.g. '/chatter')")
@@ -31,23 +25,6 @@ def add_parser(subparsers: Any) -> None:
                    'topic type, GUID and QoS Profile of the publishers and subscribers')
     direct.add_arguments(p)
     p.set_defaults(main=info)
-
-    p = verbs.add_parser('type', help='Print a topic\'s type')
-    p.add_argument('topic_name', help="Name of the ROS topic to get type (e.g. '/chatter')")
-    p.add_argument('--include-hidden-topics', action='store_true',
-                   help='Consider hidden topics as well')
-    direct.add_arguments(p)
-    p.set_defaults(main=topic_type)
-
-    p = verbs.add_parser('find', help='Output a list of available topics of a given type')
-    p.add_argument('topic_type', help="Name of the ROS topic type to filter for (e.g. "
-                   "'rcl_interfaces/msg/Log')")
-    p.add_argument('-c', '--count-topics', action='store_true',
-                   help='Only display the number of topics discovered')
-    p.add_argument('--include-hidden-topics', action='store_true',
-                   help='Consider hidden topics as well')
-    direct.add_arguments(p)
-    p.set_defaults(main=find)
 
     p = verbs.add_parser('echo', help='Output messages from a topic')
     p.add_argument('topic_name', help="Name of the ROS topic to listen to (e.g. '/chatter')")
@@ -134,44 +111,30 @@ def add_parser(subparsers: Any) -> None:
     p.set_defaults(main=pub)
 
 
-def _names_and_types(node: Any, include_hidden: bool) -> List[Any]:
-    return api.visible(node.get_topic_names_and_types(), include_hidden)
-
-
 def list_topics(args: Any) -> int:
+    if not args.verbose:
+        return names.list_names(lambda node: node.get_topic_names_and_types(), args)
     with direct.DirectNode(args) as node:
-        topics = _names_and_types(node, args.include_hidden_topics)
         counts = [(n, t, node.count_publishers(n), node.count_subscribers(n))
-                  for n, t in topics]
-    if args.count_topics:
-        print(len(topics))
-    elif args.verbose:
-        for side, index in (('Published', 2), ('Subscribed', 3)):
-            lines = [f'{side} topics:']
-            for row in counts:
-                if row[index]:
-                    what = 'publisher' if index == 2 else 'subscriber'
-                    plural = 's' if row[index] > 1 else ''
-                    lines.append(f' * {row[0]} [{", ".join(row[1])}] {row[index]} '
-                                 f'{what}{plural}')
-            print('\n'.join(lines) + '\n')
-    else:
-        for name, types in topics:
-            print(f'{name} [{", ".join(types)}]' if args.show_types else name)
+                  for n, t in api.visible(node.get_topic_names_and_types(),
+                                          args.include_hidden)]
+    if args.count:
+        print(len(counts))
+        return 0
+    for side, index in (('Published', 2), ('Subscribed', 3)):
+        lines = [f'{side} topics:']
+        for row in counts:
+            if row[index]:
+                what = 'publisher' if index == 2 else 'subscriber'
+                plural = 's' if row[index] > 1 else ''
+                lines.append(f' * {row[0]} [{", ".join(row[1])}] {row[index]} {what}{plural}')
+        print('\n'.join(lines) + '\n')
     return 0
-
-
-def _expand(node: Any, topic: str) -> str:
-    from rclpy.expand_topic_name import expand_topic_name
-    try:
-        return expand_topic_name(topic, node.get_name(), node.get_namespace())
-    except ValueError as err:
-        raise RuntimeError(str(err)) from None
 
 
 def info(args: Any) -> Any:
     with direct.DirectNode(args) as node:
-        name = _expand(node, args.topic_name)
+        name = api.expand(node, args.topic_name)
         types = direct.wait_for(node, lambda: dict(node.get_topic_names_and_types()).get(name))
         if types is None:
             return f"Unknown topic '{args.topic_name}'"
@@ -185,25 +148,6 @@ def info(args: Any) -> Any:
         if args.verbose:
             for endpoint in node.get_subscriptions_info_by_topic(name):
                 print(endpoint, end=end)
-    return 0
-
-
-def topic_type(args: Any) -> int:
-    with direct.DirectNode(args) as node:
-        name = _expand(node, args.topic_name)
-        types = direct.wait_for(node, lambda: dict(_names_and_types(
-            node, args.include_hidden_topics)).get(name))
-    for t in types or ():
-        print(t)
-    return 0 if types else 1
-
-
-def find(args: Any) -> int:
-    with direct.DirectNode(args) as node:
-        found = [n for n, t in _names_and_types(node, args.include_hidden_topics)
-                 if args.topic_type in t]
-    print(len(found) if args.count_topics else '\n'.join(found), end='\n' if found or
-          args.count_topics else '')
     return 0
 
 
@@ -287,7 +231,7 @@ def echo(args: Any) -> Any:
                   end='---\n')
 
     with direct.DirectNode(args) as node:
-        name = _expand(node, args.topic_name)
+        name = api.expand(node, args.topic_name)
         cls = _message_class(node, name, args.message_type, wait=False)
         qos = api.qos_from_args(args, node.get_publishers_info_by_topic(name))
         node.create_subscription(cls, name, show, qos, raw=args.raw,
@@ -317,7 +261,7 @@ def hz(args: Any) -> int:
     window = rates.RateWindow(args.window_size)
     with direct.DirectNode(args) as node:
         from rclpy.qos import qos_profile_sensor_data
-        name = _expand(node, args.topic_name)
+        name = api.expand(node, args.topic_name)
         cls = _message_class(node, name, None, wait=True)
 
         def tick(msg: Any) -> None:
@@ -334,7 +278,7 @@ def bw(args: Any) -> int:
     window = rates.BandwidthWindow(args.window)
     with direct.DirectNode(args) as node:
         from rclpy.qos import qos_profile_sensor_data
-        name = _expand(node, args.topic_name)
+        name = api.expand(node, args.topic_name)
         cls = _message_class(node, name, None, wait=True)
         node.create_subscription(cls, name, lambda data: window.add(_now_ns(node, False),
                                                                     len(data)),
@@ -368,7 +312,7 @@ def pub(args: Any) -> Any:
         reason = str(err)
         return reason if reason.startswith('The passed') else f'Failed to populate field: {reason}'
     with direct.DirectNode(args, node_name=args.node_name or '') as node:
-        publisher = node.create_publisher(cls, _expand(node, args.topic_name),
+        publisher = node.create_publisher(cls, api.expand(node, args.topic_name),
                                           api.qos_from_args(args))
         waited, printed_wait = 0.0, False
         while publisher.get_subscription_count() < wait_for:
