@@ -8,6 +8,7 @@ Examples:
     python scripts/run_experiment.py --report runs/<time>     # recompute its reports
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
     python scripts/run_experiment.py --family duffing --seeds 5   # config/duffing.yaml
+    python scripts/run_experiment.py --foxglove               # live view on ws://127.0.0.1:8765
     # As root: plant | controllers | learner and recorder, one network namespace each.
     python scripts/run_experiment.py --hosts 'plant|controller,controller_nmpc|learner,recorder'
 
@@ -43,6 +44,14 @@ def numbers(text):
         raise ValueError(f'--theta needs comma-separated numbers, got {text!r}') from None
 
 
+def port(text: str, default: int) -> int:
+    """'8800' -> 8800, '' (--foxglove without a value) -> default; ValueError names the text."""
+    try:
+        return int(text) if text else default
+    except ValueError:
+        raise ValueError(f'--foxglove needs a port number, got {text!r}') from None
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--config', help='YAML file with every hyperparameter (default: '
@@ -63,6 +72,9 @@ def main(argv=None) -> int:
                              'recordings (report.json, report.md, figures are rewritten)')
     parser.add_argument('--hosts', help="nodes per host, e.g. 'plant|controller,controller_nmpc|"
                                         "learner,recorder': one network namespace each (root)")
+    parser.add_argument('--foxglove', nargs='?', const='', metavar='PORT',
+                        help='also run the Foxglove live view on ws://127.0.0.1:PORT (default '
+                             'PORT 8765; docs/foxglove.md)')
     args = parser.parse_args(argv)
     # Ctrl-C is KeyboardInterrupt even when started from a non-interactive shell in the
     # background, which starts it with SIGINT ignored (and rclpy would chain to that).
@@ -71,6 +83,7 @@ def main(argv=None) -> int:
         from metampc_bringup.experiment import rebuild_report, run_experiment
         from metampc_bringup.experiment_client import ExperimentError
         from metampc_bringup.experiment_config import ConfigError, load
+        from metampc_bringup.foxglove_params import DEFAULT_PORT, FoxgloveConfig
         from metampc_bringup.netns import NetnsError, parse_hosts
     except KeyboardInterrupt:
         print('run_experiment: interrupted before it started; nothing written', file=sys.stderr)
@@ -91,13 +104,20 @@ def main(argv=None) -> int:
             'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': numbers(args.theta),
             'protocol': args.protocol, 'family': args.family})
         hosts = parse_hosts(args.hosts) if args.hosts else None
+        foxglove = None if args.foxglove is None else port(args.foxglove, DEFAULT_PORT)
+        if foxglove is not None:
+            FoxgloveConfig(port=foxglove).validate()
+            if hosts:
+                raise ValueError('--foxglove with --hosts: the live view would serve inside '
+                                 "the orchestrator's network namespace")
     except (ConfigError, NetnsError, ValueError) as err:
         print(f'run_experiment: {err}', file=sys.stderr)
         return 2
     out = args.out or os.path.join(
         ROOT, 'runs', datetime.datetime.now().strftime('%Y%m%d-%H%M%S'))
     try:
-        report = run_experiment(config, out, progress=not args.no_progress, hosts=hosts)
+        report = run_experiment(config, out, progress=not args.no_progress, hosts=hosts,
+                                foxglove_port=foxglove)
     except (FileExistsError, NetnsError) as err:
         print(f'run_experiment: {err}', file=sys.stderr)
         return 2

@@ -14,7 +14,7 @@ import sys
 
 import pytest
 
-from metampc_bringup import recorder_config
+from metampc_bringup import foxglove_params, recorder_config
 from metampc_common.node_main import QOS_OVERRIDES, ROS_PARAMETERS
 from metampc_controller import controller_params, send_model_node
 from metampc_learner import learner_params
@@ -25,7 +25,8 @@ NODES = {('metampc_plant', 'plant'): plant_params.PARAMETERS,
          ('metampc_controller', 'controller'): controller_params.PARAMETERS,
          ('metampc_controller', 'send_model'): send_model_node.PARAMETERS,
          ('metampc_learner', 'learner'): learner_params.PARAMETERS,
-         ('metampc_bringup', 'recorder'): recorder_config.PARAMETERS}
+         ('metampc_bringup', 'recorder'): recorder_config.PARAMETERS,
+         ('metampc_bringup', 'foxglove'): foxglove_params.PARAMETERS}
 # A usage template, not a command: `ros2 run PKG EXE`, `-p name:=value`.
 TEMPLATE = re.compile(r'ros2 run [A-Z_]+ |-p name:=value')
 PAGES = ['README.md'] + sorted(os.path.relpath(p, ROOT)

@@ -17,6 +17,7 @@ NODE_PAGES = {
     'metampc_controller.send_model_node': 'controller.md#Sending a model by hand',
     'metampc_learner.learner_params': 'learner.md',
     'metampc_bringup.recorder_config': 'recording.md',
+    'metampc_bringup.foxglove_params': 'foxglove.md',
 }
 
 
@@ -53,12 +54,10 @@ def _cell_value(text: str):
         return t
 
 
-@pytest.mark.parametrize('module, page', sorted(NODE_PAGES.items()))
-def test_every_documented_default_is_the_declared_one(module, page):
-    """The node's table (declared once on the config fields) and its page agree on defaults;
-    a row may name several parameters (`u_min`, `u_max` | -1.0, 1.0)."""
-    table = importlib.import_module(module).PARAMETERS
-    rows, wrong, header = 0, [], ''
+def _parameter_rows(page: str, table):
+    """(names, cells) of each row of the page's parameter tables (those with a 'default'
+    column) whose first cell names parameters of `table`."""
+    header = ''
     lines = _node_page(page).splitlines()
     for previous, line in zip([''] + lines, lines):
         if line.startswith('|') and not previous.startswith('|'):
@@ -67,7 +66,18 @@ def test_every_documented_default_is_the_declared_one(module, page):
         if 'default' not in header or len(cells) < 4 or not cells[1].strip().startswith('`'):
             continue
         names = re.findall(r'`([^`]+)`', cells[1])
-        if not names or not all(n in table for n in names) or '(required)' in cells[2]:
+        if names and all(n in table for n in names):
+            yield names, cells
+
+
+@pytest.mark.parametrize('module, page', sorted(NODE_PAGES.items()))
+def test_every_documented_default_is_the_declared_one(module, page):
+    """The node's table (declared once on the config fields) and its page agree on defaults;
+    a row may name several parameters (`u_min`, `u_max` | -1.0, 1.0)."""
+    table = importlib.import_module(module).PARAMETERS
+    rows, wrong = 0, []
+    for names, cells in _parameter_rows(page, table):
+        if '(required)' in cells[2]:
             continue
         values = [cells[2]] if len(names) == 1 else cells[2].split(',')
         if len(values) != len(names):
@@ -82,6 +92,21 @@ def test_every_documented_default_is_the_declared_one(module, page):
                 wrong.append((name, text.strip(), table[name].default))
     assert rows >= len(table) - 1, f'docs/{page}: {rows} default cells for {len(table)}'
     assert not wrong, f'docs/{page}: documented defaults differ from the declared ones: {wrong}'
+
+
+@pytest.mark.parametrize('module, page', sorted(NODE_PAGES.items()))
+def test_live_parameters_are_marked_live_and_only_they(module, page):
+    """A row says '(live)' after its names exactly when they are declared live
+    (``param(..., live=True)``), and every live parameter has such a row."""
+    table = importlib.import_module(module).PARAMETERS
+    marked, wrong = set(), []
+    for names, cells in _parameter_rows(page, table):
+        said = '(live)' in cells[1]
+        wrong += [n for n in names if table[n].live != said]
+        marked.update(n for n in names if said)
+    assert not wrong, f'docs/{page}: the live marker is wrong for {wrong}'
+    live = {n for n, spec in table.items() if spec.live}
+    assert marked == live, f'docs/{page}: live but not marked: {sorted(live - marked)}'
 
 
 def test_every_script_and_page_is_reachable_from_the_readme_or_docs():

@@ -187,6 +187,9 @@ def summary_table(report: Dict) -> str:
              ('tracking cost (sum of squared errors)', tr['cost']),
              ('tracking RMSE (all tracked)', tr['rmse'])]
     rows += [(f'  RMSE y[{i}]', v['rmse']) for i, v in tr['per_output'].items()]
+    rows += [(f"  config version {s['config_version']}, steps {s['first_step']}-"
+              f"{s['last_step']}", f"RMSE {_fmt(s['tracking']['rmse'])}")
+             for s in m.get('tracking_segments', ())]
     bounds = m['input_bounds']
     rows += [('input-bound violations', bounds['violations'] if bounds else None),
              ('saturated samples', m['saturated_samples']),
@@ -203,6 +206,9 @@ def summary_table(report: Dict) -> str:
     rows += [(f"training {t['phase']} {t['method']}",
               f"iteration {t['iteration']}/{t['total']}, loss {_fmt(t['final_loss'])}")
              for t in m['training']]
+    rows += [(f"parameters of {c['node']} at {c['stamp']:.3f} s",
+              ', '.join(f'{k}={v}' for k, v in c['parameters'].items()))
+             for c in m.get('parameter_changes', ())]
     rows += [('plots', ', '.join(report['plots']) or '-')]
     width = max(len(name) for name, _ in rows)
     return '\n'.join(f'{name:<{width}}  {_fmt(value)}' for name, value in rows)

@@ -31,7 +31,8 @@ log = logging.getLogger('metampc.experiment')
 
 def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True,
                    prefix: Optional[Dict[str, List[str]]] = None,
-                   hosts: Optional[List[List[str]]] = None) -> Dict[str, Any]:
+                   hosts: Optional[List[List[str]]] = None,
+                   foxglove_port: Optional[int] = None) -> Dict[str, Any]:
     """Run every seed of `config` into the new folder `out_dir`; return the report.
 
     The process joins a ROS domain of its own first (``ROS_DOMAIN_ID``, localhost discovery)
@@ -40,7 +41,8 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
     namespace of its own instead, and the orchestration in one more (root only:
     :class:`.netns.NetnsError` otherwise), all of them removed on return. Ctrl-C or SIGTERM
     stops the nodes of the running seed, leaves its recording readable and re-raises
-    KeyboardInterrupt.
+    KeyboardInterrupt. ``foxglove_port``: each seed's graph also runs the Foxglove live view
+    on that port (not with ``hosts``: it would serve inside the orchestrator's namespace).
     """
     if hosts:
         with terminate_as_interrupt(), split_hosts(hosts) as net:
@@ -65,7 +67,7 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
                      if exported not in (None, str(domain)) else '')
         for seed in config.seed_list():
             seed_dir = os.path.join(out_dir, f'seed_{seed}')
-            SeedRun(config, seed, seed_dir, progress, prefix).run()
+            SeedRun(config, seed, seed_dir, progress, prefix, foxglove_port).run()
             reports.append(seed_report(seed_dir))
     return experiment_report(reports, out_dir, config.to_dict(), time.monotonic() - started)
 

@@ -14,6 +14,11 @@ Conventions:
   after the recording stopped).
 - Solve times: statuses that solved a QP (``iterations >= 0``); percentiles interpolate
   linearly (numpy's default).
+- Live parameter changes: where the controller's ``config_version`` changes in its statuses,
+  the tracking metrics are also given per segment of one version (``tracking_segments``, the
+  status of step k with the output of step k + 1 as above), and the recorded
+  ``/parameter_events`` that changed values are listed (``parameter_changes``); neither key
+  is there for a run without a change.
 
 No rclpy here.
 """
@@ -126,6 +131,30 @@ def tick_accounting(output_steps: Sequence[int], input_steps: Sequence[int]) -> 
     return {'considered': len(window), 'answered': hits, 'missed': len(window) - hits}
 
 
+def version_segments(versions: Sequence[int]) -> List[Tuple[int, int]]:
+    """[start, end) index ranges of the runs of equal values in `versions`, in order."""
+    v = np.asarray(versions, dtype=np.int64)
+    if v.size == 0:
+        return []
+    edges = [0, *(np.flatnonzero(np.diff(v) != 0) + 1).tolist(), v.size]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def tracking_segments(series: RunSeries, oi: np.ndarray, si: np.ndarray,
+                      tracked: Sequence[int]) -> List[Dict]:
+    """Tracking metrics per run of one config_version in the statuses (pairs `oi`, `si` of
+    :func:`reference_pairs`); [] when the version never changes."""
+    st = series.status
+    segments = version_segments(st.config_version)
+    if len(segments) < 2:
+        return []
+    return [{'config_version': int(st.config_version[a]), 'first_step': int(st.step[a]),
+             'last_step': int(st.step[b - 1]), 'statuses': b - a,
+             'tracking': tracking_metrics(series.outputs.y[oi[(si >= a) & (si < b)]],
+                                          st.y_ref0[si[(si >= a) & (si < b)]], tracked)}
+            for a, b in segments]
+
+
 def training_summary(series: RunSeries) -> List[Dict]:
     """Per (phase, method) of TrainingProgress: last iteration, total, loss, elapsed."""
     p = series.progress
@@ -159,7 +188,7 @@ def compute_metrics(series: RunSeries, tracked: Optional[Sequence[int]] = None,
                          for key in ('u_min', 'u_max'))
     diverged = np.flatnonzero(out.diverged)
     solved = st.iterations >= 0
-    return {
+    metrics = {
         'samples': {'outputs': int(out.step.size), 'inputs': int(inp.step.size),
                     'mpc_status': int(st.step.size), 'weights': len(series.weights),
                     'progress': int(series.progress.loss.size)},
@@ -180,3 +209,11 @@ def compute_metrics(series: RunSeries, tracked: Optional[Sequence[int]] = None,
                            'used_by_inputs': sorted(set(inp.model_version.tolist()))},
         'training': training_summary(series),
     }
+    segments = tracking_segments(series, oi, si, tracked)
+    if segments:
+        metrics['tracking_segments'] = segments
+    if series.parameter_changes:
+        metrics['parameter_changes'] = [
+            {k: change[k] for k in ('stamp', 'node', 'parameters')}
+            for change in series.parameter_changes]
+    return metrics

@@ -2,10 +2,11 @@
 
 For each seed (:class:`SeedRun`), in a ROS domain of its own:
 
-1. start the recorder first, then the learner, the plant (lockstep, waiting for inputs without
-   a time-out), the latent-MPC controller and, if ``nmpc`` is compared, a second controller
-   with the true-model NMPC (both inactive); wait until every service answers and the
-   recorder has subscribed to every topic it records (no sleeps as synchronisation);
+1. start the recorder first (and the Foxglove live view if asked), then the learner, the
+   plant (lockstep, waiting for inputs without a time-out), the latent-MPC controller and, if
+   ``nmpc`` is compared, a second controller with the true-model NMPC (both inactive); wait
+   until every service answers and the recorder has subscribed to every topic it records (no
+   sleeps as synchronisation);
 2. **collect**: reset the plant to theta* and let the controller's exploration input
    (``pre_model_input: excitation``) drive it until the learner has buffered
    ``target_samples`` samples (D_target; the plant is reset if it escapes);
@@ -79,11 +80,14 @@ class SeedRun:
         progress: show progress bars (tqdm) on stderr.
         prefix: per node name ('recorder', 'learner', 'plant', 'controller',
             'controller_nmpc'), a command to start it under (e.g. ``ip netns exec host1``).
+        foxglove_port: also start the Foxglove live view (docs/foxglove.md) on this port.
     """
 
     def __init__(self, config: ExperimentConfig, seed: int, out_dir: str,
-                 progress: bool = True, prefix: Optional[Dict[str, List[str]]] = None):
+                 progress: bool = True, prefix: Optional[Dict[str, List[str]]] = None,
+                 foxglove_port: Optional[int] = None):
         self.config = config
+        self.foxglove_port = foxglove_port
         self.seed = seed
         self.out_dir = out_dir
         self.theta = config.target_theta(seed)
@@ -129,6 +133,9 @@ class SeedRun:
         recorder = RecorderConfig(output=self.recording, topics=list(RECORDED_TOPICS),
                                   metadata_json=json.dumps(run_config), **config.recorder)
         self._start(group, 'recorder', 'metampc_bringup', 'recorder', recorder.to_parameters())
+        if self.foxglove_port is not None:
+            self._start(group, 'foxglove', 'metampc_bringup', 'foxglove',
+                        {'port': self.foxglove_port})
         self._start(group, 'learner', 'metampc_learner', 'learner',
                     config.node_parameters('learner', seed))
         self._start(group, 'plant', 'metampc_plant', 'plant',

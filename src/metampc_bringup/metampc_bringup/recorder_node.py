@@ -26,13 +26,12 @@ from metampc_common.params import ParameterError
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from .graph_topics import default_topic, new_topics, resolve_topics
 from .mcap_writer import Rosbag2McapWriter
 from .msg_schema import DefinitionNotFoundError
-from .rclpy_adapters import message_class, qos_from_rclpy, qos_to_rclpy
+from .rclpy_adapters import message_class, qos_to_rclpy
 from .recorder_config import parse_params, PARAMETERS
 from .rosbag2_qos import request_for_offers
-
-_SYSTEM_TOPICS = frozenset({'/rosout', '/parameter_events'})
 
 
 class RecorderNode(Node):
@@ -46,10 +45,7 @@ class RecorderNode(Node):
         super().__init__('recorder')
         self.config = parse_params(declare_parameters(self, PARAMETERS))
         writer_config = self.config.writer_config()
-        try:
-            self._wanted = {self.resolve_topic_name(t) for t in self.config.topics}
-        except RuntimeError as err:    # rclpy's RCLError
-            raise ParameterError(f'bad topic name in topics: {err}') from None
+        self._wanted = resolve_topics(self, self.config.topics)
         if self._wanted and self.config.record_clock:
             self._wanted.add('/clock')
         os.makedirs(os.path.dirname(os.path.abspath(writer_config.path)), exist_ok=True)
@@ -73,12 +69,7 @@ class RecorderNode(Node):
     def _selected(self, topic: str) -> bool:
         if self._wanted:
             return topic in self._wanted
-        namespace = self.get_namespace().rstrip('/')
-        if topic in _SYSTEM_TOPICS or (topic == '/clock' and not self.config.record_clock):
-            return False
-        if any(token.startswith('_') for token in topic.split('/')):
-            return False
-        return not namespace or topic.startswith(namespace + '/')
+        return default_topic(topic, self.get_namespace(), self.config.record_clock)
 
     def _skip(self, topic: str, reason: str) -> None:
         self._skipped.add(topic)
@@ -86,30 +77,20 @@ class RecorderNode(Node):
 
     def _discover(self) -> None:
         """Subscribe to every selected topic that has a publisher and is not recorded yet."""
-        for topic, types in self.get_topic_names_and_types():
-            if topic in self._recorded or topic in self._skipped:
-                continue
-            if not self._selected(topic):
-                continue
-            if len(types) != 1:
-                self._skip(topic, f'several types {types}')
-                continue
-            publishers = self.get_publishers_info_by_topic(topic)
-            if not publishers:
-                continue    # seen through a subscription only: wait for a publisher's QoS
-            offered = [qos_from_rclpy(p.qos_profile) for p in publishers]
+        known = self._recorded.keys() | self._skipped
+        for topic, type_name, offered, type_hash in new_topics(self, known, self._selected,
+                                                               self._skip):
             try:
-                msg_type = message_class(types[0])
-                self.writer.add_topic(topic, types[0], offered,
-                                      str(publishers[0].topic_type_hash))
+                msg_type = message_class(type_name)
+                self.writer.add_topic(topic, type_name, offered, type_hash)
             except (ImportError, AttributeError, ValueError, DefinitionNotFoundError) as err:
-                self._skip(topic, f'type {types[0]} unavailable ({err})')
+                self._skip(topic, f'type {type_name} unavailable ({err})')
                 continue
             request = request_for_offers(offered, self.config.qos_depth)
             self._recorded[topic] = self.create_subscription(
                 msg_type, topic, partial(self._on_message, topic), qos_to_rclpy(request),
                 raw=True)
-            self.get_logger().info(f'recording {topic} [{types[0]}] '
+            self.get_logger().info(f'recording {topic} [{type_name}] '
                                    f'({request.reliability}, {request.durability})')
 
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:

@@ -19,14 +19,28 @@ MPC_STATUS = 'metampc_msgs/msg/MpcStatus'
 NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
 TRAINING_PROGRESS = 'metampc_msgs/msg/TrainingProgress'
 PLANT_INFO = 'metampc_msgs/msg/PlantInfo'
+PARAMETER_EVENT = 'rcl_interfaces/msg/ParameterEvent'
 # Type -> default topic name (relative; docs/architecture.md, 'Graph').
 DEFAULT_TOPICS = {PLANT_OUTPUT: 'y', CONTROL_INPUT: 'u', MPC_STATUS: 'mpc_status',
                   NSSM_WEIGHTS: 'nssm_weights', TRAINING_PROGRESS: 'progress',
-                  PLANT_INFO: 'plant_info'}
+                  PLANT_INFO: 'plant_info', PARAMETER_EVENT: 'parameter_events'}
+# rcl_interfaces/ParameterValue: the field holding the value of each ParameterType.
+_VALUE_FIELDS = {1: 'bool_value', 2: 'integer_value', 3: 'double_value', 4: 'string_value',
+                 5: 'byte_array_value', 6: 'bool_array_value', 7: 'integer_array_value',
+                 8: 'double_array_value', 9: 'string_array_value'}
 
 
 def _stamp(msg: Any) -> float:
     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+def parameter_value(value: Any) -> Any:
+    """The Python value of an rcl_interfaces/ParameterValue (arrays as lists; None: not set)."""
+    field_name = _VALUE_FIELDS.get(int(value.type))
+    if field_name is None:
+        return None
+    got = getattr(value, field_name)
+    return got if isinstance(got, (bool, int, float, str)) else list(got)
 
 
 def _matrix(rows: List[List[float]]) -> np.ndarray:
@@ -65,7 +79,8 @@ class InputSeries:
 class StatusSeries:
     """MpcStatus per tick; ``y_ref0`` [n, n_y] is the first row of y_ref, the reference for
     the output of step ``step + 1`` (NaN where a status has no reference); ``q`` the output
-    weights of the controller's tracking cost, as its first status gives them ((0,): none)."""
+    weights of the controller's tracking cost, as its first status gives them ((0,): none);
+    ``config_version`` [n] the controller's tuning (0 in recordings made before the field)."""
 
     step: np.ndarray
     stamp: np.ndarray
@@ -81,6 +96,7 @@ class StatusSeries:
     planner: List[str]
     y_ref0: np.ndarray
     q: np.ndarray
+    config_version: np.ndarray
 
 
 @dataclass
@@ -99,7 +115,9 @@ class ProgressSeries:
 
 @dataclass
 class RunSeries:
-    """All series of one run; `weights` and `plant_info` as plain dicts."""
+    """All series of one run; `weights`, `plant_info` and the parameter changes (each
+    /parameter_events message that changed a value: log_time, stamp s, node, {name: value})
+    as plain dicts."""
 
     outputs: OutputSeries
     inputs: InputSeries
@@ -107,6 +125,7 @@ class RunSeries:
     progress: ProgressSeries
     weights: List[Dict[str, Any]] = field(default_factory=list)
     plant_info: Optional[Dict[str, Any]] = None
+    parameter_changes: List[Dict[str, Any]] = field(default_factory=list)
 
     @property
     def n_y(self) -> int:
@@ -162,7 +181,9 @@ class SeriesBuilder:
             planner=[str(m.planner) for _, m in stats],
             y_ref0=np.array([list(m.y_ref[:n_y]) if len(m.y_ref) >= n_y else [np.nan] * n_y
                              for _, m in stats], dtype=float).reshape(len(stats), n_y),
-            q=np.array(list(getattr(stats[0][1], 'q', ())) if stats else [], dtype=float))
+            q=np.array(list(getattr(stats[0][1], 'q', ())) if stats else [], dtype=float),
+            config_version=np.array([getattr(m, 'config_version', 0) for _, m in stats],
+                                    dtype=np.int64))
         progress = ProgressSeries(
             log_time=np.array([t for t, _ in prog], dtype=np.int64),
             phase=[str(m.phase) for _, m in prog], method=[str(m.method) for _, m in prog],
@@ -187,4 +208,9 @@ class SeriesBuilder:
             plant_info.update({name: list(getattr(info, name, [])) for name in (
                 'theta_names', 'input_names', 'input_units', 'output_names', 'output_units')})
             plant_info['family'] = str(getattr(info, 'family', ''))
-        return RunSeries(outputs, inputs, status, progress, weights, plant_info)
+        changes = [{'log_time': t, 'stamp': m.stamp.sec + 1e-9 * m.stamp.nanosec,
+                    'node': str(m.node),
+                    'parameters': {str(p.name): parameter_value(p.value)
+                                   for p in m.changed_parameters}}
+                   for t, m in self._rows[PARAMETER_EVENT] if len(m.changed_parameters)]
+        return RunSeries(outputs, inputs, status, progress, weights, plant_info, changes)

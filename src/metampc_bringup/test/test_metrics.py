@@ -1,8 +1,12 @@
 """Metric functions on plain arrays, against values worked out by hand."""
 import math
+from types import SimpleNamespace as Msg
 
-from metampc_bringup.metrics import (bound_violations, episodes, percentile_summary,
-                                     reference_pairs, tick_accounting, tracking_metrics)
+from metampc_bringup.metrics import (bound_violations, compute_metrics, episodes,
+                                     percentile_summary, reference_pairs, tick_accounting,
+                                     tracking_metrics, version_segments)
+from metampc_bringup.run_series import (CONTROL_INPUT, MPC_STATUS, PARAMETER_EVENT,
+                                        PLANT_OUTPUT, SeriesBuilder)
 import numpy as np
 import pytest
 
@@ -50,3 +54,50 @@ def test_percentiles_bounds_and_ticks():
     inputs = [2, 3, 5, 0, 2]
     assert tick_accounting(outputs, inputs) == {'considered': 7, 'answered': 5, 'missed': 2}
     assert tick_accounting(outputs, []) == {'considered': 0, 'answered': 0, 'missed': 0}
+
+
+def _stamp(t):
+    return Msg(sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
+
+
+def _run(versions, events=()):
+    """Outputs y_k = [k] (k = 0..len(versions)), statuses of steps 0..n-1 with reference 0 and
+    the given config versions, and parameter events."""
+    builder = SeriesBuilder()
+    for k in range(len(versions) + 1):
+        builder.add(PLANT_OUTPUT, Msg(step=k, header=Msg(stamp=_stamp(0.1 * k)), y=[float(k)],
+                                      u_applied=[0.0], saturated=False, diverged=False))
+    for k, version in enumerate(versions):
+        builder.add(CONTROL_INPUT, Msg(step=k, header=Msg(stamp=_stamp(0.1 * k)), u=[0.0],
+                                       model_version=1))
+        builder.add(MPC_STATUS, Msg(
+            step=k, header=Msg(stamp=_stamp(0.1 * k)), cost=0.0, solve_time=1e-4,
+            tick_time=1e-3, iterations=5, fallback=False, terminal_fallback=False,
+            model_version=1, solver_status='solved', planner='latent_mpc', y_ref=[0.0],
+            q=[1.0], config_version=version))
+    for event in events:
+        builder.add(PARAMETER_EVENT, event)
+    return builder.build()
+
+
+def _event(t, node, changed=(), new=()):
+    return Msg(stamp=_stamp(t), node=node, new_parameters=list(new), deleted_parameters=[],
+               changed_parameters=list(changed))
+
+
+def test_tracking_splits_at_each_config_version_and_only_when_it_changes():
+    assert version_segments([0, 0, 1, 1, 1, 3]) == [(0, 2), (2, 5), (5, 6)]
+    assert version_segments([]) == []
+    plain = compute_metrics(_run([0] * 5))
+    assert 'tracking_segments' not in plain and 'parameter_changes' not in plain
+    r = Msg(name='r', value=Msg(type=8, double_array_value=[0.2]))
+    declared = Msg(name='horizon', value=Msg(type=2, integer_value=20))
+    m = compute_metrics(_run([0, 0, 1, 1, 1], events=[
+        _event(0.0, '/controller', new=[declared]), _event(0.15, '/controller', changed=[r])]))
+    # Status k pairs with output k + 1 = [k + 1] against the reference 0.
+    assert [(s['config_version'], s['first_step'], s['last_step'], s['statuses'])
+            for s in m['tracking_segments']] == [(0, 0, 1, 2), (1, 2, 4, 3)]
+    assert [s['tracking']['cost'] for s in m['tracking_segments']] == [1 + 4, 9 + 16 + 25]
+    assert m['tracking']['cost'] == 1 + 4 + 9 + 16 + 25
+    assert m['parameter_changes'] == [{'stamp': pytest.approx(0.15), 'node': '/controller',
+                                       'parameters': {'r': [0.2]}}]

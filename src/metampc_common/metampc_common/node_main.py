@@ -3,20 +3,24 @@
 :func:`run_node` adds to the idiom of ros2/demos (init, spin, shutdown) what a user of
 `ros2 run` expects: a bad argument or parameter is one error line and exit status 2, not a
 traceback, and Ctrl-C is exit status 0 even when it lands while a callback is publishing.
+:class:`LiveParameters` takes changes of the live parameters while the node runs, checked by
+the node's own parse function, as at start-up.
 """
+from array import array
 import difflib
 import faulthandler
 import math
 import signal
 import threading
 import time
-from typing import Callable, Dict, Mapping, Optional, Sequence
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 import rclpy
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from metampc_common.params import ParameterError, ParamSpec, Value
 
@@ -41,7 +45,10 @@ def undeclared(given: Sequence[str], table: Mapping[str, ParamSpec]) -> Optional
 
 
 def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, Value]:
-    """Declare every parameter of `table` read-only and return their values by name.
+    """Declare every parameter of `table` and return their values by name.
+
+    Those not marked live are read-only: rclpy itself refuses a change (``Trying to set a
+    read-only parameter: NAME.``); a live one is checked by :class:`LiveParameters`.
 
     Raises:
         ParameterError: a parameter given on the command line (or in a parameter file) that
@@ -57,8 +64,80 @@ def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, 
         # dynamic_typing: the node's parse function accepts integers for doubles and names
         # bad types itself, with one clear line.
         node.declare_parameter(name, spec.default, ParameterDescriptor(
-            description=spec.description, read_only=True, dynamic_typing=True))
+            description=spec.description, read_only=not spec.live, dynamic_typing=True))
     return {name: node.get_parameter(name).value for name in table}
+
+
+class LiveParameters:
+    """Changes of a node's live parameters, checked as at start-up, then handed to the node.
+
+    A ``ros2 param set`` (or ``load``, or any client of the parameter services) proposes new
+    values; they are merged into the current values of the node's table and given to the same
+    parse function as at start-up (e.g. ``controller_params.parse_params``), then to the node's
+    own `check` of what only the running node knows (e.g. the plant's bounds). A failure
+    refuses the change with ``SetParametersResult(successful=False, reason=<the error line>)``
+    (the line a bad value gives at start-up, after ``invalid parameter: ``); the node goes on
+    with its values. Once rclpy has set the values (and published them on
+    ``/parameter_events``) the new typed config goes to `apply`, in the thread that set them.
+    A change that parses to the config in use is accepted and not applied again.
+
+    rclpy serves a node's parameter services in its default callback group, one request at a
+    time, and calls the on-set and post-set callbacks of a request in turn, so the config
+    checked in the one is the one applied in the other.
+    """
+
+    def __init__(self, node: Node, table: Mapping[str, ParamSpec], values: Mapping[str, Value],
+                 config: Any, parse: Callable[[Mapping[str, Value]], Any],
+                 apply: Callable[[Any, Dict[str, Value]], None],
+                 check: Optional[Callable[[Any], str]] = None):
+        """Args:
+            node: the node whose parameters these are (declared by :func:`declare_parameters`).
+            table: its declaration table.
+            values: the values it started with (what declare_parameters returned).
+            config: what `parse` made of them.
+            parse: raw values -> typed config; raises ParameterError with the reason.
+            apply: takes the accepted config and the changed values {name: value} (arrays as
+                lists).
+            check: the running node's further check of a parsed config: '' or the reason.
+        """
+        self.values: Dict[str, Value] = dict(values)
+        self.config = config
+        self._table = table
+        self._parse, self._apply, self._check = parse, apply, check
+        self._pending: Optional[Tuple[Dict[str, Value], Any]] = None
+        node.add_on_set_parameters_callback(self._on_set)
+        node.add_post_set_parameters_callback(self._on_post_set)
+
+    def propose(self, changes: Mapping[str, Value]) -> Tuple[Any, str]:
+        """(the config of the current values with `changes`, '') or (None, why not)."""
+        try:
+            config = self._parse({**self.values, **changes})
+        except ParameterError as err:
+            return None, str(err)
+        reason = self._check(config) if self._check is not None else ''
+        return (None, reason) if reason else (config, '')
+
+    def _on_set(self, parameters: List[Parameter]) -> SetParametersResult:
+        self._pending = None
+        changes = {p.name: list(p.value) if isinstance(p.value, array) else p.value
+                   for p in parameters if p.name in self._table}
+        if not changes:     # rclpy's own (use_sim_time): not ours to judge
+            return SetParametersResult(successful=True)
+        config, reason = self.propose(changes)
+        if config is None:
+            return SetParametersResult(successful=False, reason=reason)
+        self._pending = (changes, config)
+        return SetParametersResult(successful=True)
+
+    def _on_post_set(self, parameters: List[Parameter]) -> None:
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        changes, config = pending
+        self.values.update(changes)
+        if config != self.config:
+            self.config = config
+            self._apply(config, changes)
 
 
 class EventCounts:

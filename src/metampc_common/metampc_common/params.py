@@ -5,7 +5,10 @@ description, range or choices), the way nav2 declares each parameter in one line
 fields come:
 
 - the node's declaration table (:func:`table`: name -> :class:`ParamSpec`, the description with
-  its range, e.g. ``'beta_out, initial Adam step size (> 0)'``), which ``node_main`` declares;
+  its range, e.g. ``'beta_out, initial Adam step size (> 0)'``, and whether it is live), which
+  ``node_main`` declares: a live parameter (``param(..., live=True)``) can be changed while
+  the node runs (``ros2 param set``), checked by the same parse as at start-up; the others are
+  read-only;
 - parsing and range checks (:func:`build`: raw ROS values -> the typed config, a
   :class:`ParameterError` naming the first bad parameter; then the config's own ``validate()``
   for rules across fields);
@@ -29,10 +32,12 @@ class ParameterError(ValueError):
 
 
 class ParamSpec(NamedTuple):
-    """One declared node parameter: its default (which fixes its type) and description."""
+    """One declared node parameter: its default (which fixes its type), description, and
+    whether it may change while the node runs (else it is read-only)."""
 
     default: Value
     description: str
+    live: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +53,7 @@ class Rule:
     item: Optional[type] = None      # element type of a list (default: the default's)
     length: Optional[int] = None     # exact length of a list
     scalar: bool = False             # a lone number is a list of one (`-p theta:=0.7`)
+    live: bool = False               # may change while the node runs
 
     def bounds(self) -> str:
         """'> 0', '>= 1', 'in [0, 1)', 'one of a, b' or ''."""
@@ -67,7 +73,7 @@ class Rule:
 def param(default: Any, description: str, *, ge: Optional[float] = None,
           gt: Optional[float] = None, le: Optional[float] = None, lt: Optional[float] = None,
           choices: Sequence[str] = (), item: Optional[type] = None,
-          length: Optional[int] = None, scalar: bool = False) -> Any:
+          length: Optional[int] = None, scalar: bool = False, live: bool = False) -> Any:
     """A dataclass field that is a node parameter.
 
     Args:
@@ -80,8 +86,10 @@ def param(default: Any, description: str, *, ge: Optional[float] = None,
         length: exact length of a list.
         scalar: a list that also takes a lone number, as a list of one (a one-input family's
             bound, a one-component theta).
+        live: the node takes a new value while it runs (``ros2 param set``; the node says how
+            and when it applies it); the others are read-only.
     """
-    rule = Rule(description, ge, gt, le, lt, tuple(choices), item, length, scalar)
+    rule = Rule(description, ge, gt, le, lt, tuple(choices), item, length, scalar, live)
     if isinstance(default, (list, tuple)):
         frozen = tuple(default)
         return dataclasses.field(default=frozen, metadata={PARAM: rule})
@@ -170,7 +178,7 @@ class Section(NamedTuple):
 
 
 def table(sections: Sequence[Section]) -> Dict[str, ParamSpec]:
-    """The declaration table of a node: {name: ParamSpec(default, description (range))}."""
+    """The declaration table of a node: {name: ParamSpec(default, description (range), live)}."""
     out: Dict[str, ParamSpec] = {}
     for section in sections:
         for f in param_fields(section.cls):
@@ -180,7 +188,8 @@ def table(sections: Sequence[Section]) -> Dict[str, ParamSpec]:
             rule = f.metadata[PARAM]
             bounds = rule.bounds()
             default = list(f.default) if isinstance(f.default, tuple) else f.default
-            out[name] = ParamSpec(default, rule.description + (f' ({bounds})' if bounds else ''))
+            out[name] = ParamSpec(default, rule.description + (f' ({bounds})' if bounds else ''),
+                                  rule.live)
     return out
 
 

@@ -12,11 +12,12 @@ Pieces, each testable alone:
 * :class:`AnswerRule`: which tick answers which sample (each sample at most once).
 * :class:`PreModelInput`: the input before a model (zero or seeded excitation).
 * :func:`build_model`: checked weights -> NSSM predictor + latent MPC (outside the tick).
+* :class:`Tuning`: what a live parameter change replaces (weights, bounds, horizon, reference).
 * :class:`ControllerCore`: observe samples, tick -> :class:`TickResult`.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
-from typing import List, Optional, Sequence, Tuple
+from typing import Any, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -203,12 +204,59 @@ def build_model(decoded: DecodedWeights, version: int, method: str, stage: str,
         need = history or f'<= {MAX_HISTORY}'
         raise WeightsError(f'history H = {cfg.history}, the controller needs {need}')
     predictor = NssmPredictor(cfg, decoded.norm, decoded.params)
-    mpc = LatentMpc(mpc_config)
     try:
-        mpc.set_model(predictor.latent)
+        mpc = latent_mpc(mpc_config, predictor)
     except ValueError as err:
         raise WeightsError(str(err)) from None
     return ModelBundle(version, method, stage, predictor, mpc)
+
+
+def latent_mpc(config: MpcConfig, predictor: NssmPredictor) -> LatentMpc:
+    """The latent MPC of `config` on a predictor's model: the QP, its OSQP set-up and the
+    DARE terminal cost (milliseconds: outside the tick). ValueError if the model does not fit."""
+    mpc = LatentMpc(config)
+    mpc.set_model(predictor.latent)
+    return mpc
+
+
+@dataclass(frozen=True, eq=False)
+class Tuning:
+    """The settings that a live parameter change replaces, used by the ticks as one.
+
+    Attributes:
+        version: 0 as started, +1 per accepted change (``MpcStatus.config_version``).
+        config: the controller's config (its ``mpc``: horizon, q, r, bounds).
+        u_min, u_max: (n_u,) input bounds.
+        q: output weights, as MpcStatus.q carries them.
+        reference: the configured reference (references.make_reference).
+        pre_model: the input before a model (its excitation lies within the bounds).
+    """
+
+    version: int
+    config: ControllerConfig
+    u_min: np.ndarray
+    u_max: np.ndarray
+    q: List[float]
+    reference: Any
+    pre_model: 'PreModelInput'
+
+    @classmethod
+    def of(cls, config: ControllerConfig, version: int, n_u: int) -> 'Tuning':
+        """The tuning of a parsed config for a controller of n_u inputs."""
+        u_min, u_max = config.mpc.bounds(n_u)
+        return cls(version, config, u_min, u_max, [float(w) for w in config.mpc.q],
+                   make_reference(config.reference_kind, **config.reference_params),
+                   PreModelInput(config.pre_model_input, config.excitation,
+                                 config.excitation_seed, u_min, u_max))
+
+
+def bounds_exceeding(u_min: np.ndarray, u_max: np.ndarray, plant: 'PlantDescription') -> str:
+    """'' if [u_min, u_max] lies within the plant's bounds, else a line that says it does
+    not (the start-up warning, and the reason a live change is refused)."""
+    if np.any(u_min < plant.u_min) or np.any(u_max > plant.u_max):
+        return (f'input bounds [{u_min.tolist()}, {u_max.tolist()}] exceed the plant\'s '
+                f'[{list(plant.u_min)}, {list(plant.u_max)}]')
+    return ''
 
 
 @dataclass
@@ -217,11 +265,14 @@ class TickResult:
 
     u: (n_u,) u_{k+1}, finite and within the bounds. u_plan (N, n_u), y_pred (N, n_y):
     empty (0 rows) when nothing was planned. y_ref: (N, n_y) references of the horizon.
+    config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
 
     step: int
     u: np.ndarray
     model_version: int
+    config_version: int
+    q: List[float]
     planner: str
     solver_status: str
     model_status: str
@@ -250,54 +301,117 @@ class PlantDescription:
     lockstep: bool
 
 
+class _Setup(NamedTuple):
+    """What a tick reads once: the tuning, the model built for it, and the model status."""
+
+    tuning: Tuning
+    model: Optional[ModelBundle]
+    model_status: str
+
+
 class ControllerCore:
     """The controller's state and tick, in physical units (module docstring).
 
-    Threading: everything runs on the node's executor thread except :meth:`offer_model`
-    and :meth:`reject_model`, which the node's model-builder thread calls; they
-    replace one (model, status) tuple that a tick reads once, so a model is swapped in
-    between ticks and a tick never mixes two models.
+    Threading: everything runs on the node's executor thread except :meth:`offer_model`,
+    :meth:`reject_model` and :meth:`retune`, which the node's builder thread calls, one at a
+    time and in the order of their requests. They replace one (tuning, model, status) tuple
+    that a tick reads once, so a new model or tuning is swapped in between two ticks and a
+    tick never mixes two.
     """
 
     def __init__(self, config: ControllerConfig):
-        self.config = config
         self.n_u, self.n_y = config.n_u, config.n_y
         self.history = History(MAX_HISTORY, self.n_u, self.n_y)
-        self.u_min, self.u_max = config.mpc.bounds(self.n_u)
-        self.pre_model = PreModelInput(config.pre_model_input, config.excitation,
-                                       config.excitation_seed, self.u_min, self.u_max)
-        self.reference = make_reference(config.reference_kind, **config.reference_params)
         self.plant: Optional[PlantDescription] = None
         self._override: Optional[np.ndarray] = None
         self._nmpc: Optional[Nmpc] = None
-        self._model: Tuple[Optional[ModelBundle], str] = (None, 'none')
+        self._nmpc_version = 0      # the tuning the NMPC was built with
+        self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
 
     # --- inputs from other callbacks ----------------------------------------------------
 
     @property
+    def tuning(self) -> Tuning:
+        """The tuning of the next tick (the latest retune())."""
+        return self._setup.tuning
+
+    @property
+    def config(self) -> ControllerConfig:
+        return self._setup.tuning.config
+
+    @property
+    def u_min(self) -> np.ndarray:
+        return self._setup.tuning.u_min
+
+    @property
+    def u_max(self) -> np.ndarray:
+        return self._setup.tuning.u_max
+
+    @property
     def model(self) -> Optional[ModelBundle]:
-        return self._model[0]
+        return self._setup.model
 
     @property
     def model_status(self) -> str:
-        return self._model[1]
+        return self._setup.model_status
 
     def offer_model(self, bundle: ModelBundle) -> None:
-        """Use this model from the next tick on (any thread)."""
-        self._model = (bundle, 'ok')
+        """Use this model (built for :attr:`tuning`) from the next tick on (builder thread)."""
+        self._setup = self._setup._replace(model=bundle, model_status='ok')
 
     def reject_model(self, reason: str) -> None:
-        """Report rejected weights; the previous model stays in use (any thread)."""
-        self._model = (self._model[0], f'rejected: {reason}')
+        """Report rejected weights; the previous model stays in use (builder thread)."""
+        self._setup = self._setup._replace(model_status=f'rejected: {reason}')
+
+    def check_tuning(self, config: ControllerConfig) -> str:
+        """What the running controller refuses of a parsed config, beyond its parse: '' or
+        the reason (other numbers of inputs or outputs; bounds beyond the plant's)."""
+        if config.n_y != self.n_y:
+            return f'q needs one weight per output ({self.n_y}), got {list(config.mpc.q)}'
+        if config.n_u not in (1, self.n_u):
+            return (f'r, u_min and u_max need one value per input ({self.n_u}) or one for all, '
+                    f'got {list(np.atleast_1d(config.mpc.r))}, {list(config.mpc.u_min)}, '
+                    f'{list(config.mpc.u_max)}')
+        plant = self.plant
+        if plant is not None and len(plant.u_min) == self.n_u:
+            exceeding = bounds_exceeding(*config.mpc.bounds(self.n_u), plant)
+            if exceeding:
+                return f'{exceeding} (plant_info): a change must stay within them'
+        return ''
+
+    def retune(self, config: ControllerConfig, version: int) -> None:
+        """Use `config` as tuning `version` from the next tick on (builder thread).
+
+        Builds the QP of the model in use for it (OSQP set-up and DARE: milliseconds, while
+        the ticks go on with the tuning before), then swaps both in as one. The new QP starts
+        cold, as on a new model. ValueError if the model does not fit (check_tuning first)."""
+        setup = self._setup
+        model = setup.model
+        if model is not None:
+            model = replace(model, mpc=latent_mpc(config.mpc, model.predictor))
+        self._setup = setup._replace(tuning=Tuning.of(config, version, self.n_u), model=model)
 
     @property
     def dt(self) -> float:
         """Sample time, s: the plant's, or 1 / rate_hz until plant_info has arrived."""
         return self.plant.dt if self.plant is not None else 1.0 / self.config.rate_hz
 
+    def _build_nmpc(self, tuning: Tuning, plant: PlantDescription) -> str:
+        """Build the NMPC of the plant with the tuning (no set-up: cheap); '' or why not."""
+        self._nmpc, self._nmpc_version = None, tuning.version
+        mpc = tuning.config.mpc
+        try:
+            self._nmpc = for_plant(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r,
+                                              u_min=tuning.u_min, u_max=tuning.u_max,
+                                              dt=plant.dt), plant.family, plant.theta)
+        except ValueError as err:     # unknown family, or no / a wrong theta
+            return str(err)
+        return ''
+
     def set_plant(self, plant: PlantDescription) -> List[str]:
         """Take the plant's description; returns warnings about disagreeing settings."""
-        cfg = self.config
+        tuning = self.tuning
+        cfg = tuning.config
         warnings = []
         if (len(plant.u_min), plant.n_y) != (self.n_u, self.n_y):
             warnings.append(f'the plant ({plant.family or "unnamed"}) has {len(plant.u_min)} '
@@ -306,24 +420,18 @@ class ControllerCore:
                             'rejected')
             self.plant = plant
             return warnings
-        if np.any(self.u_min < plant.u_min) or np.any(self.u_max > plant.u_max):
-            warnings.append(f'input bounds [{self.u_min.tolist()}, {self.u_max.tolist()}] exceed '
-                            f"the plant's [{list(plant.u_min)}, {list(plant.u_max)}]: the plant "
-                            'will saturate what the MPC plans')
+        exceeding = bounds_exceeding(tuning.u_min, tuning.u_max, plant)
+        if exceeding:
+            warnings.append(f'{exceeding}: the plant will saturate what the MPC plans')
         if plant.lockstep and cfg.rate_hz * plant.dt < 1.0 - 1e-9:
             warnings.append(f'rate_hz {cfg.rate_hz} is below the lockstep plant\'s 1/dt = '
                             f'{1.0 / plant.dt}: steps will wait for input timeouts')
         if cfg.planner == 'nmpc' and (self.plant is None or (
                 self.plant.family, self.plant.theta, self.plant.dt) != (
                 plant.family, plant.theta, plant.dt)):
-            self._nmpc = None
-            try:
-                mpc = cfg.mpc
-                self._nmpc = for_plant(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r,
-                                                  u_min=self.u_min, u_max=self.u_max, dt=plant.dt),
-                                       plant.family, plant.theta)
-            except ValueError as err:     # unknown family, or no / a wrong theta
-                warnings.append(f'planner nmpc: the plant\'s model is not available ({err}); '
+            error = self._build_nmpc(tuning, plant)
+            if error:
+                warnings.append(f'planner nmpc: the plant\'s model is not available ({error}); '
                                 'answering with the pre-model input')
         self.plant = plant
         return warnings
@@ -356,20 +464,25 @@ class ControllerCore:
 
     # --- the tick -----------------------------------------------------------------------
 
-    def references(self, step: int) -> np.ndarray:
-        """(N, n_y) references of the horizon of the tick answering `step`."""
-        n = self.config.mpc.horizon
+    def references(self, step: int, tuning: Optional[Tuning] = None) -> np.ndarray:
+        """(N, n_y) references of the horizon of the tick answering `step` (with `tuning`,
+        default the next tick's)."""
+        tuning = self.tuning if tuning is None else tuning
+        n = tuning.config.mpc.horizon
         if self._override is not None:
             return np.tile(self._override, (n, 1))
-        return self.reference.evaluate(step * self.dt, self.dt, n)
+        return tuning.reference.evaluate(step * self.dt, self.dt, n)
 
     def tick(self) -> TickResult:
         """Answer the newest sample (observe() must have been called at least once)."""
+        tuning, model, model_status = self._setup
         step = self.history.step
         u_prev = self.history.u
-        y_ref = self.references(step)
-        model, model_status = self._model
-        planner = self.config.planner
+        y_ref = self.references(step, tuning)
+        planner = tuning.config.planner
+        if (planner == 'nmpc' and self._nmpc is not None
+                and self._nmpc_version != tuning.version):
+            self._build_nmpc(tuning, self.plant)    # it was built for this plant before
         if planner == 'nmpc' and self._nmpc is not None:
             res = self._nmpc.solve(self.history.y, u_prev, y_ref)
             out = dict(model_version=0, fallback=False, terminal_fallback=False)
@@ -383,7 +496,7 @@ class ControllerCore:
             out = dict(model_version=0, fallback=False, terminal_fallback=False,
                        solver_status='no_model' if planner == 'latent_mpc' else 'no_plant_info',
                        cost=math.nan, iterations=-1, solve_time=0.0,
-                       u=self.pre_model.value(step, self.dt),
+                       u=tuning.pre_model.value(step, self.dt),
                        u_plan=np.zeros((0, self.n_u)), y_pred=np.zeros((0, self.n_y)))
         if res is not None:
             out.update(solver_status=res.status, cost=float(res.cost),
@@ -393,6 +506,6 @@ class ControllerCore:
         if not np.all(np.isfinite(u)):    # the planners promise this; the plant must get it
             u = np.where(np.isfinite(u_prev), u_prev, 0.0)
             out['fallback'] = True
-        out['u'] = np.clip(u, self.u_min, self.u_max)
+        out['u'] = np.clip(u, tuning.u_min, tuning.u_max)
         return TickResult(step=step, planner=planner, model_status=model_status, y_ref=y_ref,
-                          **out)
+                          config_version=tuning.version, q=tuning.q, **out)

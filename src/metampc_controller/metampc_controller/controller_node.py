@@ -15,7 +15,8 @@ Interfaces (relative names, so a namespace can wrap them):
   empty array returns to the configured reference.
 * ``u`` (ControlInput, published, reliable): the input computed from y_k, with ``step = k``,
   held over (k, k+1], stamped with y_k's stamp, and the NSSM version that produced it.
-* ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it.
+* ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it;
+  ``config_version`` names the tuning the tick used (0 as started, +1 per live change).
 * ``set_active`` (metampc_msgs/SetActive): inactive, nothing is published (a lockstep plant
   waits); activation answers the newest unanswered y at once. The response carries the step
   answered at once (``answered_step``, -1: none), the step and stamp of the newest y
@@ -32,15 +33,22 @@ episode replays the reference from its start.
 
 Parameters, defaults and ranges: :data:`metampc_controller.controller_params.PARAMETERS`.
 A bad value ends the node with one error line and exit status 2. The counts of the run are
-logged when the node stops.
+logged when the node stops. Live parameters (the MPC's horizon, weights and bounds, the
+reference): ``ros2 param set`` is checked as at start-up (and the bounds against the
+plant's) and refused with the reason, or accepted; the QP is then rebuilt on the builder
+thread while the ticks go on with the tuning before, and swapped in between two ticks.
+Under a lockstep plant the next tick waits for it, so a change accepted between the ticks
+of steps k and k+1 applies from step k+1 on; otherwise the first tick after the build uses
+it. ``MpcStatus.config_version`` names the tuning of every tick.
 """
 from array import array
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 import math
 import sys
 import time
+from typing import Optional
 
-from metampc_common.node_main import declare_parameters, EventCounts, run_node
+from metampc_common.node_main import declare_parameters, EventCounts, LiveParameters, run_node
 from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
 from metampc_msgs.srv import SetActive
@@ -50,10 +58,11 @@ from std_msgs.msg import Float64MultiArray
 
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
                                                 PlantDescription, TickResult)
-from metampc_controller.controller_params import PARAMETERS, parse_params
+from metampc_controller.controller_params import ControllerConfig, PARAMETERS, parse_params
 from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
 
-COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y')
+COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
+            'retunes')
 
 
 def _doubles(values: np.ndarray) -> array:
@@ -68,10 +77,10 @@ class ControllerNode(Node):
 
     def __init__(self):
         super().__init__('controller')
-        self.cfg = parse_params(declare_parameters(self, PARAMETERS))
+        values = declare_parameters(self, PARAMETERS)
+        self.cfg = parse_params(values)
         self.core = ControllerCore(self.cfg)
         self.rule = AnswerRule(self.cfg.active)
-        self._q = [float(w) for w in self.cfg.mpc.q]    # which outputs are tracked
         self._events = EventCounts(self, COUNTERS)
         self._counts = self._events.counts
         self._warn = self._events.warn
@@ -79,10 +88,10 @@ class ControllerNode(Node):
         self._stamp = None              # stamp of the newest y
         self._u_msg = ControlInput()
         # Every callback runs on the one executor thread (the core's tick state needs no
-        # lock); building a model (OSQP set-up, the DARE: ~10-100 ms) runs on a worker thread
-        # and is handed over as one reference. A MultiThreadedExecutor with the weights in a
-        # group of their own measured ~1.6x the CPU per sample and fell behind its y queue at
-        # 100 Hz on a loaded 2-core machine (docs/controller.md).
+        # lock); building a model or a new tuning's QP (OSQP set-up, the DARE: ~10-100 ms)
+        # runs on a worker thread and is handed over as one reference. A MultiThreadedExecutor
+        # with the weights in a group of their own measured ~1.6x the CPU per sample and fell
+        # behind its y queue at 100 Hz on a loaded 2-core machine (docs/controller.md).
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix='model_builder')
         self._pub_u = self.create_publisher(ControlInput, 'u', STREAM)
         self._pub_status = self.create_publisher(MpcStatus, 'mpc_status', STREAM)
@@ -93,6 +102,10 @@ class ControllerNode(Node):
             self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED)
         self.create_service(SetActive, 'set_active', self._on_set_active)
         self.create_timer(1.0 / self.cfg.rate_hz, self._on_timer)
+        self._config_version = 0
+        self._retuning: Optional[Future] = None     # the latest accepted change's build
+        LiveParameters(self, PARAMETERS, values, self.cfg, parse_params, self._on_params,
+                       check=self.core.check_tuning)
         mpc = self.cfg.mpc
         self.get_logger().info(
             f'{self.cfg.planner} controller at {self.cfg.rate_hz} Hz: N={mpc.horizon}, '
@@ -123,6 +136,15 @@ class ControllerNode(Node):
 
     def _answer(self, start: float) -> None:
         """Publish the input answering the newest y, then its MpcStatus."""
+        retuning = self._retuning
+        if retuning is not None:
+            # Under a lockstep plant the first tick after an accepted change uses it (the
+            # plant waits meanwhile): a change accepted between the ticks of steps k and k+1
+            # applies from step k+1 on, in every run alike. Otherwise no tick waits.
+            plant = self.core.plant
+            if retuning.done() or (plant is not None and plant.lockstep):
+                retuning.result()
+                self._retuning = None
         res = self.core.tick()
         msg = self._u_msg
         msg.header.stamp = self._stamp
@@ -142,8 +164,9 @@ class ControllerNode(Node):
             step=res.step, cost=res.cost, solve_time=res.solve_time, tick_time=tick_time,
             solver_status=res.solver_status, iterations=res.iterations, fallback=res.fallback,
             terminal_fallback=res.terminal_fallback, model_version=res.model_version,
-            planner=res.planner, model_status=res.model_status, u_plan=_doubles(res.u_plan),
-            y_pred=_doubles(res.y_pred), y_ref=_doubles(res.y_ref), q=self._q)
+            config_version=res.config_version, planner=res.planner,
+            model_status=res.model_status, u_plan=_doubles(res.u_plan),
+            y_pred=_doubles(res.y_pred), y_ref=_doubles(res.y_ref), q=res.q)
         status.header.stamp = self._stamp
         self._pub_status.publish(status)
 
@@ -198,6 +221,30 @@ class ControllerNode(Node):
             self.get_logger().info(f'reference override: {list(msg.data)}' if len(msg.data)
                                    else f'reference: back to {self.cfg.reference_kind}')
 
+    def _on_params(self, config: ControllerConfig, changes: dict) -> None:
+        """An accepted live change (checked by parse_params and core.check_tuning): the
+        builder thread builds its QP, in order with the models, and swaps it in."""
+        self.cfg = config
+        self._config_version += 1
+        self._retuning = self._builder.submit(self._retune, config, self._config_version,
+                                              changes)
+
+    def _retune(self, config: ControllerConfig, version: int, changes: dict) -> None:
+        """Build the tuning's QP on the builder thread; the next tick uses it."""
+        start = time.perf_counter()
+        try:
+            self.core.retune(config, version)
+        except Exception as err:    # check_tuning makes this a bug: say so, keep the old one
+            self.get_logger().error(f'parameters {changes} accepted but not applied '
+                                    f'({type(err).__name__}: {err}); config version '
+                                    f'{self.core.tuning.version} stays in use')
+            return
+        self._counts['retunes'] += 1
+        self.get_logger().info(
+            f'parameters {", ".join(f"{k}={v}" for k, v in changes.items())}: config '
+            f'version {version} in use from the next tick (built in '
+            f'{1e3 * (time.perf_counter() - start):.1f} ms)')
+
     def _on_weights(self, msg: NssmWeights) -> None:
         """Hand the weights to the builder thread (arrival order is kept)."""
         self._builder.submit(self._build, msg)
@@ -205,10 +252,10 @@ class ControllerNode(Node):
     def _build(self, msg: NssmWeights) -> None:
         """Check and build a model on the builder thread; the next tick uses it."""
         core = self.core
-        try:
+        try:    # with the latest tuning: retune() runs on this thread too, in order
             bundle = build_model(weights_from_fields(fields_of(msg)), msg.version, msg.method,
-                                 msg.stage, self.cfg.mpc, core.n_u, core.n_y,
-                                 self.cfg.history)
+                                 msg.stage, core.config.mpc, core.n_u, core.n_y,
+                                 core.config.history)
         except WeightsError as err:
             self._reject(msg, str(err))
             return

@@ -35,23 +35,23 @@ MAX_HISTORY = 1000
 class ReferenceParams:
     """The reference_* parameters; :meth:`resolve` turns them into make_reference arguments."""
 
-    kind: str = param('paper', 'reference kind', choices=REFERENCE_KINDS)
+    kind: str = param('paper', 'reference kind', choices=REFERENCE_KINDS, live=True)
     outputs: Tuple[int, ...] = param((0,), 'indices of the outputs that follow the reference',
-                                     ge=0)
+                                     ge=0, live=True)
     values: Tuple[float, ...] = param((), "paper: set-points (default the paper's "
                                           f'{list(PaperConfig.setpoints)}); setpoint: one value '
                                           '(default 0); steps: the value from each time on',
-                                      item=float)
+                                      item=float, live=True)
     times: Tuple[float, ...] = param((), 'steps: increasing times, s since the plant reset',
-                                     item=float)
-    initial: float = param(0.0, 'steps: value before the first time')
-    segment: float = param(PaperConfig.segment, 'paper: seconds per set-point', gt=0)
+                                     item=float, live=True)
+    initial: float = param(0.0, 'steps: value before the first time', live=True)
+    segment: float = param(PaperConfig.segment, 'paper: seconds per set-point', gt=0, live=True)
     start: float = param(PaperConfig.start, "paper: start of the first set-point's segment, s "
-                                            '(that set-point also holds before it)')
-    amplitude: float = param(0.5, 'sine: amplitude')
-    period: float = param(10.0, 'sine: period, s', gt=0)
-    offset: float = param(0.0, 'sine: offset')
-    phase: float = param(0.0, 'sine: phase, rad')
+                                            '(that set-point also holds before it)', live=True)
+    amplitude: float = param(0.5, 'sine: amplitude', live=True)
+    period: float = param(10.0, 'sine: period, s', gt=0, live=True)
+    offset: float = param(0.0, 'sine: offset', live=True)
+    phase: float = param(0.0, 'sine: phase, rad', live=True)
 
     def resolve(self, n_y: int) -> Dict[str, Any]:
         """The arguments of ``make_reference(kind, ...)`` for a plant with n_y outputs."""

@@ -90,15 +90,16 @@ class MpcConfig:
             the mean iterations of OSQP's 50 with a lower worst case (30 against 55).
     """
 
-    horizon: int = param(20, 'MPC horizon N, samples', ge=1)
+    horizon: int = param(20, 'MPC horizon N, samples', ge=1, live=True)
     q: Sequence[float] = param((1.0, 0.0), 'output tracking weights Q = diag(q), one per plant '
-                                           'output (the default tracks x1 only)', ge=0)
+                                           'output (the default tracks x1 only)', ge=0,
+                               live=True)
     r: Weights = param((0.05,), 'Delta-u weights, one per input (one value: every input)',
-                       gt=0, scalar=True)
+                       gt=0, scalar=True, live=True)
     u_min: Weights = param((-1.0,), 'input lower bounds, one per input (one value: every '
-                                    'input; <= u_max)', scalar=True)
+                                    'input; <= u_max)', scalar=True, live=True)
     u_max: Weights = param((1.0,), 'input upper bounds, one per input (one value: every '
-                                   'input; >= u_min)', scalar=True)
+                                   'input; >= u_min)', scalar=True, live=True)
     terminal_reg: float = 1e-6
     max_iter: int = param(500, 'OSQP iteration cap', ge=1)
     time_limit: float = param(0.05, 'OSQP wall-time cap per solve, s', gt=0)

@@ -260,3 +260,57 @@ def test_each_episode_starts_cold_whatever_came_before(planner):
     core.observe(30, [0.7], [0.9, -0.3])                                      # a stale answer
     core.tick()
     np.testing.assert_array_equal(episode(core), reference)
+
+
+@pytest.mark.parametrize('planner', ['latent_mpc', 'nmpc'])
+def test_retune_applies_from_the_next_tick_as_a_core_started_with_it(planner):
+    """A live change between the ticks of steps 11 and 12: from step 12 on the core answers
+    bit for bit as a core started with the new tuning that saw the same samples (its planner
+    cold at its first tick), with the new horizon, weights, bounds and set-point."""
+    def core_with(cfg):
+        core = ControllerCore(cfg)
+        core.set_plant(vdp_plant(0.5))
+        if planner == 'latent_mpc':
+            core.offer_model(manual_bundle(theta=0.5, mpc=cfg.mpc))
+        return core
+
+    old = ControllerConfig(planner=planner, mpc=MpcConfig(time_limit=NO_TIME_LIMIT),
+                           reference_kind='setpoint', reference_params={'value': 0.6})
+    new = dataclasses.replace(old, mpc=MpcConfig(horizon=12, r=(0.5,), u_max=(0.4,),
+                                                 time_limit=NO_TIME_LIMIT),
+                              reference_params={'value': 0.3})
+    plant = Plant(PlantConfig(theta=(0.5,)))
+    core = core_with(old)
+    before = closed_loop(core, plant, 12)
+    assert core.check_tuning(new) == ''
+    core.retune(new, 1)
+    after = closed_loop(core, plant, 10, start=12)
+
+    started = core_with(new)
+    sim = Plant(PlantConfig(theta=(0.5,)))      # the samples the retuned core saw
+    y, u = sim.output(), 0.0
+    for k, res in enumerate(before):
+        started.observe(k, [u], y)
+        u = float(res.u[0])
+        y = sim.step([u])
+    again = closed_loop(started, sim, 10, start=12)
+    assert [r.config_version for r in before + after] == [0] * 12 + [1] * 10
+    assert all(r.u_plan.shape == (12, 1) and r.u[0] <= 0.4 for r in after)
+    assert before[-1].y_ref[0, 0] == 0.6 and all(r.y_ref[0, 0] == 0.3 for r in after)
+    np.testing.assert_array_equal([r.u_plan for r in after], [r.u_plan for r in again])
+    if planner == 'latent_mpc':
+        assert core.model.version == 1 and core.model.mpc.config.horizon == 12
+
+
+def test_check_tuning_refuses_what_the_running_controller_cannot_take():
+    core = ControllerCore(ControllerConfig())
+    assert core.check_tuning(ControllerConfig(mpc=MpcConfig(u_max=(2.0,)))) == ''  # no plant yet
+    core.set_plant(vdp_plant(0.5))
+    assert core.check_tuning(ControllerConfig(mpc=MpcConfig(u_max=(2.0,)))) == (
+        "input bounds [[-1.0], [2.0]] exceed the plant's [[-1.0], [1.0]] (plant_info): a change "
+        'must stay within them')
+    assert core.check_tuning(ControllerConfig(mpc=MpcConfig(u_max=(0.5,)))) == ''
+    wider = ControllerConfig(mpc=MpcConfig(q=(1.0, 0.0, 0.0)), n_y=3)
+    assert core.check_tuning(wider) == 'q needs one weight per output (2), got [1.0, 0.0, 0.0]'
+    two = ControllerConfig(mpc=MpcConfig(r=(0.1, 0.1)), n_u=2)
+    assert core.check_tuning(two).startswith('r, u_min and u_max need one value per input (1)')

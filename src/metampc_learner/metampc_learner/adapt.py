@@ -28,9 +28,10 @@ from metampc_learner.progress import Progress, ProgressFn
 class AdaptConfig:
     """Attributes: steps (m), lr (beta_in), gamma (>= 0) of eq. (infer)."""
 
-    steps: int = param(20, 'adaptation gradient steps', ge=0)
-    lr: float = param(0.05, 'adaptation step size', gt=0)
-    gamma: float = param(0.0, 'proximal strength of eq. infer (0: plain gradient steps)', ge=0)
+    steps: int = param(20, 'adaptation gradient steps', ge=0, live=True)
+    lr: float = param(0.05, 'adaptation step size', gt=0, live=True)
+    gamma: float = param(0.0, 'proximal strength of eq. infer (0: plain gradient steps)', ge=0,
+                         live=True)
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""

@@ -33,6 +33,9 @@ too few samples) get success=false and a message saying what is missing; they ar
 
 Parameters, defaults and ranges: :data:`metampc_learner.learner_params.PARAMETERS`. A bad value
 (or an unreadable ``meta_model_path``) ends the node with one error line and exit status 2.
+The request defaults (what a ``meta_train`` or ``adapt`` request takes for a field left at 0 or
+empty) are live: ``ros2 param set`` changes them for the next request, checked as at start-up
+(refused with the reason); a running job keeps the values it started with.
 On shutdown a running job is cancelled at its next step.
 """
 import sys
@@ -40,7 +43,7 @@ import threading
 import traceback
 from typing import Optional
 
-from metampc_common.node_main import declare_parameters, run_node
+from metampc_common.node_main import declare_parameters, LiveParameters, run_node
 from metampc_common.params import ParameterError
 from metampc_common.qos import BACKLOG, LATCHED, SPARSE
 from metampc_msgs.msg import NssmWeights, PlantInfo, PlantOutput, TrainingProgress
@@ -54,8 +57,8 @@ import torch
 
 from metampc_controller.weights_codec import fields_from_weights
 from metampc_learner.job_slot import JobCancelled, JobSlot, JobStatus
-from metampc_learner.learner_params import (parse_params, PARAMETERS, resolve_adapt_request,
-                                            resolve_meta_request)
+from metampc_learner.learner_params import (LearnerNodeConfig, parse_params, PARAMETERS,
+                                            resolve_adapt_request, resolve_meta_request)
 from metampc_learner.learner_session import (LearnerError, LearnerSession, ModelRecord,
                                              PlantFacts)
 from metampc_learner.meta_train import MetaTrainingError
@@ -74,7 +77,8 @@ class LearnerNode(Node):
 
     def __init__(self):
         super().__init__('learner')
-        self.cfg = parse_params(declare_parameters(self, PARAMETERS))
+        values = declare_parameters(self, PARAMETERS)
+        self.cfg = parse_params(values)
         torch.set_num_threads(self.cfg.torch_threads)
         self.session = LearnerSession(self.cfg)
         self.buffer = TargetBuffer(self.cfg.target_buffer_size)
@@ -100,6 +104,7 @@ class LearnerNode(Node):
                           callback_group=MutuallyExclusiveCallbackGroup(),
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
+        LiveParameters(self, PARAMETERS, values, self.cfg, parse_params, self._on_params)
         if self.cfg.meta_model_path:
             try:
                 record = self.session.load_meta(self.cfg.meta_model_path)
@@ -114,6 +119,13 @@ class LearnerNode(Node):
             f'{list(nssm.hidden)}; {src.n_systems} source systems; D_target of '
             f'{self.buffer.capacity} samples, buffering '
             + ('on' if self.buffer.enabled else 'off until set_buffering true'))
+
+    def _on_params(self, config: LearnerNodeConfig, changes: dict) -> None:
+        """An accepted change of the request defaults: the next request resolves against it
+        (a request reads the config once, as it starts)."""
+        self.cfg = self.session.config = config
+        self.get_logger().info('request defaults: '
+                               + ', '.join(f'{k}={v}' for k, v in changes.items()))
 
     # --- data -----------------------------------------------------------------------------
 

@@ -53,7 +53,8 @@ class LearnerNodeConfig:
     train_fraction: float = param(0.5, 'share (in time) of each source episode in D_tr',
                                   gt=0, lt=1)
     online_collection: bool = param(False, 'collect closed-loop source data during '
-                                           'meta-training (a request can also turn it on)')
+                                           'meta-training (a request can also turn it on)',
+                                    live=True)
     online_max_samples: int = param(20000, 'cap of collected samples kept', ge=1)
     target_buffer_size: int = param(300, 'target samples kept after buffering (re)starts',
                                     ge=1)

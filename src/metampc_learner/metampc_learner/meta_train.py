@@ -69,21 +69,21 @@ class MetaConfig:
         max_bad_steps: consecutive bad steps that stop training.
     """
 
-    method: str = param('imaml', 'meta-training method', choices=METHODS)
-    iterations: int = param(300, 'outer steps', ge=1)
-    batch_size: int = param(16, 'B, tasks per outer step', ge=1)
-    inner_steps: int = param(10, 'M, inner gradient steps', ge=0)
-    lr_inner: float = param(0.05, 'beta_in, inner step size', ge=0)
-    lr_outer: float = param(1e-3, 'beta_out, initial Adam step size', gt=0)
+    method: str = param('imaml', 'meta-training method', choices=METHODS, live=True)
+    iterations: int = param(300, 'outer steps', ge=1, live=True)
+    batch_size: int = param(16, 'B, tasks per outer step', ge=1, live=True)
+    inner_steps: int = param(10, 'M, inner gradient steps', ge=0, live=True)
+    lr_inner: float = param(0.05, 'beta_in, inner step size', ge=0, live=True)
+    lr_outer: float = param(1e-3, 'beta_out, initial Adam step size', gt=0, live=True)
     lr_schedule: str = param('constant', 'beta_out over the outer steps (cosine: annealed to '
                                          '0)', choices=LR_SCHEDULES)
-    gamma: float = param(1.0, 'proximal strength of eq. inner_imaml', gt=0)
-    cg_steps: int = param(5, 'CG iterations of eq. cg', ge=0)
+    gamma: float = param(1.0, 'proximal strength of eq. inner_imaml', gt=0, live=True)
+    cg_steps: int = param(5, 'CG iterations of eq. cg', ge=0, live=True)
     curvature: str = param('gauss_newton', 'iMAML curvature', choices=CURVATURES)
     windows_per_task: int = param(64, 'windows of D_tr and of D_test per task and step', ge=1)
     vectorise: bool = True
     seed: int = param(0, 'seed of initial weights, task sampling, collection and the '
-                         'supervised/oracle initialisation', ge=0)
+                         'supervised/oracle initialisation', ge=0, live=True)
     max_skip_fraction: float = 0.5
     max_bad_steps: int = 3
 

@@ -33,8 +33,8 @@ class OracleConfig:
     size of the training loss."""
 
     episodes: int = param(100, 'simulated target episodes of the oracle', ge=1)
-    steps: int = param(500, 'oracle Adam steps', ge=0)
-    lr: float = param(3e-3, 'oracle Adam step size', gt=0)
+    steps: int = param(500, 'oracle Adam steps', ge=0, live=True)
+    lr: float = param(3e-3, 'oracle Adam step size', gt=0, live=True)
     batch_windows: int = param(256, 'oracle windows per Adam step', ge=1)
     eval_windows: int = 1024
 

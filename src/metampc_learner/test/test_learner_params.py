@@ -161,3 +161,17 @@ def test_adapt_request_zero_means_the_parameter():
 def test_bad_adapt_requests(fields, match):
     with pytest.raises(ValueError, match=match):
         resolve_adapt_request(Adapt.Request(**fields), AdaptConfig(), OracleConfig())
+
+
+def test_the_request_defaults_and_only_they_are_live():
+    """Live: the parameter behind each request field that falls back to one (docs/learner.md);
+    a change reaches the next request, resolved against the re-parsed config."""
+    meta_fields = set(MetaTrain.Request.get_fields_and_field_types())
+    adapt_fields = set(Adapt.Request.get_fields_and_field_types()) - {'method', 'n_samples'}
+    expected = meta_fields | {f'adapt_{f}' for f in adapt_fields} | {
+        f'oracle_{f}' for f in adapt_fields - {'gamma'}}
+    assert {name for name, spec in PARAMETERS.items() if spec.live} == expected
+    changed = parse_params(_raw(iterations=7, adapt_lr=0.01))
+    config, _ = resolve_meta_request(MetaTrain.Request(), changed.meta, False)
+    job = resolve_adapt_request(Adapt.Request(), changed.adapt, changed.oracle)
+    assert (config.iterations, job.lr) == (7, 0.01)

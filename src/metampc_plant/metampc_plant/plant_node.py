@@ -46,7 +46,9 @@ turns non-finite is never published: the plant freezes at its last finite state,
 ``diverged`` on y and plant_info, logs one error and stays so until ``reset``.
 
 Parameters, defaults and ranges: :data:`metampc_plant.plant_params.PARAMETERS`. A bad value
-ends the node with one error line and exit status 2. Stale/rejected/timed-out inputs are
+ends the node with one error line and exit status 2. The noise levels are live: ``ros2 param
+set`` changes them from the next step on (checked as at start-up, refused with the reason)
+and plant_info is re-sent with them. Stale/rejected/timed-out inputs are
 counted and the counts logged when the node stops.
 """
 import math
@@ -56,12 +58,12 @@ from array import array
 from typing import Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
-from metampc_common.node_main import declare_parameters, EventCounts, run_node
+from metampc_common.node_main import declare_parameters, EventCounts, LiveParameters, run_node
 from metampc_common.qos import BACKLOG, LATCHED, STREAM
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
 from metampc_plant.lockstep import Lockstep
-from metampc_plant.plant_params import PARAMETERS, parse_params
+from metampc_plant.plant_params import PARAMETERS, parse_params, PlantNodeConfig
 from metampc_plant.simulator import Plant
 import numpy as np
 from rclpy.clock import Clock, ClockType
@@ -78,7 +80,8 @@ class PlantNode(Node):
 
     def __init__(self):
         super().__init__('plant')
-        self.cfg = parse_params(declare_parameters(self, PARAMETERS))
+        values = declare_parameters(self, PARAMETERS)
+        self.cfg = parse_params(values)
         self.plant = Plant(self.cfg.plant)
         self.family = self.plant.family
         self._zero_u = (0.0,) * self.family.n_u
@@ -117,6 +120,7 @@ class PlantNode(Node):
         else:
             period = 1.0 / self.cfg.sample_rate_hz()
             self._tick_timer = self.create_timer(period, self._on_tick, clock=self._steady)
+        LiveParameters(self, PARAMETERS, values, self.cfg, parse_params, self._on_params)
         self._publish_info()
         sim = self.cfg.plant
         self.get_logger().info(
@@ -244,6 +248,16 @@ class PlantNode(Node):
 
     def _on_tick(self) -> None:
         self._advance(self._requested_u)
+
+    def _on_params(self, config: PlantNodeConfig, changes: dict) -> None:
+        """An accepted change of the noise levels (the live parameters): from the next step."""
+        self.cfg = config
+        sim = config.plant
+        self.plant.set_noise(sim.process_noise_std, sim.measurement_noise_std)
+        self._publish_info()
+        self.get_logger().info(f'noise levels from step {self.plant.step_index + 1} on: '
+                               f'process {sim.process_noise_std}, measurement '
+                               f'{sim.measurement_noise_std}')
 
     # --- reset --------------------------------------------------------------------------
 

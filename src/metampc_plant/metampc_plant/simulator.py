@@ -61,8 +61,9 @@ class PlantConfig:
     u_max: Tuple[float, ...] = param((), "input upper bounds, one per input (empty: the "
                                          "family's; within them)", item=float, scalar=True)
     process_noise_std: float = param(0.0, "std of the noise added to the family's noise states "
-                                          'per sample, times sqrt(dt)', ge=0)
-    measurement_noise_std: float = param(0.0, 'std of the noise added to each output', ge=0)
+                                          'per sample, times sqrt(dt)', ge=0, live=True)
+    measurement_noise_std: float = param(0.0, 'std of the noise added to each output', ge=0,
+                                         live=True)
     state_bound: float = param(0.0, "the plant is declared diverged when |x|_inf exceeds this "
                                     "(0: the family's)", ge=0)
     seed: int = param(0, 'noise seed', ge=0)
@@ -249,6 +250,13 @@ class Plant:
         self._diverged = max(abs(v) for v in self._x) > self.config.state_bound
         self._step_index = 0
         return self.output()
+
+    def set_noise(self, process_noise_std: float, measurement_noise_std: float) -> None:
+        """New noise levels (>= 0, a live parameter change), used from the next step on; the
+        noise generator goes on from where it is (it draws only for levels > 0)."""
+        self.config = dataclasses.replace(self.config, process_noise_std=process_noise_std,
+                                          measurement_noise_std=measurement_noise_std)
+        self._process_scale = process_noise_std * math.sqrt(self.config.dt)
 
     def saturate(self, u: Sequence[float]) -> Tuple[Tuple[float, ...], bool]:
         """Clip u (n_u values) to the bounds; return (clipped, was_clipped). NaN stays NaN."""

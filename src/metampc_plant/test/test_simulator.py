@@ -102,6 +102,24 @@ def test_noise_is_seeded():
     assert not np.allclose(run(5), run(6))
 
 
+def test_noise_levels_change_live_from_the_next_step_on():
+    """Plant.set_noise (a live parameter change): the measurement noise of every later output
+    is the new std times the next normal numbers of the seeded stream, as if it had been the
+    level from the start; the outputs before are untouched."""
+    clean = Plant(PlantConfig(theta=(0.7,), dt=DT, x0=(0.2, 0.1)))
+    noisy = Plant(PlantConfig(theta=(0.7,), dt=DT, x0=(0.2, 0.1), measurement_noise_std=0.05,
+                              seed=3))
+    normals = np.random.default_rng(3).standard_normal((31, 2))     # y_0, then 30 steps
+    stds = [0.05] * 11 + [0.2] * 20
+    errors = []
+    for k in range(30):
+        if k == 10:
+            noisy.set_noise(0.0, 0.2)
+        errors.append(noisy.step([0.3]) - clean.step([0.3]))
+    np.testing.assert_allclose(errors, np.array(stds[1:])[:, None] * normals[1:], atol=1e-12)
+    assert noisy.config.measurement_noise_std == 0.2
+
+
 @pytest.mark.parametrize('simulator', ['single', 'batch'])
 def test_process_noise_variance_is_std_squared_times_dt(simulator):
     """Process noise is a Wiener increment of intensity process_noise_std: the x2 noise of one
