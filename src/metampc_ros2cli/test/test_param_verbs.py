@@ -111,6 +111,21 @@ def test_get_prints_the_value_with_its_label(params):
     assert out.stdout == f"{values['r'][1]}\n"
 
 
+def test_describe_prints_the_nodes_descriptors(params):
+    names = ['r', 'rate_hz']
+    described = params.call('describe_parameters', names=names).descriptors
+    out = ros2('param', 'describe', NODE, *names, *WAIT)
+    assert (out.returncode, out.stderr) == (0, ''), out
+    expected = []
+    for d in described:
+        expected += [f'Parameter name: {d.name}', f'  Type: {TYPE_NAMES[d.type]}',
+                     f'  Description: {d.description}', '  Constraints:']
+        expected += ['    Read only: true'] if d.read_only else []
+    assert out.stdout.splitlines() == expected
+    # r is live (ros2 param set takes it), rate_hz read-only: the node says so
+    assert [d.read_only for d in described] == [False, True]
+
+
 def test_get_of_what_is_not_there_is_an_error_line(params):
     out = ros2('param', 'get', NODE, 'no_such_parameter', *WAIT)
     assert (out.returncode, out.stdout, out.stderr) == (1, '', 'Parameter not set\n')

@@ -1,4 +1,4 @@
-"""`ros2 param list|get|set|dump|load`, as ros2param (Jazzy) prints them and exits.
+"""`ros2 param list|get|set|describe|dump|load`, as ros2param (Jazzy) prints them and exits.
 
 Each verb talks to the node's parameter services through rclpy's AsyncParameterClient, as
 ros2param's api does. As there, a refused `set` (or a parameter of `load`) prints the node's
@@ -59,6 +59,15 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument('value', help='Value of the parameter')
     _common(p)
     p.set_defaults(main=set_param)
+
+    p = verbs.add_parser('describe', help='Show descriptive information about declared '
+                         'parameters')
+    p.add_argument('node_name', help='Name of the ROS node')
+    p.add_argument('--include-hidden-nodes', action='store_true',
+                   help='Consider hidden nodes as well')
+    p.add_argument('parameter_names', nargs='+', help='Names of the parameters')
+    _common(p)
+    p.set_defaults(main=describe)
 
     p = verbs.add_parser('dump', help='Show all of the parameters of a node in a YAML file '
                          'format')
@@ -204,6 +213,32 @@ def get(args: Any) -> Any:
         print(shown)
     else:
         print(label, shown) if shown is not None else print(label)
+    return 0
+
+
+def describe(args: Any) -> Any:
+    name = _absolute(args.node_name)
+    with direct.DirectNode(args) as node:
+        if not _node_found(node, name, args):
+            return 'Node not found'
+        client = _ready_client(node, name)
+        response = _result(node, client.describe_parameters(args.parameter_names), name)
+    for d in response.descriptors:
+        print('Parameter name:', d.name)
+        print('  Type:', TYPE_NAMES[d.type])
+        if d.description:
+            print('  Description:', d.description)
+        print('  Constraints:')
+        if d.read_only:
+            print('    Read only: true')
+        ranges = list(d.floating_point_range) + list(d.integer_range)
+        if ranges:
+            print('    Min value:', ranges[0].from_value)
+            print('    Max value:', ranges[0].to_value)
+            if ranges[0].step:
+                print('    Step:', ranges[0].step)
+        if d.additional_constraints:
+            print('    Additional constraints:', d.additional_constraints)
     return 0
 
 
