@@ -81,8 +81,7 @@ def parse_params(values: Mapping[str, Value]) -> RecorderConfig:
     Raises:
         ParameterError: naming the first parameter of the wrong type or out of range.
     """
-    # ROS declares the empty default list as an empty byte array.
-    return build(SECTION, {**values, 'topics': values['topics'] or []})
+    return build(SECTION, values)
 
 
 __all__ = ['MIB', 'RecorderConfig', 'PARAMETERS', 'parse_params', 'ParameterError']

@@ -140,6 +140,8 @@ def check_value(name: str, value: Value, default: Any, rule: Rule) -> Any:
     if not isinstance(default, tuple):
         return _scalar(name, value, type(default), rule)
     kind = rule.item or (type(default[0]) if default else float)
+    if value is None or value == b'':   # how rclpy gives `-p name:=[]` (NOT_SET) or an
+        value = ()                      # undeclared-type [] (an empty byte array): no items
     if rule.scalar and isinstance(value, numbers.Real) and not isinstance(value, bool):
         value = (value,)
     if isinstance(value, (str, bytes, bool)) or not hasattr(value, '__len__'):

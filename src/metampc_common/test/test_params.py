@@ -96,3 +96,28 @@ def test_configs_built_in_code_are_checked_by_field_name():
     with pytest.raises(ValueError, match='kind must be one of a, b'):
         Inner(kind='z').validate()
     check_fields(Inner(rate=2.0), skip=('rate',))
+
+
+def test_an_empty_list_from_the_command_line_is_the_empty_list():
+    """rclpy types `-p name:=[]` as NOT_SET (value None), as checked on rclpy itself, and an
+    empty list of no declared type as an empty byte array."""
+    import rclpy
+    from rclpy.node import Node
+    from rcl_interfaces.msg import ParameterDescriptor
+    context = rclpy.Context()
+    rclpy.init(args=['--ros-args', '-p', 'in_names:=[]', '-p', 'in_widths:=[]'],
+               context=context)
+    try:
+        node = Node('params_empty_list', context=context)
+        for name in ('in_names', 'in_widths'):
+            node.declare_parameter(name, [7], ParameterDescriptor(dynamic_typing=True))
+        given = {n: node.get_parameter(n).value for n in ('in_names', 'in_widths')}
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert given == {'in_names': None, 'in_widths': None}
+    config = build(INNER, _values(**given, in_steps=0))
+    assert (config.names, config.widths) == ((), ())
+    assert build(INNER, _values(in_names=b'')).names == ()
+    with pytest.raises(ParameterError, match='in_rate must be a number, got None'):
+        build(INNER, _values(in_rate=None))
