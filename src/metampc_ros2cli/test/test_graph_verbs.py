@@ -207,9 +207,11 @@ def test_service_list_and_call_reset_the_plant(plant, probe):
     call = ros2('service', 'call', '/reset', 'metampc_msgs/srv/ResetPlant',
                 '{theta: [0.3], x0: [0.5, -0.5]}')
     assert call.returncode == 0, call
-    assert call.stdout.startswith('requester: making request: '
-                                  f'{ResetPlant.Request(theta=[0.3], x0=[0.5, -0.5])!r}\n\n'
-                                  'response:\n')
+    # ros2cli prints the waiting line only when discovery has not yet shown the server.
+    reply = call.stdout.removeprefix('waiting for service to become available...\n')
+    assert reply.startswith('requester: making request: '
+                            f'{ResetPlant.Request(theta=[0.3], x0=[0.5, -0.5])!r}\n\n'
+                            'response:\n'), call
     assert 'success=True' in call.stdout, call
     probe.wait_for(lambda: list(infos.snapshot()[-1].theta) == [0.3], 30.0,
                    'plant_info with the new theta')
