@@ -9,6 +9,12 @@ the outer steps (``torch.optim.lr_scheduler.CosineAnnealingLR``, as MAML++ does)
 stays constant: on the validation source sets cosine annealing left both methods worse after
 adaptation (docs/tuning.md).
 
+Anchor of the meta-model (``init_loss_weight`` w > 0, off by default): each task's
+contribution becomes its meta-gradient plus w grad_omega l_SSM(D_test; omega), i.e. the outer
+objective gains w times the loss of the meta-model before adaptation (MAML++'s multi-step loss,
+kept at step 0 only). Without it eq. (outer) scores omega only after the inner loop, and omega
+can drift to where the inner loop does all the work (docs/experiments.md, robustness).
+
 Non-finite tasks: a task whose test loss or meta-gradient is non-finite is skipped (left out
 of the mean) and counted; if more than ``max_skip_fraction`` of a batch is skipped for
 ``max_bad_steps`` consecutive steps, :class:`MetaTrainingError` names the tasks.
@@ -26,7 +32,7 @@ from typing import Callable, List, Optional, Sequence, Set
 
 import numpy as np
 import torch
-from torch.func import vmap
+from torch.func import grad, vmap
 
 from metampc_common.params import check_fields, param
 from metampc_controller.nssm import init_params, Nssm, Params
@@ -64,6 +70,8 @@ class MetaConfig:
         curvature: 'gauss_newton' (default, PSD) or 'hessian' (iMAML only).
         windows_per_task: windows sampled from each of D_tr and D_test per task and step.
         vectorise: vmap over the B tasks (True, measured faster) or a Python loop.
+        init_loss_weight: w of the meta-model anchor (module docstring; 0: eq. (outer) as
+            written).
         seed: seed of the initial weights and of task/window sampling.
         max_skip_fraction: a step is bad when more than this share of its tasks is skipped.
         max_bad_steps: consecutive bad steps that stop training.
@@ -81,6 +89,9 @@ class MetaConfig:
     cg_steps: int = param(5, 'CG iterations of eq. cg', ge=0, live=True)
     curvature: str = param('gauss_newton', 'iMAML curvature', choices=CURVATURES)
     windows_per_task: int = param(64, 'windows of D_tr and of D_test per task and step', ge=1)
+    init_loss_weight: float = param(0.0, 'w: weight of the meta-model loss before adaptation '
+                                         'in the outer objective (0: eq. outer as written)',
+                                    ge=0, live=True)
     vectorise: bool = True
     seed: int = param(0, 'seed of initial weights, task sampling, collection and the '
                          'supervised/oracle initialisation', ge=0, live=True)
@@ -119,15 +130,34 @@ class MetaResult:
     elapsed: float = 0.0
 
 
+@dataclass
+class AnchoredTaskGradient:
+    """A task's meta-gradient plus weight * grad_omega l_SSM(D_test; omega) (the anchor)."""
+
+    task_fn: Callable[..., TaskGradient]
+    objective: FlatObjective
+    weight: float
+
+    def __call__(self, omega: torch.Tensor, tr_u: torch.Tensor, tr_y: torch.Tensor,
+                 te_u: torch.Tensor, te_y: torch.Tensor) -> TaskGradient:
+        out = self.task_fn(omega, tr_u, tr_y, te_u, te_y)
+        anchor = grad(self.objective.loss)(omega, te_u, te_y)
+        return out._replace(grad=out.grad + self.weight * anchor)
+
+
 def task_gradient_fn(objective: FlatObjective, config: MetaConfig
                      ) -> Callable[..., TaskGradient]:
-    """The per-task meta-gradient of the configured method."""
+    """The per-task meta-gradient of the configured method (anchored when w > 0)."""
     if config.method == 'imaml':
-        return ImamlTaskGradient(objective, config.inner_steps, config.lr_inner, config.gamma,
-                                 config.cg_steps, config.curvature)
-    if config.method == 'maml':
-        return FirstOrderMamlTaskGradient(objective, config.inner_steps, config.lr_inner)
-    return UnrolledMamlTaskGradient(objective, config.inner_steps, config.lr_inner)
+        task_fn = ImamlTaskGradient(objective, config.inner_steps, config.lr_inner,
+                                    config.gamma, config.cg_steps, config.curvature)
+    elif config.method == 'maml':
+        task_fn = FirstOrderMamlTaskGradient(objective, config.inner_steps, config.lr_inner)
+    else:
+        task_fn = UnrolledMamlTaskGradient(objective, config.inner_steps, config.lr_inner)
+    if config.init_loss_weight > 0:
+        return AnchoredTaskGradient(task_fn, objective, config.init_loss_weight)
+    return task_fn
 
 
 def batch_gradient_fn(objective: FlatObjective, config: MetaConfig

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_controller.nssm import init_params, Nssm, NssmConfig, prediction_loss
 from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
                                   SourceConfig, SourceData, SourceSet, Trajectory)
 from metampc_learner.meta_train import (meta_train, MetaConfig, MetaTrainingError,
@@ -188,3 +188,21 @@ def test_source_set_without_usable_tasks_is_refused():
     data = SourceData(np.array([0.1]), [[]], escaped=1)
     with pytest.raises(ValueError, match='no source system'):
         SourceSet(data, normalisation_from(simulate_source(SRC).trajectories[0]), TINY)
+
+
+@pytest.mark.parametrize('method', ['imaml', 'maml'])
+def test_anchor_adds_the_weighted_gradient_of_the_loss_before_adaptation(method):
+    model, source = _source()
+    objective = FlatObjective(model)
+    omega = objective.spec.flatten(init_params(TINY, 5))
+    train, test = source.sample(np.arange(3), 8, np.random.default_rng(5))
+    free = task_gradient_fn(objective, _fast(method=method))
+    anchored = task_gradient_fn(objective, _fast(method=method, init_loss_weight=0.3))
+    for b in range(3):
+        task = (train.u[b], train.y[b], test.u[b], test.y[b])
+        w = omega.clone().requires_grad_(True)
+        loss = prediction_loss(model, objective.spec.unflatten(w), test.u[b], test.y[b])
+        reference, = torch.autograd.grad(loss, w)  # at omega, by autograd
+        a, f = anchored(omega, *task), free(omega, *task)
+        assert torch.allclose(a.grad, f.grad + 0.3 * reference, rtol=1e-5, atol=1e-7)
+        assert torch.equal(a.test_loss, f.test_loss) and torch.equal(a.adapted, f.adapted)
