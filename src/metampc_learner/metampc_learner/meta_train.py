@@ -91,7 +91,7 @@ class MetaConfig:
     windows_per_task: int = param(64, 'windows of D_tr and of D_test per task and step', ge=1)
     init_loss_weight: float = param(0.0, 'w: weight of the meta-model loss before adaptation '
                                          'in the outer objective (0: eq. outer as written)',
-                                    ge=0, live=True)
+                                    ge=0)
     vectorise: bool = True
     seed: int = param(0, 'seed of initial weights, task sampling, collection and the '
                          'supervised/oracle initialisation', ge=0, live=True)
