@@ -10,7 +10,7 @@ with ``Wait for service timed out waiting for parameter services for node NAME``
 import math
 import re
 import sys
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from metampc_ros2cli import direct
 from metampc_ros2cli.cli import add_family
@@ -142,6 +142,19 @@ def _result(node: Any, future: Any, node_name: str) -> Any:
     return response
 
 
+def _call(args: Any, request: Callable[[Any], Any]) -> Any:
+    """The response of `request(client)` on the parameter services of ``args.node_name``.
+
+    Raises:
+        RuntimeError: 'Node not found', or as :func:`_ready_client` and :func:`_result`.
+    """
+    name = _absolute(args.node_name)
+    with direct.DirectNode(args) as node:
+        if not _node_found(node, name, args):
+            raise RuntimeError('Node not found')
+        return _result(node, request(_ready_client(node, name)), name)
+
+
 def _sort_key(full_name: str) -> Tuple[str, str, str]:
     """ros2param sorts nodes as ros2node's NodeName tuples: (name, namespace, full name)."""
     namespace, _, name = full_name.rpartition('/')
@@ -192,12 +205,7 @@ def list_params(args: Any) -> Any:
 
 
 def get(args: Any) -> Any:
-    name = _absolute(args.node_name)
-    with direct.DirectNode(args) as node:
-        if not _node_found(node, name, args):
-            return 'Node not found'
-        client = _ready_client(node, name)
-        response = _result(node, client.get_parameters([args.parameter_name]), name)
+    response = _call(args, lambda client: client.get_parameters([args.parameter_name]))
     if not response.values:
         return 'Parameter not set'
     value = response.values[0]
@@ -217,12 +225,7 @@ def get(args: Any) -> Any:
 
 
 def describe(args: Any) -> Any:
-    name = _absolute(args.node_name)
-    with direct.DirectNode(args) as node:
-        if not _node_found(node, name, args):
-            return 'Node not found'
-        client = _ready_client(node, name)
-        response = _result(node, client.describe_parameters(args.parameter_names), name)
+    response = _call(args, lambda client: client.describe_parameters(args.parameter_names))
     for d in response.descriptors:
         print('Parameter name:', d.name)
         print('  Type:', TYPE_NAMES[d.type])
@@ -245,14 +248,9 @@ def describe(args: Any) -> Any:
 def set_param(args: Any) -> Any:
     from rcl_interfaces.msg import Parameter
     from rclpy.parameter import get_parameter_value
-    name = _absolute(args.node_name)
-    with direct.DirectNode(args) as node:
-        if not _node_found(node, name, args):
-            return 'Node not found'
-        client = _ready_client(node, name)
-        parameter = Parameter(name=args.parameter_name,
-                              value=get_parameter_value(string_value=args.value))
-        response = _result(node, client.set_parameters([parameter]), name)
+    parameter = Parameter(name=args.parameter_name,
+                          value=get_parameter_value(string_value=args.value))
+    response = _call(args, lambda client: client.set_parameters([parameter]))
     [result] = response.results
     if result.successful:
         print('Set parameter successful' + (f': {result.reason}' if result.reason else ''))
@@ -301,18 +299,13 @@ def dump(args: Any) -> Any:
 def load(args: Any) -> Any:
     import yaml
     from rclpy.parameter import parameter_dict_from_yaml_file
-    name = _absolute(args.node_name)
     use_wildcard = not args.no_use_wildcard
     try:    # ros2param reads it after finding the node; an unreadable file is a traceback there
         parameters: List[Any] = list(parameter_dict_from_yaml_file(args.parameter_file,
                                                                    use_wildcard).values())
     except (OSError, yaml.YAMLError) as err:
         return f'Cannot read parameter file {args.parameter_file}: {err}'
-    with direct.DirectNode(args) as node:
-        if not _node_found(node, name, args):
-            return 'Node not found'
-        client = _ready_client(node, name)
-        response = _result(node, client.set_parameters(parameters), name)
+    response = _call(args, lambda client: client.set_parameters(parameters))
     for parameter, result in zip(parameters, response.results):
         outcome = 'successful' if result.successful else 'failed'
         print(f'Set parameter {parameter.name} {outcome}'
