@@ -151,12 +151,17 @@ def _lines_until(proc, count, pattern):
 def test_topic_hz_is_the_plants_rate_and_ctrl_c_exits_0(plant):
     proc = subprocess.Popen(['ros2', 'topic', 'hz', '/y'], stdout=subprocess.PIPE, text=True)
     try:
-        lines = _lines_until(proc, 3, r'^average rate: ')
+        lines = _lines_until(proc, 5, r'^average rate: ')
     finally:
         if proc.poll() is None:
             proc.kill()
     rates = [float(line.split()[2]) for line in lines]
-    assert all(abs(r / RATE_HZ - 1) < 0.05 for r in rates), rates
+    # The rate is (messages - 1) / (last - first reception time) since the start, so only the
+    # delivery delay of the first and the newest message moves it: on a loaded CI machine the
+    # first report (about 1 s) read 21.6 Hz. The fifth covers about 5 s; 10 % there is a
+    # 0.5 s delay, and the plant's rate halved or doubled fails every report.
+    assert all(abs(r / RATE_HZ - 1) < 0.25 for r in rates), rates
+    assert abs(rates[-1] / RATE_HZ - 1) < 0.1, rates
     assert proc.returncode == 0
 
 
