@@ -27,6 +27,7 @@ import sys
 import time
 
 from metampc_bringup.analysis import json_safe
+from metampc_bringup.cpu_budget import check_jobs
 from metampc_bringup.experiment_config import ConfigError, load, META_METHODS
 from metampc_bringup.offline import (init_worker, robustness_jobs, robustness_summary,
                                      run_jobs, settings_from)
@@ -74,9 +75,10 @@ def main(argv=None) -> int:
     try:
         experiment = load(args.config)
         bad = [m for m in methods if m not in META_METHODS]
-        if bad or args.seeds < 1 or args.first_seed < 0 or args.jobs < 1 or args.threads < 1:
+        if bad or args.seeds < 1 or args.first_seed < 0:
             raise ConfigError(f'need meta methods out of {", ".join(META_METHODS)} (got '
-                              f'{", ".join(bad) or "them"}), seeds, jobs, threads >= 1')
+                              f'{", ".join(bad) or "them"}), seeds >= 1, first seed >= 0')
+        check_jobs(args.jobs, args.threads)
         if args.rho_max is not None and not args.rho_max > 0:
             raise ConfigError(f'--rho-max must be > 0, got {args.rho_max}')
         if os.path.exists(args.out) and not os.path.isdir(args.out):

@@ -4,6 +4,7 @@
 Examples:
     python scripts/run_experiment.py                          # defaults: 1 seed, all methods
     python scripts/run_experiment.py --seeds 10               # the paper's comparison
+    python scripts/run_experiment.py --seeds 10 --jobs 2      # two seeds at a time
     python scripts/run_experiment.py --seeds 5 --protocol paper   # Algorithm 1 as written
     python scripts/run_experiment.py --report runs/<time>     # recompute its reports
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
@@ -62,6 +63,9 @@ def main(argv=None) -> int:
                                           'supervised,oracle,nmpc')
     parser.add_argument('--seeds', type=int, help='number of seeds')
     parser.add_argument('--first-seed', type=int, help='seed of the first run')
+    parser.add_argument('--jobs', type=int, default=1,
+                        help='seeds run at once, each in a ROS domain of its own (default 1; '
+                             'jobs x learner.torch_threads <= cores)')
     parser.add_argument('--theta', help="target theta*, comma-separated values of the family's "
                                         'components (default: drawn per seed)')
     parser.add_argument('--protocol', help="'tuned' (default) or 'paper' (docs/experiments.md)")
@@ -85,6 +89,7 @@ def main(argv=None) -> int:
         from metampc_bringup.experiment_config import ConfigError, load
         from metampc_bringup.foxglove_params import DEFAULT_PORT, FoxgloveConfig
         from metampc_bringup.netns import NetnsError, parse_hosts
+        from metampc_bringup.cpu_budget import check_jobs
     except KeyboardInterrupt:
         print('run_experiment: interrupted before it started; nothing written', file=sys.stderr)
         return 130
@@ -104,6 +109,11 @@ def main(argv=None) -> int:
             'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': numbers(args.theta),
             'protocol': args.protocol, 'family': args.family})
         hosts = parse_hosts(args.hosts) if args.hosts else None
+        check_jobs(args.jobs, config.node_config('learner', config.first_seed).torch_threads,
+                   'learner.torch_threads')
+        if args.jobs > 1 and (hosts or args.foxglove is not None):
+            raise ValueError('--jobs > 1 runs each seed in a ROS domain of its own on this '
+                             'host: not with --hosts or --foxglove')
         foxglove = None if args.foxglove is None else port(args.foxglove, DEFAULT_PORT)
         if foxglove is not None:
             FoxgloveConfig(port=foxglove).validate()
@@ -117,7 +127,7 @@ def main(argv=None) -> int:
         ROOT, 'runs', datetime.datetime.now().strftime('%Y%m%d-%H%M%S'))
     try:
         report = run_experiment(config, out, progress=not args.no_progress, hosts=hosts,
-                                foxglove_port=foxglove)
+                                foxglove_port=foxglove, jobs=args.jobs)
     except (FileExistsError, NetnsError) as err:
         print(f'run_experiment: {err}', file=sys.stderr)
         return 2

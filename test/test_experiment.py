@@ -290,3 +290,82 @@ def test_config_errors_name_the_key(tmp_path):
     thetas = [tuple(config.target_theta(s)) for s in config.seed_list()]
     assert config.seed_list() == [5, 6, 7] and len(set(thetas)) == 3
     assert thetas == [tuple(load(None).target_theta(s)) for s in (5, 6, 7)]   # seeded
+
+
+def _results(report: dict):
+    """A seed report without what depends on timing: wall-clock stamps and durations, the
+    solve and tick times, and how many samples the plant ran on while the collection was
+    being stopped (the learner keeps the first target_samples of them whatever the count);
+    and the run's configuration (seeds and first seed differ by design)."""
+    timing = ('wall_time', 'tick_time', 'solve_time', 'timings', 'elapsed_s', 'recording',
+              'message', 'collect', 'config')
+    if isinstance(report, dict):
+        return {k: _results(v) for k, v in report.items() if k not in timing}
+    if isinstance(report, list):
+        return [_results(v) for v in report]
+    return report
+
+
+def test_jobs_2_gives_the_per_seed_results_of_jobs_1(tmp_path):
+    """Two seeds at once (run_experiment.py --jobs 2, a child process and a ROS domain per
+    seed) give, seed for seed, the results of the one-process run (lockstep is deterministic);
+    the merged report covers both seeds."""
+    out = str(tmp_path / 'parallel')
+    done = subprocess.run(
+        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+         CI_CONFIG, '--out', out, '--no-progress', '--methods', 'maml', '--seeds', '2',
+         '--jobs', '2'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        timeout=400)
+    assert done.returncode == 0, done.stdout
+    domains = set(re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', done.stdout))
+    assert len(domains) == 2, done.stdout
+    serial = run_experiment(load(CI_CONFIG, {'methods': ['maml'], 'first_seed': 1}),
+                            str(tmp_path / 'serial'), progress=False)
+    with open(os.path.join(out, 'report.json')) as f:
+        merged = json.load(f)
+    assert [s['seed'] for s in merged['per_seed']] == [0, 1]
+    parallel_1 = _results(merged['per_seed'][1])
+    assert parallel_1 == _results(serial['per_seed'][0])
+    assert parallel_1['methods']['maml']['tracking']['tracking']['rmse'] > 0
+
+
+def test_ctrl_c_with_jobs_2_stops_every_seed(tmp_path):
+    """Ctrl-C while two seeds run: exit 130, no process left in either seed's domain, both
+    recordings readable."""
+    out = str(tmp_path / 'run')
+    proc = subprocess.Popen(
+        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+         CI_CONFIG, '--out', out, '--no-progress', '--methods', 'imaml', '--seeds', '2',
+         '--jobs', '2'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if sum('collect done' in x for x in lines) == 2:
+                break
+        os.killpg(proc.pid, signal.SIGINT)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            for pid in session_pids(proc.pid):
+                os.kill(pid, signal.SIGKILL)
+    text = ''.join(lines) + rest
+    assert proc.returncode == 130, text
+    domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
+    assert len(domains) == 2, text
+    for domain in domains:
+        assert _pids_in_domain(domain) == [], f'processes left behind in domain {domain}'
+    for seed in (0, 1):
+        events, outputs, _, _ = _read(os.path.join(out, f'seed_{seed}', 'recording.mcap'))
+        assert events[0]['event'] == 'start' and len(outputs) >= 60
+
+
+def test_jobs_beyond_the_cores_is_refused(tmp_path):
+    out = tmp_path / 'run'
+    done = subprocess.run(
+        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+         CI_CONFIG, '--out', str(out), '--seeds', '2', '--jobs', str(os.cpu_count() + 1)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=120)
+    assert done.returncode == 2 and 'usable cores' in done.stdout, done.stdout
+    assert len(done.stdout.strip().splitlines()) == 1 and not out.exists()

@@ -25,6 +25,7 @@ from .experiment_config import ExperimentConfig
 from .experiment_report import experiment_report, seed_report
 from .netns import call_in_namespace, split_hosts
 from .orchestrator import SeedRun, terminate_as_interrupt
+from .seed_jobs import run_seeds, seed_dir
 
 log = logging.getLogger('metampc.experiment')
 
@@ -32,7 +33,7 @@ log = logging.getLogger('metampc.experiment')
 def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True,
                    prefix: Optional[Dict[str, List[str]]] = None,
                    hosts: Optional[List[List[str]]] = None,
-                   foxglove_port: Optional[int] = None) -> Dict[str, Any]:
+                   foxglove_port: Optional[int] = None, jobs: int = 1) -> Dict[str, Any]:
     """Run every seed of `config` into the new folder `out_dir`; return the report.
 
     The process joins a ROS domain of its own first (``ROS_DOMAIN_ID``, localhost discovery)
@@ -43,7 +44,13 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
     stops the nodes of the running seed, leaves its recording readable and re-raises
     KeyboardInterrupt. ``foxglove_port``: each seed's graph also runs the Foxglove live view
     on that port (not with ``hosts``: it would serve inside the orchestrator's namespace).
+    ``jobs`` > 1 runs up to that many seeds at once, each in a child process with a ROS
+    domain of its own (:mod:`.seed_jobs`; not with ``hosts``, ``prefix`` or
+    ``foxglove_port``); the per-seed results are those of ``jobs`` = 1.
     """
+    if jobs > 1 and (hosts or prefix or foxglove_port is not None):
+        raise ValueError('jobs > 1 runs each seed on this host in a domain of its own: not '
+                         'with hosts, prefix or the Foxglove live view')
     if hosts:
         with terminate_as_interrupt(), split_hosts(hosts) as net:
             return call_in_namespace(net.orchestrator, run_experiment, config, out_dir,
@@ -57,6 +64,12 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
     with open(os.path.join(out_dir, 'config.yaml'), 'w') as f:
         yaml.safe_dump(config.to_dict(), f, sort_keys=False)
     started = time.monotonic()
+    seeds = config.seed_list()
+    if jobs > 1 and len(seeds) > 1:
+        run_seeds(out_dir, seeds, jobs)
+        reports = [seed_report(seed_dir(out_dir, seed)) for seed in seeds]
+        return experiment_report(reports, out_dir, config.to_dict(),
+                                 time.monotonic() - started)
     reports = []
     exported = os.environ.get('ROS_DOMAIN_ID')
     with terminate_as_interrupt(), (contextlib.nullcontext() if prefix else isolated()) as domain:
@@ -65,10 +78,10 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
                      f'; not the exported ROS_DOMAIN_ID={exported}: each experiment claims a '
                      'free domain of its own, so that two never share one'
                      if exported not in (None, str(domain)) else '')
-        for seed in config.seed_list():
-            seed_dir = os.path.join(out_dir, f'seed_{seed}')
-            SeedRun(config, seed, seed_dir, progress, prefix, foxglove_port).run()
-            reports.append(seed_report(seed_dir))
+        for seed in seeds:
+            folder = seed_dir(out_dir, seed)
+            SeedRun(config, seed, folder, progress, prefix, foxglove_port).run()
+            reports.append(seed_report(folder))
     return experiment_report(reports, out_dir, config.to_dict(), time.monotonic() - started)
 
 

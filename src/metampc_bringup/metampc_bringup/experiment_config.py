@@ -191,6 +191,11 @@ class ExperimentConfig:
                                else 0.0)
         return fields
 
+    def node_config(self, node: str, seed: int) -> Any:
+        """The typed configuration that the learner or controller node parses from its
+        section (e.g. ``node_config('learner', s).torch_threads``); ConfigError if invalid."""
+        return _check_node(node, self.node_parameters(node, seed), *_NODE_PARAMS[node])
+
     def to_dict(self) -> Dict[str, Any]:
         return asdict(self)
 
@@ -238,8 +243,8 @@ class ExperimentConfig:
                               'meta_train.imaml.gamma')
         _check_requests('meta_train', self.meta_train, META_METHODS, _META_FIELDS)
         _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
-        for node, params in _NODE_PARAMS.items():
-            _check_node(node, self.node_parameters(node, self.first_seed), *params)
+        for node in _NODE_PARAMS:
+            self.node_config(node, self.first_seed)
         return cfg
 
 
@@ -251,8 +256,9 @@ _NODE_PARAMS = {'learner': (learner_params.PARAMETERS, learner_params.parse_para
 _ROS_PARAMS = ('use_sim_time',)
 
 
-def _check_node(node: str, params: Dict[str, Any], table, parse) -> None:
-    """The node section's keys are declared parameters and its values parse."""
+def _check_node(node: str, params: Dict[str, Any], table, parse) -> Any:
+    """The node section's keys are declared parameters and its values parse; the node's
+    typed configuration."""
     unknown = sorted(set(params) - set(table) - set(_ROS_PARAMS))
     if unknown:
         raise ConfigError(f'{node}: unknown parameter(s) {", ".join(unknown)} (docs/{node}.md '
@@ -260,7 +266,7 @@ def _check_node(node: str, params: Dict[str, Any], table, parse) -> None:
     values = {name: spec.default for name, spec in table.items()}
     values.update({k: v for k, v in params.items() if k in table})
     try:
-        parse(values)
+        return parse(values)
     except ValueError as err:
         raise ConfigError(f'{node}: {err}') from None
 

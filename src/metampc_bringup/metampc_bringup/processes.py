@@ -64,7 +64,7 @@ class StopTimeout(subprocess.TimeoutExpired):
 
 
 @contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
+def signals_held() -> Iterator[None]:
     """SIGINT and SIGTERM noted inside the block and raised again, to the handlers of before,
     when it ends (main thread only; elsewhere Python delivers no signal anyway)."""
     if threading.current_thread() is not threading.main_thread():
@@ -106,7 +106,7 @@ class ProcessGroup:
         # stop_all does not know (measured: an experiment interrupted while starting its nodes
         # left a controller running in a domain it no longer held). Such a signal is held and
         # delivered once the process is in the group.
-        with _signals_held(), open(log_path, 'w') as log:
+        with signals_held(), open(log_path, 'w') as log:
             proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, start_new_session=True,
                                     env={**os.environ, **self.env, **(env or {}),

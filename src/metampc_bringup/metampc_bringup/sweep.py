@@ -70,6 +70,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .analysis import json_safe
+from .cpu_budget import check_jobs
 from .experiment_config import ExperimentConfig, load
 from .offline import (CURVE_STEPS, init_worker, Job, request_meta_config, run_job, run_jobs,
                       Settings, settings_from, TEST_HELDOUT_SAMPLES, validation,
@@ -546,8 +547,10 @@ def main(config: str, plan: Plan, out: str, jobs: int, threads: int) -> Dict[str
     """Check the plan, then run the sweep in `jobs` fresh-per-run worker processes with
     `threads` torch threads each (peak RSS per run needs a fresh process); the JSON line."""
     plan.check()
-    if jobs < 1 or threads < 1:
-        raise SweepError(f'jobs and threads must be >= 1, got {jobs}, {threads}')
+    try:
+        check_jobs(jobs, threads)
+    except ValueError as err:
+        raise SweepError(str(err)) from None
     settings = settings_for(config, plan)
     context = multiprocessing.get_context('spawn')
     with futures.ProcessPoolExecutor(jobs, context, init_worker, (settings, threads),

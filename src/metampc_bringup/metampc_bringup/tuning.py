@@ -58,6 +58,7 @@ import numpy as np
 from metampc_learner.meta_train import MetaConfig
 
 from .analysis import json_safe
+from .cpu_budget import check_jobs
 from .experiment_config import load
 from .offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs, settings_from, THETA_STREAM,
                       VALIDATION_SEED)
@@ -234,6 +235,7 @@ class TuneConfig:
                 raise ValueError(f'{name} must be >= 0, got {getattr(self, name)}')
         if self.finalists and not self.robust_seeds:
             raise ValueError('robust_seeds must be >= 1 when finalists > 0')
+        check_jobs(self.jobs, self.threads)
 
 
 def tune(cfg: TuneConfig) -> dict:
