@@ -60,11 +60,11 @@ class History:
             self._y[:] = y
             self._pos, self.length = 0, 1
         else:
-            self._pos = (self._pos + 1) % self.capacity
+            pos = self._pos = (self._pos + 1) % self.capacity
             self.length += 1
-            for buf, value in ((self._u, u), (self._y, y)):
-                buf[self._pos] = value
-                buf[self._pos + self.capacity] = value
+            # Rows pos and pos + capacity in one assignment (one conversion of the value).
+            self._u[pos::self.capacity] = u
+            self._y[pos::self.capacity] = y
         self.step = step
         return new_episode
 
@@ -469,43 +469,60 @@ class ControllerCore:
         default the next tick's)."""
         tuning = self.tuning if tuning is None else tuning
         n = tuning.config.mpc.horizon
-        if self._override is not None:
-            return np.tile(self._override, (n, 1))
-        return tuning.reference.evaluate(step * self.dt, self.dt, n)
+        override = self._override
+        if override is not None:
+            out = np.empty((n, self.n_y))
+            out[:] = override
+            return out
+        dt = self.dt
+        return tuning.reference.evaluate(step * dt, dt, n)
 
     def tick(self) -> TickResult:
         """Answer the newest sample (observe() must have been called at least once)."""
         tuning, model, model_status = self._setup
-        step = self.history.step
-        u_prev = self.history.u
+        history = self.history
+        step = history.step
+        u_prev = history.u
         y_ref = self.references(step, tuning)
         planner = tuning.config.planner
-        if (planner == 'nmpc' and self._nmpc is not None
-                and self._nmpc_version != tuning.version):
-            self._build_nmpc(tuning, self.plant)    # it was built for this plant before
-        if planner == 'nmpc' and self._nmpc is not None:
-            res = self._nmpc.solve(self.history.y, u_prev, y_ref)
-            out = dict(model_version=0, fallback=False, terminal_fallback=False)
-        elif planner == 'latent_mpc' and model is not None:
-            u_hist, y_hist = self.history.window(model.history)
+        if planner == 'latent_mpc' and model is not None:
+            u_hist, y_hist = history.window(model.history)
             res = model.mpc.solve(model.predictor.encode(u_hist, y_hist), u_prev, y_ref)
-            out = dict(model_version=model.version, fallback=res.fallback,
-                       terminal_fallback=res.terminal_fallback)
+            version, fallback, terminal_fallback = (model.version, res.fallback,
+                                                    res.terminal_fallback)
         else:
-            res = None
-            out = dict(model_version=0, fallback=False, terminal_fallback=False,
-                       solver_status='no_model' if planner == 'latent_mpc' else 'no_plant_info',
-                       cost=math.nan, iterations=-1, solve_time=0.0,
-                       u=tuning.pre_model.value(step, self.dt),
-                       u_plan=np.zeros((0, self.n_u)), y_pred=np.zeros((0, self.n_y)))
-        if res is not None:
-            out.update(solver_status=res.status, cost=float(res.cost),
-                       iterations=int(res.iterations), solve_time=res.solve_time, u=res.u,
-                       u_plan=res.u_plan, y_pred=res.y_pred)
-        u = np.asarray(out['u'], dtype=float)
-        if not np.all(np.isfinite(u)):    # the planners promise this; the plant must get it
+            if (planner == 'nmpc' and self._nmpc is not None
+                    and self._nmpc_version != tuning.version):
+                self._build_nmpc(tuning, self.plant)    # it was built for this plant before
+            if planner == 'nmpc' and self._nmpc is not None:
+                res = self._nmpc.solve(history.y, u_prev, y_ref)
+                version, fallback, terminal_fallback = 0, False, False
+            else:
+                return self._answer(
+                    step, tuning, model_status, y_ref, u_prev,
+                    tuning.pre_model.value(step, self.dt), model_version=0, fallback=False,
+                    terminal_fallback=False, solver_status='no_model'
+                    if planner == 'latent_mpc' else 'no_plant_info', cost=math.nan,
+                    iterations=-1, solve_time=0.0, u_plan=np.zeros((0, self.n_u)),
+                    y_pred=np.zeros((0, self.n_y)))
+        return self._answer(step, tuning, model_status, y_ref, u_prev, res.u,
+                            model_version=version, fallback=fallback,
+                            terminal_fallback=terminal_fallback, solver_status=res.status,
+                            cost=float(res.cost), iterations=int(res.iterations),
+                            solve_time=res.solve_time, u_plan=res.u_plan, y_pred=res.y_pred)
+
+    @staticmethod
+    def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,
+                u_prev: np.ndarray, u: np.ndarray, fallback: bool, **fields) -> TickResult:
+        """The tick's result with u checked: finite (else u_prev, or 0, and `fallback`) and
+        clipped into the tuning's bounds (the planners promise both; the plant must get it)."""
+        u = np.asarray(u, dtype=float)
+        if not all(map(math.isfinite, u.tolist())):
             u = np.where(np.isfinite(u_prev), u_prev, 0.0)
-            out['fallback'] = True
-        out['u'] = np.clip(u, tuning.u_min, tuning.u_max)
-        return TickResult(step=step, planner=planner, model_status=model_status, y_ref=y_ref,
-                          config_version=tuning.version, q=tuning.q, **out)
+            fallback = True
+        u = np.maximum(u, tuning.u_min)     # np.clip's result, without its overhead
+        np.minimum(u, tuning.u_max, out=u)
+        return TickResult(step=step, u=u, planner=tuning.config.planner,
+                          model_status=model_status, y_ref=y_ref,
+                          config_version=tuning.version, q=tuning.q, fallback=fallback,
+                          **fields)

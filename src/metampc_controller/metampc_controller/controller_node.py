@@ -66,10 +66,11 @@ COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 
 
 
 def _doubles(values: np.ndarray) -> array:
-    """A float64 array field value without a per-element conversion."""
-    out = array('d')
-    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
-    return out
+    """A float64 array field value without a per-element conversion (tobytes() is in C
+    order whatever the layout)."""
+    if values.dtype != np.float64:
+        values = values.astype(np.float64)
+    return array('d', values.tobytes())
 
 
 class ControllerNode(Node):
@@ -86,7 +87,10 @@ class ControllerNode(Node):
         self._warn = self._events.warn
         self._plant_warnings = set()
         self._stamp = None              # stamp of the newest y
+        # One message of each kind, refilled every tick: publish() serialises it at once, and
+        # a new MpcStatus per tick cost ~10 us (its constructor, a Header, a Time).
         self._u_msg = ControlInput()
+        self._status_msg = MpcStatus()
         # Every callback runs on the one executor thread (the core's tick state needs no
         # lock); building a model or a new tuning's QP (OSQP set-up, the DARE: ~10-100 ms)
         # runs on a worker thread and is handed over as one reference. A MultiThreadedExecutor
@@ -120,7 +124,8 @@ class ControllerNode(Node):
         start = time.perf_counter()
         core = self.core
         if (len(msg.y) != core.n_y or len(msg.u_applied) != core.n_u
-                or not (np.all(np.isfinite(msg.y)) and np.all(np.isfinite(msg.u_applied)))):
+                or not (all(map(math.isfinite, msg.y))
+                        and all(map(math.isfinite, msg.u_applied)))):
             self._warn('ignored_y', f'ignored y of step {msg.step}: expected {core.n_y} '
                        f'finite outputs and {core.n_u} input, got {list(msg.y)}, '
                        f'{list(msg.u_applied)}')
@@ -160,14 +165,24 @@ class ControllerNode(Node):
         self._counts['fallbacks'] += res.fallback
 
     def _publish_status(self, res: TickResult, tick_time: float) -> None:
-        status = MpcStatus(
-            step=res.step, cost=res.cost, solve_time=res.solve_time, tick_time=tick_time,
-            solver_status=res.solver_status, iterations=res.iterations, fallback=res.fallback,
-            terminal_fallback=res.terminal_fallback, model_version=res.model_version,
-            config_version=res.config_version, planner=res.planner,
-            model_status=res.model_status, u_plan=_doubles(res.u_plan),
-            y_pred=_doubles(res.y_pred), y_ref=_doubles(res.y_ref), q=res.q)
+        status = self._status_msg
         status.header.stamp = self._stamp
+        status.step = res.step
+        status.cost = res.cost
+        status.solve_time = res.solve_time
+        status.tick_time = tick_time
+        status.solver_status = res.solver_status
+        status.iterations = res.iterations
+        status.fallback = res.fallback
+        status.terminal_fallback = res.terminal_fallback
+        status.model_version = res.model_version
+        status.config_version = res.config_version
+        status.planner = res.planner
+        status.model_status = res.model_status
+        status.u_plan = _doubles(res.u_plan)
+        status.y_pred = _doubles(res.y_pred)
+        status.y_ref = _doubles(res.y_ref)
+        status.q = res.q
         self._pub_status.publish(status)
 
     def _on_set_active(self, request: SetActive.Request, response: SetActive.Response

@@ -55,7 +55,8 @@ Weights = Union[float, Sequence[float]]
 
 # OSQP statuses whose solution is used; 'solved inaccurate' is what a capped solve reports when
 # it meets 10x the tolerances, still a good plan.
-_USABLE = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
+_USABLE = frozenset(int(s) for s in (osqp.SolverStatus.OSQP_SOLVED,
+                                     osqp.SolverStatus.OSQP_SOLVED_INACCURATE))
 
 
 @dataclass
@@ -216,20 +217,31 @@ class _Problem:
     Yu: np.ndarray         # (N n_y, N n_u)
     lo: np.ndarray         # (N n_u,) bounds over the horizon
     hi: np.ndarray
+    warm: bool             # MpcConfig.warm_start
     w: np.ndarray = field(init=False)   # buffers reused every tick, and views into them
     qyb: np.ndarray = field(init=False)
+    x_warm: np.ndarray = field(init=False)
     views: tuple = field(init=False)
+    n_u: int = field(init=False)
+    ref_shape: tuple = field(init=False)
+    ext: object = field(init=False)     # OSQP's compiled solver, or None (see set_solver)
 
     def __post_init__(self):
         n_z, n_u, n_y = self.model.n_z, self.model.n_u, self.model.n_y
         n, n_ny = self.lo.size, self.Yu.shape[0]
+        self.n_u, self.ref_shape = n_u, (n_ny // n_y, n_y)
         self.w = np.empty(self.Gw.shape[1])
         self.w[-1] = 1.0
         self.qyb = np.empty(self.Gw.shape[0])
+        self.x_warm = np.empty(n)
         # (z_t, u_t, r (N, n_y)) slots of w; (q, y0, b) parts of qyb.
-        self.views = (self.w[:n_z], self.w[n_z:n_z + n_u],
-                      self.w[n_z + n_u:-1].reshape(n_ny // n_y, n_y),
-                      self.qyb[:n], self.qyb[n:n + n_ny], self.qyb[n + n_ny:])
+        self.views = (self.w[:n_z], self.w[n_z:n_z + n_u], self.w[n_z + n_u:-1].reshape(
+                          self.ref_shape), self.qyb[:n], self.qyb[n:n + n_ny], self.qyb[n + n_ny:])
+        self.set_solver(self.solver)
+
+    def set_solver(self, solver: osqp.OSQP) -> None:
+        """Use this OSQP instance (set up for P, A, lo, hi) from the next solve on."""
+        self.solver, self.ext = solver, _extension(solver)
 
 
 class LatentMpc:
@@ -268,7 +280,7 @@ class LatentMpc:
         self._plan = None
         pb = self._problem
         if pb is not None:
-            pb.solver = _setup_solver(pb.P, pb.A, pb.lo, pb.hi, self._config)
+            pb.set_solver(_setup_solver(pb.P, pb.A, pb.lo, pb.hi, self._config))
 
     def set_model(self, model: LatentModel) -> None:
         """Build the condensed QP and the terminal cost for a model (once per model)."""
@@ -288,55 +300,79 @@ class LatentMpc:
         lo, hi = np.tile(u_min, N), np.tile(u_max, N)
         solver = _setup_solver(hess, eye, lo, hi, cfg)
         self._problem = _Problem(model=model, terminal=term, solver=solver, P=hess, A=eye, L=L,
-                                 Gw=np.vstack([-2.0 * L.T @ G, y_w, G]), Yu=y_u, lo=lo, hi=hi)
+                                 Gw=np.vstack([-2.0 * L.T @ G, y_w, G]), Yu=y_u, lo=lo, hi=hi,
+                                 warm=bool(cfg.warm_start))
         # The plan's size changes only with n_u, and then it says nothing about the new inputs.
         if self._plan is not None and self._plan.shape != (n,):
             self.reset()
 
     def solve(self, z0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray) -> MpcResult:
         """Plan u_{t+1..t+N} from z_t (n_z,), the applied input u_t (n_u,) and the references
-        r_{t+1..t+N} (N, n_y), in physical units (eq. (mpc))."""
+        r_{t+1..t+N} (N, n_y), in physical units (eq. (mpc)).
+
+        Per call: three copies into the data vector w, one finiteness check, one product
+        [q; y0; b] = Gw w, OSQP (q, primal warm start, solve), the clip into the bounds, the
+        prediction y_pred = Yu U + y0; nothing is rebuilt or re-sent (settings, matrices).
+        """
         start = time.perf_counter()
         pb = self._problem
         if pb is None:
             raise RuntimeError('LatentMpc.solve() before set_model()')
         w_z, w_u, w_r, q, y0, b = pb.views
-        N, n_y = w_r.shape
-        n_u = w_u.size
-        if y_ref.shape != (N, n_y):
-            raise ValueError(f'y_ref has shape {y_ref.shape}, expected {(N, n_y)}')
+        if y_ref.shape != pb.ref_shape:
+            raise ValueError(f'y_ref has shape {y_ref.shape}, expected {pb.ref_shape}')
+        n_u = pb.n_u
         w_z[:] = z0
         w_u[:] = u_prev
         w_r[:] = y_ref
         # One dot product checks z_t, u_t and r for nan/inf before they can reach the solver.
         valid = math.isfinite(np.dot(pb.w, pb.w))
         status, iters, x, cost = 'invalid data', 0, None, math.nan
+        prev = self._plan
         if valid:
             np.dot(pb.Gw, pb.w, out=pb.qyb)
             bb = float(np.dot(b, b))
-            solver = pb.solver
-            solver.update(q=q)
-            if self._config.warm_start and self._plan is not None:
+            x_warm = None
+            if pb.warm and prev is not None:
                 # Primal only: OSQP keeps its own duals from the last solve, which measured
                 # fewer iterations than shifted duals (8 against 18 on the paper task).
-                self._x_warm = _shift(self._plan, n_u)
-                solver.warm_start(x=self._x_warm)
+                x_warm = pb.x_warm          # the previous plan shifted by one step
+                x_warm[:-n_u] = prev[n_u:]
+                x_warm[-n_u:] = prev[-n_u:]
+            self._x_warm = x_warm
+            ext = pb.ext
+            if ext is not None:
+                # What osqp.OSQP's update(q=), warm_start(x=) and solve() call, without the
+                # wrapper's per-call extras the tick never reads (solve() copies all of OSQP's
+                # info into a namespace: ~15 us, a third of a warm solve at N = 20).
+                ext.update_data_vec(q, None, None)
+                if x_warm is not None:
+                    ext.warm_start(x_warm, None)
+                ext.solve()
+                info = ext.info
+                # obj_val = 1/2 x'Px + q'x is non-finite iff x is; J = obj_val + b'b.
+                status, iters, obj = info.status, info.iter, info.obj_val
+                if info.status_val in _USABLE and math.isfinite(obj):
+                    x, cost = ext.solution.x, obj + bb
             else:
-                self._x_warm = None
-            res = solver.solve(raise_error=False)
-            info = res.info
-            status, iters = info.status, info.iter
-            # obj_val = 1/2 x'Px + q'x is non-finite iff x is; J = obj_val + b'b.
-            if info.status_val in _USABLE and math.isfinite(info.obj_val):
-                x, cost = res.x, info.obj_val + bb
+                solver = pb.solver
+                solver.update(q=q)
+                if x_warm is not None:
+                    solver.warm_start(x=x_warm)
+                res = solver.solve(raise_error=False)
+                info = res.info
+                status, iters, obj = info.status, info.iter, info.obj_val
+                if info.status_val in _USABLE and math.isfinite(obj):
+                    x, cost = res.x, obj + bb
         fallback = x is None
         if fallback:
-            if self._plan is not None:
-                x = _shift(self._plan, n_u)
+            if prev is not None:
+                x = _shift(prev, n_u)
             else:
-                x = np.tile(np.where(np.isfinite(u_prev), u_prev, 0.0), N)
+                x = np.tile(np.where(np.isfinite(u_prev), u_prev, 0.0), pb.ref_shape[0])
         # OSQP meets the bounds to eps_abs only; the plant gets exactly feasible inputs.
-        plan = np.minimum(np.maximum(x, pb.lo), pb.hi)
+        plan = np.maximum(x, pb.lo)
+        np.minimum(plan, pb.hi, out=plan)
         plan.flags.writeable = False    # kept as the next warm start; shared with the result
         self._plan = plan
         if valid:
@@ -346,9 +382,9 @@ class LatentMpc:
                 resid = pb.L @ plan - b
                 cost = float(resid @ resid)
         else:
-            y_pred = np.full(N * n_y, math.nan)
-        return MpcResult(u=plan[:n_u], u_plan=plan.reshape(N, n_u),
-                         y_pred=y_pred.reshape(N, n_y), cost=cost, status=status,
+            y_pred = np.full(pb.Yu.shape[0], math.nan)
+        return MpcResult(u=plan[:n_u], u_plan=plan.reshape(-1, n_u),
+                         y_pred=y_pred.reshape(pb.ref_shape), cost=cost, status=status,
                          iterations=iters, solve_time=time.perf_counter() - start,
                          fallback=fallback, terminal_fallback=pb.terminal.fallback)
 
@@ -366,6 +402,17 @@ def _setup_solver(P: sp.csc_matrix, A: sp.csc_matrix, lo: np.ndarray, hi: np.nda
     solver = osqp.OSQP()
     solver.setup(P=P, q=np.zeros(P.shape[0]), A=A, l=lo, u=hi, **config.osqp_settings())
     return solver
+
+
+def _extension(solver: osqp.OSQP):
+    """The compiled solver inside an osqp.OSQP (osqp 1.x keeps it as ``_solver``: the object
+    whose update_data_vec, warm_start and solve the wrapper's update, warm_start and solve
+    call), or None where it lacks one of them; solve() then goes through the wrapper."""
+    ext = getattr(solver, '_solver', None)
+    calls = ('update_data_vec', 'warm_start', 'solve', 'info', 'solution')
+    if ext is None or not all(hasattr(ext, name) for name in calls):
+        return None
+    return ext
 
 
 def _shift(v: np.ndarray, n_u: int) -> np.ndarray:

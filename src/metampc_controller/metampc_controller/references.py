@@ -8,8 +8,9 @@ tracking task of the paper's experiment: x1 set-points 0.8, -0.5, 0.3, -0.8 for 
 Times are in seconds, values in the units of the outputs.
 """
 from abc import ABC, abstractmethod
+from bisect import bisect_right
 from dataclasses import dataclass, fields
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -100,15 +101,37 @@ class Reference(ABC):
     def __init__(self, config: ReferenceConfig):
         self.config = config
         self._outputs = np.asarray(config.outputs, dtype=int)
+        # One output (the usual case) is a column, assigned without fancy indexing.
+        self._column = int(self._outputs[0]) if len(set(config.outputs)) == 1 else None
+        self._steps = np.arange(1, 1)   # 1..N of the last horizon, kept for the next tick
 
     @abstractmethod
     def signal(self, t: np.ndarray) -> np.ndarray:
         """Signal values (len(t),) at times t (s)."""
 
+    def constant(self, t_first: float, t_last: float) -> Optional[float]:
+        """The signal's value if it is the same at all times in [t_first, t_last] (as
+        signal() computes it), else None (then evaluate() calls signal())."""
+        return None
+
     def evaluate(self, t0: float, dt: float, N: int) -> np.ndarray:
-        """References (N, n_y) at the samples t0 + dt, ..., t0 + N dt."""
+        """References (N, n_y) at the samples t0 + dt, ..., t0 + N dt (computed as
+        dt * k + t0: the same float64 operations whichever path below runs)."""
         out = np.zeros((N, self.config.n_y))
-        out[:, self._outputs] = self.signal(t0 + dt * np.arange(1, N + 1))[:, None]
+        column = self._column
+        value = None if column is None else self.constant(dt + t0, dt * N + t0)
+        if value is not None:       # the whole horizon on one set-point (most ticks)
+            out[:, column] = value
+            return out
+        steps = self._steps
+        if len(steps) != N:
+            steps = self._steps = np.arange(1, N + 1)
+        t = dt * steps
+        t += t0
+        if column is not None:
+            out[:, column] = self.signal(t)
+        else:
+            out[:, self._outputs] = self.signal(t)[:, None]
         return out
 
 
@@ -118,6 +141,9 @@ class Setpoint(Reference):
     def signal(self, t: np.ndarray) -> np.ndarray:
         return np.full(len(t), float(self.config.value))
 
+    def constant(self, t_first: float, t_last: float) -> Optional[float]:
+        return float(self.config.value)
+
 
 class Steps(Reference):
     """Piecewise constant signal of StepsConfig (right-continuous at the step times)."""
@@ -125,6 +151,15 @@ class Steps(Reference):
     def __init__(self, config: ReferenceConfig):
         super().__init__(config)
         self._times, self._values = self._table(config)
+        self._time_list = self._times.tolist()     # for bisect on Python floats
+
+    def constant(self, t_first: float, t_last: float) -> Optional[float]:
+        # searchsorted(side='right') and bisect_right agree on float64 values; the sample
+        # times grow with k, so one segment at both ends is one segment throughout.
+        first = bisect_right(self._time_list, t_first + _TIME_TOL)
+        if first != bisect_right(self._time_list, t_last + _TIME_TOL):
+            return None
+        return self._values[first]
 
     @staticmethod
     def _table(config: StepsConfig) -> tuple:
@@ -134,7 +169,7 @@ class Steps(Reference):
         return times, values
 
     def signal(self, t: np.ndarray) -> np.ndarray:
-        return self._values[np.searchsorted(self._times, t + _TIME_TOL, side='right')]
+        return self._values[self._times.searchsorted(t + _TIME_TOL, side='right')]
 
 
 class Sine(Reference):
