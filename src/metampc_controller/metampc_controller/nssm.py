@@ -165,13 +165,14 @@ class Nssm(nn.Module):
         step-by-step recursion but costs a few batched products instead of T small ones.
         """
         n_t = u_future.shape[-2]
-        powers = torch.eye(self.config.n_z, dtype=self.A.dtype)[None]   # A^0 .. A^(n-1)
+        powers = torch.eye(self.config.n_z, dtype=self.A.dtype,
+                           device=self.A.device)[None]            # A^0 .. A^(n-1)
         while powers.shape[0] < n_t + 1:
             powers = torch.cat([powers, (powers[-1] @ self.A) @ powers], dim=0)
         c_powers = self.C @ powers[:n_t + 1]                      # C A^k, k = 0..T
         free = torch.einsum('kyz,...z->...ky', c_powers[1:], z)
         markov = c_powers[:n_t] @ self.B                          # C A^k B, k = 0..T-1
-        k = torch.arange(n_t)
+        k = torch.arange(n_t, device=u_future.device)
         lag = k[:, None] - k[None, :]                             # (k, j) -> k - j
         toeplitz = markov[lag.clamp(min=0)] * (lag >= 0)[:, :, None, None].to(markov.dtype)
         return free + torch.einsum('kjyu,...ju->...ky', toeplitz, u_future)

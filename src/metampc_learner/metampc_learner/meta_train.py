@@ -23,8 +23,19 @@ Algorithm 1's online collection: an optional ``collector(task, theta, params_b)`
 each task's inner loop with its adapted weights omega_b and returns new trajectories of that
 system; they join the task's D_tr / D_test (capped in the source set, oldest dropped).
 
+Backend (``backend``): 'fast' (default) computes the B meta-gradients of iMAML with
+Gauss-Newton curvature and of first-order MAML with batched_objective.py (hand-batched NSSM,
+about 3x less CPU time per outer step, docs/learning.md 'Speed of the meta-gradient');
+'eager' is the reference below (``vmap`` of imaml.py / maml.py, or a Python loop), which
+also runs the exact-Hessian curvature and unrolled MAML under either backend. The two agree
+to float32 rounding (test_batched_objective.py), so a run's numbers differ between backends
+at that level and, through the outer loop, beyond it. ``device``: 'cpu' or 'cuda' (refused by
+:meth:`MetaConfig.validate` when torch sees no CUDA device); the weights, the windows of each
+outer step and Adam live there, the results come back to the CPU.
+
 Determinism: task and window sampling use ``numpy.random.default_rng(seed)``, the initial
-weights ``init_params(config, seed)``; the same seed (and thread count) gives the same weights.
+weights ``init_params(config, seed)``; the same seed, backend, device and thread count give
+the same weights.
 """
 import time
 from dataclasses import dataclass, field
@@ -34,8 +45,9 @@ import numpy as np
 import torch
 from torch.func import grad, vmap
 
-from metampc_common.params import check_fields, param
+from metampc_common.params import check_fields, param, ParameterError
 from metampc_controller.nssm import init_params, Nssm, Params
+from metampc_learner.batched_objective import BatchedNssm, BatchedTaskGradient
 from metampc_learner.curvature import CURVATURES
 from metampc_learner.data import SourceSet, Trajectory
 from metampc_learner.imaml import ImamlTaskGradient
@@ -46,6 +58,8 @@ from metampc_learner.task_gradient import TaskGradient
 
 METHODS = ('imaml', 'maml', 'maml_unrolled')
 LR_SCHEDULES = ('constant', 'cosine')
+BACKENDS = ('fast', 'eager')
+DEVICES = ('cpu', 'cuda')
 Collector = Callable[[int, float, Params], Sequence[Trajectory]]
 
 
@@ -69,7 +83,11 @@ class MetaConfig:
         cg_steps: CG iterations for eq. (cg) (iMAML only).
         curvature: 'gauss_newton' (default, PSD) or 'hessian' (iMAML only).
         windows_per_task: windows sampled from each of D_tr and D_test per task and step.
-        vectorise: vmap over the B tasks (True, measured faster) or a Python loop.
+        vectorise: eager backend: vmap over the B tasks (True, measured faster) or a Python
+            loop.
+        backend: 'fast' (batched_objective.py, for iMAML-GN and first-order MAML) or
+            'eager' (the vmapped reference; every method).
+        device: 'cpu' or 'cuda' (ValueError from validate() when CUDA is absent).
         init_loss_weight: w of the meta-model anchor (module docstring; 0: eq. (outer) as
             written).
         seed: seed of the initial weights and of task/window sampling.
@@ -93,6 +111,11 @@ class MetaConfig:
                                          'in the outer objective (0: eq. outer as written)',
                                     ge=0)
     vectorise: bool = True
+    backend: str = param('fast', 'meta-gradient code: fast (hand-batched, iMAML with '
+                                 'gauss_newton and first-order MAML; the others run eager) or '
+                                 'eager (vmap of the per-task reference)', choices=BACKENDS)
+    device: str = param('cpu', 'where meta-training runs (cuda: refused when torch sees no '
+                               'CUDA device)', choices=DEVICES)
     seed: int = param(0, 'seed of initial weights, task sampling, collection and the '
                          'supervised/oracle initialisation', ge=0, live=True)
     max_skip_fraction: float = 0.5
@@ -103,6 +126,16 @@ class MetaConfig:
         check_fields(self)
         if self.max_bad_steps < 1:
             raise ValueError(f'max_bad_steps must be >= 1, got {self.max_bad_steps}')
+        if self.device == 'cuda' and not torch.cuda.is_available():
+            raise ParameterError(f'device must be cpu here: cuda was asked but torch '
+                                 f'{torch.__version__} sees no CUDA device')
+
+    @property
+    def fast(self) -> bool:
+        """Whether the fast backend computes this configuration's meta-gradients."""
+        return self.backend == 'fast' and (
+            self.method == 'maml' or (self.method == 'imaml'
+                                      and self.curvature == 'gauss_newton'))
 
 
 @dataclass
@@ -162,7 +195,16 @@ def task_gradient_fn(objective: FlatObjective, config: MetaConfig
 
 def batch_gradient_fn(objective: FlatObjective, config: MetaConfig
                       ) -> Callable[..., TaskGradient]:
-    """(omega (P,), tr_u, tr_y, te_u, te_y with a leading B) -> TaskGradient batched over B."""
+    """(omega (P,), tr_u, tr_y, te_u, te_y with a leading B) -> TaskGradient batched over B.
+
+    The fast backend (batched_objective.py) where it covers the configuration, its result on
+    ``config.device``; else the reference, vmapped (``vectorise``) or looped, on the device
+    of its arguments.
+    """
+    if config.fast:
+        return BatchedTaskGradient(BatchedNssm(objective.model, config.device), config.method,
+                                   config.inner_steps, config.lr_inner, config.gamma,
+                                   config.cg_steps, config.init_loss_weight)
     task_fn = task_gradient_fn(objective, config)
     if config.vectorise:
         return vmap(task_fn, in_dims=(None, 0, 0, 0, 0))
@@ -194,9 +236,10 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
     config.validate()
     objective = FlatObjective(model)
     dtype = next(model.parameters()).dtype
+    device = torch.device(config.device)
     if init is None:
         init = init_params(model.config, config.seed, dtype)
-    omega = torch.nn.Parameter(objective.spec.flatten(init).detach().clone())
+    omega = torch.nn.Parameter(objective.spec.flatten(init).detach().clone().to(device))
     optimiser = torch.optim.Adam([omega], lr=config.lr_outer)
     schedule = (torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, config.iterations)
                 if config.lr_schedule == 'cosine' else None)
@@ -210,7 +253,8 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
         tasks = rng.choice(len(source), size=config.batch_size,
                            replace=len(source) < config.batch_size)
         train, test = source.sample(tasks, config.windows_per_task, rng)
-        out = batch_fn(omega.detach(), train.u, train.y, test.u, test.y)
+        windows = (x.to(device) for x in (train.u, train.y, test.u, test.y))
+        out = batch_fn(omega.detach(), *windows)
         ok = torch.isfinite(out.test_loss) & torch.isfinite(out.grad).all(dim=-1)
         result.lr_outer.append(optimiser.param_groups[0]['lr'])
         n_bad = int((~ok).sum())
@@ -238,8 +282,8 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
         if collector is not None:
             for b in torch.nonzero(ok).flatten().tolist():
                 task = int(tasks[b])
-                new = collector(task, source.thetas[task],
-                                objective.spec.unflatten(out.adapted[b].detach().clone()))
+                adapted = out.adapted[b].detach().to('cpu', copy=True)
+                new = collector(task, source.thetas[task], objective.spec.unflatten(adapted))
                 source.add(task, new)
         loss = float(out.test_loss[ok].mean()) if ok.any() else float('nan')
         residual = float(out.cg_residual[ok].mean()) if ok.any() else float('nan')
@@ -248,7 +292,7 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
         if progress is not None:
             progress(Progress(it, config.iterations, loss, time.monotonic() - start,
                               result.skipped, residual))
-    result.params = {k: v.detach().clone()
+    result.params = {k: v.detach().cpu().clone()
                      for k, v in objective.spec.unflatten(omega.detach()).items()}
     result.collected_samples = source.collected_samples
     result.dropped_samples = source.dropped_samples
