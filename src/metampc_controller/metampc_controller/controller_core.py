@@ -95,17 +95,25 @@ class AnswerRule:
     starts with a pending tick, so the first sample (y_0 at sim time 0, before the sim-time
     timer's first period) is answered on arrival. Inactive: nothing is answered; activation
     answers the newest unanswered sample at once, or the next one on arrival.
+
+    Under a lockstep plant (``lockstep`` True) every sample is answered on arrival: the plant
+    sends y_k only once it has u_{k-1} and waits for u_k, so the tick of time k dt has
+    nothing else to wait for, and waiting for /clock and the timer's callback as well would
+    put two more callbacks of the node on the loop's critical path (measured: a third of
+    the lockstep step time, docs/controller.md). The answers are the same either way.
     """
 
-    def __init__(self, active: bool = True):
+    def __init__(self, active: bool = True, lockstep: bool = False):
         self.active = active
+        self.lockstep = lockstep
         self._unanswered = False
         self._pending = active
 
     def on_sample(self) -> bool:
-        """A sample arrived; True if it is to be answered now (a tick was pending)."""
+        """A sample arrived; True if it is to be answered now (a tick was pending, or the
+        plant is lockstep)."""
         self._unanswered = True
-        if self.active and self._pending:
+        if self.active and (self._pending or self.lockstep):
             self._pending = False
             return True
         return False

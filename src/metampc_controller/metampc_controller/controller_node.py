@@ -224,6 +224,7 @@ class ControllerNode(Node):
             family=msg.family, theta=tuple(msg.theta), dt=msg.dt, u_min=tuple(msg.u_min),
             u_max=tuple(msg.u_max), n_y=len(msg.output_names),
             lockstep=msg.clock_mode == 'lockstep'))
+        self.rule.lockstep = msg.clock_mode == 'lockstep'
         for text in set(warnings) - self._plant_warnings:  # once each, not at every reset
             self.get_logger().warning(text)
         self._plant_warnings.update(warnings)

@@ -48,14 +48,16 @@ def test_history_window_pads_each_episode_with_its_first_sample():
         hist.window(5)
 
 
+@pytest.mark.parametrize('lockstep', [False, True])
 @pytest.mark.parametrize('seed', range(5))
-def test_answer_rule_answers_every_lockstep_sample_once(seed):
+def test_answer_rule_answers_every_lockstep_sample_once(seed, lockstep):
     """The plant publishes y_k only after the answer to y_{k-1}; the controller sees y_k and
     the timer tick of time k (/clock, another topic) in either order, and set_active may flip
     anywhere. Every sample must be answered exactly once, by the end of its events or at
-    activation, never before it arrived."""
+    activation, never before it arrived; told that the plant is lockstep, the rule answers
+    every sample that arrives while active on its arrival."""
     rng = np.random.default_rng(seed)
-    rule = AnswerRule(active=True)
+    rule = AnswerRule(active=True, lockstep=lockstep)
     answers = Counter()
     arrived = -1
 
@@ -73,8 +75,11 @@ def test_answer_rule_answers_every_lockstep_sample_once(seed):
         for event in events:
             if event == 'sample':
                 arrived = k
+                active = rule.active
                 if rule.on_sample():
                     answer()
+                else:
+                    assert not (lockstep and active), (seed, k, events)
             elif event == 'tick':
                 if rule.on_tick():
                     answer()

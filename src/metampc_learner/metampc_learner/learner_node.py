@@ -4,7 +4,10 @@ Interfaces (relative names, so a namespace can wrap them):
 
 * ``y`` (PlantOutput, subscribed, reliable, depth 1000): target samples (step k, u_applied =
   u_k, y_k) go to D_target (:class:`TargetBuffer`): the first ``target_buffer_size`` valid
-  samples after buffering (re)starts (at start-up if ``buffer_on_start``).
+  samples after buffering (re)starts (at start-up if ``buffer_on_start``). Subscribed from
+  start-up and whenever buffering (re)starts, unsubscribed when it stops: a stopped buffer
+  takes nothing, and the subscription cost the node about 0.8 ms of CPU per plant step
+  (measured in lockstep tracking, where it held the loop back on a 2-core machine).
 * ``plant_info`` (PlantInfo, subscribed, latched): theta, dt and bounds of the target plant,
   for the ``oracle`` adaptation. The plant's dt is the one source of truth: a plant that
   samples at another dt than the ``dt`` parameter (the source systems') ends the node with
@@ -90,9 +93,9 @@ class LearnerNode(Node):
 
         self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
         self._pub_progress = self.create_publisher(TrainingProgress, 'progress', SPARSE)
-        data = MutuallyExclusiveCallbackGroup()
-        self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, BACKLOG,
-                                               callback_group=data)
+        self._data = data = MutuallyExclusiveCallbackGroup()
+        self._sub_y = None
+        self._subscribe_y()
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED,
                                  callback_group=data)
         self.create_service(SetBuffering, 'set_buffering', self._on_set_buffering,
@@ -129,6 +132,11 @@ class LearnerNode(Node):
 
     # --- data -----------------------------------------------------------------------------
 
+    def _subscribe_y(self) -> None:
+        if self._sub_y is None:
+            self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, BACKLOG,
+                                                   callback_group=self._data)
+
     def _on_y(self, msg: PlantOutput) -> None:
         if self.buffer.add(msg.step, msg.u_applied, msg.y, msg.diverged) and self.buffer.full:
             self.get_logger().info(f'D_target full: {len(self.buffer)} samples '
@@ -150,18 +158,24 @@ class LearnerNode(Node):
                           ) -> SetBuffering.Response:
         buffer = self.buffer
         if request.buffering:
+            self._subscribe_y()
             response.cleared = buffer.start()
             response.message = (f'buffering (re)started: {response.cleared} samples cleared, '
                                 f'keeping the next {buffer.capacity} valid samples')
         else:
             buffer.freeze()
+            if self._sub_y is not None:     # same callback group as _on_y: not in use now
+                self.destroy_subscription(self._sub_y)
+                self._sub_y = None
             response.message = (f'buffering stopped: {len(buffer)} samples kept '
                                 f'({buffer.skipped} skipped, {buffer.lost} lost)')
         response.kept, response.skipped, response.lost = len(buffer), buffer.skipped, buffer.lost
         response.capacity = buffer.capacity
         # Matched from our side: samples published before that never reach us, and the
-        # graph alone (a subscriber listed) does not say so. Callers wait on it.
-        response.matched_publishers = self._sub_y.get_publisher_count()
+        # graph alone (a subscriber listed) does not say so. Callers wait on it (0 when
+        # stopped: no subscription).
+        response.matched_publishers = (self._sub_y.get_publisher_count()
+                                       if self._sub_y is not None else 0)
         response.success = True
         self.get_logger().info(response.message)
         return response

@@ -138,6 +138,19 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     assert (result.kept, result.skipped, result.lost, result.cleared) == (CAPACITY, 0, 0, 0)
     assert result.message == f'buffering stopped: {CAPACITY} samples kept (0 skipped, 0 lost)'
     assert not endless.done() and progress[-1].phase == 'meta_train'
+    # Stopped, the learner is not subscribed to y at all; restarted, it subscribes again and
+    # fills D_target anew.
+    probe.wait_for(lambda: 'learner' not in {
+        i.node_name for i in probe.node.get_subscriptions_info_by_topic('/y')}, 30.0,
+        "the learner's y subscription gone")
+    assert call(probe, buffering, SetBuffering.Request(buffering=False)).matched_publishers == 0
+    probe.wait_for(lambda: call(probe, buffering, SetBuffering.Request(buffering=True)
+                                ).matched_publishers == 1, 60.0,
+                   "the learner's new y subscription matched to the plant")
+    probe.wait_for(lambda: procs.output(learner).count('D_target full: 40 samples') == 2, 60.0,
+                   'a full D_target after the restart')
+    result = call(probe, buffering, SetBuffering.Request(buffering=False))
+    assert (result.kept, result.lost) == (CAPACITY, 0), result
 
     # Ctrl-C during the long job: the job is cancelled at its next step, the node exits 0.
     code = procs.interrupt(learner, timeout=60.0)
