@@ -161,8 +161,19 @@ class ExperimentClient(SpunNode):
     def call(self, name: str, request: Any, timeout: float, what: str,
              tick: Optional[Callable[[], None]] = None) -> Any:
         """Call service `name`; the response if it succeeded, else ExperimentError."""
+        return self.finish(self.start(name, request), timeout, what, tick)
+
+    def start(self, name: str, request: Any) -> Any:
+        """Send a request to service `name` and return its future at once: the caller does
+        other work meanwhile and then :meth:`finish` es it (or cancels it on failure)."""
         future = self.clients[name].call_async(request)
         future.add_done_callback(lambda _: self._notify())
+        return future
+
+    def finish(self, future: Any, timeout: float, what: str,
+               tick: Optional[Callable[[], None]] = None) -> Any:
+        """Wait up to `timeout` s for a started call; the response if it succeeded, else
+        ExperimentError (the call is cancelled on any failure, Ctrl-C included)."""
         try:
             self.wait_until(future.done, timeout, what, tick)
         except BaseException:   # ExperimentError, or Ctrl-C while the call runs

@@ -11,7 +11,10 @@ For each seed (:class:`SeedRun`), in a ROS domain of its own:
    (``pre_model_input: excitation``) drive it until the learner has buffered
    ``target_samples`` samples (D_target; the plant is reset if it escapes);
 3. **meta-train** each meta method through ``meta_train`` (Algorithm 1; eqs. inner_imaml,
-   outer, Qb, cg for iMAML, eq. outer_maml for MAML);
+   outer, Qb, cg for iMAML, eq. outer_maml for MAML); while the learner trains the first one,
+   the true-model NMPC (``nmpc``, which needs no model) **tracks** as in step 4 (the learner's
+   D_target is full by then: the plant's samples reach it in order, so the NMPC's episode
+   never enters it);
 4. per method: **adapt** through ``adapt`` (eq. infer from the meta-model; from a random
    initialisation for ``supervised``; on plentiful target data for ``oracle``), wait until the
    controller holds the adapted model, then **track**: reset the plant to ``track_x0`` and
@@ -32,7 +35,7 @@ import math
 import os
 import signal
 import time
-from typing import Any, Dict, Iterator, List, Optional
+from typing import Any, Callable, Dict, Iterator, List, Optional
 
 from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant
 from tqdm import tqdm
@@ -167,8 +170,12 @@ class SeedRun:
     def _phases(self) -> None:
         config = self.config
         self._timed('collect', self._collect)
-        for method in config.meta_methods():
-            self._timed(f'meta_train_{method}', self._meta_train, method)
+        # The true-model NMPC's tracking needs no model: it runs while the learner trains the
+        # first meta-model (the plant idles then), not after every other phase.
+        nmpc_meanwhile = 'nmpc' in config.methods and bool(config.meta_methods())
+        for i, method in enumerate(config.meta_methods()):
+            meanwhile = self._track_nmpc if nmpc_meanwhile and i == 0 else None
+            self._timed(f'meta_train_{method}', self._meta_train, method, meanwhile)
         # Only now, long after the plant paused: the learner has taken every sample of the
         # collection, and its buffer (capacity target_samples) holds the first ones, whatever
         # the timing (stopped at once, it kept however many it had processed by then).
@@ -180,7 +187,8 @@ class SeedRun:
                         kept.lost)
         for method in config.methods:
             if method == 'nmpc':
-                self._timed('track_nmpc', self._track, method, 'controller_nmpc', 0)
+                if not nmpc_meanwhile:
+                    self._track_nmpc()
                 continue
             version = self._timed(f'adapt_{method}', self._adapt, method)
             self._timed(f'track_{method}', self._track, method, 'controller', version)
@@ -294,14 +302,29 @@ class SeedRun:
                                 self.seed)
         client.event('collect_end', stamp=client.last.stamp, samples=valid, escapes=escapes)
 
-    def _meta_train(self, method: str) -> None:
+    def _track_nmpc(self) -> None:
+        self._timed('track_nmpc', self._track, 'nmpc', 'controller_nmpc', 0)
+
+    def _meta_train(self, method: str, meanwhile: Optional[Callable[[], None]] = None) -> None:
+        """Meta-train `method`; `meanwhile` runs while the learner trains (the request is out
+        first; the lockstep plant and the training share nothing, so the results are those
+        of the phases one after the other)."""
         client, config = self.client, self.config
         fields = config.meta_request(method)
         request = MetaTrain.Request(method=method, **fields)
         client.progress = None
+        started = time.monotonic()
+        future = client.start('meta_train', request)
+        if meanwhile is not None:
+            try:
+                meanwhile()
+            except BaseException:
+                future.cancel()
+                raise
         with self._bar(request.iterations or 0, f'meta_train {method}') as bar:
-            response = client.call(
-                'meta_train', request, config.timeouts.meta_train, f'meta_train {method}',
+            response = client.finish(
+                future, max(config.timeouts.meta_train - (time.monotonic() - started), 0.0),
+                f'meta_train {method}',
                 tick=lambda: _show_progress(bar, client.progress, 'meta_train'))
         client.event('meta_train', method=method, request=fields,
                      **response_dict(response, _META_RESULT))
