@@ -23,7 +23,8 @@ the run leaves the second core of a shared 2-core machine to others).
 - memory: peak resident set size (RSS) added by ONE batched meta-gradient (B = 16) for
   M in {5, 10, 20, 50}, each in a fresh process: the peak is reset just before the call
   (/proc/self/clear_refs), then VmHWM after minus VmRSS before (/proc/self/status); it
-  includes one-time allocations common to every M.
+  includes one-time allocations common to every M. imaml_gn_fast: the same with the fast
+  backend (the others: eager).
 
 Load average and the time are in the line: wall-clock numbers depend on other processes.
 
@@ -39,6 +40,7 @@ PYTHONPATH=src/metampc_common:src/metampc_controller:src/metampc_plant:src/metam
 src/metampc_bringup python3 scripts/bench_meta.py --device cuda
 """
 import argparse
+import importlib
 import json
 import os
 import subprocess
@@ -54,6 +56,7 @@ from metampc_controller.nssm import Nssm, NssmConfig
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet
 from metampc_learner.meta_train import batch_gradient_fn, meta_train, MetaConfig
 from metampc_learner.objective import FlatObjective
+from metampc_plant.registry import DEFAULT, get_family, register, UnknownFamily
 
 MEMORY_STEPS = (5, 10, 20, 50)
 METHODS = {'imaml_gn': dict(method='imaml', curvature='gauss_newton'),
@@ -65,6 +68,10 @@ FAST = ('imaml_gn', 'fomaml')
 
 
 def setup():
+    try:
+        get_family(DEFAULT)
+    except UnknownFamily:      # run from the sources (PYTHONPATH), no installed entry points
+        register(importlib.import_module(f'metampc_plant.families.{DEFAULT}').FAMILY)
     data = simulate_source(SourceConfig())
     config = NssmConfig()
     norm = normalisation_from([t for ts in data.trajectories for t in ts])
@@ -169,9 +176,12 @@ def cuda_check(args) -> dict:
 
 
 def memory_probe(name: str, inner_steps: int) -> int:
-    """Peak RSS (bytes) added by one batched meta-gradient; runs in its own process."""
+    """Peak RSS (bytes) added by one batched meta-gradient; runs in its own process
+    (`name` with the suffix '_fast': the fast backend, else the eager one)."""
     model, source = setup()
-    config = MetaConfig(inner_steps=inner_steps, backend='eager', **METHODS[name])
+    backend = 'fast' if name.endswith('_fast') else 'eager'
+    config = MetaConfig(inner_steps=inner_steps, backend=backend,
+                        **METHODS[name[:-len('_fast')] if backend == 'fast' else name])
     objective = FlatObjective(model)
     train, test = source.sample(range(config.batch_size), config.windows_per_task,
                                 np.random.default_rng(0))
@@ -220,7 +230,7 @@ def main() -> None:
             loop[name] = seconds_per_step(model, source, args.steps, vectorise=False,
                                           backend='eager', **kw)
     memory = {}
-    for name in ('imaml_gn', 'maml_unrolled'):
+    for name in ('imaml_gn', 'imaml_gn_fast', 'maml_unrolled'):
         memory[name] = {}
         for m in MEMORY_STEPS:
             out = subprocess.run([sys.executable, __file__, '--threads', str(args.threads),

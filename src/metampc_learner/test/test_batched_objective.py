@@ -11,7 +11,6 @@ from metampc_controller.nssm import init_params, Nssm, NssmConfig
 from metampc_learner.batched_objective import BatchedNssm, BatchedTaskGradient
 from metampc_learner.curvature import gauss_newton_product
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet
-from metampc_learner.learner_params import parse_params, PARAMETERS
 from metampc_learner.meta_train import batch_gradient_fn, meta_train, MetaConfig
 from metampc_learner.objective import FlatObjective
 from metampc_learner.task_gradient import TaskGradient
@@ -144,6 +143,7 @@ def test_cuda_is_refused_at_validation_when_absent():
     parameter) or refuses the request."""
     with pytest.raises(ParameterError, match='device must be cpu here: cuda was asked'):
         MetaConfig(device='cuda').validate()
+    from metampc_learner.learner_params import parse_params, PARAMETERS  # (osqp: not on GPU)
     values = {name: spec.default for name, spec in PARAMETERS.items()}
     assert (values['backend'], values['device']) == ('fast', 'cpu')
     with pytest.raises(ParameterError, match='device must be cpu here'):
