@@ -101,6 +101,10 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     assert per_seed['complete'] and per_seed['theta'] == [config.theta] == [0.5]
     kinds = [e['event'] for e in events]
     assert kinds[0] == 'start' and kinds[-1] == 'done'
+    # The NMPC tracked while the first meta-model trained (its answer came after).
+    nmpc_end = next(i for i, e in enumerate(events)
+                    if e['event'] == 'track_end' and e['method'] == 'nmpc')
+    assert kinds.index('collect_end') < nmpc_end < kinds.index('meta_train'), kinds
     collected = next(e for e in events if e['event'] == 'collect_end')
     assert collected['samples'] >= config.target_samples
     # The learner's D_target holds the collection whole: nothing lost between plant and learner.
