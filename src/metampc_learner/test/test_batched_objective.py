@@ -77,6 +77,21 @@ def test_fast_meta_gradient_equals_the_eager_reference_in_float64(method, stable
     _assert_close(eager, fast, rtol=1e-9, atol=1e-10)
 
 
+@pytest.mark.parametrize('hidden', [(), (8, 6, 5)])
+def test_several_inputs_and_outputs_and_any_depth_agree_with_the_reference(hidden):
+    """n_u = 2, n_y = 4 (quadruple_tank's sizes), no or three hidden layers, random windows."""
+    nssm = NssmConfig(n_u=2, n_y=4, history=3, horizon=4, hidden=hidden, n_z=3)
+    gen = torch.Generator().manual_seed(1)
+    u, y = (torch.randn(3, 6, 7, n, generator=gen, dtype=torch.float64) for n in (2, 4))
+    model = Nssm(nssm, dtype=torch.float64)
+    objective = FlatObjective(model)
+    omega = objective.spec.flatten(init_params(nssm, 3, torch.float64))
+    args = (omega, u, 0.5 * y, u.flip(1), y.flip(1))
+    for method in ('imaml', 'maml'):
+        eager, fast = _both(objective, args, method=method, init_loss_weight=0.1)
+        _assert_close(eager, fast, rtol=1e-9, atol=1e-10)
+
+
 def test_refused_inner_steps_agree_with_the_reference():
     """Rates too large: the safeguard refuses steps and halves per task, the same way."""
     _, _, objective, args = _problem()
