@@ -43,7 +43,7 @@ from tqdm import tqdm
 from .experiment_client import (EVENTS_TOPIC, ExperimentClient, ExperimentError,
                                 process_status, response_dict, time_seconds)
 from .experiment_config import ExperimentConfig
-from .processes import ProcessGroup
+from .processes import ProcessGroup, StopTimeout
 from .recorder_config import RecorderConfig
 
 log = logging.getLogger('metampc.orchestrator')
@@ -303,7 +303,20 @@ class SeedRun:
         client.event('collect_end', stamp=client.last.stamp, samples=valid, escapes=escapes)
 
     def _track_nmpc(self) -> None:
+        """The NMPC's tracking run, then its controller is stopped: left running it would take
+        every later y (and /clock) for nothing, CPU that the lockstep loops of the other
+        methods need on a 2-core machine."""
         self._timed('track_nmpc', self._track, 'nmpc', 'controller_nmpc', 0)
+        proc = self.procs.pop('controller_nmpc')
+        try:
+            code = ProcessGroup.interrupt(proc, timeout=20.0)
+        except StopTimeout as err:
+            log.warning('seed %d: controller_nmpc did not stop after its run; killed: %s',
+                        self.seed, err)
+            return
+        if code != 0:
+            log.warning('seed %d: controller_nmpc exited with status %d after its run '
+                        '(log: %s)', self.seed, code, proc.log_path)
 
     def _meta_train(self, method: str, meanwhile: Optional[Callable[[], None]] = None) -> None:
         """Meta-train `method`; `meanwhile` runs while the learner trains (the request is out
