@@ -48,7 +48,8 @@ import sys
 import time
 from typing import Optional
 
-from metampc_common.node_main import declare_parameters, EventCounts, LiveParameters, run_node
+from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
+                                      loop_executor, run_node)
 from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
 from metampc_msgs.srv import SetActive
@@ -309,7 +310,7 @@ class ControllerNode(Node):
 
 def main(args=None) -> int:
     """`ros2 run metampc_controller controller [--ros-args -p name:=value ...]`."""
-    return run_node(ControllerNode, 'controller', args)
+    return run_node(ControllerNode, 'controller', args, executor=loop_executor)
 
 
 if __name__ == '__main__':

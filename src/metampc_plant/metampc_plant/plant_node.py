@@ -58,7 +58,8 @@ from array import array
 from typing import Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
-from metampc_common.node_main import declare_parameters, EventCounts, LiveParameters, run_node
+from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
+                                      loop_executor, run_node)
 from metampc_common.qos import BACKLOG, LATCHED, STREAM
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
@@ -312,7 +313,7 @@ class PlantNode(Node):
 
 def main(args=None) -> int:
     """`ros2 run metampc_plant plant [--ros-args -p name:=value ...]`; returns the exit code."""
-    return run_node(PlantNode, 'plant', args)
+    return run_node(PlantNode, 'plant', args, executor=loop_executor)
 
 
 if __name__ == '__main__':
