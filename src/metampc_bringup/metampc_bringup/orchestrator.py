@@ -364,13 +364,16 @@ class SeedRun:
                               config.timeouts.phase, f'track {method}',
                               tick=lambda: bar.show(client.last.step))
         client.set_active(controller, False)
-        last = client.last
-        end = start + min(last.step, n) * config.dt
-        client.event('track_end', method=method, stamp=end, steps=min(last.step, n),
-                     diverged=last.diverged)
-        if last.diverged:
+        # The run ends at step n or at the first diverged sample, whatever the controller
+        # answered after it while this call was on its way (that number depends on timing).
+        escape = client.first_diverged
+        steps = min(escape.step if escape is not None else client.last.step, n)
+        diverged = escape is not None and escape.step <= n
+        client.event('track_end', method=method, stamp=start + steps * config.dt,
+                     steps=steps, diverged=diverged)
+        if diverged:
             log.warning('seed %d: %s let the plant escape at step %d', self.seed, method,
-                        last.step)
+                        steps)
 
 
 class PhaseProgress:

@@ -6,15 +6,17 @@ learner.md list the profile of every topic.
 """
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-# The samples and answers of the loop (y, u, mpc_status, /clock): volatile, and deep enough
-# that a recorder a few hundred samples behind a fast lockstep run loses nothing.
+# The readers in the loop (the plant's u, the controller's y) and /clock: volatile; the loop
+# waits for them, so they are never far behind.
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.VOLATILE)
-# The plant's y for readers outside the loop that must see every sample (the learner's D_target,
-# the soak observer): a lockstep loop runs at some 300 Hz and does not wait for them, so a
-# reader whose process gets no CPU falls behind, and keep_last drops its oldest unread samples.
-# 1000 deep: ~3 s behind before one is lost (with STREAM's 100, the learner of a CI experiment on
-# a loaded 2-core machine lost 12 of its 120 samples). Publisher and reader both keep that many.
+# The plant's y, the controller's u and mpc_status, for readers outside the loop that must see
+# every message (the learner's D_target, the recorder, the soak observer): a lockstep loop runs
+# at 300-1400 Hz and does not wait for them, so a reader whose process gets no CPU falls
+# behind, and keep_last drops its oldest unread samples. 1000 deep: about a second behind
+# before one is lost (with STREAM's 100, the learner of a CI experiment on a loaded 2-core
+# machine lost 12 of its 120 samples, and a recorder 63 of a tracking run's 300 answers when
+# two seeds ran at once). Publisher and reader both keep that many.
 BACKLOG = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.VOLATILE)
 # Latched state (plant_info, nssm_weights): only the newest message counts, and a node that

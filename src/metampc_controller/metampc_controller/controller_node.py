@@ -50,7 +50,7 @@ from typing import Optional
 
 from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
                                       loop_executor, run_node)
-from metampc_common.qos import LATCHED, SPARSE, STREAM
+from metampc_common.qos import BACKLOG, LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
 from metampc_msgs.srv import SetActive
 import numpy as np
@@ -98,8 +98,10 @@ class ControllerNode(Node):
         # with the weights in a group of their own measured ~1.6x the CPU per sample and fell
         # behind its y queue at 100 Hz on a loaded 2-core machine (docs/controller.md).
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix='model_builder')
-        self._pub_u = self.create_publisher(ControlInput, 'u', STREAM)
-        self._pub_status = self.create_publisher(MpcStatus, 'mpc_status', STREAM)
+        # BACKLOG: readers outside the loop (the recorder) may fall ~1000 answers behind a
+        # fast lockstep run and lose none (with STREAM's 100 a recorder lost 63 of 300).
+        self._pub_u = self.create_publisher(ControlInput, 'u', BACKLOG)
+        self._pub_status = self.create_publisher(MpcStatus, 'mpc_status', BACKLOG)
         self.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED)
         self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)
