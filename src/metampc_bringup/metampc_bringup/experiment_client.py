@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
-from metampc_common.qos import EVENTS, LATCHED, SPARSE, STREAM
+from metampc_common.qos import BACKLOG, EVENTS, LATCHED, SPARSE
 from metampc_msgs.msg import PlantInfo, PlantOutput, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant, SetActive, SetBuffering
 from rclpy.duration import Duration
@@ -74,7 +74,9 @@ class ExperimentClient(SpunNode):
         self.first_diverged: Optional[Sample] = None    # of them: the first diverged one
         self.plant_info: Optional[PlantInfo] = None
         self.progress: Optional[TrainingProgress] = None
-        node.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
+        # BACKLOG: the orchestrator is outside the loop and must see every sample (the first
+        # diverged one ends a run; with STREAM's 100 it once missed 81 of a fast run's).
+        node.create_subscription(PlantOutput, 'y', self._on_y, BACKLOG)
         node.create_subscription(PlantInfo, 'plant_info', self._on_info, LATCHED)
         node.create_subscription(TrainingProgress, 'progress', self._on_progress, SPARSE)
         self._events = node.create_publisher(String, EVENTS_TOPIC, EVENTS)

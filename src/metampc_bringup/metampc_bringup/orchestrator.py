@@ -363,7 +363,9 @@ class SeedRun:
             client.wait_until(lambda: client.last.step >= n or client.last.diverged,
                               config.timeouts.phase, f'track {method}',
                               tick=lambda: bar.show(client.last.step))
-        client.set_active(controller, False)
+        if not client.set_active(controller, False).delivered:
+            log.warning('seed %d: %s: some answers of the run were not acknowledged by every '
+                        'reader within 10 s: the recording may lack them', self.seed, method)
         # The run ends at step n or at the first diverged sample, whatever the controller
         # answered after it while this call was on its way (that number depends on timing).
         escape = client.first_diverged
