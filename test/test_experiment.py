@@ -182,27 +182,33 @@ def _pids_in_domain(domain: int):
     return pids
 
 
-def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
-    out = str(tmp_path / 'run')
+def _interrupt_after_collection(args, collections: int, timeout: float):
+    """Run run_experiment.py on the CI config with `args`, SIGINT it (as Ctrl-C does) once
+    `collections` seeds have collected; (exit status, everything it printed)."""
     proc = subprocess.Popen(
         [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
-         CI_CONFIG, '--out', out, '--no-progress', '--methods', 'imaml'],
+         CI_CONFIG, '--no-progress', *args],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
-        # Interrupt once meta-training has started: every node is up then.
         lines = []
         for line in proc.stdout:
             lines.append(line)
-            if 'collect done' in line:
+            if sum('collect done' in x for x in lines) == collections:
                 break
         os.killpg(proc.pid, signal.SIGINT)
-        rest, _ = proc.communicate(timeout=60)
+        rest, _ = proc.communicate(timeout=timeout)
     finally:
         if proc.poll() is None:
             for pid in session_pids(proc.pid):
                 os.kill(pid, signal.SIGKILL)
-    text = ''.join(lines) + rest
-    assert proc.returncode == 130, text
+    return proc.returncode, ''.join(lines) + rest
+
+
+def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
+    out = str(tmp_path / 'run')
+    # Interrupt once meta-training has started: every node is up then.
+    code, text = _interrupt_after_collection(['--out', out, '--methods', 'imaml'], 1, 60)
+    assert code == 130, text
     domain = int(re.search(r'ROS_DOMAIN_ID=(\d+)', text).group(1))
     assert _pids_in_domain(domain) == [], 'processes left behind'
     events, outputs, _, _ = _read(os.path.join(out, 'seed_0', 'recording.mcap'))
@@ -337,25 +343,9 @@ def test_ctrl_c_with_jobs_2_stops_every_seed(tmp_path):
     """Ctrl-C while two seeds run: exit 130, no process left in either seed's domain, both
     recordings readable."""
     out = str(tmp_path / 'run')
-    proc = subprocess.Popen(
-        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
-         CI_CONFIG, '--out', out, '--no-progress', '--methods', 'imaml', '--seeds', '2',
-         '--jobs', '2'],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    try:
-        lines = []
-        for line in proc.stdout:
-            lines.append(line)
-            if sum('collect done' in x for x in lines) == 2:
-                break
-        os.killpg(proc.pid, signal.SIGINT)
-        rest, _ = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            for pid in session_pids(proc.pid):
-                os.kill(pid, signal.SIGKILL)
-    text = ''.join(lines) + rest
-    assert proc.returncode == 130, text
+    code, text = _interrupt_after_collection(
+        ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'], 2, 120)
+    assert code == 130, text
     domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
     assert len(domains) == 2, text
     for domain in domains:

@@ -14,13 +14,14 @@ An :class:`ExperimentClient` is an rclpy node (spun in a thread, :class:`SpunNod
   and the sim-time span of every tracking run from them.
 """
 import json
+import logging
 import subprocess
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
-from metampc_common.qos import BACKLOG, EVENTS, LATCHED, SPARSE
+from metampc_common.qos import EVENTS, LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import PlantInfo, PlantOutput, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant, SetActive, SetBuffering
 from rclpy.duration import Duration
@@ -71,12 +72,9 @@ class ExperimentClient(SpunNode):
         self.last: Optional[Sample] = None
         self.samples = 0                    # y messages since the last reset_counts
         self.valid_samples = 0              # of them: not diverged and step > 0
-        self.first_diverged: Optional[Sample] = None    # of them: the first diverged one
         self.plant_info: Optional[PlantInfo] = None
         self.progress: Optional[TrainingProgress] = None
-        # BACKLOG: the orchestrator is outside the loop and must see every sample (the first
-        # diverged one ends a run; with STREAM's 100 it once missed 81 of a fast run's).
-        node.create_subscription(PlantOutput, 'y', self._on_y, BACKLOG)
+        node.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
         node.create_subscription(PlantInfo, 'plant_info', self._on_info, LATCHED)
         node.create_subscription(TrainingProgress, 'progress', self._on_progress, SPARSE)
         self._events = node.create_publisher(String, EVENTS_TOPIC, EVENTS)
@@ -96,8 +94,6 @@ class ExperimentClient(SpunNode):
             self.last = Sample(msg.step, stamp_seconds(msg), msg.diverged)
             self.samples += 1
             self.valid_samples += int(msg.step > 0 and not msg.diverged)
-            if msg.diverged and self.first_diverged is None:
-                self.first_diverged = self.last
             self._cond.notify_all()
 
     def _on_info(self, msg: PlantInfo) -> None:
@@ -115,7 +111,6 @@ class ExperimentClient(SpunNode):
     def reset_counts(self) -> None:
         with self._cond:
             self.samples = self.valid_samples = 0
-            self.first_diverged = None
 
     # --- waiting ---------------------------------------------------------------------------
 
@@ -194,10 +189,24 @@ class ExperimentClient(SpunNode):
             raise ExperimentError(f'{what}: {response.message}')
         return response
 
-    def set_active(self, controller: str, active: bool) -> SetActive.Response:
-        """Activate or deactivate a controller; its response (answered step, model version)."""
-        return self.call(controller, SetActive.Request(active=active), 10.0,
-                         f'set_active({active}) of {controller}')
+    def set_active(self, controller: str, active: bool, until_step: int = 0,
+                   stop_at_escape: bool = False,
+                   wait_delivered: bool = False) -> SetActive.Response:
+        """Activate (optionally bounded: ``until_step``, ``stop_at_escape``) or deactivate
+        (``wait_delivered``: once the readers acknowledged every answer, before a stop) a
+        controller; its response (answered step, model version, delivery)."""
+        request = SetActive.Request(active=active, until_step=until_step,
+                                    stop_at_escape=stop_at_escape,
+                                    wait_delivered=wait_delivered)
+        return self.call(controller, request, 20.0, f'set_active({active}) of {controller}')
+
+    def deliver_and_deactivate(self, controller: str, what: str) -> None:
+        """Deactivate `controller` once every answer it sent reached every reader (before it
+        is stopped: the recorder may be behind a fast run); a warning if not within 10 s."""
+        if not self.set_active(controller, False, wait_delivered=True).delivered:
+            logging.getLogger('metampc.orchestrator').warning(
+                '%s: some answers of %s were not acknowledged by every reader within 10 s: '
+                'the recording may lack them', what, controller)
 
     def set_buffering(self, buffering: bool, what: str) -> SetBuffering.Response:
         """(Re)start or stop the learner's buffering; its response (counts, matched y)."""

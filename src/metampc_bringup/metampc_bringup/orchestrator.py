@@ -192,6 +192,9 @@ class SeedRun:
                 continue
             version = self._timed(f'adapt_{method}', self._adapt, method)
             self._timed(f'track_{method}', self._track, method, 'controller', version)
+        # The nodes are stopped next, controllers first: their answers must have reached the
+        # recorder by then.
+        self.client.deliver_and_deactivate('controller', f'seed {self.seed}')
         self.client.event('done', timings=self.timings, episode_restarts=self.restarts)
 
     def _timed(self, name: str, fn, *args):
@@ -204,9 +207,13 @@ class SeedRun:
     def _bar(self, total: int, desc: str) -> 'PhaseProgress':
         return PhaseProgress(total, f'seed {self.seed} {desc}', self.show_progress)
 
-    def _start_episode(self, x0: List[float], controller: str, what: str) -> float:
+    def _start_episode(self, x0: List[float], controller: str, what: str,
+                       steps: int = 0) -> float:
         """Reset the plant to theta*, x0 and activate `controller` on the new episode;
-        return the stamp of its y_0.
+        return the stamp of its y_0. ``steps`` > 0 bounds the run: the controller answers
+        steps 0..steps-1 and stops by itself (so the plant stops at y_steps), or at a
+        diverged y, unanswered (a fast lockstep loop would otherwise run on while the
+        orchestrator looks, and how far would depend on timing).
 
         The controller is activated once it holds this y_0 (its newest y, asked inactive):
         activated before, it answers an older sample at once, and an older y_0 (the one the
@@ -227,7 +234,9 @@ class SeedRun:
             start = client.last.stamp
             client.reset_counts()   # count the new episode only
             if self._holds(controller, start):
-                answered = client.set_active(controller, True).answered_step
+                answered = client.set_active(
+                    controller, True, until_step=max(steps - 1, 0),
+                    stop_at_escape=steps > 0).answered_step
                 if answered != 0:
                     raise ExperimentError(f'{what}: {controller} answered step {answered} on '
                                           'activation, not the y_0 it held')
@@ -307,6 +316,7 @@ class SeedRun:
         every later y (and /clock) for nothing, CPU that the lockstep loops of the other
         methods need on a 2-core machine."""
         self._timed('track_nmpc', self._track, 'nmpc', 'controller_nmpc', 0)
+        self.client.deliver_and_deactivate('controller_nmpc', f'seed {self.seed}')
         proc = self.procs.pop('controller_nmpc')
         try:
             code = ProcessGroup.interrupt(proc, timeout=20.0)
@@ -356,21 +366,18 @@ class SeedRun:
         """One tracking run: steps 0..n of a fresh episode from track_x0."""
         client, config = self.client, self.config
         n = config.track_steps()
-        start = self._start_episode(config.track_x0, controller, f'track {method}')
+        start = self._start_episode(config.track_x0, controller, f'track {method}', n)
         client.event('track_start', method=method, controller=controller,
                      model_version=version, stamp=start, steps=n)
         with self._bar(n, f'track {method}') as bar:
             client.wait_until(lambda: client.last.step >= n or client.last.diverged,
                               config.timeouts.phase, f'track {method}',
                               tick=lambda: bar.show(client.last.step))
-        if not client.set_active(controller, False).delivered:
-            log.warning('seed %d: %s: some answers of the run were not acknowledged by every '
-                        'reader within 10 s: the recording may lack them', self.seed, method)
-        # The run ends at step n or at the first diverged sample, whatever the controller
-        # answered after it while this call was on its way (that number depends on timing).
-        escape = client.first_diverged
-        steps = min(escape.step if escape is not None else client.last.step, n)
-        diverged = escape is not None and escape.step <= n
+        client.set_active(controller, False)
+        # The controller stopped by itself at y_n or at the first diverged y (the newest
+        # sample, since the plant waits there), however late this loop saw it.
+        last = client.last
+        steps, diverged = min(last.step, n), last.diverged
         client.event('track_end', method=method, stamp=start + steps * config.dt,
                      steps=steps, diverged=diverged)
         if diverged:
