@@ -71,7 +71,6 @@ class ExperimentClient(SpunNode):
         self._cond = threading.Condition()
         self.last: Optional[Sample] = None
         self.samples = 0                    # y messages since the last reset_counts
-        self.valid_samples = 0              # of them: not diverged and step > 0
         self.plant_info: Optional[PlantInfo] = None
         self.progress: Optional[TrainingProgress] = None
         node.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
@@ -93,7 +92,6 @@ class ExperimentClient(SpunNode):
         with self._cond:
             self.last = Sample(msg.step, stamp_seconds(msg), msg.diverged)
             self.samples += 1
-            self.valid_samples += int(msg.step > 0 and not msg.diverged)
             self._cond.notify_all()
 
     def _on_info(self, msg: PlantInfo) -> None:
@@ -110,7 +108,7 @@ class ExperimentClient(SpunNode):
 
     def reset_counts(self) -> None:
         with self._cond:
-            self.samples = self.valid_samples = 0
+            self.samples = 0
 
     # --- waiting ---------------------------------------------------------------------------
 

@@ -292,16 +292,18 @@ class SeedRun:
         valid, escapes = 0, 0
         with self._bar(config.target_samples, 'collect') as bar:
             while valid < config.target_samples:
-                start = self._start_episode(config.collect_x0, 'controller', 'collect')
+                # Bounded like a tracking run: y_1..y_need, or up to the first diverged y.
+                need = config.target_samples - valid
+                start = self._start_episode(config.collect_x0, 'controller', 'collect', need)
                 if not valid:
                     client.event('collect_start', stamp=start, theta=self.theta)
-                need = config.target_samples - valid
-                client.wait_until(lambda: client.valid_samples >= need or client.last.diverged,
+                client.wait_until(lambda: client.last.step >= need or client.last.diverged,
                                   config.timeouts.phase, 'collect: target samples',
-                                  tick=lambda: bar.show(valid + client.valid_samples))
+                                  tick=lambda: bar.show(valid + client.last.step))
                 client.set_active('controller', False)
-                valid += client.valid_samples
-                if client.last.diverged and valid < config.target_samples:
+                last = client.last      # the episode's final sample: the plant waits there
+                valid += min(last.step - 1 if last.diverged else last.step, need)
+                if last.diverged and valid < config.target_samples:
                     escapes += 1
                     if escapes > MAX_COLLECT_ESCAPES:
                         raise ExperimentError(f'collect: the plant escaped {escapes} times '
