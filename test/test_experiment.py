@@ -306,9 +306,11 @@ def _results(report: dict):
     """A seed report without what depends on timing: wall-clock stamps and durations, the
     solve and tick times, and how many samples the plant ran on while the collection was
     being stopped (the learner keeps the first target_samples of them whatever the count);
-    and the run's configuration (seeds and first seed differ by design)."""
+    and the run's configuration (seeds and first seed differ by design); the learner's count
+    of skipped step-0 samples (whether the plant's start-up y_0 reached it after buffering
+    began depends on timing; kept and lost are compared by the caller)."""
     timing = ('wall_time', 'tick_time', 'solve_time', 'timings', 'elapsed_s', 'recording',
-              'message', 'collect', 'config')
+              'message', 'collect', 'config', 'buffering')
     if isinstance(report, dict):
         return {k: _results(v) for k, v in report.items() if k not in timing}
     if isinstance(report, list):
@@ -336,6 +338,8 @@ def test_jobs_2_gives_the_per_seed_results_of_jobs_1(tmp_path):
     assert [s['seed'] for s in merged['per_seed']] == [0, 1]
     parallel_1 = _results(merged['per_seed'][1])
     assert parallel_1 == _results(serial['per_seed'][0])
+    for run in (merged['per_seed'][1], serial['per_seed'][0]):
+        assert (run['buffering']['kept'], run['buffering']['lost']) == (120, 0), run['buffering']
     assert parallel_1['methods']['maml']['tracking']['tracking']['rmse'] > 0
 
 
