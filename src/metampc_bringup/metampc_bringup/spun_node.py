@@ -5,7 +5,7 @@ to wait on futures and conditions while callbacks run.
 """
 import threading
 import time
-from typing import Callable, List
+from typing import Any, Callable, List, Optional
 
 import rclpy
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
@@ -34,6 +34,30 @@ class SpunNode:
             if time.monotonic() > deadline:
                 raise AssertionError(f'timed out after {timeout} s waiting for {what}')
             time.sleep(poll)
+
+    def call(self, client: Any, request: Any, timeout: float,
+             resend_every: Optional[float] = None) -> Any:
+        """Call `client`'s service and wait up to `timeout` s for the response.
+
+        `resend_every` (s), for requests that are safe to repeat: send the request again while
+        unanswered. rmw_fastrtps drops a response whose writer has not matched the client's
+        reader within 100 ms of the send ('failed to send response (timeout): client will not
+        receive response'): a first call right after discovery can lose its answer on a
+        loaded machine, however long the client waits. Once answered, the match holds.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            future = client.call_async(request)
+            until = deadline if resend_every is None else min(
+                deadline, time.monotonic() + resend_every)
+            while not future.done() and time.monotonic() < until:
+                time.sleep(0.02)
+            if future.done():
+                return future.result()
+            client.remove_pending_request(future)
+            if time.monotonic() >= deadline:
+                raise AssertionError(f'timed out after {timeout} s waiting for the answer of '
+                                     f'{client.srv_name}')
 
     def node_names(self) -> List[str]:
         return [n for n, _ in self.node.get_node_names_and_namespaces()]
