@@ -11,5 +11,7 @@ from metampc_bringup.spun_node import SpunNode
 class TestNode(SpunNode):
     """An rclpy node spun in a background thread, for probing the graph from a test."""
 
+    __test__ = False    # not a test class, though imported into test modules
+
     def __init__(self, name: str = 'metampc_test_probe'):
         super().__init__(name)
