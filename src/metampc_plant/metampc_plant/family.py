@@ -28,6 +28,7 @@ from typing import Sequence, Tuple
 import numpy as np
 
 DISTRIBUTIONS = ('normal', 'uniform', 'fixed')
+SUPPORT_STDS = 4.0     # a normal prior's range: mean +- 4 std (6e-5 of the draws beyond)
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,17 @@ class ThetaComponent:
     def nominal(self) -> float:
         """The mean of the prior."""
         return 0.5 * (self.a + self.b) if self.distribution == 'uniform' else self.a
+
+    @property
+    def support(self) -> Tuple[float, float]:
+        """The range of the prior, (low, high): a uniform prior's interval, a fixed value, or
+        a normal prior's mean +- SUPPORT_STDS stds (the source systems all but never lie
+        beyond: a plant scheduled there runs where the meta-model has seen nothing)."""
+        if self.distribution == 'normal':
+            return self.a - SUPPORT_STDS * self.b, self.a + SUPPORT_STDS * self.b
+        if self.distribution == 'uniform':
+            return self.a, self.b
+        return self.a, self.a
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """n draws, shape (n,). 'normal' draws exactly ``a + b * rng.standard_normal(n)``."""

@@ -9,7 +9,13 @@ Interfaces (relative names, so a namespace can wrap them):
 * ``/clock`` (rosgraph_msgs/Clock, lockstep with ``publish_clock``): the sim time of the last
   y, so nodes started with ``use_sim_time:=true`` run on the plant's time.
 * ``u`` (ControlInput, subscribed, reliable): the input computed from y_k, held over (k, k+1].
-* ``reset`` (ResetPlant service): new theta and/or x0; the step restarts at 0 and y_0 is sent.
+* ``reset`` (ResetPlant service): new theta, x0 and/or theta_schedule; the step restarts at
+  0 and y_0 is sent.
+
+A ``theta_schedule`` (parameter, or a reset's field; :mod:`metampc_plant.theta_schedule`)
+moves theta over the plant time of each episode, in steps and ramps, at exact steps in both
+clock modes; every y carries the theta it was integrated with, and plant_info is re-sent as a
+segment starts and ends.
 
 The family (``-p family:=duffing``, see docs/families.md) fixes the dimensions, the equations
 and the defaults of theta, x0, the bounds and dt; a parameter that does not fit it (a theta of
@@ -66,6 +72,7 @@ from metampc_msgs.srv import ResetPlant
 from metampc_plant.lockstep import Lockstep
 from metampc_plant.plant_params import PARAMETERS, parse_params, PlantNodeConfig
 from metampc_plant.simulator import Plant
+from metampc_plant.theta_schedule import ThetaSchedule
 import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -91,6 +98,7 @@ class PlantNode(Node):
         self._requested_u = self._zero_u  # realtime: latest accepted input, before saturation
         self._y0 = self.plant.output()  # y_0 of the first episode, drawn before any step
         self._n_resets = 0
+        self._boundaries = 0    # the schedule's segment starts and ends the episode has passed
         self._events = EventCounts(self, COUNTERS)
         self._counts = self._events.counts
         self._warn = self._events.warn
@@ -153,6 +161,7 @@ class PlantNode(Node):
         msg.step = self.plant.step_index
         msg.y = array('d', y)
         msg.u_applied = array('d', u_applied)
+        msg.theta = array('d', self.plant.theta)
         msg.saturated = saturated
         msg.diverged = self.plant.diverged
         self._pub_y.publish(msg)
@@ -167,6 +176,7 @@ class PlantNode(Node):
         sim, fam = self.cfg.plant, self.family
         self._pub_info.publish(PlantInfo(
             family=fam.name, theta=list(self.plant.theta),
+            theta_schedule=list(self.plant.schedule.flat()),
             theta_names=[c.name for c in fam.theta], dt=sim.dt, substeps=sim.substeps,
             u_min=list(sim.u_min), u_max=list(sim.u_max),
             input_names=[s.name for s in fam.inputs], input_units=[s.unit for s in fam.inputs],
@@ -198,7 +208,14 @@ class PlantNode(Node):
         """Hold u_requested (finite) over one sample, then publish y_{k+1}."""
         u, saturated = self.plant.saturate(u_requested)
         was_diverged = self.plant.diverged
+        t = self.plant.time     # the sample is integrated from here, with theta_at(t)
         y = self.plant.step(u)
+        passed = self.plant.schedule.boundaries_passed(t)
+        if passed != self._boundaries:
+            self._boundaries = passed
+            self.get_logger().info(f'theta {list(self.plant.theta)} from step '
+                                   f'{self.plant.step_index} (t = {self.plant.time:g} s)')
+            self._publish_info()
         self._held_u = u
         if self.plant.diverged and not was_diverged:
             self.get_logger().error(
@@ -262,7 +279,7 @@ class PlantNode(Node):
 
     # --- reset --------------------------------------------------------------------------
 
-    def _reset_error(self, theta, x0) -> str:
+    def _reset_error(self, theta, x0, schedule) -> str:
         """Why a reset request is invalid, or '' if it is fine."""
         fam = self.family
         if len(theta):
@@ -270,6 +287,11 @@ class PlantNode(Node):
                 fam.check_theta(theta)
             except ValueError as err:
                 return f'{err} (or none to keep the current one)'
+        try:
+            ThetaSchedule.parse(schedule or self.cfg.plant.theta_schedule, fam,
+                                theta if len(theta) else self.plant.schedule.start)
+        except ValueError as err:
+            return str(err)
         if len(x0) not in (0, fam.n_x):
             return (f'x0 must have {fam.n_x} values (or none to use the parameter), got '
                     f'{len(x0)}')
@@ -282,14 +304,16 @@ class PlantNode(Node):
 
     def _on_reset(self, request: ResetPlant.Request, response: ResetPlant.Response
                   ) -> ResetPlant.Response:
-        why = self._reset_error(request.theta, request.x0)
+        why = self._reset_error(request.theta, request.x0, request.theta_schedule)
         if why:
             response.success, response.message = False, f'reset rejected: {why}'
             self.get_logger().warning(response.message)
             return response
-        y0 = self.plant.reset(list(request.theta) or None, list(request.x0) or None)
+        y0 = self.plant.reset(list(request.theta) or None, list(request.x0) or None,
+                              list(request.theta_schedule) or None)
         self._held_u = self._requested_u = self._zero_u
         self._n_resets += 1
+        self._boundaries = 0
         self._publish_info()
         self._end_gate()  # a reset before the lockstep start starts it
         self._publish_y(y0, self._zero_u, False)
@@ -297,7 +321,9 @@ class PlantNode(Node):
             self._tick_timer.reset()
         response.success = True
         response.message = (f'reset {self._n_resets}: theta={list(self.plant.theta)}, '
-                            f'x0={self.plant.x.tolist()}')
+                            f'x0={self.plant.x.tolist()}'
+                            + (f', theta_schedule={list(self.plant.schedule.flat())}'
+                               if self.plant.schedule.segments else ''))
         self.get_logger().info(response.message)
         return response
 

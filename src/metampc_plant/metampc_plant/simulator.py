@@ -24,6 +24,7 @@ from metampc_common.params import check_fields, param
 from metampc_plant.family import PlantFamily
 from metampc_plant.integrate import rk4_components, rk4_sample
 from metampc_plant.registry import DEFAULT, get_family
+from metampc_plant.theta_schedule import ThetaSchedule
 
 
 @dataclass
@@ -35,6 +36,9 @@ class PlantConfig:
     Attributes:
         family: registered family name (``metampc_plant.registry``).
         theta: parameter vector, n_theta values (empty: the family's nominal theta).
+        theta_schedule: how theta changes over each episode of a single plant
+            (:mod:`metampc_plant.theta_schedule`; flat rows; empty: constant). Batches of
+            source systems ignore it.
         dt: sample time, s (0: the family's).
         substeps: RK4 steps per sample (>= 1). For van der Pol the default 10 stays within
             1e-7 of RK45 (rtol 1e-10) over 20 s at dt = 0.05 s for theta in [-1.5, 2], about
@@ -54,6 +58,11 @@ class PlantConfig:
                                      item=float, scalar=True)
     dt: float = param(0.0, "sample time, s (0: the family's)", ge=0)
     substeps: int = param(10, 'RK4 steps per sample', ge=1)
+    theta_schedule: Tuple[float, ...] = param(
+        (), 'theta over the plant time of each episode: rows [t_start, t_end, theta...] of a '
+            'step (t_end = t_start) or a ramp to theta, s (empty: constant; see '
+            'theta_schedule.py)',
+        item=float)
     x0: Tuple[float, ...] = param((), "initial state (empty: the family's; inside state_bound)",
                                   item=float)
     u_min: Tuple[float, ...] = param((), "input lower bounds, one per input (empty: the "
@@ -103,6 +112,7 @@ class PlantConfig:
                              f'{list(fam.u_max)}]')
         if max(abs(v) for v in out.x0) > out.state_bound:
             raise ValueError(f'x0 {list(out.x0)} lies outside state_bound {out.state_bound}')
+        ThetaSchedule.parse(out.theta_schedule, fam, out.theta)
         return out
 
     def validate(self) -> None:
@@ -217,7 +227,14 @@ class Plant:
 
     @property
     def theta(self) -> Tuple[float, ...]:
+        """theta the last sample was integrated with (after a reset: the episode's start)."""
         return self._theta
+
+    @property
+    def time(self) -> float:
+        """Plant time of the episode, s: step index x dt, to the ns (so that a schedule's
+        change at 30 s lands at step 600 of dt = 0.05 s, not one later by a rounding error)."""
+        return round(self._step_index * self.config.dt, 9)
 
     @property
     def x(self) -> np.ndarray:
@@ -233,18 +250,23 @@ class Plant:
         return self._step_index
 
     def reset(self, theta: Optional[Sequence[float]] = None,
-              x0: Optional[Sequence[float]] = None) -> np.ndarray:
-        """Reset to (theta, x0); None keeps the current theta / the configured x0. Returns y_0.
+              x0: Optional[Sequence[float]] = None,
+              schedule: Optional[Sequence[float]] = None) -> np.ndarray:
+        """Reset to (theta, x0, schedule); None keeps the current theta (the episode's start
+        value) / the configured x0 / the configured theta_schedule. Returns y_0.
 
         An x0 outside the box ``|x0|_inf <= state_bound`` is accepted and flagged diverged.
-        ValueError for a theta or x0 of the wrong length or not finite.
+        ValueError for a theta or x0 of the wrong length or not finite, or a schedule that does
+        not fit (:meth:`ThetaSchedule.parse`).
         """
         fam = self.family
-        theta = self._theta if theta is None else fam.check_theta(theta)
+        theta = self._start_theta if theta is None else fam.check_theta(theta)
         x0 = np.asarray(self.config.x0 if x0 is None else x0, dtype=float)
         if x0.shape != (fam.n_x,) or not np.all(np.isfinite(x0)):
             raise ValueError(f'x0 must be {fam.n_x} finite numbers, got {x0.tolist()}')
-        self._theta = theta
+        self.schedule = ThetaSchedule.parse(
+            self.config.theta_schedule if schedule is None else schedule, fam, theta)
+        self._start_theta = self._theta = theta
         self._x = tuple(float(v) for v in x0)
         self._u = (0.0,) * fam.n_u
         self._diverged = max(abs(v) for v in self._x) > self.config.state_bound
@@ -276,6 +298,8 @@ class Plant:
             raise ValueError(f'inputs must be {self.family.n_u} finite numbers, got {list(u)}')
         u, _ = self.saturate(u)
         cfg = self.config
+        if self.schedule.segments:
+            self._theta = self.schedule.theta_at(self.time)
         with np.errstate(over='ignore', invalid='ignore'):
             x = list(rk4_components(self.family, self._x, u, self._theta, cfg.dt,
                                     cfg.substeps))

@@ -371,3 +371,42 @@ def test_parse_params_defaults_and_coercion():
 def test_parse_params_rejects(overrides, match):
     with pytest.raises(ParameterError, match=match):
         parse_params(_raw(**overrides))
+
+
+def test_theta_schedule_in_lockstep_lands_at_exact_steps(procs, probe):
+    """theta_schedule: a step to -0.5 at t = 1 s and a ramp to 1.5 over [2, 3] s (dt = 0.1 s).
+    Each y carries the theta it was integrated with: the start value up to y_10, -0.5 from
+    y_11 (the sample from step 10 on), then the ramp by np.interp over the plant time; and
+    each y_{k+1} is scipy's one step from y_k with that theta (1e-6). plant_info is re-sent as
+    segments start and end; a reset with a schedule out of range is refused, the plant goes on.
+    """
+    n, theta0 = 40, 0.5
+    schedule = [1.0, 1.0, -0.5, 2.0, 3.0, 1.5]
+    infos = []
+    probe.node.create_subscription(PlantInfo, 'plant_info', infos.append, LATCHED)
+    ctl = Controller(probe, lambda m: [(m.step, [u_of(m.step)])] if m.step < n else [])
+    proc = start_plant(procs, {'theta': theta0, 'x0': [1.0, 0.0], 'input_timeout': 30.0,
+                               'theta_schedule': schedule})
+    probe.wait_for(lambda: len(ctl.ys) > n, 60.0, f'{n} answered steps')
+    ys = ctl.ys[:n + 1]
+    # theta over (k-1, k]: the value at t_{k-1} = (k - 1) dt, independently by interpolation.
+    expected = [theta0] + [theta0 if t < 1.0 else float(np.interp(t, [2.0, 3.0], [-0.5, 1.5]))
+                           for t in 0.1 * np.arange(n)]
+    got = [m.theta[0] for m in ys]
+    assert got[:11] == [theta0] * 11 and got[11:21] == [-0.5] * 10
+    assert np.allclose(got, expected, rtol=0, atol=1e-12), got
+    worst = max(np.abs(np.array(ys[k + 1].y) - one_step(
+        'vanderpol', np.array(ys[k].y), [min(max(u_of(k), -1.0), 1.0)], [got[k + 1]], 0.1)
+    ).max() for k in range(n))
+    assert worst < 1e-6, f'worst error {worst:.2e}'
+    # Re-sent at t = 1 (step), 2 (ramp starts), 3 (ramp ends); the latest says 1.5.
+    probe.wait_for(lambda: infos and infos[-1].theta[0] == 1.5, 10.0, 'plant_info after ramp')
+    assert list(infos[-1].theta_schedule) == schedule
+
+    reset = probe.node.create_client(ResetPlant, 'reset')
+    assert reset.wait_for_service(timeout_sec=10.0)
+    request = ResetPlant.Request(theta=[0.5], theta_schedule=[5.0, 5.0, 9.0])
+    result = probe.call(reset, request, 10.0, resend_every=3.0)
+    assert not result.success and 'theta = 9 lies outside the range [-4, 4]' in result.message
+    assert proc.poll() is None
+    stop_cleanly(procs, proc)

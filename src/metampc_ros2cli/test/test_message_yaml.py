@@ -120,7 +120,7 @@ def test_the_printed_text_is_rosidl_runtime_pys():
     assert "frame_id: '<string length: <5>>'" in my.to_yaml(msg, no_str=True)
     long = PlantOutput(y=list(range(5)))
     assert "y:\n- 0.0\n- 1.0\n- '...'\n" in my.to_yaml(long, truncate_length=2)
-    assert my.to_csv(msg) == '2,50,plant,3,0.5,-1.25,,False,False'
+    assert my.to_csv(msg) == '2,50,plant,3,0.5,-1.25,,,False,False'  # u_applied, theta empty
 
 
 @pytest.mark.parametrize('text, reason', [
