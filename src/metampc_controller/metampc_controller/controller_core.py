@@ -25,6 +25,7 @@ from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
+from metampc_controller.prediction_error import PredictionError
 from metampc_controller.predictor import NssmPredictor
 from metampc_controller.references import make_reference
 from metampc_controller.weights_codec import DecodedWeights, WeightsError
@@ -188,6 +189,7 @@ class ModelBundle:
     stage: str
     predictor: NssmPredictor
     mpc: LatentMpc
+    prediction: PredictionError
 
     @property
     def history(self) -> int:
@@ -216,7 +218,8 @@ def build_model(decoded: DecodedWeights, version: int, method: str, stage: str,
         mpc = latent_mpc(mpc_config, predictor)
     except ValueError as err:
         raise WeightsError(str(err)) from None
-    return ModelBundle(version, method, stage, predictor, mpc)
+    return ModelBundle(version, method, stage, predictor, mpc,
+                       PredictionError(predictor.latent, decoded.norm.y_std, cfg.horizon))
 
 
 def latent_mpc(config: MpcConfig, predictor: NssmPredictor) -> LatentMpc:
@@ -273,6 +276,8 @@ class TickResult:
 
     u: (n_u,) u_{k+1}, finite and within the bounds. u_plan (N, n_u), y_pred (N, n_y):
     empty (0 rows) when nothing was planned. y_ref: (N, n_y) references of the horizon.
+    prediction_errors: the model's (one-step, T-step) errors at y_k
+    (:class:`~metampc_controller.prediction_error.PredictionError`; NaN when none).
     config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
 
@@ -292,6 +297,11 @@ class TickResult:
     u_plan: np.ndarray
     y_pred: np.ndarray
     y_ref: np.ndarray
+    prediction_errors: Tuple[float, float]
+
+
+# No model, no prediction: the (one-step, T-step) errors of a tick without the latent model.
+NO_ERRORS = (math.nan, math.nan)
 
 
 @dataclass
@@ -495,10 +505,13 @@ class ControllerCore:
         planner = tuning.config.planner
         if planner == 'latent_mpc' and model is not None:
             u_hist, y_hist = history.window(model.history)
-            res = model.mpc.solve(model.predictor.encode(u_hist, y_hist), u_prev, y_ref)
+            z = model.predictor.encode(u_hist, y_hist)
+            errors = model.prediction.update(step, u_prev, history.y, z)
+            res = model.mpc.solve(z, u_prev, y_ref)
             version, fallback, terminal_fallback = (model.version, res.fallback,
                                                     res.terminal_fallback)
         else:
+            errors = NO_ERRORS
             if (planner == 'nmpc' and self._nmpc is not None
                     and self._nmpc_version != tuning.version):
                 self._build_nmpc(tuning, self.plant)    # it was built for this plant before
@@ -512,12 +525,13 @@ class ControllerCore:
                     terminal_fallback=False, solver_status='no_model'
                     if planner == 'latent_mpc' else 'no_plant_info', cost=math.nan,
                     iterations=-1, solve_time=0.0, u_plan=np.zeros((0, self.n_u)),
-                    y_pred=np.zeros((0, self.n_y)))
+                    y_pred=np.zeros((0, self.n_y)), prediction_errors=errors)
         return self._answer(step, tuning, model_status, y_ref, u_prev, res.u,
                             model_version=version, fallback=fallback,
                             terminal_fallback=terminal_fallback, solver_status=res.status,
                             cost=float(res.cost), iterations=int(res.iterations),
-                            solve_time=res.solve_time, u_plan=res.u_plan, y_pred=res.y_pred)
+                            solve_time=res.solve_time, u_plan=res.u_plan, y_pred=res.y_pred,
+                            prediction_errors=errors)
 
     @staticmethod
     def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,

@@ -199,6 +199,7 @@ class ControllerNode(Node):
         status.y_pred = _doubles(res.y_pred)
         status.y_ref = _doubles(res.y_ref)
         status.q = res.q
+        status.prediction_error, status.prediction_error_t = res.prediction_errors
         self._pub_status.publish(status)
 
     def _stop_by_itself(self, why: str) -> None:
