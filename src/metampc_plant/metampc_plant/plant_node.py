@@ -14,8 +14,9 @@ Interfaces (relative names, so a namespace can wrap them):
 
 A ``theta_schedule`` (parameter, or a reset's field; :mod:`metampc_plant.theta_schedule`)
 moves theta over the plant time of each episode, in steps and ramps, at exact steps in both
-clock modes; every y carries the theta it was integrated with, and plant_info is re-sent as a
-segment starts and ends.
+clock modes; every y_k carries theta(k dt), the value the sample from k on is integrated with
+(what a true-model yardstick must be told), and plant_info is re-sent as a segment starts and
+ends.
 
 The family (``-p family:=duffing``, see docs/families.md) fixes the dimensions, the equations
 and the defaults of theta, x0, the bounds and dt; a parameter that does not fit it (a theta of
@@ -208,9 +209,8 @@ class PlantNode(Node):
         """Hold u_requested (finite) over one sample, then publish y_{k+1}."""
         u, saturated = self.plant.saturate(u_requested)
         was_diverged = self.plant.diverged
-        t = self.plant.time     # the sample is integrated from here, with theta_at(t)
         y = self.plant.step(u)
-        passed = self.plant.schedule.boundaries_passed(t)
+        passed = self.plant.schedule.boundaries_passed(self.plant.time)
         if passed != self._boundaries:
             self._boundaries = passed
             self.get_logger().info(f'theta {list(self.plant.theta)} from step '

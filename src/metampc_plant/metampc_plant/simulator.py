@@ -227,8 +227,8 @@ class Plant:
 
     @property
     def theta(self) -> Tuple[float, ...]:
-        """theta the last sample was integrated with (after a reset: the episode's start)."""
-        return self._theta
+        """theta at the current plant time: the one the next sample is integrated with."""
+        return self.schedule.theta_at(self.time) if self.schedule.segments else self._theta
 
     @property
     def time(self) -> float:

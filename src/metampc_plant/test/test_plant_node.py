@@ -375,9 +375,9 @@ def test_parse_params_rejects(overrides, match):
 
 def test_theta_schedule_in_lockstep_lands_at_exact_steps(procs, probe):
     """theta_schedule: a step to -0.5 at t = 1 s and a ramp to 1.5 over [2, 3] s (dt = 0.1 s).
-    Each y carries the theta it was integrated with: the start value up to y_10, -0.5 from
-    y_11 (the sample from step 10 on), then the ramp by np.interp over the plant time; and
-    each y_{k+1} is scipy's one step from y_k with that theta (1e-6). plant_info is re-sent as
+    Each y_k carries theta(k dt): the start value up to y_9, -0.5 from y_10 (the sample from
+    step 10 on is integrated with it), then the ramp by np.interp over the plant time; and
+    each y_{k+1} is scipy's one step from y_k with y_k's theta (1e-6). plant_info is re-sent as
     segments start and end; a reset with a schedule out of range is refused, the plant goes on.
     """
     n, theta0 = 40, 0.5
@@ -389,14 +389,14 @@ def test_theta_schedule_in_lockstep_lands_at_exact_steps(procs, probe):
                                'theta_schedule': schedule})
     probe.wait_for(lambda: len(ctl.ys) > n, 60.0, f'{n} answered steps')
     ys = ctl.ys[:n + 1]
-    # theta over (k-1, k]: the value at t_{k-1} = (k - 1) dt, independently by interpolation.
-    expected = [theta0] + [theta0 if t < 1.0 else float(np.interp(t, [2.0, 3.0], [-0.5, 1.5]))
-                           for t in 0.1 * np.arange(n)]
+    # theta(k dt), independently by interpolation of the schedule's breakpoints.
+    expected = [theta0 if t < 1.0 else float(np.interp(t, [2.0, 3.0], [-0.5, 1.5]))
+                for t in 0.1 * np.arange(n + 1)]
     got = [m.theta[0] for m in ys]
-    assert got[:11] == [theta0] * 11 and got[11:21] == [-0.5] * 10
+    assert got[:10] == [theta0] * 10 and got[10:21] == [-0.5] * 11
     assert np.allclose(got, expected, rtol=0, atol=1e-12), got
     worst = max(np.abs(np.array(ys[k + 1].y) - one_step(
-        'vanderpol', np.array(ys[k].y), [min(max(u_of(k), -1.0), 1.0)], [got[k + 1]], 0.1)
+        'vanderpol', np.array(ys[k].y), [min(max(u_of(k), -1.0), 1.0)], [got[k]], 0.1)
     ).max() for k in range(n))
     assert worst < 1e-6, f'worst error {worst:.2e}'
     # Re-sent at t = 1 (step), 2 (ramp starts), 3 (ramp ends); the latest says 1.5.

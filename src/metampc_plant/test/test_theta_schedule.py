@@ -34,11 +34,21 @@ def test_the_plant_changes_theta_at_the_exact_step():
     """A step at t = 30 s with dt = 0.05 s: the sample from step 600 on is integrated with the
     new theta (600 x 0.05 is 30.000000000000004 in floats: the plant time is rounded to ns)."""
     plant = Plant(PlantConfig(theta=(0.5,), dt=0.05, theta_schedule=(30.0, 30.0, -0.5)))
-    thetas = []
+    thetas = [plant.theta[0]]
     for _ in range(602):
         plant.step([0.0])
-        thetas.append(plant.theta[0])
-    assert thetas[599] == 0.5 and thetas[600] == -0.5  # y_600: 0.5; y_601: -0.5
+        thetas.append(plant.theta[0])   # theta(k dt) after step k
+    assert thetas[599] == 0.5 and thetas[600] == -0.5
+    # The sample from step 600 on was integrated with -0.5: the same as a plant reset there.
+    twin = Plant(PlantConfig(theta=(0.5,), dt=0.05))
+    for _ in range(600):
+        twin.step([0.0])
+    x600 = twin.x
+    twin.reset(theta=[-0.5], x0=x600)
+    plant_b = Plant(PlantConfig(theta=(0.5,), dt=0.05, theta_schedule=(30.0, 30.0, -0.5)))
+    for _ in range(601):
+        y = plant_b.step([0.0])
+    assert np.array_equal(y, twin.step([0.0]))
     # A reset restarts the episode's schedule; another one replaces it.
     plant.reset(x0=[1.0, 0.0])
     assert plant.theta == (0.5,) and plant.time == 0.0
