@@ -17,10 +17,12 @@ Pieces, each testable alone:
 """
 from dataclasses import dataclass, replace
 import math
+import threading
 from typing import Any, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
+from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.mpc import LatentMpc, MpcConfig
@@ -131,6 +133,11 @@ class AnswerRule:
     def answered(self) -> None:
         """The newest sample has been answered."""
         self._unanswered = False
+
+    @property
+    def unanswered(self) -> bool:
+        """The newest sample has not been answered (e.g. its answer waits for a model)."""
+        return self._unanswered
 
     def set_active(self, active: bool) -> bool:
         """Switch; True if activation answers the newest sample now."""
@@ -278,6 +285,7 @@ class TickResult:
     empty (0 rows) when nothing was planned. y_ref: (N, n_y) references of the horizon.
     prediction_errors: the model's (one-step, T-step) errors at y_k
     (:class:`~metampc_controller.prediction_error.PredictionError`; NaN when none).
+    request: the adaptation request this tick made (:mod:`adaptation_trigger`), if any.
     config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
 
@@ -298,6 +306,7 @@ class TickResult:
     y_pred: np.ndarray
     y_ref: np.ndarray
     prediction_errors: Tuple[float, float]
+    request: Optional[Request] = None
 
 
 # No model, no prediction: the (one-step, T-step) errors of a tick without the latent model.
@@ -344,7 +353,11 @@ class ControllerCore:
         self._override: Optional[np.ndarray] = None
         self._nmpc: Optional[Nmpc] = None
         self._nmpc_version = 0      # the tuning the NMPC was built with
+        self._theta_from_y = False  # the samples tell theta (observe)
         self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
+        self._setup_lock = threading.Lock()     # the builder thread and a queued swap
+        self.trigger = AdaptationTrigger(config.trigger)
+        self._queued: Optional[Tuple[int, ModelBundle]] = None  # (from step, requested model)
 
     # --- inputs from other callbacks ----------------------------------------------------
 
@@ -373,13 +386,32 @@ class ControllerCore:
     def model_status(self) -> str:
         return self._setup.model_status
 
-    def offer_model(self, bundle: ModelBundle) -> None:
-        """Use this model (built for :attr:`tuning`) from the next tick on (builder thread)."""
-        self._setup = self._setup._replace(model=bundle, model_status='ok')
+    def offer_model(self, bundle: ModelBundle, request_step: int = 0) -> Optional[int]:
+        """Use this model (built for :attr:`tuning`) from the next tick on (builder thread).
+
+        The answer to the pending adaptation request (`request_step` its step) is queued
+        instead: under a lockstep plant used from the request's swap step, otherwise from the
+        next tick (:mod:`adaptation_trigger`). Returns that step (0: the next tick) for a
+        queued answer, None otherwise."""
+        pending = self.trigger.pending
+        if request_step and pending is not None and request_step == pending.step:
+            lockstep = self.plant is not None and self.plant.lockstep
+            self._queued = (pending.swap_step if lockstep else 0, bundle)
+            return self._queued[0]
+        with self._setup_lock:
+            self._setup = self._setup._replace(model=bundle, model_status='ok')
+        return None
 
     def reject_model(self, reason: str) -> None:
         """Report rejected weights; the previous model stays in use (builder thread)."""
-        self._setup = self._setup._replace(model_status=f'rejected: {reason}')
+        with self._setup_lock:
+            self._setup = self._setup._replace(model_status=f'rejected: {reason}')
+
+    def waits_for_model(self) -> bool:
+        """True if the newest sample's answer must wait for the requested model (lockstep:
+        its swap step has come and the model is not there yet)."""
+        return (self.plant is not None and self.plant.lockstep and self._queued is None
+                and self.trigger.waits(self.history.step))
 
     def check_tuning(self, config: ControllerConfig) -> str:
         """What the running controller refuses of a parsed config, beyond its parse: '' or
@@ -403,11 +435,13 @@ class ControllerCore:
         Builds the QP of the model in use for it (OSQP set-up and DARE: milliseconds, while
         the ticks go on with the tuning before), then swaps both in as one. The new QP starts
         cold, as on a new model. ValueError if the model does not fit (check_tuning first)."""
-        setup = self._setup
-        model = setup.model
-        if model is not None:
-            model = replace(model, mpc=latent_mpc(config.mpc, model.predictor))
-        self._setup = setup._replace(tuning=Tuning.of(config, version, self.n_u), model=model)
+        with self._setup_lock:
+            setup = self._setup
+            model = setup.model
+            if model is not None:
+                model = replace(model, mpc=latent_mpc(config.mpc, model.predictor))
+            self._setup = setup._replace(tuning=Tuning.of(config, version, self.n_u),
+                                         model=model)
 
     @property
     def dt(self) -> float:
@@ -427,7 +461,11 @@ class ControllerCore:
         return ''
 
     def set_plant(self, plant: PlantDescription) -> List[str]:
-        """Take the plant's description; returns warnings about disagreeing settings."""
+        """Take the plant's description; returns warnings about disagreeing settings. Once the
+        samples tell theta (:meth:`observe`), theirs is kept: a plant_info re-sent at a
+        schedule's segment may arrive after later samples."""
+        if self._theta_from_y and self.plant is not None:
+            plant = replace(plant, theta=self.plant.theta)
         tuning = self.tuning
         cfg = tuning.config
         warnings = []
@@ -465,8 +503,14 @@ class ControllerCore:
             self._override = values
         return ''
 
-    def observe(self, step: int, u: Sequence[float], y: Sequence[float]) -> bool:
-        """Record plant sample k; True if it starts a new episode.
+    def observe(self, step: int, u: Sequence[float], y: Sequence[float],
+                theta: Sequence[float] = ()) -> bool:
+        """Record plant sample k (and theta(k dt) where the plant tells it); True if it starts
+        a new episode.
+
+        The NMPC yardstick is told the theta of every sample (a plant under a theta_schedule),
+        from the sample itself: plant_info, re-sent at a schedule's segments, arrives on its
+        own time, and a lockstep run must not depend on when.
 
         A new episode (a plant reset, or a gap in the steps) starts the planners cold, as
         on a fresh model: what the previous episode left (warm start, OSQP's duals and rho)
@@ -478,6 +522,14 @@ class ControllerCore:
             for planner in (self._nmpc, model.mpc if model is not None else None):
                 if planner is not None:
                     planner.reset()
+            self.trigger.new_episode()
+            self._queued = None
+        nmpc = self._nmpc
+        if nmpc is not None and len(theta) and self.config.planner == 'nmpc':
+            self._theta_from_y = True
+            if tuple(theta) != self.plant.theta:
+                nmpc.set_theta(theta)
+                self.plant = replace(self.plant, theta=tuple(theta))
         return new_episode
 
     # --- the tick -----------------------------------------------------------------------
@@ -497,9 +549,15 @@ class ControllerCore:
 
     def tick(self) -> TickResult:
         """Answer the newest sample (observe() must have been called at least once)."""
-        tuning, model, model_status = self._setup
         history = self.history
         step = history.step
+        queued = self._queued
+        if queued is not None and step >= queued[0]:
+            self._queued = None
+            with self._setup_lock:
+                self._setup = self._setup._replace(model=queued[1], model_status='ok')
+            self.trigger.answered(queued[1].version)
+        tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)
         planner = tuning.config.planner
@@ -507,11 +565,12 @@ class ControllerCore:
             u_hist, y_hist = history.window(model.history)
             z = model.predictor.encode(u_hist, y_hist)
             errors = model.prediction.update(step, u_prev, history.y, z)
+            request = self.trigger.update(step, self.dt, errors[1], model.version)
             res = model.mpc.solve(z, u_prev, y_ref)
             version, fallback, terminal_fallback = (model.version, res.fallback,
                                                     res.terminal_fallback)
         else:
-            errors = NO_ERRORS
+            errors, request = NO_ERRORS, None
             if (planner == 'nmpc' and self._nmpc is not None
                     and self._nmpc_version != tuning.version):
                 self._build_nmpc(tuning, self.plant)    # it was built for this plant before
@@ -531,7 +590,7 @@ class ControllerCore:
                             terminal_fallback=terminal_fallback, solver_status=res.status,
                             cost=float(res.cost), iterations=int(res.iterations),
                             solve_time=res.solve_time, u_plan=res.u_plan, y_pred=res.y_pred,
-                            prediction_errors=errors)
+                            prediction_errors=errors, request=request)
 
     @staticmethod
     def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,

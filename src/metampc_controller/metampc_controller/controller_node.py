@@ -30,6 +30,16 @@ Interfaces (relative names, so a namespace can wrap them):
   ``stop_at_escape`` at the first diverged y (unanswered), so a lockstep run stops exactly
   there however late its caller looks.
 
+Adaptation in the loop (parameter ``adaptation``: periodic or triggered; rules and
+hysteresis in :mod:`metampc_controller.adaptation_trigger`): every MpcStatus carries the
+model's one-step and T-step prediction errors and the detector's state; a tick that asks for
+adaptation sets ``adapt_request`` (the learner adapts on the samples up to that step and
+answers with weights whose ``request_step`` names it). Under a lockstep plant the answer of
+the request's ``swap_step`` waits for that model (a 2-ms timer resumes it; after
+``adapt_timeout`` s the model in use is kept), so a seeded run swaps at the same step on any
+machine; in real time the model is used from the tick after it was built and nothing waits.
+The NMPC yardstick takes theta from every y (a plant under a theta_schedule).
+
 Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
 plant, rate_hz = 1/dt). Each y is answered exactly once (controller_core.AnswerRule): a tick
 answers the newest unanswered y; without one the tick waits for the next y and runs in its
@@ -60,6 +70,7 @@ from metampc_common.qos import BACKLOG, LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
 from metampc_msgs.srv import SetActive
 import numpy as np
+from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
@@ -70,8 +81,9 @@ from metampc_controller.controller_params import ControllerConfig, PARAMETERS, p
 from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
-            'retunes')
+            'retunes', 'adapt_requests', 'adapt_timeouts')
 DELIVERY_TIMEOUT = Duration(seconds=10.0)   # deactivation's wait for the readers' acks
+HOLD_POLL_S = 0.002     # how often an answer waiting for a requested model looks for it, s
 
 
 def _doubles(values: np.ndarray) -> array:
@@ -117,6 +129,12 @@ class ControllerNode(Node):
         if self.cfg.planner == 'latent_mpc':
             self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED)
         self.create_service(SetActive, 'set_active', self._on_set_active)
+        # Adaptation in the loop: a lockstep answer waiting for a requested model resumes
+        # when the builder thread has it (or after adapt_timeout s of wall time). A polling
+        # timer, only while an answer waits: the EventsExecutor has no guard conditions.
+        self._hold_timer = None
+        self._hold_since = 0.0
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / self.cfg.rate_hz, self._on_timer)
         self._config_version = 0
         self._retuning: Optional[Future] = None     # the latest accepted change's build
@@ -142,7 +160,7 @@ class ControllerNode(Node):
                        f'finite outputs and {core.n_u} input, got {list(msg.y)}, '
                        f'{list(msg.u_applied)}')
             return
-        core.observe(msg.step, msg.u_applied, msg.y)
+        core.observe(msg.step, msg.u_applied, msg.y, msg.theta)
         self._stamp = msg.header.stamp
         if self._stop_at_escape and msg.diverged and self.rule.active:
             self._stop_by_itself(f'y of step {msg.step} is diverged')
@@ -154,7 +172,14 @@ class ControllerNode(Node):
             self._answer(time.perf_counter())
 
     def _answer(self, start: float) -> None:
-        """Publish the input answering the newest y, then its MpcStatus."""
+        """Publish the input answering the newest y, then its MpcStatus (under a lockstep
+        plant, once the model its adaptation request waits for is there)."""
+        if self.core.waits_for_model():
+            if self._hold_timer is None:
+                self._hold_since = time.monotonic()
+                self._hold_timer = self.create_timer(HOLD_POLL_S, self._on_hold,
+                                                     clock=self._steady)
+            return
         retuning = self._retuning
         if retuning is not None:
             # Under a lockstep plant the first tick after an accepted change uses it (the
@@ -200,7 +225,19 @@ class ControllerNode(Node):
         status.y_ref = _doubles(res.y_ref)
         status.q = res.q
         status.prediction_error, status.prediction_error_t = res.prediction_errors
+        trigger, request = self.core.trigger, res.request
+        status.adapt_request = request is not None
+        status.adapt_trigger = request.trigger if request is not None else ''
+        status.swap_step = request.swap_step if request is not None else 0
+        status.detector_statistic, status.detector_baseline = trigger.statistic, trigger.baseline
         self._pub_status.publish(status)
+        if request is not None:
+            self._counts['adapt_requests'] += 1
+            self.get_logger().info(
+                f'adaptation request at step {request.step} ({request.trigger}, model '
+                f'version {request.version}; CUSUM {trigger.statistic:.2f}, baseline '
+                f'{trigger.baseline:.3g}); under lockstep the answer of step '
+                f'{request.swap_step} waits for it')
 
     def _stop_by_itself(self, why: str) -> None:
         """End a bounded activation (set_active's until_step / stop_at_escape): inactive from
@@ -295,6 +332,23 @@ class ControllerNode(Node):
             f'version {version} in use from the next tick (built in '
             f'{1e3 * (time.perf_counter() - start):.1f} ms)')
 
+    def _on_hold(self) -> None:
+        """An answer waits for a requested model (lockstep): answer once the builder thread
+        has queued it, or go on with the model in use after adapt_timeout s."""
+        core = self.core
+        pending = core.trigger.pending
+        if core.waits_for_model():
+            if time.monotonic() - self._hold_since < self.cfg.trigger.adapt_timeout:
+                return
+            core.trigger.give_up()
+            self._warn('adapt_timeouts', f'no model answered the adaptation request of step '
+                       f'{pending.step} within {self.cfg.trigger.adapt_timeout} s: going on '
+                       f'with model version {pending.version}')
+        self.destroy_timer(self._hold_timer)
+        self._hold_timer = None
+        if self.rule.active and self.rule.unanswered:
+            self._answer(time.perf_counter())
+
     def _on_weights(self, msg: NssmWeights) -> None:
         """Hand the weights to the builder thread (arrival order is kept)."""
         self._builder.submit(self._build, msg)
@@ -312,13 +366,15 @@ class ControllerNode(Node):
         except Exception as err:    # a bug, not bad weights: say so, never lose it silently
             self._reject(msg, f'{type(err).__name__}: {err}')
             return
-        core.offer_model(bundle)
+        requested = core.offer_model(bundle, msg.request_step)
         self._counts['models'] += 1
         term = bundle.mpc.terminal
         cfg = bundle.predictor.config
         self.get_logger().info(
             f'model version {msg.version} ({msg.method}, {msg.stage}; H={cfg.history}, '
-            f'n_z={cfg.n_z}, encoder {list(cfg.hidden)}) in use from the next tick'
+            f'n_z={cfg.n_z}, encoder {list(cfg.hidden)}) in use from '
+            + (f'step {requested} (it answers the request of step {msg.request_step})'
+               if requested is not None else 'the next tick')
             + (f'; terminal cost fallback: {term.reason}' if term.fallback else ''))
 
     def _reject(self, msg: NssmWeights, reason: str) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 
+from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_controller.excitation import ExcitationConfig
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.references import make_reference, PaperConfig
@@ -119,6 +120,7 @@ class ControllerConfig:
         excitation_seed: its seed.
         history: required H of the weights, 0 for any up to MAX_HISTORY.
         active: publish inputs from the start.
+        trigger: when to ask the learner for adaptation in the loop.
     """
 
     rate_hz: float = param(10.0, 'tick rate on the node clock, Hz (sim time under a lockstep '
@@ -137,13 +139,15 @@ class ControllerConfig:
     history: int = param(0, f'required encoder history H of the weights (0: any H up to '
                             f'{MAX_HISTORY})', ge=0, le=MAX_HISTORY)
     active: bool = param(True, 'publish inputs from the start (service set_active toggles)')
+    trigger: TriggerConfig = field(default_factory=TriggerConfig)
 
 
 MPC = Section(MpcConfig)
 REFERENCE = Section(ReferenceParams, 'reference_', rename={'kind': 'reference'})
 EXCITATION = Section(ExcitationParams, 'excitation_')
+TRIGGER = Section(TriggerConfig)
 NODE = Section(ControllerConfig)
-SECTIONS = (NODE, MPC, REFERENCE, EXCITATION)
+SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -169,6 +173,7 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
     node.reference_kind, node.reference_params = reference.kind, reference_params
     node.excitation = excitation.within(*mpc.bounds(node.n_u))
     node.excitation_seed = excitation.seed
+    node.trigger = build(TRIGGER, values)
     return node
 
 

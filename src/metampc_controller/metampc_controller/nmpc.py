@@ -94,6 +94,11 @@ class Nmpc:
         self._plan: Optional[np.ndarray] = None     # (N n_u,)
         self._x: Optional[np.ndarray] = None        # state estimate at the last solve
 
+    def set_theta(self, theta: Sequence[float]) -> None:
+        """The plant's theta changed (a schedule): predict with it from the next solve on,
+        warm start kept. ValueError if it does not fit the family."""
+        self.theta = np.asarray(self.family.check_theta(theta))
+
     def reset(self) -> None:
         """Forget the previous plan and state estimate: the next solve starts from u_prev held
         (a new episode)."""

@@ -1,0 +1,117 @@
+"""AdaptationTrigger: the periodic and CUSUM request rules, their hysteresis, and the queued
+swap of a requested model in the controller core (lockstep: exactly at the swap step)."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from metampc_controller.adaptation_trigger import AdaptationTrigger, TriggerConfig
+from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
+from metampc_controller.controller_params import ControllerConfig
+from metampc_controller.manual_model import linearised_vdp_nssm
+from metampc_controller.mpc import MpcConfig
+from metampc_controller.weights_codec import DecodedWeights
+from metampc_plant.simulator import Plant, PlantConfig
+
+DT = 0.1
+
+
+def feed(trigger, errors, start=0, version=1):
+    """Feed errors from step `start`; the steps at which requests were made."""
+    out = []
+    for i, e in enumerate(errors):
+        request = trigger.update(start + i, DT, e, version)
+        if request is not None:
+            out.append(request.step)
+    return out
+
+
+def test_periodic_requests_at_each_period_one_at_a_time():
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='periodic', adapt_period=2.0))
+    assert feed(trigger, [1.0] * 25) == [20]        # t = 2.0 s; then pending: nothing more
+    assert trigger.pending.swap_step == 30 and trigger.waits(30) and not trigger.waits(29)
+    trigger.answered(2)
+    assert feed(trigger, [1.0] * 30, start=25, version=2) == [40]   # t = 4.0 s
+    trigger.give_up()
+    assert feed(trigger, [1.0] * 30, start=55, version=2) == [60]  # t = 6.0, then pending
+
+
+def test_cusum_requests_after_the_analytic_number_of_steps():
+    """Baseline 1 (median of the first 3 s = 30 samples); errors x10 from step 50: s grows by
+    log 10 - 0.7 = 1.603 per step and passes 5 at the 4th such step (6.41): step 53."""
+    cfg = TriggerConfig(adaptation='triggered')
+    trigger = AdaptationTrigger(cfg)
+    rng = np.random.default_rng(0)
+    noise = np.exp(0.3 * rng.standard_normal(50))      # around the baseline: never accumulates
+    errors = [math.nan] * 5 + list(noise[5:]) + [10.0] * 10
+    assert feed(trigger, errors) == [53]
+    assert trigger.baseline == pytest.approx(np.median(noise[5:35]))
+    assert trigger.statistic > cfg.cusum_threshold
+
+
+def test_no_request_while_the_baseline_is_measured_nor_while_one_is_pending():
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', baseline_s=3.0))
+    # log 100 - 0.7 = 3.9 per step: past 5 at the second step of the jump.
+    assert feed(trigger, [1.0] * 30 + [100.0] * 4) == [31]
+    assert feed(trigger, [100.0] * 50, start=34) == []      # pending: one at a time
+    trigger.answered(2)     # the new model's baseline is measured first: 3 s of any errors
+    assert feed(trigger, [100.0] * 30, start=84, version=2) == []
+    assert trigger.baseline == 100.0
+    assert feed(trigger, [100.0] * 100, start=114, version=2) == []  # its own level: no request
+
+
+def test_a_new_model_or_episode_restarts_the_baseline_and_off_asks_nothing():
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered'))
+    feed(trigger, [1.0] * 40)
+    assert trigger.baseline == 1.0
+    feed(trigger, [1.0], start=40, version=7)   # a model swapped in by someone else
+    assert math.isnan(trigger.baseline)
+    feed(trigger, [1.0] * 40, start=41, version=7)
+    trigger.new_episode()
+    assert math.isnan(trigger.baseline) and trigger.pending is None
+    off = AdaptationTrigger(TriggerConfig())
+    assert feed(off, [1.0] * 30 + [1e6] * 50) == []
+
+
+def test_bad_settings_are_refused():
+    for bad in (dict(adapt_period=0.0), dict(cusum_threshold=-1.0), dict(swap_delay=0),
+                dict(adaptation='sometimes')):
+        with pytest.raises(ValueError):
+            TriggerConfig(**bad).validate()
+
+
+def test_the_core_swaps_a_requested_model_exactly_at_the_swap_step_under_lockstep():
+    """A periodic request at t = 2 s (step 20): the answer of step 30 waits for the model; a
+    model offered early (at step 25) is used from step 30 on, not before; ticks after it use
+    it and the trigger counts it answered."""
+    bundle = build_model(DecodedWeights(*linearised_vdp_nssm(0.5, DT, 10)), 1, 'manual',
+                         'adapted', MpcConfig(time_limit=30.0), 1, 2)
+    config = ControllerConfig(trigger=TriggerConfig(adaptation='periodic', adapt_period=2.0))
+    core = ControllerCore(config)
+    core.set_plant(PlantDescription('vanderpol', (0.5,), DT, (-1.0,), (1.0,), 2, True))
+    core.offer_model(bundle)
+    plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
+    y, u, versions, requests = plant.output(), 0.0, [], []
+    for k in range(40):
+        core.observe(k, [u], y)
+        if k == 25:
+            assert core.offer_model(dataclasses.replace(bundle, version=2), 20) == 30
+        assert core.waits_for_model() is False
+        res = core.tick()
+        versions.append(res.model_version)
+        if res.request is not None:
+            requests.append((k, res.request.swap_step))
+        u = float(res.u[0])
+        y = plant.step([u])
+    assert requests == [(20, 30)]     # the next period (t = 4 s) is step 40
+    assert versions[:30] == [1] * 30 and versions[30:] == [2] * 10
+    # Without the model, the answer of the swap step waits (and not before).
+    core2 = ControllerCore(config)
+    core2.set_plant(PlantDescription('vanderpol', (0.5,), DT, (-1.0,), (1.0,), 2, True))
+    core2.offer_model(bundle)
+    for k in range(31):
+        core2.observe(k, [0.0], [0.3, 0.0])
+        assert core2.waits_for_model() == (k == 30)
+        if k < 30:
+            core2.tick()
