@@ -58,8 +58,12 @@ class AdaptResult:
 
 
 def adapt(model: Nssm, init: Params, train: Windows, heldout: Windows, config: AdaptConfig,
-          progress: Optional[ProgressFn] = None) -> AdaptResult:
+          progress: Optional[ProgressFn] = None, anchor: Optional[Params] = None
+          ) -> AdaptResult:
     """Eq. (infer) from `init` (omega_inf) on the target windows `train`.
+
+    `anchor`: the proximal term's centre when it is not `init` (adaptation in the loop starts
+    from the model in use and stays anchored to the meta-model).
 
     Raises:
         ValueError: no training windows, or a loss turned non-finite.
@@ -68,8 +72,8 @@ def adapt(model: Nssm, init: Params, train: Windows, heldout: Windows, config: A
     if len(train) == 0:
         raise ValueError('no target windows to adapt on')
     objective = FlatObjective(model)
-    anchor = objective.spec.flatten(init).detach()
-    psi = anchor.clone()
+    psi = objective.spec.flatten(init).detach().clone()
+    centre = psi.clone() if anchor is None else objective.spec.flatten(anchor).detach()
     result = AdaptResult(params={})
     start = time.monotonic()
 
@@ -84,7 +88,7 @@ def adapt(model: Nssm, init: Params, train: Windows, heldout: Windows, config: A
 
     record()
     for step in range(1, config.steps + 1):
-        psi, rate = objective.armijo_step(psi, anchor, train.u, train.y, config.lr,
+        psi, rate = objective.armijo_step(psi, centre, train.u, train.y, config.lr,
                                           config.gamma)
         result.rates.append(rate)
         record()

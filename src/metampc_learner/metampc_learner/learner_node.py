@@ -23,6 +23,12 @@ Interfaces (relative names, so a namespace can wrap them):
 * ``nssm_weights`` (NssmWeights, published, reliable + transient_local, depth 1: latched): every
   model the learner makes (and the meta-model of ``meta_model_path`` at start-up), encoded by
   ``metampc_controller.weights_codec.fields_from_weights``, versions increasing.
+* ``mpc_status`` (MpcStatus, subscribed with ``loop_adaptation``): adaptation in the loop. A
+  status with ``adapt_request`` (the controller's detector or period asked) starts eq. (infer)
+  on the latest ``loop_window`` samples up to its step, from the model in use
+  (``model_version``) anchored to its meta-model (``loop_gamma``), on a worker thread of its
+  own; the model is published with ``request_step`` (stage 'online'). The y subscription
+  then stays on whether buffering or not (:mod:`metampc_learner.loop_adaptation`).
 * ``progress`` (TrainingProgress, published, reliable, depth 10): once when a job starts, every
   ``progress_period`` s of wall time while it runs (the latest step), and once when it ends
   (phase 'done' or 'failed').
@@ -41,6 +47,7 @@ empty) are live: ``ros2 param set`` changes them for the next request, checked a
 (refused with the reason); a running job keeps the values it started with.
 On shutdown a running job is cancelled at its next step.
 """
+from concurrent.futures import ThreadPoolExecutor
 import sys
 import threading
 import traceback
@@ -49,7 +56,7 @@ from typing import Optional
 from metampc_common.node_main import declare_parameters, LiveParameters, run_node
 from metampc_common.params import ParameterError
 from metampc_common.qos import BACKLOG, LATCHED, SPARSE
-from metampc_msgs.msg import NssmWeights, PlantInfo, PlantOutput, TrainingProgress
+from metampc_msgs.msg import MpcStatus, NssmWeights, PlantInfo, PlantOutput, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, SetBuffering
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
@@ -64,6 +71,7 @@ from metampc_learner.learner_params import (LearnerNodeConfig, parse_params, PAR
                                             resolve_adapt_request, resolve_meta_request)
 from metampc_learner.learner_session import (LearnerError, LearnerSession, ModelRecord,
                                              PlantFacts)
+from metampc_learner.loop_adaptation import BEYOND_WINDOW, RecentSamples
 from metampc_learner.meta_train import MetaTrainingError
 from metampc_learner.target_buffer import TargetBuffer
 
@@ -71,6 +79,9 @@ from metampc_learner.target_buffer import TargetBuffer
 EXECUTOR_THREADS = 4
 # Longest wait at shutdown for a running job to reach its next step and stop, s.
 CANCEL_TIMEOUT_S = 10.0
+# Longest wait of a loop adaptation for the sample of its request (its y may come after the
+# controller's status: two publishers), s.
+SAMPLE_WAIT_S = 5.0
 # Errors of a request that cannot be carried out (the others are bugs: logged with traceback).
 REQUEST_ERRORS = (LearnerError, MetaTrainingError, ValueError)
 
@@ -91,6 +102,13 @@ class LearnerNode(Node):
         self._slot = JobSlot()
         self._progress_lock = threading.Lock()
 
+        # Adaptation in the loop: the latest samples, and one worker that answers the
+        # controller's requests beside the services and the subscriptions.
+        loop = self.cfg.loop
+        self._loop_window = loop.window or self.cfg.target_buffer_size
+        self.recent = (RecentSamples(self._loop_window + BEYOND_WINDOW) if loop.adaptation
+                       else None)
+        self._loop_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix='loop_adapt')
         self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
         self._pub_progress = self.create_publisher(TrainingProgress, 'progress', SPARSE)
         self._data = data = MutuallyExclusiveCallbackGroup()
@@ -100,6 +118,9 @@ class LearnerNode(Node):
                                  callback_group=data)
         self.create_service(SetBuffering, 'set_buffering', self._on_set_buffering,
                             callback_group=data)
+        if self.recent is not None:
+            self.create_subscription(MpcStatus, 'mpc_status', self._on_status, BACKLOG,
+                                     callback_group=data)
         jobs = ReentrantCallbackGroup()
         self.create_service(MetaTrain, 'meta_train', self._on_meta_train, callback_group=jobs)
         self.create_service(Adapt, 'adapt', self._on_adapt, callback_group=jobs)
@@ -138,6 +159,8 @@ class LearnerNode(Node):
                                                    callback_group=self._data)
 
     def _on_y(self, msg: PlantOutput) -> None:
+        if self.recent is not None:
+            self.recent.add(msg.step, msg.u_applied, msg.y, msg.diverged)
         if self.buffer.add(msg.step, msg.u_applied, msg.y, msg.diverged) and self.buffer.full:
             self.get_logger().info(f'D_target full: {len(self.buffer)} samples '
                                    f'({self.buffer.skipped} skipped, {self.buffer.lost} lost)')
@@ -164,7 +187,8 @@ class LearnerNode(Node):
                                 f'keeping the next {buffer.capacity} valid samples')
         else:
             buffer.freeze()
-            if self._sub_y is not None:     # same callback group as _on_y: not in use now
+            # (Kept for adaptation in the loop; same callback group as _on_y: not in use now.)
+            if self._sub_y is not None and self.recent is None:
                 self.destroy_subscription(self._sub_y)
                 self._sub_y = None
             response.message = (f'buffering stopped: {len(buffer)} samples kept '
@@ -182,11 +206,12 @@ class LearnerNode(Node):
 
     # --- publication ----------------------------------------------------------------------
 
-    def _publish_weights(self, record: ModelRecord) -> None:
+    def _publish_weights(self, record: ModelRecord, request_step: int = 0) -> None:
         model = record.model
         msg = NssmWeights(version=record.version, method=record.method, stage=record.stage,
                           train_loss=float(record.train_loss), train_steps=record.train_steps,
                           train_samples=record.train_samples, seed=record.seed,
+                          request_step=request_step,
                           **fields_from_weights(model.config, model.norm, record.params))
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_weights.publish(msg)
@@ -306,8 +331,54 @@ class LearnerNode(Node):
             response.loss_curve = curve
         return response
 
+    # --- adaptation in the loop -----------------------------------------------------------
+
+    def _on_status(self, msg: MpcStatus) -> None:
+        if msg.adapt_request:
+            self._loop_worker.submit(self._loop_adapt, msg.step, msg.model_version,
+                                     msg.adapt_trigger)
+
+    def _loop_adapt(self, step: int, version: int, trigger: str) -> None:
+        """Answer the controller's request of `step` (worker thread): eq. (infer) on the
+        latest window from model `version`, published with request_step = step. A request
+        that cannot be served (busy, unknown version, too few samples) is logged; the
+        controller then goes on with its model after its adapt_timeout."""
+        what = f'adaptation request of step {step} ({trigger}, model v{version})'
+        if not self._slot.claim():
+            self.get_logger().warning(f'{what} refused: {self._slot.busy_reason()}')
+            return
+        record = self.session.records.get(version)
+        with self._progress_lock:
+            self._publish_progress(self._slot.describe(
+                'loop_adapt', record.method if record else '', self.cfg.loop.steps))
+        ok = False
+        try:
+            if not self.recent.wait_for(step, SAMPLE_WAIT_S):
+                raise LearnerError(f'sample {step} did not arrive within {SAMPLE_WAIT_S} s')
+            out = self.session.loop_adapt(version, self.recent.until(step, self._loop_window),
+                                          self._slot.report)
+            self._publish_weights(out.record, request_step=step)
+            loss = out.result.train_loss
+            self.get_logger().info(
+                f'{what}: {out.record.method} model v{out.record.version} (stage online) on '
+                f'{out.train_samples} samples in {out.result.elapsed:.2f} s, window loss '
+                f'{loss[0]:.4g} -> {loss[-1]:.4g}')
+            ok = True
+        except JobCancelled:
+            pass
+        except REQUEST_ERRORS as err:
+            self.get_logger().warning(f'{what} failed: {err}')
+        except Exception as err:  # a bug: say so, keep serving
+            self.get_logger().error(f'{what} failed: internal error {err!r}\n'
+                                    + traceback.format_exc())
+        with self._progress_lock:
+            final = self._slot.release(ok)
+            if final is not None:
+                self._publish_progress(final)
+
     def destroy_node(self) -> None:
         """Cancel a running job, wait for it to stop at its next step, destroy the node."""
+        self._loop_worker.shutdown(wait=False, cancel_futures=True)
         if not self._slot.cancel(CANCEL_TIMEOUT_S):
             self.get_logger().warning(f'the running job did not stop within {CANCEL_TIMEOUT_S} s')
         super().destroy_node()

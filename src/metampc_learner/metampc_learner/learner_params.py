@@ -2,7 +2,8 @@
 
 Pure Python (no rclpy). Every parameter is declared once, on a field of a typed config (field
 metadata: default, description, range; see :mod:`metampc_common.params`): the core configs
-(meta-training, NSSM, source set, excitation, online collection, adaptation, oracle) and
+(meta-training, NSSM, source set, excitation, online collection, adaptation, oracle,
+adaptation in the loop) and
 :class:`LearnerNodeConfig` for the node's own. :data:`SECTIONS` names them with their prefixes;
 :data:`PARAMETERS` (what the node declares), :func:`parse_params` (raw values -> checked config,
 :class:`ParameterError` naming the first bad parameter; the node exits with status 2) and the
@@ -23,6 +24,7 @@ from metampc_controller.excitation import ExcitationConfig
 from metampc_controller.nssm import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig
+from metampc_learner.loop_adaptation import LoopConfig
 from metampc_learner.meta_train import MetaConfig, METHODS
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
@@ -41,6 +43,7 @@ class LearnerNodeConfig:
         online: closed-loop collection settings (eq. ub).
         adapt: adaptation defaults (eq. infer).
         oracle: oracle settings.
+        loop: adaptation in the loop (at the controller's requests).
         (the others: the node's own parameters, described on their fields)
     """
 
@@ -50,6 +53,7 @@ class LearnerNodeConfig:
     online: OnlineCollectionConfig = field(default_factory=OnlineCollectionConfig)
     adapt: AdaptConfig = field(default_factory=AdaptConfig)
     oracle: OracleConfig = field(default_factory=OracleConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
     train_fraction: float = param(0.5, 'share (in time) of each source episode in D_tr',
                                   gt=0, lt=1)
     online_collection: bool = param(False, 'collect closed-loop source data during '
@@ -78,6 +82,10 @@ class LearnerNodeConfig:
         held = int(round(self.heldout_fraction * self.target_buffer_size))
         _check_split('target_buffer_size', self.target_buffer_size - held, held, window,
                      'training / held-out parts (heldout_fraction)')
+        if self.loop.window and not window <= self.loop.window <= self.target_buffer_size:
+            raise ParameterError(f'loop_window: {self.loop.window} samples; it must hold a '
+                                 f'window of H + T = {window} samples and fit the buffer of '
+                                 f'target_buffer_size = {self.target_buffer_size}')
 
 
 # The node's parameters: each config's fields, named prefix + field or as renamed.
@@ -89,8 +97,9 @@ ONLINE = Section(OnlineCollectionConfig, 'online_',
                  rename={'episode_samples': 'online_samples'})
 ADAPT = Section(AdaptConfig, 'adapt_')
 ORACLE = Section(OracleConfig, 'oracle_', rename={'batch_windows': 'oracle_batch'})
+LOOP = Section(LoopConfig, 'loop_')
 NODE = Section(LearnerNodeConfig)
-SECTIONS = (META, NSSM, SOURCE, EXCITATION, ONLINE, ADAPT, ORACLE, NODE)
+SECTIONS = (META, NSSM, SOURCE, EXCITATION, ONLINE, ADAPT, ORACLE, LOOP, NODE)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -113,7 +122,7 @@ def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
     nssm = replace(build(NSSM, values), n_u=family.n_u, n_y=family.n_y)
     return build(NODE, values, meta=meta, nssm=nssm, source=source,
                  online=build(ONLINE, values, seed=meta.seed), adapt=build(ADAPT, values),
-                 oracle=build(ORACLE, values))
+                 oracle=build(ORACLE, values), loop=build(LOOP, values))
 
 
 def resolve_meta_request(request, base: MetaConfig, online_default: bool

@@ -13,6 +13,8 @@ with the reason.
   (``data.simulate_source`` with the node's source settings, simulated once and reused; the
   NSSM's normalisation comes from it), optionally with the closed-loop collector of
   ``online_collection`` (eq. ub) wired into the core's collector hook.
+- :meth:`LearnerSession.loop_adapt`: adaptation in the loop, at a controller's request
+  (``loop_adaptation``), from the model in use on the latest samples.
 - :meth:`LearnerSession.adapt`: D_target is the node's buffer, split by
   ``target_buffer.split_target`` (the last ``heldout_fraction`` of the samples held out for
   the loss curve). Methods: a meta method ('' = the latest meta-model) -> eq. (infer) from its
@@ -44,7 +46,8 @@ from metampc_learner.progress import ProgressFn
 from metampc_learner.target_buffer import split_target, TargetSamples
 
 FINAL_LOSS_STEPS = 10   # final_loss of meta_train: mean meta-test loss of the last 10 steps
-CHECKPOINT_NAME = re.compile(r'(?:meta|adapted)_[a-z_]+_v(\d+)\.pt')
+CHECKPOINT_NAME = re.compile(r'(?:meta|adapted|online)_[a-z_]+_v(\d+)\.pt')
+KEPT_RECORDS = 64       # models kept by version for adaptation in the loop (the latest)
 
 
 class LearnerError(RuntimeError):
@@ -136,6 +139,7 @@ class LearnerSession:
 
     config: LearnerNodeConfig
     meta_models: Dict[str, ModelRecord] = field(default_factory=dict)
+    records: Dict[int, ModelRecord] = field(default_factory=dict)   # by version, the latest
     latest_meta: str = ''
     version: int = 0
     _source: Optional[SourceData] = field(default=None, repr=False)
@@ -151,6 +155,9 @@ class LearnerSession:
     def _new_record(self, **kw) -> ModelRecord:
         self.version += 1
         record = ModelRecord(version=self.version, **kw)
+        self.records[record.version] = record
+        for old in sorted(self.records)[:-KEPT_RECORDS]:
+            del self.records[old]
         if record.stage == 'meta':
             self.meta_models[record.method] = record
             self.latest_meta = record.method
@@ -325,6 +332,41 @@ class LearnerSession:
             stage='adapted', train_loss=result.train_loss[-1], train_steps=job.steps,
             train_samples=_samples(train), seed=seed)
         return AdaptOutcome(record, result, used, _samples(train), _samples(held))
+
+    def loop_adapt(self, version: int, samples: TargetSamples,
+                   progress: Optional[ProgressFn] = None) -> AdaptOutcome:
+        """Adaptation in the loop (``loop_adaptation``): eq. (infer) on `samples` (the latest
+        window, all for training) from the model `version` in use, anchored to its method's
+        meta-model; a model of stage 'online'.
+
+        Raises:
+            LearnerError: a version this learner did not make (or no longer keeps), or a
+                window without a run of H + T consecutive valid samples.
+        """
+        cfg = self.config
+        record = self.records.get(version)
+        if record is None:
+            raise LearnerError(f'model version {version} is not one of the last '
+                               f'{KEPT_RECORDS} models of this learner')
+        meta = self.meta_models.get(record.method)
+        anchor = meta.params if meta is not None else record.params
+        train, _, used = split_target(samples, 0, 0.0, cfg.source.state_bound)
+        model = record.model
+        train_w = Windows.from_trajectories(train, model.norm, model.config)
+        if len(train_w) == 0:
+            raise LearnerError(f'too few samples: the window holds {len(samples)}, its longest '
+                               f'run of consecutive valid samples is {_longest(train)}, a '
+                               f'window needs H + T = {model.config.window}')
+        loop = cfg.loop
+        no_heldout = Windows.from_trajectories([], model.norm, model.config)
+        steps = AdaptConfig(loop.steps, loop.lr or cfg.adapt.lr, loop.gamma)
+        result = adapt(model, record.params, train_w, no_heldout, steps, progress,
+                       anchor=anchor)
+        new = self._new_record(model=model, params=result.params, method=record.method,
+                               stage='online', train_loss=result.train_loss[-1],
+                               train_steps=loop.steps, train_samples=_samples(train),
+                               seed=record.seed)
+        return AdaptOutcome(new, result, used, _samples(train), 0)
 
 
 __all__ = ['LearnerError', 'ModelRecord', 'PlantFacts', 'MetaOutcome', 'AdaptOutcome',

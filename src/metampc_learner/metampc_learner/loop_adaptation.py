@@ -1,0 +1,97 @@
+"""Adaptation in the loop, the learner's side: the latest target samples, and what one
+request of the controller adapts on.
+
+Pure Python (no rclpy). While tracking, the controller asks for adaptation
+(``MpcStatus.adapt_request``; when, by :mod:`metampc_controller.adaptation_trigger`). The
+learner keeps the latest samples of the running episode in a :class:`RecentSamples` and
+answers each request with eq. (infer) on the ``loop_window`` latest of them up to the request
+step, from the model in use (the version the controller reported with the request), anchored
+to its method's meta-model by the proximal term ``gamma/2 ||psi - omega_inf||^2``
+(``loop_gamma``), so that repeated adaptation on short windows does not drift away from what
+meta-training learnt (a model without a meta-model, supervised or the oracle, is anchored to
+itself). :meth:`LearnerSession.loop_adapt` runs it; the node publishes the result with
+``request_step``.
+"""
+from collections import deque
+from dataclasses import dataclass
+import threading
+from typing import Deque, Tuple
+
+import numpy as np
+
+from metampc_common.params import check_fields, param
+from metampc_learner.target_buffer import TargetSamples
+
+
+@dataclass
+class LoopConfig:
+    """The loop_* parameters of the learner (see the module docstring)."""
+
+    adaptation: bool = param(False, "answer the controller's adaptation requests (its "
+                                    'adaptation parameter): keep the latest samples, adapt')
+    window: int = param(0, 'latest samples up to the request step adapted on (0: '
+                           'target_buffer_size; at most that)', ge=0)
+    steps: int = param(10, 'adaptation steps per request', ge=1)
+    lr: float = param(0.0, 'step size (0: adapt_lr)', ge=0)
+    gamma: float = param(1.0, 'proximal strength towards the meta-model of eq. infer', ge=0)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field that is out of range."""
+        check_fields(self)
+
+
+# Samples kept beyond the window: the plant runs on while a request waits for its job (up to
+# the swap step under lockstep; in real time for as long as the learner is late), and the
+# window up to the request step must be whole whatever arrived since (a lockstep run is then
+# the same on any machine).
+BEYOND_WINDOW = 1000
+
+
+class RecentSamples:
+    """The latest `capacity` valid samples (step k, u_k, y_k) of the running episode.
+
+    A step that does not follow the previous one by more than zero (a reset: the step
+    restarts) starts a new episode and empties it; y_0 of an episode, diverged and non-finite
+    samples are not kept (as in D_target). Thread-safe: the node adds from its subscription,
+    a job reads :meth:`until`.
+    """
+
+    def __init__(self, capacity: int):
+        if capacity < 1:
+            raise ValueError(f'capacity must be >= 1, got {capacity}')
+        self.capacity = capacity
+        self._samples: Deque[Tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=capacity)
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self.last_step = -1     # the newest step offered in this episode (-1: none)
+
+    def add(self, step: int, u, y, diverged: bool = False) -> None:
+        """Offer sample k of the plant's y topic."""
+        with self._cond:
+            if step <= self.last_step:
+                self._samples.clear()
+            self.last_step = int(step)
+            u = np.array(u, dtype=np.float64).reshape(-1)
+            y = np.array(y, dtype=np.float64).reshape(-1)
+            if (step > 0 and not diverged and u.size and y.size
+                    and np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+                self._samples.append((int(step), u, y))
+            self._cond.notify_all()
+
+    def wait_for(self, step: int, timeout: float) -> bool:
+        """Wait until sample `step` (or a later one) has been offered; False after
+        `timeout` s (the request's status can overtake its y: two publishers)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self.last_step >= step, timeout)
+
+    def until(self, step: int, n: int) -> TargetSamples:
+        """The latest n kept samples with step <= `step`, oldest first."""
+        with self._lock:
+            kept = [s for s in self._samples if s[0] <= step][-n:]
+        if not kept:
+            return TargetSamples(np.zeros(0, np.int64), np.zeros((0, 1)), np.zeros((0, 1)))
+        return TargetSamples(np.array([s[0] for s in kept], dtype=np.int64),
+                             np.stack([s[1] for s in kept]), np.stack([s[2] for s in kept]))
+
+
+__all__ = ['BEYOND_WINDOW', 'LoopConfig', 'RecentSamples']
