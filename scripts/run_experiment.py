@@ -9,12 +9,14 @@ Examples:
     python scripts/run_experiment.py --report runs/<time>     # recompute its reports
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
     python scripts/run_experiment.py --family duffing --seeds 5   # config/duffing.yaml
+    python scripts/run_experiment.py --scenario drift --seeds 5   # config/drift.yaml
     python scripts/run_experiment.py --foxglove               # live view on ws://127.0.0.1:8765
     # As root: plant | controllers | learner and recorder, one network namespace each.
     python scripts/run_experiment.py --hosts 'plant|controller,controller_nmpc|learner,recorder'
 
 The defaults are config/default.yaml (tuned hyperparameters, see docs/experiments.md);
-with --family F and no --config, config/F.yaml when it exists (docs/families.md).
+with --family F and no --config, config/F.yaml when it exists (docs/families.md); with
+--scenario drift and no --config, config/drift.yaml (docs/adaptation.md).
 Exit status: 0 done, 1 a phase failed (the message names it), 2 bad arguments or
 configuration, 130 interrupted (the nodes are stopped, the recording stays readable).
 """
@@ -29,8 +31,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_CONFIG = os.path.join(ROOT, 'config', 'default.yaml')
 
 
-def config_path(family) -> str:
-    """config/<family>.yaml when it exists, else config/default.yaml."""
+def config_path(family, scenario=None) -> str:
+    """config/drift.yaml for --scenario drift, config/<family>.yaml when it exists, else
+    config/default.yaml."""
+    if scenario == 'drift':
+        return os.path.join(ROOT, 'config', 'drift.yaml')
     own = os.path.join(ROOT, 'config', f'{family}.yaml')
     return own if family and os.path.exists(own) else DEFAULT_CONFIG
 
@@ -69,6 +74,9 @@ def main(argv=None) -> int:
     parser.add_argument('--theta', help="target theta*, comma-separated values of the family's "
                                         'components (default: drawn per seed)')
     parser.add_argument('--protocol', help="'tuned' (default) or 'paper' (docs/experiments.md)")
+    parser.add_argument('--scenario', help="'paper' (default) or 'drift': theta* changes while "
+                                           'each method tracks, with and without adaptation in '
+                                           'the loop (docs/adaptation.md; config/drift.yaml)')
     parser.add_argument('--out', help='run folder to create (default: runs/<time>)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bars')
     parser.add_argument('--report', metavar='RUN_DIR',
@@ -104,10 +112,10 @@ def main(argv=None) -> int:
         print(f"report: {os.path.join(args.report, 'report.md')}")
         return 0
     try:
-        config = load(args.config or config_path(args.family), {
+        config = load(args.config or config_path(args.family, args.scenario), {
             'methods': args.methods.split(',') if args.methods else None,
             'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': numbers(args.theta),
-            'protocol': args.protocol, 'family': args.family})
+            'protocol': args.protocol, 'family': args.family, 'scenario': args.scenario})
         hosts = parse_hosts(args.hosts) if args.hosts else None
         check_jobs(args.jobs, config.node_config('learner', config.first_seed).torch_threads,
                    'learner.torch_threads')

@@ -8,7 +8,8 @@ Run folder layout::
     OUT/report.json, report.md     the experiment's report (claims table, figures)
     OUT/fig2_meta_training.png, fig3_adaptation.png, tracking_all_methods.png
     OUT/seed_<s>/recording.mcap    everything published in that seed's run
-    OUT/seed_<s>/report.json       that seed's report; tracking_<method>.png
+    OUT/seed_<s>/report.json       that seed's report; tracking_<method>.png (scenario drift:
+                                   drift_<method>.png, :mod:`.drift_report`)
     OUT/seed_<s>/logs/*.log        each node's output
 """
 import contextlib
@@ -22,12 +23,20 @@ import yaml
 
 from .domain import isolated
 from .experiment_config import ExperimentConfig
+from .drift_report import drift_experiment_report, seed_drift_report
 from .experiment_report import experiment_report, seed_report
 from .netns import call_in_namespace, split_hosts
 from .orchestrator import SeedRun, terminate_as_interrupt
 from .seed_jobs import run_seeds, seed_dir
 
 log = logging.getLogger('metampc.experiment')
+
+
+def reporters(scenario: str):
+    """(per-seed report, experiment report) of a scenario: the paper's claims, or drift's."""
+    if scenario == 'drift':
+        return seed_drift_report, drift_experiment_report
+    return seed_report, experiment_report
 
 
 def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True,
@@ -65,6 +74,7 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
         yaml.safe_dump(config.to_dict(), f, sort_keys=False)
     started = time.monotonic()
     seeds = config.seed_list()
+    seed_report, experiment_report = reporters(config.scenario)
     if jobs > 1 and len(seeds) > 1:
         run_seeds(out_dir, seeds, jobs)
         reports = [seed_report(seed_dir(out_dir, seed)) for seed in seeds]
@@ -105,5 +115,6 @@ def rebuild_report(out_dir: str) -> Dict[str, Any]:
     if os.path.exists(previous):
         with open(previous) as f:
             wall = json.load(f).get('wall_time_s') or wall
+    seed_report, experiment_report = reporters(config.get('scenario', 'paper'))
     reports = [seed_report(os.path.join(out_dir, f'seed_{s}')) for s in seeds]
     return experiment_report(reports, out_dir, config, wall)

@@ -24,7 +24,9 @@ from typing import Any, Callable, Dict, List, Optional
 from metampc_common.qos import EVENTS, LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import PlantInfo, PlantOutput, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant, SetActive, SetBuffering
+from rcl_interfaces.srv import SetParameters
 from rclpy.duration import Duration
+from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from .spun_node import SpunNode
@@ -85,6 +87,7 @@ class ExperimentClient(SpunNode):
             **{name: node.create_client(SetActive, service)
                for name, service in controllers.items()},
         }
+        self._param_clients: Dict[str, Any] = {}
 
     # --- subscriptions ---------------------------------------------------------------------
 
@@ -229,6 +232,29 @@ class ExperimentClient(SpunNode):
                                   0.05):
             raise ExperimentError(f'{controller} did not take model version {version} '
                                   f'within {timeout:g} s')
+
+    def set_parameters(self, node_name: str, values: Dict[str, Any], what: str) -> None:
+        """Set live parameters of node `node_name` (``ros2 param set``'s service); an
+        ExperimentError naming `what` if the node refuses one (with its reason)."""
+        client = self._param_clients.get(node_name)
+        if client is None:
+            client = self.node.create_client(SetParameters, f'/{node_name}/set_parameters')
+            self._param_clients[node_name] = client
+        if not client.wait_for_service(timeout_sec=10.0):
+            raise ExperimentError(f'{what}: {node_name} offers no set_parameters service')
+        request = SetParameters.Request(parameters=[
+            Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+        response = self.call_raw(client, request, 10.0, what)
+        refused = [f'{name}: {r.reason}' for name, r in zip(values, response.results)
+                   if not r.successful]
+        if refused:
+            raise ExperimentError(f'{what}: {"; ".join(refused)}')
+
+    def call_raw(self, client: Any, request: Any, timeout: float, what: str) -> Any:
+        """Call a client that is not one of the run's services; its response."""
+        future = client.call_async(request)
+        future.add_done_callback(lambda _: self._notify())
+        return self.finish(future, timeout, what)
 
     # --- events ----------------------------------------------------------------------------
 

@@ -37,8 +37,11 @@ from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
 from metampc_plant.simulator import PlantConfig
+from metampc_plant.theta_schedule import ThetaSchedule
 
 PROTOCOLS = ('tuned', 'paper')
+SCENARIOS = ('paper', 'drift')
+DRIFT_MODES = ('none', 'periodic', 'triggered')
 META_METHODS = ('imaml', 'maml', 'maml_unrolled')
 ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
 METHODS = (*ADAPT_METHODS, 'nmpc')
@@ -64,6 +67,40 @@ class Timeouts:
 
 
 @dataclass
+class DriftConfig:
+    """The ``drift`` scenario (docs/adaptation.md): after the meta-training and one
+    adaptation, each method tracks while theta* changes, once per adaptation mode.
+
+    Attributes:
+        schedule: the plant's theta_schedule rows ``[t_start, t_end, delta...]`` (s of the
+            tracking run's plant time) whose theta is ``theta* + delta`` (the target drawn per
+            seed moves by the same amount in every seed).
+        modes: the controller's adaptation modes to compare ('none': adapted once only).
+        methods: the methods that track (meta methods and 'supervised', out of ``methods``).
+        duration: length of each tracking run, s of plant time.
+        constant_check: also one 'triggered' run per method with a constant theta: the
+            adaptations it makes are spurious.
+    """
+
+    schedule: List[float] = field(default_factory=lambda: [30.0, 30.0, -1.0])
+    modes: List[str] = field(default_factory=lambda: list(DRIFT_MODES))
+    methods: List[str] = field(default_factory=lambda: ['imaml', 'maml', 'supervised'])
+    duration: float = 60.0
+    constant_check: bool = True
+
+    def theta_schedule(self, theta: List[float]) -> List[float]:
+        """The plant's schedule for target `theta` (the deltas added)."""
+        n = len(theta)
+        rows = [self.schedule[i:i + 2 + n] for i in range(0, len(self.schedule), 2 + n)]
+        return [v for row in rows for v in (row[0], row[1],
+                                            *(t + d for t, d in zip(theta, row[2:])))]
+
+    def change_times(self, n_theta: int) -> List[float]:
+        """The starts of the schedule's segments, s."""
+        return [float(v) for v in self.schedule[0::2 + n_theta]]
+
+
+@dataclass
 class ExperimentConfig:
     """Everything an experiment needs; defaults are the paper's set-up.
 
@@ -85,6 +122,10 @@ class ExperimentConfig:
         plant, learner, controller, recorder: ROS parameters of each node.
         meta_train / adapt: request fields per method (see the module docstring).
         protocol: 'tuned' or 'paper' (see the module docstring).
+        scenario: 'paper' (adapt once, track once per method) or 'drift' (theta* changes
+            while each method tracks, with and without adaptation in the loop:
+            :class:`DriftConfig`).
+        drift: the drift scenario's settings (a mapping of :class:`DriftConfig`'s fields).
         timeouts: see :class:`Timeouts`.
     """
 
@@ -109,6 +150,8 @@ class ExperimentConfig:
     meta_train: Dict[str, Dict[str, Any]] = field(default_factory=dict)
     adapt: Dict[str, Dict[str, Any]] = field(default_factory=dict)
     protocol: str = 'tuned'
+    scenario: str = 'paper'
+    drift: Dict[str, Any] = field(default_factory=dict)
     timeouts: Timeouts = field(default_factory=Timeouts)
 
     # --- derived ---------------------------------------------------------------------------
@@ -143,6 +186,15 @@ class ExperimentConfig:
         """Meta methods to meta-train: those compared, in order."""
         return [m for m in self.methods if m in META_METHODS]
 
+    def drift_config(self) -> DriftConfig:
+        """The drift scenario's settings (ConfigError on an unknown key)."""
+        names = {f.name for f in fields(DriftConfig)}
+        unknown = sorted(set(self.drift) - names)
+        if unknown:
+            raise ConfigError(f'drift: unknown key(s) {", ".join(unknown)}; known: '
+                              f'{", ".join(sorted(names))}')
+        return DriftConfig(**self.drift)
+
     def seed_list(self) -> List[int]:
         return [self.first_seed + i for i in range(self.seeds)]
 
@@ -171,6 +223,8 @@ class ExperimentConfig:
                           x0=list(cfg.collect_x0), input_timeout=0.0)
         elif node == 'learner':
             params.update(seed=seed, source_seed=seed, target_buffer_size=cfg.target_samples)
+            if cfg.scenario == 'drift':
+                params['loop_adaptation'] = True
         else:
             params.update(excitation_seed=seed, active=False, use_sim_time=True,
                           rate_hz=1.0 / cfg.dt)
@@ -241,11 +295,45 @@ class ExperimentConfig:
                 and 'gamma' not in (self.meta_train.get('imaml') or {})):
             raise ConfigError('protocol paper: iMAML adapts with its meta-training gamma; set '
                               'meta_train.imaml.gamma')
+        if self.scenario not in SCENARIOS:
+            raise ConfigError(f'scenario must be one of {", ".join(SCENARIOS)}, got '
+                              f'{self.scenario!r}')
+        if self.scenario == 'drift':
+            _check_drift(self, fam, cfg)
         _check_requests('meta_train', self.meta_train, META_METHODS, _META_FIELDS)
         _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
         for node in _NODE_PARAMS:
             self.node_config(node, self.first_seed)
         return cfg
+
+
+def _check_drift(config: ExperimentConfig, fam: PlantFamily, cfg: ExperimentConfig) -> None:
+    """The drift scenario's settings as the nodes will take them: its schedule on the first
+    seed's theta* (every seed's is checked by the plant at its reset), modes, methods."""
+    drift = config.drift_config()
+    bad_modes = [m for m in drift.modes if m not in DRIFT_MODES]
+    if bad_modes or not drift.modes:
+        raise ConfigError(f'drift.modes must be out of {", ".join(DRIFT_MODES)}, got '
+                          f'{drift.modes}')
+    trackers = [m for m in drift.methods if m in (*META_METHODS, 'supervised')]
+    missing = [m for m in drift.methods if m not in config.methods]
+    if not drift.methods or trackers != drift.methods or missing:
+        raise ConfigError(f'drift.methods must be meta methods or supervised, out of methods '
+                          f'{config.methods}; got {drift.methods}')
+    if 'nmpc' not in config.methods:
+        raise ConfigError('scenario drift measures recovery against the true-model NMPC: add '
+                          'nmpc to methods')
+    if not drift.duration >= cfg.dt:
+        raise ConfigError(f'drift.duration must be >= dt, got {drift.duration}')
+    if 'adaptation' in config.controller:
+        raise ConfigError('controller.adaptation is set per run by scenario drift '
+                          '(drift.modes)')
+    try:
+        ThetaSchedule.parse(drift.theta_schedule(cfg.target_theta(cfg.first_seed)), fam,
+                            cfg.target_theta(cfg.first_seed))
+    except (ValueError, IndexError) as err:
+        raise ConfigError(f'drift.schedule (theta* + delta of seed {cfg.first_seed}): '
+                          f'{err}') from None
 
 
 # The learner's and the controller's declared parameters and parse functions: their sections

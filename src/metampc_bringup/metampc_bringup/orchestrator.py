@@ -185,7 +185,11 @@ class SeedRun:
         if kept.lost:
             log.warning('seed %d: %d target samples never reached the learner', self.seed,
                         kept.lost)
-        for method in config.methods:
+        if config.scenario == 'drift':
+            if 'nmpc' in config.methods and not nmpc_meanwhile:
+                self._track_nmpc()
+            self._drift_runs()
+        for method in config.methods if config.scenario == 'paper' else ():
             if method == 'nmpc':
                 if not nmpc_meanwhile:
                     self._track_nmpc()
@@ -196,6 +200,32 @@ class SeedRun:
         # recorder by then.
         self.client.deliver_and_deactivate('controller', f'seed {self.seed}')
         self.client.event('done', timings=self.timings, episode_restarts=self.restarts)
+
+    def _schedule(self) -> List[float]:
+        """The plant's theta_schedule of a drift run for this seed's theta* (paper: none)."""
+        if self.config.scenario != 'drift':
+            return []
+        return self.config.drift_config().theta_schedule(self.theta)
+
+    def _drift_runs(self) -> None:
+        """Scenario drift: per method and adaptation mode, a fresh adaptation (the same model
+        every time: the same D_target and meta-model), then a tracking run under the schedule
+        with the controller's ``adaptation`` set to the mode; and with ``constant_check`` a
+        triggered run at constant theta*, whose adaptations are spurious."""
+        drift = self.config.drift_config()
+        runs = [(mode, self._schedule()) for mode in drift.modes]
+        if drift.constant_check:
+            runs.append(('constant', []))
+        for method in drift.methods:
+            for mode, schedule in runs:
+                run = f'{method}/{mode}'
+                version = self._timed(f'adapt_{run}', self._adapt, method)
+                adaptation = 'triggered' if mode == 'constant' else mode
+                self.client.set_parameters(
+                    'controller', {'adaptation': 'off' if mode == 'none' else adaptation},
+                    f'{run}: the controller\'s adaptation mode')
+                self._timed(f'track_{run}', self._track, method, 'controller', version, run,
+                            schedule)
 
     def _timed(self, name: str, fn, *args):
         t0 = time.monotonic()
@@ -208,7 +238,7 @@ class SeedRun:
         return PhaseProgress(total, f'seed {self.seed} {desc}', self.show_progress)
 
     def _start_episode(self, x0: List[float], controller: str, what: str,
-                       steps: int = 0) -> float:
+                       steps: int = 0, schedule: List[float] = ()) -> float:
         """Reset the plant to theta*, x0 and activate `controller` on the new episode;
         return the stamp of its y_0. ``steps`` > 0 bounds the run: the controller answers
         steps 0..steps-1 and stops by itself (so the plant stops at y_steps), or at a
@@ -221,13 +251,15 @@ class SeedRun:
         inputs by step; the controller's answer to the new y_0 is then stale and the loop
         stalls (measured: 1 of 15 runs split over network namespaces on a loaded machine). A
         y_0 that never reaches the controller (sent before the plant's writer matched its
-        subscription) restarts the episode (counted and logged).
+        subscription) restarts the episode (counted and logged). ``schedule``: the plant's
+        theta_schedule of the episode (empty: constant theta*).
         """
         client = self.client
         for attempt in range(1, MAX_EPISODE_STARTS + 1):
             client.reset_counts()
             client.call('reset', ResetPlant.Request(theta=list(map(float, self.theta)),
-                                                    x0=list(map(float, x0))),
+                                                    x0=list(map(float, x0)),
+                                                    theta_schedule=list(schedule)),
                         10.0, f'{what}: plant reset')
             client.wait_until(lambda: client.samples > 0 and client.last.step == 0, 10.0,
                               f'{what}: y_0 after the plant reset')
@@ -316,8 +348,10 @@ class SeedRun:
     def _track_nmpc(self) -> None:
         """The NMPC's tracking run, then its controller is stopped: left running it would take
         every later y (and /clock) for nothing, CPU that the lockstep loops of the other
-        methods need on a 2-core machine."""
-        self._timed('track_nmpc', self._track, 'nmpc', 'controller_nmpc', 0)
+        methods need on a 2-core machine. Scenario drift: under the schedule, the NMPC told
+        theta at every step (from each y)."""
+        self._timed('track_nmpc', self._track, 'nmpc', 'controller_nmpc', 0, 'nmpc',
+                    self._schedule())
         self.client.deliver_and_deactivate('controller_nmpc', f'seed {self.seed}')
         proc = self.procs.pop('controller_nmpc')
         try:
@@ -364,27 +398,31 @@ class SeedRun:
         client.wait_model('controller', response.model_version, 30.0)
         return response.model_version
 
-    def _track(self, method: str, controller: str, version: int) -> None:
-        """One tracking run: steps 0..n of a fresh episode from track_x0."""
+    def _track(self, method: str, controller: str, version: int, run: str = '',
+               schedule: List[float] = ()) -> None:
+        """One tracking run: steps 0..n of a fresh episode from track_x0 (scenario drift:
+        ``drift.duration`` s with the plant's theta `schedule`; `run` names it)."""
         client, config = self.client, self.config
-        n = config.track_steps()
-        start = self._start_episode(config.track_x0, controller, f'track {method}', n)
-        client.event('track_start', method=method, controller=controller,
-                     model_version=version, stamp=start, steps=n)
-        with self._bar(n, f'track {method}') as bar:
+        run = run or method
+        duration = (config.drift_config().duration if config.scenario == 'drift'
+                    else config.track_duration)
+        n = int(round(duration / config.dt))
+        start = self._start_episode(config.track_x0, controller, f'track {run}', n, schedule)
+        client.event('track_start', method=method, run=run, controller=controller,
+                     model_version=version, stamp=start, steps=n, theta_schedule=schedule)
+        with self._bar(n, f'track {run}') as bar:
             client.wait_until(lambda: client.last.step >= n or client.last.diverged,
-                              config.timeouts.phase, f'track {method}',
+                              config.timeouts.phase, f'track {run}',
                               tick=lambda: bar.show(client.last.step))
         client.set_active(controller, False)
         # The controller stopped by itself at y_n or at the first diverged y (the newest
         # sample, since the plant waits there), however late this loop saw it.
         last = client.last
         steps, diverged = min(last.step, n), last.diverged
-        client.event('track_end', method=method, stamp=start + steps * config.dt,
+        client.event('track_end', method=method, run=run, stamp=start + steps * config.dt,
                      steps=steps, diverged=diverged)
         if diverged:
-            log.warning('seed %d: %s let the plant escape at step %d', self.seed, method,
-                        steps)
+            log.warning('seed %d: %s let the plant escape at step %d', self.seed, run, steps)
 
 
 class PhaseProgress:

@@ -23,6 +23,8 @@ Swap: under a lockstep plant the answer to step ``request + swap_delay`` waits f
 requested model (the plant waits with it), so a seeded run swaps at the same step whatever the
 machine; in real time the model is used from the tick after it was built, and nothing waits.
 A reset of the plant (a new episode) forgets the baseline, the statistic and the request.
+The settings are live parameters of the controller (an experiment switches the mode between
+its runs); a change applies from the next tick, the periods from the next episode.
 """
 from dataclasses import dataclass
 import math
@@ -41,18 +43,21 @@ class TriggerConfig:
 
     adaptation: str = param('off', 'adaptation in the loop: off, periodic (every adapt_period '
                                    's) or triggered (CUSUM on the prediction error)',
-                            choices=MODES)
-    adapt_period: float = param(10.0, 'periodic: plant time between requests, s', gt=0)
+                            choices=MODES, live=True)
+    adapt_period: float = param(10.0, 'periodic: plant time between requests, s', gt=0,
+                                live=True)
     cusum_drift: float = param(0.7, 'triggered: allowance per step on log(error / baseline) '
                                     '(0.7 ~ log 2: errors below about twice the baseline '
-                                    'never accumulate)', ge=0)
-    cusum_threshold: float = param(5.0, 'triggered: CUSUM level that sends a request', gt=0)
+                                    'never accumulate)', ge=0, live=True)
+    cusum_threshold: float = param(5.0, 'triggered: CUSUM level that sends a request', gt=0,
+                                   live=True)
     baseline_s: float = param(3.0, 'triggered: plant time after a model comes into use whose '
-                                   'median T-step error is its baseline, s', gt=0)
+                                   'median T-step error is its baseline, s', gt=0, live=True)
     swap_delay: int = param(10, 'lockstep: the answer of step request + swap_delay waits for '
-                                'the requested model (realtime: used on arrival)', ge=1)
+                                'the requested model (realtime: used on arrival)', ge=1,
+                        live=True)
     adapt_timeout: float = param(60.0, 'wall time to wait for a requested model before going '
-                                       'on with the model in use, s', gt=0)
+                                       'on with the model in use, s', gt=0, live=True)
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""

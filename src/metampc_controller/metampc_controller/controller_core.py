@@ -442,6 +442,7 @@ class ControllerCore:
                 model = replace(model, mpc=latent_mpc(config.mpc, model.predictor))
             self._setup = setup._replace(tuning=Tuning.of(config, version, self.n_u),
                                          model=model)
+        self.trigger.config = config.trigger
 
     @property
     def dt(self) -> float:

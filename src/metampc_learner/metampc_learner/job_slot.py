@@ -62,6 +62,21 @@ class JobSlot:
             self._idle.clear()
             return True
 
+    def claim_after(self, phase: str, timeout: float) -> bool:
+        """Take the slot (True); if a job of `phase` holds it (or one is being set up), wait
+        for it to end, up to `timeout` s. False when another job holds it, or after the wait:
+        the caller answers 'busy'."""
+        deadline = time.monotonic() + timeout
+        while not self.claim():
+            status = self.current()
+            if (status is not None and status.phase != phase) or self.cancelled:
+                return False
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self._idle.wait(min(left, 0.1))
+        return True
+
     def describe(self, phase: str, method: str, total: int) -> JobStatus:
         """Start the clock of the claimed job; its status at iteration 0."""
         with self._lock:

@@ -37,7 +37,8 @@ Threads: a MultiThreadedExecutor. The two training services share a reentrant ca
 and train inside their callback; a second request is served by another thread and answered
 'busy' at once (:class:`JobSlot`). ``y``, ``plant_info`` and ``set_buffering`` have a group of
 their own and the progress heartbeat (steady clock) another, so buffering and answers go on
-while a job trains. Requests that cannot be carried out (busy, bad arguments, no meta-model,
+while a job trains (a request waits for a running adaptation in the loop, which takes seconds,
+instead of being refused). Requests that cannot be carried out (busy, bad arguments, no meta-model,
 too few samples) get success=false and a message saying what is missing; they are logged.
 
 Parameters, defaults and ranges: :data:`metampc_learner.learner_params.PARAMETERS`. A bad value
@@ -79,6 +80,9 @@ from metampc_learner.target_buffer import TargetBuffer
 EXECUTOR_THREADS = 4
 # Longest wait at shutdown for a running job to reach its next step and stop, s.
 CANCEL_TIMEOUT_S = 10.0
+# A service request waits this long for a running adaptation in the loop (seconds long)
+# instead of being refused busy, s.
+LOOP_JOB_WAIT_S = 60.0
 # Longest wait of a loop adaptation for the sample of its request (its y may come after the
 # controller's status: two publishers), s.
 SAMPLE_WAIT_S = 5.0
@@ -272,7 +276,7 @@ class LearnerNode(Node):
 
     async def _on_meta_train(self, request: MetaTrain.Request, response: MetaTrain.Response
                              ) -> MetaTrain.Response:
-        if not self._slot.claim():
+        if not self._slot.claim_after('loop_adapt', LOOP_JOB_WAIT_S):
             return self._refuse(response, self._slot.busy_reason())
         try:
             config, online = resolve_meta_request(request, self.cfg.meta,
@@ -304,7 +308,7 @@ class LearnerNode(Node):
 
     async def _on_adapt(self, request: Adapt.Request, response: Adapt.Response
                         ) -> Adapt.Response:
-        if not self._slot.claim():
+        if not self._slot.claim_after('loop_adapt', LOOP_JOB_WAIT_S):
             return self._refuse(response, self._slot.busy_reason())
         try:
             job = resolve_adapt_request(request, self.cfg.adapt, self.cfg.oracle)
