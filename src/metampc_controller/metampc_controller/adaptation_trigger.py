@@ -5,14 +5,18 @@ Pure Python (no rclpy). The controller measures how well its model predicts the 
 to the step of the request, by one of two rules:
 
 * ``periodic``: at every ``adapt_period`` s of the episode's plant time (t = k dt).
-* ``triggered``: a CUSUM on the T-step prediction error e_k against the error of the model
-  right after it came into use. Once a model is in use, the median of its errors over the
-  first ``baseline_s`` s is its baseline b; then
-  ``s_k = max(0, s_{k-1} + log(e_k / b) - cusum_drift)`` and a request goes out when
-  ``s_k > cusum_threshold``. The log makes it scale-free (the same settings for every family
-  and model); the drift is the allowance (0.7 ~ log 2: errors below about twice the baseline
-  never accumulate); the threshold how much excess evidence a request needs (5: e.g. 5 steps
-  at 5.4 times the baseline, or 20 steps at 2.6 times).
+* ``triggered``: a CUSUM on the model's relative T-step prediction error
+  ``e_k = E_k / (D_k + error_floor)``, E_k the T-step error and D_k how far the outputs moved
+  over those T steps (both in the model's normalised units,
+  :mod:`~metampc_controller.prediction_error`), against the same measure right after the
+  model came into use. The raw error follows the task, not the model: it is ~100 times larger
+  at a set-point step than at rest (measured), and a detector on it asked for adaptation at
+  every set-point step of a constant plant; relative to the motion it stays level while the
+  model fits. Once a model is in use, the median of e_k over its first ``baseline_s`` s is its
+  baseline b; then ``s_k = max(0, s_{k-1} + log(e_k / b) - cusum_drift)`` and a request goes
+  out when ``s_k > cusum_threshold``. The log makes it scale-free; the drift is the allowance
+  (1: errors below e ~ 2.7 times the baseline never accumulate); the threshold how much excess
+  evidence a request needs (5: e.g. 5 steps at 7.4 times the baseline, or 20 steps at 3.5).
 
 Hysteresis, so that the requests do not chatter: one request at a time; after it, nothing is
 asked until the answering model is in use and its own baseline is measured (``baseline_s``),
@@ -46,16 +50,19 @@ class TriggerConfig:
                             choices=MODES, live=True)
     adapt_period: float = param(10.0, 'periodic: plant time between requests, s', gt=0,
                                 live=True)
-    cusum_drift: float = param(0.7, 'triggered: allowance per step on log(error / baseline) '
-                                    '(0.7 ~ log 2: errors below about twice the baseline '
-                                    'never accumulate)', ge=0, live=True)
+    cusum_drift: float = param(
+        1.0, 'triggered: allowance per step on log(error / baseline) (1: errors below e '
+             'times the baseline never accumulate)', ge=0, live=True)
     cusum_threshold: float = param(5.0, 'triggered: CUSUM level that sends a request', gt=0,
                                    live=True)
     baseline_s: float = param(3.0, 'triggered: plant time after a model comes into use whose '
-                                   'median T-step error is its baseline, s', gt=0, live=True)
+                                   'median relative error is its baseline, s', gt=0, live=True)
+    error_floor: float = param(0.01, 'triggered: added to the outputs\' T-step change in the '
+                                     'relative error (normalised units: a change of 0.1 std '
+                                     'counts as motion)', gt=0, live=True)
     swap_delay: int = param(10, 'lockstep: the answer of step request + swap_delay waits for '
                                 'the requested model (realtime: used on arrival)', ge=1,
-                        live=True)
+                            live=True)
     adapt_timeout: float = param(60.0, 'wall time to wait for a requested model before going '
                                        'on with the model in use, s', gt=0, live=True)
 
@@ -109,9 +116,11 @@ class AdaptationTrigger:
         self.pending = None
         self._restart(self._version)
 
-    def update(self, step: int, dt: float, error_t: float, version: int) -> Optional[Request]:
-        """The tick of `step` (plant time step x dt) measured `error_t` (NaN: none yet) with
-        model `version` (0: none); returns the request it makes, if any."""
+    def update(self, step: int, dt: float, error_t: float, change_t: float, version: int
+               ) -> Optional[Request]:
+        """The tick of `step` (plant time step x dt) measured the T-step error `error_t` and
+        output change `change_t` (NaN: none yet) with model `version` (0: none); returns the
+        request it makes, if any."""
         cfg = self.config
         if cfg.adaptation == 'off' or version == 0 or self.pending is not None:
             return None
@@ -123,8 +132,9 @@ class AdaptationTrigger:
             while self._next_period <= step * dt + 1e-9:
                 self._next_period += cfg.adapt_period
             return self._request(step, 'periodic', version)
-        if not math.isfinite(error_t) or error_t <= 0:
+        if not (math.isfinite(error_t) and math.isfinite(change_t)) or error_t <= 0:
             return None
+        error_t = error_t / (change_t + cfg.error_floor)
         if math.isnan(self.baseline):
             if self._since is None:
                 self._since = step

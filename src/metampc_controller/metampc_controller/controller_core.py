@@ -283,8 +283,9 @@ class TickResult:
 
     u: (n_u,) u_{k+1}, finite and within the bounds. u_plan (N, n_u), y_pred (N, n_y):
     empty (0 rows) when nothing was planned. y_ref: (N, n_y) references of the horizon.
-    prediction_errors: the model's (one-step, T-step) errors at y_k
-    (:class:`~metampc_controller.prediction_error.PredictionError`; NaN when none).
+    prediction_errors: the model's one-step and T-step errors at y_k and the outputs' change
+    over those T steps (:class:`~metampc_controller.prediction_error.PredictionError`; NaN
+    when none).
     request: the adaptation request this tick made (:mod:`adaptation_trigger`), if any.
     config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
@@ -305,12 +306,12 @@ class TickResult:
     u_plan: np.ndarray
     y_pred: np.ndarray
     y_ref: np.ndarray
-    prediction_errors: Tuple[float, float]
+    prediction_errors: Tuple[float, float, float]
     request: Optional[Request] = None
 
 
-# No model, no prediction: the (one-step, T-step) errors of a tick without the latent model.
-NO_ERRORS = (math.nan, math.nan)
+# No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
+NO_ERRORS = (math.nan, math.nan, math.nan)
 
 
 @dataclass
@@ -566,7 +567,7 @@ class ControllerCore:
             u_hist, y_hist = history.window(model.history)
             z = model.predictor.encode(u_hist, y_hist)
             errors = model.prediction.update(step, u_prev, history.y, z)
-            request = self.trigger.update(step, self.dt, errors[1], model.version)
+            request = self.trigger.update(step, self.dt, errors[1], errors[2], model.version)
             res = model.mpc.solve(z, u_prev, y_ref)
             version, fallback, terminal_fallback = (model.version, res.fallback,
                                                     res.terminal_fallback)

@@ -224,7 +224,8 @@ class ControllerNode(Node):
         status.y_pred = _doubles(res.y_pred)
         status.y_ref = _doubles(res.y_ref)
         status.q = res.q
-        status.prediction_error, status.prediction_error_t = res.prediction_errors
+        (status.prediction_error, status.prediction_error_t,
+         status.output_change_t) = res.prediction_errors
         trigger, request = self.core.trigger, res.request
         status.adapt_request = request is not None
         status.adapt_trigger = request.trigger if request is not None else ''

@@ -34,7 +34,8 @@ class PredictionError:
         self.latent = latent
         self.horizon = horizon
         self._inv_std = 1.0 / np.asarray(y_std, dtype=float)
-        self._tracks: Deque[List] = deque()  # [age, z] oldest first; age = steps rolled
+        # [age, z, y at the start] oldest first; age = steps rolled
+        self._tracks: Deque[List] = deque()
         self._step: Optional[int] = None
 
     def _error(self, y: np.ndarray, z: np.ndarray) -> float:
@@ -42,28 +43,32 @@ class PredictionError:
         return float(np.dot(e, e)) / e.size
 
     def update(self, step: int, u: np.ndarray, y: np.ndarray, z: np.ndarray
-               ) -> Tuple[float, float]:
+               ) -> Tuple[float, float, float]:
         """Sample k: the input u (n_u,) held over (k-1, k], y_k (n_y,), and z_k (n_z,).
 
-        Returns (one-step error, T-step error); NaN where no rollout is that old yet (the
-        first T samples of an episode; a gap in the steps restarts it).
+        Returns (one-step error, T-step error, T-step output change), the change
+        ``mean_i ((y_k,i - y_{k-T},i) / y_std_i)^2`` (how far the outputs moved while the
+        T-step prediction ran: errors grow with it); NaN where no rollout is that old yet
+        (the first T samples of an episode; a gap in the steps restarts it).
         """
         if self._step is None or step != self._step + 1:
             self._tracks.clear()
         self._step = step
-        one = t_step = math.nan
+        one = t_step = change = math.nan
         for track in self._tracks:
             track[1] = self.latent.step(track[1], u)
             track[0] += 1
-        for age, z_pred in self._tracks:
+        for age, z_pred, y_start in self._tracks:
             if age == 1:
                 one = self._error(y, z_pred)
             if age == self.horizon:
                 t_step = self._error(y, z_pred)
+                d = (y - y_start) * self._inv_std
+                change = float(np.dot(d, d)) / d.size
         if self._tracks and self._tracks[0][0] >= self.horizon:
             self._tracks.popleft()
-        self._tracks.append([0, np.array(z, dtype=float)])
-        return one, t_step
+        self._tracks.append([0, np.array(z, dtype=float), np.array(y, dtype=float)])
+        return one, t_step, change
 
 
 __all__ = ['PredictionError']

@@ -17,11 +17,13 @@ from metampc_plant.simulator import Plant, PlantConfig
 DT = 0.1
 
 
-def feed(trigger, errors, start=0, version=1):
-    """Feed errors from step `start`; the steps at which requests were made."""
+def feed(trigger, errors, start=0, version=1, change=None):
+    """Feed errors from step `start` (with the outputs' change that makes the relative error
+    e / (change + floor) equal e: change = 1 - floor); the steps of the requests made."""
+    change = 1.0 - trigger.config.error_floor if change is None else change
     out = []
     for i, e in enumerate(errors):
-        request = trigger.update(start + i, DT, e, version)
+        request = trigger.update(start + i, DT, e, change, version)
         if request is not None:
             out.append(request.step)
     return out
@@ -39,7 +41,7 @@ def test_periodic_requests_at_each_period_one_at_a_time():
 
 def test_cusum_requests_after_the_analytic_number_of_steps():
     """Baseline 1 (median of the first 3 s = 30 samples); errors x10 from step 50: s grows by
-    log 10 - 0.7 = 1.603 per step and passes 5 at the 4th such step (6.41): step 53."""
+    log 10 - 1 = 1.303 per step and passes 5 at the 4th such step (5.21): step 53."""
     cfg = TriggerConfig(adaptation='triggered')
     trigger = AdaptationTrigger(cfg)
     rng = np.random.default_rng(0)
@@ -52,13 +54,23 @@ def test_cusum_requests_after_the_analytic_number_of_steps():
 
 def test_no_request_while_the_baseline_is_measured_nor_while_one_is_pending():
     trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', baseline_s=3.0))
-    # log 100 - 0.7 = 3.9 per step: past 5 at the second step of the jump.
+    # log 100 - 1 = 3.6 per step: past 5 at the second step of the jump.
     assert feed(trigger, [1.0] * 30 + [100.0] * 4) == [31]
     assert feed(trigger, [100.0] * 50, start=34) == []      # pending: one at a time
     trigger.answered(2)     # the new model's baseline is measured first: 3 s of any errors
     assert feed(trigger, [100.0] * 30, start=84, version=2) == []
     assert trigger.baseline == 100.0
     assert feed(trigger, [100.0] * 100, start=114, version=2) == []  # its own level: no request
+
+
+def test_the_error_is_relative_to_the_outputs_motion():
+    """Errors 100 times larger while the outputs move 100 times more (a set-point step) ask
+    nothing; the same errors at rest do."""
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', error_floor=0.01))
+    feed(trigger, [0.01] * 30, change=0.0)      # at rest: relative error 1
+    assert trigger.baseline == pytest.approx(1.0)
+    assert feed(trigger, [1.0] * 20, start=30, change=0.99) == []  # moving: still 1
+    assert feed(trigger, [1.0] * 5, start=50, change=0.0) == [51]  # at rest: 100
 
 
 def test_a_new_model_or_episode_restarts_the_baseline_and_off_asks_nothing():

@@ -45,7 +45,7 @@ def test_errors_are_the_loss_terms_of_the_torch_model():
     u, y = rng.uniform(-1, 1, (n, 1)), rng.normal(0, 1, (n, 2))
     for k in range(h - 1, n):
         z = predictor.encode(u[k - h + 1:k + 1], y[k - h + 1:k + 1])
-        one, t_step = monitor.update(k, u[k], y[k], z)
+        one, t_step, change = monitor.update(k, u[k], y[k], z)
         age = k - (h - 1)       # rollouts that exist: started at steps h-1 .. k-1
         assert math.isnan(one) == (age < 1) and math.isnan(t_step) == (age < t), k
         if age >= 1:
@@ -53,6 +53,9 @@ def test_errors_are_the_loss_terms_of_the_torch_model():
         if age >= t:
             assert t_step == pytest.approx(torch_error(model, params, norm, u, y, k, t),
                                            rel=1e-9)
+            assert change == pytest.approx(np.mean(((y[k] - y[k - t]) / norm.y_std) ** 2))
+        else:
+            assert math.isnan(change)
     # A gap in the steps (samples missed, a reset) restarts the rollouts.
     z = predictor.encode(u[-h:], y[-h:])
     assert all(map(math.isnan, monitor.update(n + 5, u[-1], y[-1], z)))
