@@ -15,14 +15,21 @@ The controller's tick answers the newest unanswered sample, or the next sample o
 when there is none; at twice the plant's rate (the default) every other tick finds none, so
 each sample is answered on arrival. At the plant's own rate the two timers keep a fixed
 phase, and when the controller's tick comes late in the plant's period every answer is late.
+
+With ``adaptation`` (periodic or triggered) a learner process loads the checkpoint
+``weights`` as its meta-model, publishes it, and adapts at the controller's requests while
+the plant follows ``theta_schedule``: the soak then measures whether adaptation in the loop
+ever makes the real-time controller late (it never waits for a model in real time).
 """
 from dataclasses import dataclass
 import os
 import subprocess
 import time
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 from metampc_msgs.msg import NssmWeights
+
+from metampc_controller.adaptation_trigger import MODES
 
 from .domain import isolate
 from .percentiles import percentiles
@@ -52,6 +59,12 @@ class SoakConfig:
     horizon: int = 20                       # MPC horizon N
     seed: int = 0                           # measurement noise
     out: Optional[str] = None               # folder for the node logs and soak.png: needed
+    # Adaptation in the loop (docs/adaptation.md): the controller's mode, with a learner that
+    # loads `weights` as its meta-model and adapts at the controller's requests; the plant's
+    # theta over time (rows [t_start, t_end, theta], s of plant time).
+    adaptation: str = 'off'
+    adapt_period: float = 10.0
+    theta_schedule: Tuple[float, ...] = ()
 
     def __post_init__(self):
         self.controller_rate = self.controller_rate or 2.0 * self.rate
@@ -59,13 +72,21 @@ class SoakConfig:
         self.dt = self.dt or (1.0 / self.rate if self.rate > 0 else 0.0)
 
     def validate(self) -> None:
-        """ValueError if a rate, the duration or dt is <= 0, or the warm-up < 0."""
+        """ValueError if a rate, the duration or dt is <= 0, the warm-up < 0, or adaptation
+        is asked for without a meta-model checkpoint (``weights``)."""
         if min(self.rate, self.duration, self.controller_rate, self.dt) <= 0 or self.warmup < 0:
             raise ValueError('rates, duration and dt must be > 0, warmup >= 0')
+        if self.adaptation not in MODES:
+            raise ValueError(f'adaptation must be one of {", ".join(MODES)}')
+        if self.adaptation != 'off' and not self.weights:
+            raise ValueError('adaptation in the loop needs a learner\'s meta-model: --weights '
+                             '(a checkpoint, e.g. written by --weights-from)')
 
 
-def model_message(cfg: SoakConfig) -> NssmWeights:
-    """The model to control with (version 1)."""
+def model_message(cfg: SoakConfig) -> Optional[NssmWeights]:
+    """The model to control with (version 1); None when a learner publishes it."""
+    if cfg.adaptation != 'off':
+        return None
     if cfg.weights:
         return checkpoint_weights(cfg.weights)
     return manual_weights(cfg.theta, cfg.dt)
@@ -127,6 +148,8 @@ def soak(cfg: SoakConfig) -> dict:
                                    scale=1e-6),
         'fallbacks': sum(s[4] for s in measured),
         'model_versions': sorted({v for t, _, _, v in obs.u if t >= start_ns}),
+        'adaptation': cfg.adaptation, 'theta_schedule': list(cfg.theta_schedule),
+        'adapt_requests': [k for t, k in obs.requests if t >= start_ns],
         'dropped': dropped(obs.y, obs.u, obs.status, start_ns),
         'processes': usage,
         'node_counts': {name: stop_counts(ProcessGroup.output(proc))
@@ -146,9 +169,16 @@ def _start_nodes(cfg: SoakConfig, group: ProcessGroup, obs: Observer
     Returns:
         {'plant': its `ros2 run` process, 'controller': ...}.
     """
+    nodes = {}
+    if cfg.adaptation != 'off':
+        nodes['learner'] = group.start('metampc_learner', 'learner', name='learner', params={
+            'meta_model_path': cfg.weights, 'dt': cfg.dt, 'loop_adaptation': True,
+            'loop_window': 100, 'loop_steps': 10, 'loop_lr': 1.0, 'buffer_on_start': False,
+            'torch_threads': 1})
     controller = group.start('metampc_controller', 'controller', name='controller', params={
         'rate_hz': cfg.controller_rate, 'horizon': cfg.horizon, 'reference': 'sine',
-        'reference_amplitude': 0.5, 'reference_period': 5.0})
+        'reference_amplitude': 0.5, 'reference_period': 5.0, 'adaptation': cfg.adaptation,
+        'adapt_period': cfg.adapt_period})
     deadline = time.monotonic() + START_TIMEOUT
     while not obs.subscribed('/y', 'controller'):
         if controller.poll() is not None or time.monotonic() > deadline:
@@ -156,9 +186,10 @@ def _start_nodes(cfg: SoakConfig, group: ProcessGroup, obs: Observer
         time.sleep(0.1)
     plant = group.start('metampc_plant', 'plant', name='plant', params={
         'mode': 'realtime', 'rate_hz': cfg.rate, 'dt': cfg.dt, 'theta': cfg.theta,
-        'x0': [0.0, 0.0], 'measurement_noise_std': 1e-3, 'seed': cfg.seed})
+        'x0': [0.0, 0.0], 'measurement_noise_std': 1e-3, 'seed': cfg.seed,
+        'theta_schedule': list(cfg.theta_schedule)})
     while not (obs.y and node_pid(plant)):
         if plant.poll() is not None or time.monotonic() > deadline:
             raise RuntimeError(f'the plant did not start: see {plant.log_path}')
         time.sleep(0.1)
-    return {'plant': plant, 'controller': controller}
+    return {**nodes, 'plant': plant, 'controller': controller}

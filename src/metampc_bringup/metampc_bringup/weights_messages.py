@@ -4,8 +4,9 @@ hand-built model of :mod:`metampc_controller.manual_model` or a learner checkpoi
 No rclpy here (message classes only).
 """
 from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.weights_codec import fields_from_weights
-from metampc_learner.checkpoint import load_checkpoint
+from metampc_controller.nssm import Nssm
+from metampc_controller.weights_codec import fields_from_weights, fields_of, weights_from_fields
+from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_msgs.msg import NssmWeights
 
 
@@ -23,3 +24,13 @@ def checkpoint_weights(path: str, version: int = 1) -> NssmWeights:
     return NssmWeights(version=version, method=ckpt.info.get('method', 'imaml'),
                        stage=ckpt.info.get('stage', 'adapted'),
                        **fields_from_weights(ckpt.model.config, ckpt.model.norm, ckpt.params))
+
+
+def save_weights(msg: NssmWeights, path: str) -> None:
+    """Write the model of a weights message (e.g. read from a recording) as a checkpoint,
+    with its method and stage: a learner loads it with ``meta_model_path``."""
+    decoded = weights_from_fields(fields_of(msg))
+    save_checkpoint(path, Nssm(decoded.config, decoded.norm), decoded.params,
+                    {'method': msg.method, 'stage': msg.stage, 'version': int(msg.version),
+                     'train_loss': float(msg.train_loss), 'train_steps': int(msg.train_steps),
+                     'train_samples': int(msg.train_samples), 'seed': int(msg.seed)})

@@ -40,3 +40,23 @@ def test_node_pid_is_the_other_process_of_the_session():
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
         proc.stdout.close()
+
+
+def test_adaptation_needs_a_meta_model_and_a_known_mode():
+    with pytest.raises(ValueError, match='needs a learner'):
+        SoakConfig(adaptation='periodic').validate()
+    with pytest.raises(ValueError, match='adaptation must be one of'):
+        SoakConfig(adaptation='always', weights='meta.pt').validate()
+    # With a learner, the learner publishes the model: the soak sends none.
+    assert model_message(SoakConfig(adaptation='triggered', weights='meta.pt')) is None
+
+
+def test_a_recorded_model_written_as_a_checkpoint_loads_as_the_same_weights(tmp_path):
+    from metampc_bringup.weights_messages import checkpoint_weights, manual_weights, save_weights
+    msg = manual_weights(0.5, 0.1, version=3)
+    msg.method, msg.stage = 'imaml', 'meta'
+    save_weights(msg, str(tmp_path / 'meta.pt'))
+    back = checkpoint_weights(str(tmp_path / 'meta.pt'), version=3)
+    assert (back.method, back.stage) == ('imaml', 'meta')
+    assert list(back.params) == list(msg.params) and list(back.names) == list(msg.names)
+    assert list(back.y_std) == list(msg.y_std)
