@@ -42,7 +42,8 @@ def test_periodic_requests_at_each_period_one_at_a_time():
 def test_cusum_requests_after_the_analytic_number_of_steps():
     """Baseline 1 (median of the first 3 s = 30 samples); errors x10 from step 50: s grows by
     log 10 - 1 = 1.303 per step and passes 5 at the 4th such step (5.21): step 53."""
-    cfg = TriggerConfig(adaptation='triggered')
+    cfg = TriggerConfig(adaptation='triggered', cusum_drift=1.0, cusum_threshold=5.0,
+                        baseline_s=3.0)
     trigger = AdaptationTrigger(cfg)
     rng = np.random.default_rng(0)
     noise = np.exp(0.3 * rng.standard_normal(50))      # around the baseline: never accumulates
@@ -53,7 +54,8 @@ def test_cusum_requests_after_the_analytic_number_of_steps():
 
 
 def test_no_request_while_the_baseline_is_measured_nor_while_one_is_pending():
-    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', baseline_s=3.0))
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', baseline_s=3.0,
+                                              cusum_drift=1.0, cusum_threshold=5.0))
     # log 100 - 1 = 3.6 per step: past 5 at the second step of the jump.
     assert feed(trigger, [1.0] * 30 + [100.0] * 4) == [31]
     assert feed(trigger, [100.0] * 50, start=34) == []      # pending: one at a time
@@ -66,7 +68,9 @@ def test_no_request_while_the_baseline_is_measured_nor_while_one_is_pending():
 def test_the_error_is_relative_to_the_outputs_motion():
     """Errors 100 times larger while the outputs move 100 times more (a set-point step) ask
     nothing; the same errors at rest do."""
-    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', error_floor=0.01))
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', error_floor=0.01,
+                                              baseline_s=3.0, cusum_drift=1.0,
+                                              cusum_threshold=5.0))
     feed(trigger, [0.01] * 30, change=0.0)      # at rest: relative error 1
     assert trigger.baseline == pytest.approx(1.0)
     assert feed(trigger, [1.0] * 20, start=30, change=0.99) == []  # moving: still 1
@@ -74,7 +78,7 @@ def test_the_error_is_relative_to_the_outputs_motion():
 
 
 def test_a_new_model_or_episode_restarts_the_baseline_and_off_asks_nothing():
-    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered'))
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', baseline_s=3.0))
     feed(trigger, [1.0] * 40)
     assert trigger.baseline == 1.0
     feed(trigger, [1.0], start=40, version=7)   # a model swapped in by someone else
