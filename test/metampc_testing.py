@@ -4,8 +4,12 @@ Every process is started through `ros2 run` (the shim or a real ros2) in the tes
 isolated domain (see conftest.py) and is stopped by the test that started it: use the ``procs``
 fixture (a metampc_bringup.processes.ProcessGroup).
 """
+import json
+from pathlib import Path
+
 from metampc_bringup.processes import ProcessGroup, ros_args, session_pids  # noqa: F401
 from metampc_bringup.spun_node import SpunNode
+from rosbags.highlevel import AnyReader
 
 
 class TestNode(SpunNode):
@@ -15,3 +19,18 @@ class TestNode(SpunNode):
 
     def __init__(self, name: str = 'metampc_test_probe'):
         super().__init__(name)
+
+
+def read_with_rosbags(mcap_path: str):
+    """Events and closed-loop messages of a recording, decoded by rosbags."""
+    events, outputs, statuses, inputs = [], [], [], []
+    with AnyReader([Path(mcap_path)]) as reader:     # types from the schemas in the file
+        for conn, _, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            name = conn.topic.rsplit('/', 1)[-1]
+            if name == 'experiment_events':
+                events.append(json.loads(msg.data))
+            elif name in ('y', 'mpc_status', 'u'):
+                stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+                {'y': outputs, 'mpc_status': statuses, 'u': inputs}[name].append((stamp, msg))
+    return events, outputs, statuses, inputs

@@ -6,16 +6,14 @@ adaptation request is answered by a model used from exactly swap_delay steps lat
 the answer of that step waited for it); 'none' runs ask nothing; periodic requests fall at the
 periods; and a second run of the same seed makes the same requests, swaps and inputs.
 """
-import json
 import os
-from pathlib import Path
 
 import pytest
-from rosbags.highlevel import AnyReader
 import yaml
 
 from metampc_bringup.experiment import run_experiment
 from metampc_bringup.experiment_config import ConfigError, load
+from metampc_testing import read_with_rosbags
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(ROOT, 'config', 'ci_drift.yaml')
@@ -23,17 +21,11 @@ SWAP_DELAY = 10     # the controller's default
 
 
 def runs_of(mcap_path: str):
-    """Per run name: its outputs (step, theta) and statuses (step, request, version) and
-    inputs (step, u), decoded by rosbags and cut by the events' stamps."""
-    events, msgs = [], []
-    with AnyReader([Path(mcap_path)]) as reader:
-        for conn, _, raw in reader.messages():
-            msg = reader.deserialize(raw, conn.msgtype)
-            name = conn.topic.rsplit('/', 1)[-1]
-            if name == 'experiment_events':
-                events.append(json.loads(msg.data))
-            elif name in ('y', 'mpc_status', 'u'):
-                msgs.append((name, msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, msg))
+    """Per run name: its outputs, statuses and inputs, decoded by rosbags and cut by the
+    events' stamps (answers stamped with the run's last y are not the run's)."""
+    events, outputs, statuses, inputs = read_with_rosbags(mcap_path)
+    msgs = [(name, stamp, msg) for name, rows in (('y', outputs), ('mpc_status', statuses),
+                                                  ('u', inputs)) for stamp, msg in rows]
     starts = {e['run']: e for e in events if e['event'] == 'track_start'}
     out = {}
     for e in events:

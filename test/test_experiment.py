@@ -23,26 +23,12 @@ from metampc_bringup.experiment_config import ConfigError, load
 from metampc_bringup.offline import learner_config
 from metampc_bringup.processes import session_pids
 from metampc_learner.heldout import target_heldout
+from metampc_testing import read_with_rosbags
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CI_CONFIG = os.path.join(ROOT, 'config', 'ci.yaml')
 ARTEFACTS = ('config.yaml', 'report.json', 'report.md', 'fig2_meta_training.png',
              'fig3_adaptation.png', 'tracking_all_methods.png')
-
-
-def _read(mcap_path: str):
-    """Events and closed-loop messages of a recording, decoded by rosbags."""
-    events, outputs, statuses, inputs = [], [], [], []
-    with AnyReader([Path(mcap_path)]) as reader:     # types from the schemas in the file
-        for conn, _, raw in reader.messages():
-            msg = reader.deserialize(raw, conn.msgtype)
-            name = conn.topic.rsplit('/', 1)[-1]
-            if name == 'experiment_events':
-                events.append(json.loads(msg.data))
-            elif name in ('y', 'mpc_status', 'u'):
-                stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-                {'y': outputs, 'mpc_status': statuses, 'u': inputs}[name].append((stamp, msg))
-    return events, outputs, statuses, inputs
 
 
 def _rmse(outputs, statuses, start: float, end: float) -> float:
@@ -96,7 +82,7 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
         assert os.path.getsize(os.path.join(out, name)) > 1000 or name.endswith('.yaml'), name
     seed_dir = os.path.join(out, 'seed_0')
     assert os.path.exists(os.path.join(seed_dir, 'report.json'))
-    events, outputs, statuses, inputs = _read(os.path.join(seed_dir, 'recording.mcap'))
+    events, outputs, statuses, inputs = read_with_rosbags(os.path.join(seed_dir, 'recording.mcap'))
     per_seed = report['per_seed'][0]
     assert per_seed['complete'] and per_seed['theta'] == [config.theta] == [0.5]
     kinds = [e['event'] for e in events]
@@ -211,7 +197,7 @@ def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
     assert code == 130, text
     domain = int(re.search(r'ROS_DOMAIN_ID=(\d+)', text).group(1))
     assert _pids_in_domain(domain) == [], 'processes left behind'
-    events, outputs, _, _ = _read(os.path.join(out, 'seed_0', 'recording.mcap'))
+    events, outputs, _, _ = read_with_rosbags(os.path.join(out, 'seed_0', 'recording.mcap'))
     assert events[0]['event'] == 'start' and len(outputs) >= 60
 
 
@@ -355,7 +341,8 @@ def test_ctrl_c_with_jobs_2_stops_every_seed(tmp_path):
     for domain in domains:
         assert _pids_in_domain(domain) == [], f'processes left behind in domain {domain}'
     for seed in (0, 1):
-        events, outputs, _, _ = _read(os.path.join(out, f'seed_{seed}', 'recording.mcap'))
+        events, outputs, _, _ = read_with_rosbags(
+            os.path.join(out, f'seed_{seed}', 'recording.mcap'))
         assert events[0]['event'] == 'start' and len(outputs) >= 60
 
 
