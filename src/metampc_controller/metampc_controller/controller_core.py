@@ -99,6 +99,8 @@ class AnswerRule:
     timer's first period) is answered on arrival. Inactive: nothing is answered; activation
     answers the newest unanswered sample at once, or the next one on arrival.
 
+    An activation may be bounded (:meth:`set_active`'s ``until_step``, ``stop_at_escape``).
+
     Under a lockstep plant (``lockstep`` True) every sample is answered on arrival: the plant
     sends y_k only once it has u_{k-1} and waits for u_k, so the tick of time k dt has
     nothing else to wait for, and waiting for /clock and the timer's callback as well would
@@ -111,6 +113,7 @@ class AnswerRule:
         self.lockstep = lockstep
         self._unanswered = False
         self._pending = active
+        self._until_step, self._stop_at_escape = 0, False     # the bounds of an activation
 
     def on_sample(self) -> bool:
         """A sample arrived; True if it is to be answered now (a tick was pending, or the
@@ -130,17 +133,36 @@ class AnswerRule:
         self._pending = True
         return False
 
-    def answered(self) -> None:
-        """The newest sample has been answered."""
+    def answered(self, step: int) -> bool:
+        """Sample `step` has been answered; True if that ends a bounded activation (its
+        ``until_step``): inactive from now on."""
         self._unanswered = False
+        if 0 < self._until_step <= step:
+            self.set_active(False)
+            return True
+        return False
+
+    def diverged(self) -> bool:
+        """The newest sample is diverged; True if that ends an activation bounded by
+        ``stop_at_escape`` (the sample stays unanswered): inactive from now on."""
+        if self._stop_at_escape and self.active:
+            self.set_active(False)
+            return True
+        return False
 
     @property
     def unanswered(self) -> bool:
         """The newest sample has not been answered (e.g. its answer waits for a model)."""
         return self._unanswered
 
-    def set_active(self, active: bool) -> bool:
-        """Switch; True if activation answers the newest sample now."""
+    def set_active(self, active: bool, until_step: int = 0, stop_at_escape: bool = False
+                   ) -> bool:
+        """Switch; True if activation answers the newest sample now. An activation may be
+        bounded: inactive by itself after answering `until_step` (> 0), or at the first
+        diverged sample with `stop_at_escape`, so that a lockstep run stops exactly there
+        however late its caller looks."""
+        self._until_step, self._stop_at_escape = (until_step, stop_at_escape) if active else (
+            0, False)
         was_active, self.active = self.active, active
         if not active:
             self._pending = False

@@ -103,7 +103,6 @@ class ControllerNode(Node):
         self.cfg = parse_params(values)
         self.core = ControllerCore(self.cfg)
         self.rule = AnswerRule(self.cfg.active)
-        self._until_step, self._stop_at_escape = 0, False     # set_active's bounds of a run
         self._events = EventCounts(self, COUNTERS)
         self._counts = self._events.counts
         self._warn = self._events.warn
@@ -162,8 +161,8 @@ class ControllerNode(Node):
             return
         core.observe(msg.step, msg.u_applied, msg.y, msg.theta)
         self._stamp = msg.header.stamp
-        if self._stop_at_escape and msg.diverged and self.rule.active:
-            self._stop_by_itself(f'y of step {msg.step} is diverged')
+        if msg.diverged and self.rule.diverged():
+            self._stopped_by_itself(f'y of step {msg.step} is diverged')
         if self.rule.on_sample():
             self._answer(start)
 
@@ -196,9 +195,8 @@ class ControllerNode(Node):
         msg.u = _doubles(res.u)
         msg.model_version = res.model_version
         self._pub_u.publish(msg)
-        self.rule.answered()
-        if 0 < self._until_step <= res.step:
-            self._stop_by_itself(f'answered step {res.step}')
+        if self.rule.answered(res.step):
+            self._stopped_by_itself(f'answered step {res.step}')
         tick_time = time.perf_counter() - start
         self._publish_status(res, tick_time)
         self._counts['answered'] += 1
@@ -240,18 +238,14 @@ class ControllerNode(Node):
                 f'{trigger.baseline:.3g}); under lockstep the answer of step '
                 f'{request.swap_step} waits for it')
 
-    def _stop_by_itself(self, why: str) -> None:
-        """End a bounded activation (set_active's until_step / stop_at_escape): inactive from
-        now on, so a lockstep run stops exactly there, whoever watches it and how late."""
-        self.rule.set_active(False)
-        self._until_step, self._stop_at_escape = 0, False
+    def _stopped_by_itself(self, why: str) -> None:
+        """A bounded activation ended (the rule is inactive now): say why."""
         self.get_logger().info(f'inactive by itself: {why}')
 
     def _on_set_active(self, request: SetActive.Request, response: SetActive.Response
                        ) -> SetActive.Response:
-        self._until_step, self._stop_at_escape = (
-            (request.until_step, request.stop_at_escape) if request.active else (0, False))
-        answer_now = self.rule.set_active(request.active)
+        answer_now = self.rule.set_active(request.active, request.until_step,
+                                          request.stop_at_escape)
         response.success = True
         if not request.active and request.wait_delivered:
             # Reliable readers outside the loop (the recorder) may be behind a fast lockstep

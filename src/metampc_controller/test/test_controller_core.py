@@ -62,7 +62,7 @@ def test_answer_rule_answers_every_lockstep_sample_once(seed, lockstep):
     arrived = -1
 
     def answer():
-        rule.answered()
+        assert not rule.answered(arrived)       # unbounded: never inactive by itself
         answers[arrived] += 1
 
     for k in range(300):
@@ -95,10 +95,29 @@ def test_answer_rule_inactive_from_start_answers_on_activation():
     rule = AnswerRule(active=False)
     assert not rule.on_sample() and not rule.on_tick()
     assert rule.set_active(True)            # y_0 waited: answered at activation
-    rule.answered()
+    rule.answered(0)
     assert not rule.set_active(True)        # already active: nothing to do
     assert not rule.on_tick()               # no new sample: the tick waits for one
     assert rule.on_sample()
+
+
+def test_a_bounded_activation_ends_by_itself_exactly_there():
+    """until_step: answers 0..n and goes inactive after answering n, so a lockstep plant
+    stops at y_{n+1}; stop_at_escape: the first diverged sample stays unanswered."""
+    rule = AnswerRule(active=False, lockstep=True)
+    assert not rule.on_sample()                      # y_0 waits
+    assert rule.set_active(True, until_step=2)       # answered at activation
+    assert not rule.answered(0)
+    assert rule.on_sample() and not rule.answered(1)
+    assert rule.on_sample() and rule.answered(2)     # the bound: inactive by itself
+    assert not rule.active and not rule.on_sample()  # y_3 waits
+    # Stop at an escape, on y_5: y_3 and y_4 answered, y_5 not; deactivated bounds clear.
+    assert rule.set_active(True, stop_at_escape=True) and not rule.answered(3)
+    assert rule.on_sample() and not rule.answered(4)
+    assert rule.diverged() and not rule.active       # the node asks before on_sample
+    assert not rule.on_sample()
+    assert rule.set_active(True)                     # unbounded: answers y_5 now
+    assert not rule.diverged() and not rule.answered(10 ** 6) and rule.active
 
 
 def test_pre_model_zero_is_clipped_into_the_bounds():
