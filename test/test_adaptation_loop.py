@@ -15,18 +15,21 @@ square wave of x1. Checked:
 from dataclasses import replace
 import math
 
-from metampc_msgs.msg import MpcStatus, PlantOutput
+from metampc_msgs.msg import MpcStatus, NssmWeights, PlantOutput
 from metampc_msgs.srv import SetActive, SetBuffering
 import numpy as np
 import pytest
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 import torch
 
+from metampc_bringup.weights_messages import manual_weights
 from metampc_controller.manual_model import linearised_vdp_nssm
 from metampc_controller.nssm import Nssm
 from metampc_learner.checkpoint import save_checkpoint
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STEPS = 300
 CHANGE = 100        # theta 0.5 -> -1.5 from t = 10 s (dt 0.1)
 SWAP_DELAY = 10
@@ -133,3 +136,30 @@ def test_the_same_seed_swaps_at_the_same_step_with_the_same_inputs(runs):
         e_a, e_b = a[k].prediction_error_t, b[k].prediction_error_t
         assert e_a == e_b or (math.isnan(e_a) and math.isnan(e_b)), k
     assert all(list(ya[k].y) == list(yb[k].y) for k in ya)
+
+
+def test_in_real_time_an_unanswered_request_is_given_up_and_the_loop_goes_on(procs, probe):
+    """No learner: every periodic request goes unanswered. In real time nothing waits for it;
+    after adapt_timeout (1 s) it is given up and the next period asks again. (Whether every
+    step was answered in time is the soak's measure, not a test's: scripts/soak.py.)"""
+    status = {}
+    probe.node.create_subscription(MpcStatus, '/rt/mpc_status',
+                                   lambda m: status.setdefault(m.step, m), RELIABLE)
+    weights = probe.node.create_publisher(NssmWeights, '/rt/nssm_weights', LATCHED)
+    weights.publish(manual_weights(0.5, 0.1))
+    ns = {'__ns': '/rt'}
+    controller = procs.start('metampc_controller', 'controller', remaps=ns, params={
+        'rate_hz': 40.0, 'adaptation': 'periodic', 'adapt_period': 1.0, 'adapt_timeout': 1.0,
+        'time_limit': 30.0})
+    plant = procs.start('metampc_plant', 'plant', remaps=ns, params={
+        'mode': 'realtime', 'rate_hz': 20.0, 'theta': 0.5})
+    probe.wait_for(lambda: sum(m.adapt_request for m in status.values()) >= 3, 60.0,
+                   'three requests')
+    requests = sorted(k for k, m in status.items() if m.adapt_request)
+    # One at a time: the next comes only after the previous was given up (>= 1 s of wall
+    # time = 20 steps at 20 Hz; periods are 10 steps of plant time).
+    assert all(b - a >= 15 for a, b in zip(requests, requests[1:])), requests
+    assert all(status[k].model_version == 1 for k in requests)
+    for proc in (controller, plant):
+        assert procs.interrupt(proc) == 0
+    assert 'no model answered the adaptation request' in procs.output(controller)

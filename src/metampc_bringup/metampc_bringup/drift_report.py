@@ -14,9 +14,10 @@ its span (a run's model version changes as it adapts, so nothing is filtered by 
   first time it is back within it, minus t_c (0: never exceeded; None: never back within
   the run);
 * adaptation: the requests (step, trigger), the swaps (steps where the model version
-  changes), and the compute time of each adaptation in the loop (the learner's final
-  'loop_adapt' progress within the run);
-* the T-step prediction error over time, plotted with the requests and swaps marked.
+  changes), and the compute time of each adaptation in the loop (``NssmWeights.train_time``
+  of each online model the run used);
+* the change detector's relative T-step prediction error over time, plotted with the
+  requests and swaps marked.
 
 :func:`drift_experiment_report` gathers the seeds: per method and mode the median and the
 worst seed of the time to recover and of the after-change cost ratio, the adaptations, and
@@ -33,6 +34,8 @@ from typing import Any, Dict, List, Optional, Sequence
 import matplotlib
 import numpy as np
 
+from metampc_controller.adaptation_trigger import TriggerConfig
+
 from .analysis import json_safe
 from .experiment_config import DriftConfig
 from .experiment_report import read_events, STAMP_TOL
@@ -45,15 +48,17 @@ MOVING_WINDOW_S = 5.0
 RECOVERY_FACTOR = 1.2
 PLANT_OUTPUT = 'metampc_msgs/msg/PlantOutput'
 MPC_STATUS = 'metampc_msgs/msg/MpcStatus'
-PROGRESS = 'metampc_msgs/msg/TrainingProgress'
+NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
 
 
 @dataclass
 class RunSignals:
     """One run's signals. Outputs (n = steps + 1): t [n] s since the run's start, y [n, n_y],
     theta [n, n_theta]; statuses (one per answered step k): step [m], model_version [m],
-    error_t [m] (T-step prediction error), request [m] (bool), trigger [m], ref [m, n_y]
-    (reference of the output of step k + 1); compute [a] s of the loop adaptations."""
+    error_t [m] (T-step prediction error), change_t [m] (the outputs' T-step change),
+    request [m] (bool), trigger [m], ref [m, n_y]
+    (reference of the output of step k + 1); compute [a] s: the training time of each online
+    model the run used."""
 
     t: np.ndarray
     y: np.ndarray
@@ -61,6 +66,7 @@ class RunSignals:
     step: np.ndarray
     model_version: np.ndarray
     error_t: np.ndarray
+    change_t: np.ndarray
     request: np.ndarray
     trigger: List[str]
     ref: np.ndarray
@@ -83,7 +89,7 @@ def drift_runs(events: List[Dict[str, Any]]) -> Dict[str, Dict[str, Any]]:
 
 def run_signals(recording, runs: Dict[str, Dict[str, Any]]) -> Dict[str, RunSignals]:
     """The signals of every run, cut out of the recording by their stamps."""
-    rows = {name: {'out': [], 'status': [], 'log': []} for name in runs}
+    rows = {name: {'out': [], 'status': []} for name in runs}
     topics = [t.name for t in recording.topics.values()
               if t.type_name in (PLANT_OUTPUT, MPC_STATUS)]
     for topic, raw, msg in recording.decoded(topics):
@@ -93,36 +99,30 @@ def run_signals(recording, runs: Dict[str, Dict[str, Any]]) -> Dict[str, RunSign
             last = run['end'] - STAMP_TOL if answer else run['end'] + STAMP_TOL
             if run['start'] - STAMP_TOL <= stamp <= last:
                 rows[name]['status' if answer else 'out'].append((stamp - run['start'], msg))
-                rows[name]['log'].append(raw.log_time)
-    progress = [(raw.log_time, msg) for _, raw, msg in recording.decoded(
-        [t.name for t in recording.topics.values() if t.type_name == PROGRESS])]
+            # The learner's training time of every online model, by version (NssmWeights.train_time;
+    # none in recordings made before the field).
+    trained = {int(msg.version): float(msg.train_time) for _, _, msg in recording.decoded(
+        [t.name for t in recording.topics.values() if t.type_name == NSSM_WEIGHTS])
+        if msg.stage == 'online' and hasattr(msg, 'train_time')}
     out = {}
     for name, r in rows.items():
         outs = sorted(r['out'], key=lambda p: p[1].step)
         stats = sorted(r['status'], key=lambda p: p[1].step)
         n_y = len(outs[0][1].y) if outs else 1
-        first, last = (min(r['log']), max(r['log'])) if r['log'] else (0, -1)
+        versions = sorted({int(m.model_version) for _, m in stats})
         out[name] = RunSignals(
             t=np.array([t for t, _ in outs]), y=np.array([list(m.y) for _, m in outs]),
             theta=np.array([list(m.theta) for _, m in outs]),
             step=np.array([m.step for _, m in stats], dtype=np.int64),
             model_version=np.array([m.model_version for _, m in stats], dtype=np.int64),
             error_t=np.array([m.prediction_error_t for _, m in stats], dtype=float),
+            change_t=np.array([m.output_change_t for _, m in stats], dtype=float),
             request=np.array([bool(m.adapt_request) for _, m in stats], dtype=bool),
             trigger=[m.adapt_trigger for _, m in stats],
             ref=np.array([list(m.y_ref[:n_y]) for _, m in stats], dtype=float
                          ).reshape(len(stats), n_y),
-            compute=[float(m.elapsed) for lt, m in progress
-                     if m.phase == 'done' and m.method and first <= lt <= last
-                     and _loop_job(progress, lt)])
+            compute=[trained[v] for v in versions if v in trained])
     return out
-
-
-def _loop_job(progress, log_time: int) -> bool:
-    """Whether the 'done' progress at `log_time` ends a loop adaptation (the job's phase is
-    on its earlier messages)."""
-    before = [m.phase for lt, m in progress if lt < log_time and m.phase != 'done']
-    return bool(before) and before[-1] == 'loop_adapt'
 
 
 def squared_errors(sig: RunSignals, tracked: Sequence[int]) -> np.ndarray:
@@ -196,24 +196,27 @@ def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[
     return out
 
 
-def plot_run(signals: Dict[str, RunSignals], method: str, dt: float, path: str) -> str:
-    """The T-step prediction error of a method's runs over time, requests (x) and swaps
-    (vertical lines) marked, and the plant's theta below."""
+def plot_run(signals: Dict[str, RunSignals], method: str, dt: float, floor: float,
+             path: str) -> str:
+    """The change detector's relative T-step prediction error E / (D + floor) of a method's
+    runs over time, requests (x) and swaps (vertical lines) marked, and the plant's theta
+    below."""
     runs = [name for name in signals if name.split('/')[0] == method]
     fig, (ax, bx) = plt.subplots(2, 1, figsize=(9, 6), sharex=True,
                                  gridspec_kw={'height_ratios': [3, 1]})
     for name in runs:
         sig = signals[name]
         t = sig.step * dt
-        line, = ax.semilogy(t, sig.error_t, lw=0.9, label=name.split('/', 1)[1])
+        rel = sig.error_t / (sig.change_t + floor)
+        line, = ax.semilogy(t, rel, lw=0.9, label=name.split('/', 1)[1])
         req = sig.request
-        ax.plot(t[req], sig.error_t[req], 'x', color=line.get_color(), ms=7)
+        ax.plot(t[req], rel[req], 'x', color=line.get_color(), ms=7)
         for i in range(1, len(sig.step)):
             if sig.model_version[i] != sig.model_version[i - 1]:
                 ax.axvline(t[i], color=line.get_color(), lw=0.6, ls=':')
         if len(sig.theta) and sig.theta.shape[1]:
             bx.plot(sig.t, sig.theta[:, 0], color=line.get_color(), lw=0.9)
-    ax.set_ylabel('T-step prediction error')
+    ax.set_ylabel('relative T-step error E / (D + floor)')
     ax.set_title(f'{method}: prediction error (x: requests, dotted: swaps)')
     ax.legend(fontsize=8)
     bx.set_ylabel('theta[0]')
@@ -251,9 +254,11 @@ def seed_drift_report(path: str, out_dir: Optional[str] = None, plots: bool = Tr
     figures = []
     if plots:
         dt = float(experiment.get('dt') or _dt(next(iter(signals.values()))))
+        floor = float((experiment.get('controller') or {}).get(
+            'error_floor', TriggerConfig().error_floor))
         for method in drift.methods:
             figures.append(os.path.basename(plot_run(
-                signals, method, dt, os.path.join(out_dir, f'drift_{method}.png'))))
+                signals, method, dt, floor, os.path.join(out_dir, f'drift_{method}.png'))))
     done = next((e for e in events if e['event'] == 'done'), None)
     report = json_safe({
         'recording': os.path.abspath(recording.path), 'seed': start['seed'],

@@ -33,7 +33,8 @@ def signals(y, ref, version=None, requests=()):
                       theta=np.zeros((n, 1)), step=steps,
                       model_version=np.asarray(version if version is not None
                                                else np.ones(n - 1), dtype=np.int64),
-                      error_t=np.ones(n - 1), request=np.isin(steps, requests),
+                      error_t=np.ones(n - 1), change_t=np.zeros(n - 1),
+                      request=np.isin(steps, requests),
                       trigger=['triggered' if k in requests else '' for k in steps],
                       ref=np.asarray(ref, float).reshape(n - 1, 1), compute=[0.2])
 

@@ -35,9 +35,10 @@ hysteresis in :mod:`metampc_controller.adaptation_trigger`): every MpcStatus car
 model's one-step and T-step prediction errors and the detector's state; a tick that asks for
 adaptation sets ``adapt_request`` (the learner adapts on the samples up to that step and
 answers with weights whose ``request_step`` names it). Under a lockstep plant the answer of
-the request's ``swap_step`` waits for that model (a 2-ms timer resumes it; after
-``adapt_timeout`` s the model in use is kept), so a seeded run swaps at the same step on any
-machine; in real time the model is used from the tick after it was built and nothing waits.
+the request's ``swap_step`` waits for that model (a 2-ms timer resumes it), so a seeded run
+swaps at the same step on any machine; in real time the model is used from the tick after
+it was built and nothing waits. A request no model answers within ``adapt_timeout`` s of
+wall time is given up in either mode (the model in use is kept; the next may follow).
 The NMPC yardstick takes theta from every y (a plant under a theta_schedule).
 
 Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
@@ -75,6 +76,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
+from metampc_controller.adaptation_trigger import Request
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
                                                 PlantDescription, TickResult)
 from metampc_controller.controller_params import ControllerConfig, PARAMETERS, parse_params
@@ -132,7 +134,6 @@ class ControllerNode(Node):
         # when the builder thread has it (or after adapt_timeout s of wall time). A polling
         # timer, only while an answer waits: the EventsExecutor has no guard conditions.
         self._hold_timer = None
-        self._hold_since = 0.0
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / self.cfg.rate_hz, self._on_timer)
         self._config_version = 0
@@ -175,7 +176,6 @@ class ControllerNode(Node):
         plant, once the model its adaptation request waits for is there)."""
         if self.core.waits_for_model():
             if self._hold_timer is None:
-                self._hold_since = time.monotonic()
                 self._hold_timer = self.create_timer(HOLD_POLL_S, self._on_hold,
                                                      clock=self._steady)
             return
@@ -231,6 +231,7 @@ class ControllerNode(Node):
         status.detector_statistic, status.detector_baseline = trigger.statistic, trigger.baseline
         self._pub_status.publish(status)
         if request is not None:
+            self._watch_request(request)
             self._counts['adapt_requests'] += 1
             self.get_logger().info(
                 f'adaptation request at step {request.step} ({request.trigger}, model '
@@ -329,20 +330,27 @@ class ControllerNode(Node):
 
     def _on_hold(self) -> None:
         """An answer waits for a requested model (lockstep): answer once the builder thread
-        has queued it, or go on with the model in use after adapt_timeout s."""
-        core = self.core
-        pending = core.trigger.pending
-        if core.waits_for_model():
-            if time.monotonic() - self._hold_since < self.cfg.trigger.adapt_timeout:
-                return
-            core.trigger.give_up()
-            self._warn('adapt_timeouts', f'no model answered the adaptation request of step '
-                       f'{pending.step} within {self.cfg.trigger.adapt_timeout} s: going on '
-                       f'with model version {pending.version}')
+        has queued it, or once the request was given up (:meth:`_on_request_timeout`)."""
+        if self.core.waits_for_model():
+            return
         self.destroy_timer(self._hold_timer)
         self._hold_timer = None
         if self.rule.active and self.rule.unanswered:
             self._answer(time.perf_counter())
+
+    def _watch_request(self, request: Request) -> None:
+        """Give `request` up after adapt_timeout s of wall time if no model answered it by
+        then (in either clock mode: an unanswered request blocks the next ones)."""
+        def expire():
+            self.destroy_timer(timer)
+            if self.core.trigger.pending is not request:     # answered (or given up) already
+                return
+            self.core.trigger.give_up()
+            self._warn('adapt_timeouts', f'no model answered the adaptation request of step '
+                       f'{request.step} within {self.cfg.trigger.adapt_timeout} s: going on '
+                       f'with model version {request.version}')
+            self._on_hold() if self._hold_timer is not None else None
+        timer = self.create_timer(self.cfg.trigger.adapt_timeout, expire, clock=self._steady)
 
     def _on_weights(self, msg: NssmWeights) -> None:
         """Hand the weights to the builder thread (arrival order is kept)."""

@@ -215,7 +215,7 @@ class LearnerNode(Node):
         msg = NssmWeights(version=record.version, method=record.method, stage=record.stage,
                           train_loss=float(record.train_loss), train_steps=record.train_steps,
                           train_samples=record.train_samples, seed=record.seed,
-                          request_step=request_step,
+                          train_time=float(record.train_time), request_step=request_step,
                           **fields_from_weights(model.config, model.norm, record.params))
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_weights.publish(msg)

@@ -68,6 +68,7 @@ class ModelRecord:
         train_steps: outer steps (meta) or adaptation steps (adapted).
         train_samples: samples trained on.
         seed: seed of the run.
+        train_time: wall time the training took, s (0 for a loaded model).
     """
 
     model: Nssm
@@ -79,6 +80,7 @@ class ModelRecord:
     train_steps: int
     train_samples: int
     seed: int
+    train_time: float = 0.0
 
 
 @dataclass
@@ -236,7 +238,7 @@ class LearnerSession:
         record = self._new_record(model=model, params=result.params, method=config.method,
                                   stage='meta', train_loss=final,
                                   train_steps=config.iterations, train_samples=samples,
-                                  seed=config.seed)
+                                  seed=config.seed, train_time=result.elapsed)
         return MetaOutcome(record, list(result.losses), final, result.skipped,
                            collector.stats if collector else None, result.collected_samples,
                            result.dropped_samples, result.elapsed)
@@ -330,7 +332,7 @@ class LearnerSession:
         record = self._new_record(
             model=model, params=result.params, method=job.method or meta.method,
             stage='adapted', train_loss=result.train_loss[-1], train_steps=job.steps,
-            train_samples=_samples(train), seed=seed)
+            train_samples=_samples(train), seed=seed, train_time=result.elapsed)
         return AdaptOutcome(record, result, used, _samples(train), _samples(held))
 
     def loop_adapt(self, version: int, samples: TargetSamples,
@@ -365,7 +367,7 @@ class LearnerSession:
         new = self._new_record(model=model, params=result.params, method=record.method,
                                stage='online', train_loss=result.train_loss[-1],
                                train_steps=loop.steps, train_samples=_samples(train),
-                               seed=record.seed)
+                               seed=record.seed, train_time=result.elapsed)
         return AdaptOutcome(new, result, used, _samples(train), 0)
 
 
