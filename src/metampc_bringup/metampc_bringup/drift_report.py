@@ -99,7 +99,7 @@ def run_signals(recording, runs: Dict[str, Dict[str, Any]]) -> Dict[str, RunSign
             last = run['end'] - STAMP_TOL if answer else run['end'] + STAMP_TOL
             if run['start'] - STAMP_TOL <= stamp <= last:
                 rows[name]['status' if answer else 'out'].append((stamp - run['start'], msg))
-            # The learner's training time of every online model, by version (NssmWeights.train_time;
+    # The learner's training time of every online model, by version (NssmWeights.train_time;
     # none in recordings made before the field).
     trained = {int(msg.version): float(msg.train_time) for _, _, msg in recording.decoded(
         [t.name for t in recording.topics.values() if t.type_name == NSSM_WEIGHTS])
@@ -163,6 +163,12 @@ def recovery_time(ratio: np.ndarray, t: np.ndarray, t_change: float,
     return float(t[back[0]] - t_change) if back else None
 
 
+def _mean(values: np.ndarray) -> Optional[float]:
+    """The mean of the finite values; None when there is none (a run that escaped early)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else None
+
+
 def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[float],
                 tracked: Sequence[int]) -> Dict[str, Any]:
     """The metrics of one run (module docstring); `t_change` None: a constant run."""
@@ -172,23 +178,20 @@ def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[
     swaps = [int(sig.step[i]) for i in range(1, len(sig.step))
              if sig.model_version[i] != sig.model_version[i - 1]]
     out: Dict[str, Any] = {
-        'steps': int(len(sig.step)), 'cost': float(np.nanmean(e2)),
+        'steps': int(len(sig.step)), 'cost': _mean(e2),
         'requests': [[int(k), tr] for k, r, tr in zip(sig.step, sig.request, sig.trigger) if r],
         'swaps': swaps, 'compute_s': sig.compute,
         'adaptations': len(swaps)}
     if t_change is None:
         return out
     before, after = t <= t_change, t > t_change
-    out['cost_before'] = float(np.nanmean(e2[before]))
-    out['cost_after'] = float(np.nanmean(e2[after]))
+    out['cost_before'], out['cost_after'] = _mean(e2[before]), _mean(e2[after])
     if nmpc is not None:
         ref = squared_errors(nmpc, tracked)
         n = min(len(ref), len(e2))
-        base_before, base_after = before[:n], after[:n]
-        out['ratio_before'] = float(np.nanmean(e2[:n][base_before])
-                                    / np.nanmean(ref[:n][base_before]))
-        out['ratio_after'] = float(np.nanmean(e2[:n][base_after])
-                                   / np.nanmean(ref[:n][base_after]))
+        for key, part in (('ratio_before', before[:n]), ('ratio_after', after[:n])):
+            mine, yardstick = _mean(e2[:n][part]), _mean(ref[:n][part])
+            out[key] = None if mine is None or not yardstick else mine / yardstick
         window = max(1, int(round(MOVING_WINDOW_S / dt)))
         with np.errstate(invalid='ignore', divide='ignore'):
             ratio = moving_cost(e2[:n], window) / moving_cost(ref[:n], window)
@@ -307,8 +310,8 @@ def drift_experiment_report(seed_reports: List[Dict], out_dir: str, config: Dict
     return report
 
 
-def _fmt(v: Optional[float], unit: str = '') -> str:
-    return 'never' if v is None else f'{v:.3g}{unit}'
+def _fmt(v: Optional[float], unit: str = '', none: str = 'never') -> str:
+    return none if v is None else f'{v:.3g}{unit}'
 
 
 def drift_markdown(report: Dict[str, Any], drift: DriftConfig) -> str:
@@ -324,14 +327,15 @@ def drift_markdown(report: Dict[str, Any], drift: DriftConfig) -> str:
     for name, row in report['table'].items():
         rec, after, before = row['recovery_s'], row['ratio_after'], row['ratio_before']
         counts = [c for c in row['adaptations'] if c is not None]
-        compute = _fmt(np.median(row['compute_s']) if row['compute_s'] else None, ' s')
+        compute = _fmt(np.median(row['compute_s']) if row['compute_s'] else None, ' s', '-')
         if name.endswith('/constant'):
             lines.append(f'| {name} (constant theta: spurious) | | | | {sum(counts)} in '
                          f'{len(counts)} runs | {compute} | {row["escapes"]} |')
             continue
         lines.append(
             f'| {name} | {_fmt(rec["median"], " s")} ({_fmt(rec["worst"], " s")}) | '
-            f'{_fmt(after["median"])} ({_fmt(after["worst"])}) | {_fmt(before["median"])} | '
+            f'{_fmt(after["median"], none="-")} ({_fmt(after["worst"], none="escaped")}) | '
+            f'{_fmt(before["median"], none="-")} | '
             f'{np.median(counts) if counts else "-"} | {compute} | {row["escapes"]} |')
     lines += ['', 'Figures per seed: `seed_<s>/drift_<method>.png`.', '']
     return '\n'.join(lines)
