@@ -220,7 +220,7 @@ def plot_run(signals: Dict[str, RunSignals], method: str, dt: float, floor: floa
         if len(sig.theta) and sig.theta.shape[1]:
             bx.plot(sig.t, sig.theta[:, 0], color=line.get_color(), lw=0.9)
     ax.set_ylabel('relative T-step error E / (D + floor)')
-    ax.set_title(f'{method}: prediction error (x: requests, dotted: swaps)')
+    ax.set_title(f'{method}: relative T-step prediction error (x: requests, dotted: swaps)')
     ax.legend(fontsize=8)
     bx.set_ylabel('theta[0]')
     bx.set_xlabel('t [s]')

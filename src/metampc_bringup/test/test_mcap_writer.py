@@ -130,10 +130,14 @@ def test_unfinished_file_reads_up_to_its_last_complete_chunk(tmp_path, compressi
                                                              complete_chunk_messages):
     path = str(tmp_path / 'run.mcap')
     writer, _ = _write_run(path, compression, chunk_size=512, close=False)
+    # One more small message opens a chunk that cannot be complete yet, wherever the run's
+    # last message put the chunk boundary (it moves with the message definitions' sizes).
+    writer.write('/chatter', _encoder('std_msgs/msg/String')({'data': 'tail'}),
+                 2_000_000_000, 2_000_000_000, 3)
     # What a SIGKILL would leave: the writer holds no user-space buffer, so this is the file.
     left = Path(path).read_bytes()
     in_chunks = complete_chunk_messages(left)
-    assert 0 < in_chunks < 34
+    assert 0 < in_chunks < 35
     cut = tmp_path / 'cut.mcap'
     cut.write_bytes(left)
     recording = read_recording(str(cut))
@@ -150,4 +154,4 @@ def test_unfinished_file_reads_up_to_its_last_complete_chunk(tmp_path, compressi
         assert steps == list(range(len(steps)))
     writer.close()
     recording = read_recording(path)
-    assert recording.complete and len(recording.messages) == 34
+    assert recording.complete and len(recording.messages) == 35
