@@ -231,19 +231,20 @@ class ExperimentConfig:
         return params
 
     def meta_request(self, method: str) -> Dict[str, Any]:
-        """The MetaTrain request fields of `method` under the protocol."""
+        """The MetaTrain request fields of `method` under the protocol, typed as the request's
+        fields (a YAML ``1`` for a double is 1.0)."""
         fields = dict(self.meta_train.get(method) or {})
         if self.protocol == 'paper':
             fields['online_collection'] = True
-        return fields
+        return _typed(f'meta_train.{method}', fields, MetaTrain.Request)
 
     def adapt_request(self, method: str) -> Dict[str, Any]:
-        """The Adapt request fields of `method` under the protocol."""
+        """The Adapt request fields of `method` under the protocol, typed as the request's."""
         fields = dict(self.adapt.get(method) or {})
         if self.protocol == 'paper' and method in ('imaml', 'maml', 'supervised'):
             fields['gamma'] = (float(self.meta_train['imaml']['gamma']) if method == 'imaml'
                                else 0.0)
-        return fields
+        return _typed(f'adapt.{method}', fields, Adapt.Request)
 
     def node_config(self, node: str, seed: int) -> Any:
         """The typed configuration that the learner or controller node parses from its
@@ -359,6 +360,32 @@ def _check_node(node: str, params: Dict[str, Any], table, parse) -> Any:
         raise ConfigError(f'{node}: {err}') from None
 
 
+_FLOATS, _INTS = ('double', 'float'), ('int32', 'uint32', 'int64', 'uint64')
+
+
+def _typed(where: str, fields: Dict[str, Any], request_type) -> Dict[str, Any]:
+    """`fields` converted to the request's field types: an integer where a double is wanted
+    is that number (the generated message code aborts the process on an int there), a whole
+    float where an integer is wanted is that integer; ConfigError for anything else."""
+    types = request_type.get_fields_and_field_types()
+    out = {}
+    for name, value in fields.items():
+        kind = types.get(name)
+        try:
+            if kind in _FLOATS and not isinstance(value, bool):
+                value = float(value)
+            elif kind in _INTS and not isinstance(value, bool):
+                if float(value) != int(value):
+                    raise ValueError('not a whole number')
+                value = int(value)
+            elif kind == 'boolean' and not isinstance(value, bool):
+                raise ValueError('not true or false')
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f'{where}.{name}: {value!r} is not a {kind} ({err})') from None
+        out[name] = value
+    return out
+
+
 def _check_requests(section: str, requests: Dict[str, Dict[str, Any]], methods, allowed) -> None:
     for method, request in requests.items():
         if method not in methods:
@@ -368,6 +395,8 @@ def _check_requests(section: str, requests: Dict[str, Dict[str, Any]], methods, 
         if extra:
             raise ConfigError(f'{section}.{method}: unknown field(s) {", ".join(extra)} '
                               f'(allowed: {", ".join(sorted(allowed))})')
+        _typed(f'{section}.{method}', request or {},
+               MetaTrain.Request if section == 'meta_train' else Adapt.Request)
 
 
 # Keys of earlier versions, with the only value the current code reproduces: the van der Pol

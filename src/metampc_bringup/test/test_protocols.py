@@ -35,3 +35,21 @@ def test_bad_protocol_and_paper_without_imaml_gamma_are_refused():
     with pytest.raises(ConfigError, match='set meta_train.imaml.gamma'):
         from_mapping({'protocol': 'paper'}).validate()
     from_mapping({'protocol': 'paper', 'methods': ['maml', 'nmpc']}).validate()
+
+
+def test_request_fields_take_the_requests_types():
+    """A YAML integer where a request wants a double is that double (the generated message
+    code aborted the process on it: a pendulum run stopped so); a field that cannot be the
+    request's type is one ConfigError naming it."""
+    from metampc_msgs.srv import Adapt, MetaTrain
+    config = from_mapping({'meta_train': {'imaml': {'lr_outer': 1, 'batch_size': 4.0}},
+                           'adapt': {'imaml': {'lr': 1, 'steps': 3}}}).validate()
+    meta, adapt = config.meta_request('imaml'), config.adapt_request('imaml')
+    assert meta == {'lr_outer': 1.0, 'batch_size': 4} and type(meta['lr_outer']) is float
+    assert MetaTrain.Request(method='imaml', **meta).lr_outer == 1.0
+    assert Adapt.Request(method='imaml', **adapt).lr == 1.0
+    for bad, match in (({'iterations': 4.5}, 'meta_train.imaml.iterations: 4.5 is not a uint32'),
+                       ({'lr_outer': 'fast'}, "meta_train.imaml.lr_outer: 'fast' is not a double"),
+                       ({'online_collection': 1}, 'is not a boolean')):
+        with pytest.raises(ConfigError, match=match):
+            from_mapping({'meta_train': {'imaml': bad}}).validate()
