@@ -168,7 +168,10 @@ class ExperimentClient(SpunNode):
     def start(self, name: str, request: Any) -> Any:
         """Send a request to service `name` and return its future at once: the caller does
         other work meanwhile and then :meth:`finish` es it (or cancels it on failure)."""
-        future = self.clients[name].call_async(request)
+        return self._send(self.clients[name], request)
+
+    def _send(self, client: Any, request: Any) -> Any:
+        future = client.call_async(request)
         future.add_done_callback(lambda _: self._notify())
         return future
 
@@ -244,17 +247,11 @@ class ExperimentClient(SpunNode):
             raise ExperimentError(f'{what}: {node_name} offers no set_parameters service')
         request = SetParameters.Request(parameters=[
             Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
-        response = self.call_raw(client, request, 10.0, what)
+        response = self.finish(self._send(client, request), 10.0, what)
         refused = [f'{name}: {r.reason}' for name, r in zip(values, response.results)
                    if not r.successful]
         if refused:
             raise ExperimentError(f'{what}: {"; ".join(refused)}')
-
-    def call_raw(self, client: Any, request: Any, timeout: float, what: str) -> Any:
-        """Call a client that is not one of the run's services; its response."""
-        future = client.call_async(request)
-        future.add_done_callback(lambda _: self._notify())
-        return self.finish(future, timeout, what)
 
     # --- events ----------------------------------------------------------------------------
 

@@ -330,7 +330,7 @@ class ControllerNode(Node):
 
     def _on_hold(self) -> None:
         """An answer waits for a requested model (lockstep): answer once the builder thread
-        has queued it, or once the request was given up (:meth:`_on_request_timeout`)."""
+        has queued it, or once the request was given up (:meth:`_watch_request`)."""
         if self.core.waits_for_model():
             return
         self.destroy_timer(self._hold_timer)
@@ -349,7 +349,8 @@ class ControllerNode(Node):
             self._warn('adapt_timeouts', f'no model answered the adaptation request of step '
                        f'{request.step} within {self.cfg.trigger.adapt_timeout} s: going on '
                        f'with model version {request.version}')
-            self._on_hold() if self._hold_timer is not None else None
+            if self._hold_timer is not None:    # the answer waiting for it goes on now
+                self._on_hold()
         timer = self.create_timer(self.cfg.trigger.adapt_timeout, expire, clock=self._steady)
 
     def _on_weights(self, msg: NssmWeights) -> None:

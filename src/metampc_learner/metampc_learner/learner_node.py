@@ -52,7 +52,7 @@ from concurrent.futures import ThreadPoolExecutor
 import sys
 import threading
 import traceback
-from typing import Optional
+from typing import Any, Optional, Tuple
 
 from metampc_common.node_main import declare_parameters, LiveParameters, run_node
 from metampc_common.params import ParameterError
@@ -241,37 +241,49 @@ class LearnerNode(Node):
         self.get_logger().warning(message)
         return response
 
-    async def _run(self, response, phase: str, method: str, total: int, train):
-        """Run train() as the claimed job; fill response.success/message, return the outcome.
+    def _job(self, phase: str, method: str, total: int, train, what: str,
+             request_step: int = 0) -> Tuple[Any, str, bool]:
+        """Run train() as the claimed job: progress at its start and end, the model
+        published (with `request_step`), the slot released. Returns (outcome or None, the
+        message, cancelled).
 
-        train() returns (outcome, record, message) or raises one of REQUEST_ERRORS. The job
-        runs synchronously in the calling executor thread (no await on the way). A job
-        cancelled by destroy_node is never answered: the node and its services are being
-        destroyed, and rclpy (Jazzy) has no deferred response, so the callback awaits a
-        future that never completes instead of returning a response to a destroyed service.
+        train() returns (outcome, record, message) or raises one of REQUEST_ERRORS (the
+        message is then '`what` failed: ...'); it runs synchronously in the calling thread.
+        A job cancelled by destroy_node publishes nothing more.
         """
         with self._progress_lock:
             self._publish_progress(self._slot.describe(phase, method, total))
-        outcome = None
+        outcome, cancelled = None, False
         try:
             outcome, record, message = train()
         except JobCancelled:
-            self._slot.release(False)
-            await Future()
+            cancelled, message = True, f'{what} cancelled'
         except REQUEST_ERRORS as err:
-            response.success, response.message = False, f'{phase} failed: {err}'
-            self.get_logger().warning(response.message)
+            message = f'{what} failed: {err}'
+            self.get_logger().warning(message)
         except Exception as err:  # a bug: say so, keep serving
-            response.success, response.message = False, f'{phase} failed: internal error {err!r}'
-            self.get_logger().error(response.message + '\n' + traceback.format_exc())
+            message = f'{what} failed: internal error {err!r}'
+            self.get_logger().error(message + '\n' + traceback.format_exc())
         else:
-            self._publish_weights(record)
-            response.success, response.message = True, message
+            self._publish_weights(record, request_step)
             self.get_logger().info(message)
         with self._progress_lock:
             final = self._slot.release(outcome is not None)
-            if final is not None:
+            if final is not None and not cancelled:
                 self._publish_progress(final)
+        return outcome, message, cancelled
+
+    async def _run(self, response, phase: str, method: str, total: int, train):
+        """A service's job (:meth:`_job`): fill response.success/message, return the outcome.
+
+        A job cancelled by destroy_node is never answered: the node and its services are being
+        destroyed, and rclpy (Jazzy) has no deferred response, so the callback awaits a
+        future that never completes instead of returning a response to a destroyed service.
+        """
+        outcome, message, cancelled = self._job(phase, method, total, train, phase)
+        if cancelled:
+            await Future()
+        response.success, response.message = outcome is not None, message
         return outcome
 
     async def _on_meta_train(self, request: MetaTrain.Request, response: MetaTrain.Response
@@ -351,34 +363,20 @@ class LearnerNode(Node):
         if not self._slot.claim():
             self.get_logger().warning(f'{what} refused: {self._slot.busy_reason()}')
             return
-        record = self.session.records.get(version)
-        with self._progress_lock:
-            self._publish_progress(self._slot.describe(
-                'loop_adapt', record.method if record else '', self.cfg.loop.steps))
-        ok = False
-        try:
+
+        def train():
             if not self.recent.wait_for(step, SAMPLE_WAIT_S):
                 raise LearnerError(f'sample {step} did not arrive within {SAMPLE_WAIT_S} s')
             out = self.session.loop_adapt(version, self.recent.until(step, self._loop_window),
                                           self._slot.report)
-            self._publish_weights(out.record, request_step=step)
-            loss = out.result.train_loss
-            self.get_logger().info(
-                f'{what}: {out.record.method} model v{out.record.version} (stage online) on '
-                f'{out.train_samples} samples in {out.result.elapsed:.2f} s, window loss '
-                f'{loss[0]:.4g} -> {loss[-1]:.4g}')
-            ok = True
-        except JobCancelled:
-            pass
-        except REQUEST_ERRORS as err:
-            self.get_logger().warning(f'{what} failed: {err}')
-        except Exception as err:  # a bug: say so, keep serving
-            self.get_logger().error(f'{what} failed: internal error {err!r}\n'
-                                    + traceback.format_exc())
-        with self._progress_lock:
-            final = self._slot.release(ok)
-            if final is not None:
-                self._publish_progress(final)
+            rec, loss = out.record, out.result.train_loss
+            return out, rec, (f'{what}: {rec.method} model v{rec.version} (stage online) on '
+                              f'{out.train_samples} samples in {out.result.elapsed:.2f} s, '
+                              f'window loss {loss[0]:.4g} -> {loss[-1]:.4g}')
+
+        record = self.session.records.get(version)
+        self._job('loop_adapt', record.method if record else '', self.cfg.loop.steps, train,
+                  what, request_step=step)
 
     def destroy_node(self) -> None:
         """Cancel a running job, wait for it to stop at its next step, destroy the node."""

@@ -20,7 +20,7 @@ from typing import Deque, Tuple
 import numpy as np
 
 from metampc_common.params import check_fields, param
-from metampc_learner.target_buffer import TargetSamples
+from metampc_learner.target_buffer import TargetSamples, usable
 
 
 @dataclass
@@ -73,8 +73,7 @@ class RecentSamples:
             self.last_step = int(step)
             u = np.array(u, dtype=np.float64).reshape(-1)
             y = np.array(y, dtype=np.float64).reshape(-1)
-            if (step > 0 and not diverged and u.size and y.size
-                    and np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+            if usable(step, u, y, diverged):
                 self._samples.append((int(step), u, y))
             self._cond.notify_all()
 

@@ -36,6 +36,13 @@ class TargetSamples:
         return self.steps.shape[0]
 
 
+def usable(step: int, u: np.ndarray, y: np.ndarray, diverged: bool) -> bool:
+    """Whether a sample can be trained on: not y_0 of an episode (no input produced it), not
+    diverged, u and y non-empty and finite."""
+    return (step > 0 and not diverged and u.size > 0 and y.size > 0
+            and bool(np.all(np.isfinite(u))) and bool(np.all(np.isfinite(y))))
+
+
 class TargetBuffer:
     """The first `capacity` valid target samples since the last :meth:`start` (see module)."""
 
@@ -96,8 +103,7 @@ class TargetBuffer:
             y = np.array(y, dtype=np.float64).reshape(-1)
             shape_ok = not self._steps or (u.shape == self._u[0].shape
                                            and y.shape == self._y[0].shape)
-            if (diverged or step == 0 or not shape_ok or u.size == 0 or y.size == 0
-                    or not (np.all(np.isfinite(u)) and np.all(np.isfinite(y)))):
+            if not (shape_ok and usable(step, u, y, diverged)):
                 self.skipped += 1
                 return False
             self._steps.append(int(step))
@@ -143,4 +149,4 @@ def split_target(samples: TargetSamples, n_samples: int, heldout_fraction: float
     return _runs(parts[0], state_bound), _runs(parts[1], state_bound), n
 
 
-__all__ = ['TargetSamples', 'TargetBuffer', 'split_target']
+__all__ = ['TargetSamples', 'TargetBuffer', 'split_target', 'usable']

@@ -99,7 +99,6 @@ class PlantNode(Node):
         self._requested_u = self._zero_u  # realtime: latest accepted input, before saturation
         self._y0 = self.plant.output()  # y_0 of the first episode, drawn before any step
         self._n_resets = 0
-        self._boundaries = 0    # the schedule's segment starts and ends the episode has passed
         self._events = EventCounts(self, COUNTERS)
         self._counts = self._events.counts
         self._warn = self._events.warn
@@ -209,10 +208,10 @@ class PlantNode(Node):
         """Hold u_requested (finite) over one sample, then publish y_{k+1}."""
         u, saturated = self.plant.saturate(u_requested)
         was_diverged = self.plant.diverged
+        schedule = self.plant.schedule
+        passed = schedule.boundaries_passed(self.plant.time)
         y = self.plant.step(u)
-        passed = self.plant.schedule.boundaries_passed(self.plant.time)
-        if passed != self._boundaries:
-            self._boundaries = passed
+        if schedule.boundaries_passed(self.plant.time) != passed:   # a segment starts or ends
             self.get_logger().info(f'theta {list(self.plant.theta)} from step '
                                    f'{self.plant.step_index} (t = {self.plant.time:g} s)')
             self._publish_info()
@@ -313,7 +312,6 @@ class PlantNode(Node):
                               list(request.theta_schedule) or None)
         self._held_u = self._requested_u = self._zero_u
         self._n_resets += 1
-        self._boundaries = 0
         self._publish_info()
         self._end_gate()  # a reset before the lockstep start starts it
         self._publish_y(y0, self._zero_u, False)
