@@ -70,10 +70,13 @@ def run(procs, probe, tmp_path, adaptation: str, name: str):
     probe.wait_for(lambda: probe.call(buffering, SetBuffering.Request(buffering=False), 10.0,
                                       resend_every=3.0).matched_publishers == 1, 60.0,
                    "the learner's y matched to the plant")
-    # The learner's meta-model (version 1) in the controller, y_0 held: then activate, bounded.
-    probe.wait_for(lambda: probe.call(client, SetActive.Request(active=False), 10.0,
-                                      resend_every=3.0).model_version == 1
-                   and 0 in ys, 60.0, 'the meta-model in the controller')
+    # The learner's meta-model (version 1) in the controller and y_0 held by the controller
+    # itself (what the probe received says nothing of it): then activate, bounded.
+
+    def ready() -> bool:
+        held = probe.call(client, SetActive.Request(active=False), 10.0, resend_every=3.0)
+        return held.model_version == 1 and held.latest_step == 0
+    probe.wait_for(ready, 60.0, 'the meta-model and y_0 in the controller')
     answer = probe.call(client, SetActive.Request(active=True, until_step=STEPS - 1), 10.0)
     assert answer.answered_step == 0, answer
     probe.wait_for(lambda: STEPS - 1 in status, 120.0, f'{STEPS} answered steps')

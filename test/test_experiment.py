@@ -155,16 +155,30 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
         assert 'Wall time: not recorded (report rebuilt from the recordings).' in f.read()
 
 
-def _pids_in_domain(domain: int):
-    """Live processes whose environment has ROS_DOMAIN_ID=domain (claimed by one run)."""
+def _uptime() -> float:
+    """Seconds since boot: the clock of /proc/<pid>/stat's start times."""
+    with open('/proc/uptime') as f:
+        return float(f.read().split()[0])
+
+
+def _pids_in_domain(domain: int, started_before: float = math.inf):
+    """Live processes whose environment has ROS_DOMAIN_ID=domain (claimed by one run) and
+    that started before `started_before` (s since boot). A run gives its domain back when it
+    ends, and another test session on the machine may claim it at once: its processes start
+    after the run ended and are not the run's leftovers."""
+    tick = os.sysconf('SC_CLK_TCK')
     pids = []
     for entry in filter(str.isdigit, os.listdir('/proc')):
         try:
             with open(f'/proc/{entry}/environ', 'rb') as f:
-                if f'ROS_DOMAIN_ID={domain}'.encode() in f.read().split(b'\0'):
-                    pids.append(int(entry))
+                if f'ROS_DOMAIN_ID={domain}'.encode() not in f.read().split(b'\0'):
+                    continue
+            with open(f'/proc/{entry}/stat') as f:
+                started = int(f.read().rsplit(')', 1)[1].split()[19]) / tick
         except OSError:
             continue
+        if started < started_before:
+            pids.append(int(entry))
     return pids
 
 
@@ -194,9 +208,10 @@ def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
     out = str(tmp_path / 'run')
     # Interrupt once meta-training has started: every node is up then.
     code, text = _interrupt_after_collection(['--out', out, '--methods', 'imaml'], 1, 60)
+    ended = _uptime()
     assert code == 130, text
     domain = int(re.search(r'ROS_DOMAIN_ID=(\d+)', text).group(1))
-    assert _pids_in_domain(domain) == [], 'processes left behind'
+    assert _pids_in_domain(domain, ended) == [], 'processes left behind'
     events, outputs, _, _ = read_with_rosbags(os.path.join(out, 'seed_0', 'recording.mcap'))
     assert events[0]['event'] == 'start' and len(outputs) >= 60
 
@@ -248,12 +263,13 @@ def test_ctrl_c_while_the_nodes_start_leaves_no_process(tmp_path):
             time.sleep(0.002)
         os.killpg(proc.pid, signal.SIGINT)
         text = ''.join(lines) + proc.communicate(timeout=60)[0]
+        ended = _uptime()
     finally:
         if proc.poll() is None:
             for pid in session_pids(proc.pid):
                 os.kill(pid, signal.SIGKILL)
     assert proc.returncode == 130 and 'Traceback' not in text, text
-    assert _pids_in_domain(domain) == [], 'processes left behind'
+    assert _pids_in_domain(domain, ended) == [], 'processes left behind'
 
 
 def test_config_errors_name_the_key(tmp_path):
@@ -335,11 +351,12 @@ def test_ctrl_c_with_jobs_2_stops_every_seed(tmp_path):
     out = str(tmp_path / 'run')
     code, text = _interrupt_after_collection(
         ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'], 2, 120)
+    ended = _uptime()
     assert code == 130, text
     domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
     assert len(domains) == 2, text
     for domain in domains:
-        assert _pids_in_domain(domain) == [], f'processes left behind in domain {domain}'
+        assert _pids_in_domain(domain, ended) == [], f'processes left behind in domain {domain}'
     for seed in (0, 1):
         events, outputs, _, _ = read_with_rosbags(
             os.path.join(out, f'seed_{seed}', 'recording.mcap'))
