@@ -26,6 +26,7 @@ from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.mpc import LatentMpc, MpcConfig
+from metampc_controller.offset_free import disturbance_model
 from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
 from metampc_controller.prediction_error import PredictionError
 from metampc_controller.predictor import NssmPredictor
@@ -450,6 +451,12 @@ class ControllerCore:
             exceeding = bounds_exceeding(*config.mpc.bounds(self.n_u), plant)
             if exceeding:
                 return f'{exceeding} (plant_info): a change must stay within them'
+        model = self.model
+        if model is not None and config.mpc.offset_free != 'off':
+            try:
+                disturbance_model(model.predictor.latent, config.mpc.offset_free)
+            except ValueError as err:
+                return f'{err}, for the model in use (version {model.version})'
         return ''
 
     def retune(self, config: ControllerConfig, version: int) -> None:
@@ -590,7 +597,7 @@ class ControllerCore:
             z = model.predictor.encode(u_hist, y_hist)
             errors = model.prediction.update(step, u_prev, history.y, z)
             request = self.trigger.update(step, self.dt, errors[1], errors[2], model.version)
-            res = model.mpc.solve(z, u_prev, y_ref)
+            res = model.mpc.solve(z, u_prev, y_ref, history.y, step)
             version, fallback, terminal_fallback = (model.version, res.fallback,
                                                     res.terminal_fallback)
         else:

@@ -379,7 +379,8 @@ class ControllerNode(Node):
             f'n_z={cfg.n_z}, encoder {list(cfg.hidden)}) in use from '
             + (f'step {requested} (it answers the request of step {msg.request_step})'
                if requested is not None else 'the next tick')
-            + (f'; terminal cost fallback: {term.reason}' if term.fallback else ''))
+            + (f'; terminal cost fallback: {term.reason}' if term.fallback else '')
+            + f'; offset-free {bundle.mpc.describe_offset_free()}')
 
     def _reject(self, msg: NssmWeights, reason: str) -> None:
         """Keep the model in use; report the reason in model_status and one log line."""

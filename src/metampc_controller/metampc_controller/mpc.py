@@ -16,10 +16,14 @@ The k = 0 output term of eq. (mpc) is fixed by z_t and left out; the terminal te
 k = N output term (P from the DARE, or Q on the output error in the fallback). Substituting
 the predictions (eq. (compact) unrolled) makes J a linear least-squares residual in U::
 
-    J(U) = ||L U - b(w)||^2,   b(w) = G w,   w = [z_t; u_t; r_{t+1}; ...; r_{t+N}; 1]
+    J(U) = ||L U - b(w)||^2,   b(w) = G w,
 
-so the QP is ``min 1/2 U' H U + q' U`` with H = 2 L'L fixed per model and q = -2 L' b(w), and the
-only constraints are the box ``l <= I U <= u``. Per tick only q changes: one matrix-vector
+    w = [z_t; u_t; r_{t+1}; ...; r_{t+N}; e'; d'; s_ss]
+
+(e', d' the model's constants, corrected by the offset-free disturbance estimate; s_ss the
+terminal cost's steady state, see offset_free), so the QP is ``min 1/2 U' H U + q' U`` with
+H = 2 L'L fixed per model and q = -2 L' b(w), and the only constraints are the box
+``l <= I U <= u``. Per tick only q changes: one matrix-vector
 product (set_model() builds everything else, and the OSQP factorisation, once). A condensed
 QP (N n_u variables, no equality constraints) is chosen over the sparse form because the only
 constraints are on inputs: OSQP's KKT system is then tiny and every returned plan satisfies the
@@ -32,11 +36,16 @@ or non-finite data (z_t, u_t, r) give the previous plan shifted by one step (las
 repeated), or u_t held before any plan exists, clipped into the bounds and flagged
 ``fallback``. solve() never returns a non-finite or out-of-bounds input.
 
+Offset-free tracking (``offset_free``, default 'state'; 'off' is eq. (mpc) as the paper writes
+it): solve() given the measured y_t updates the disturbance estimate of
+:mod:`~metampc_controller.offset_free` and plans with the corrected model, its terminal cost
+centred on the bounded steady-state target. Only vectors of the QP change (e', d', s_ss in w).
+
 Use::
 
     mpc = LatentMpc(MpcConfig(horizon=20))
     mpc.set_model(latent_model)                  # outside the control tick
-    result = mpc.solve(z_t, u_t, y_ref)          # each tick; apply result.u over (t, t+1]
+    result = mpc.solve(z_t, u_t, y_ref, y_t, t)  # each tick; apply result.u over (t, t+1]
 """
 from dataclasses import dataclass, field
 import math
@@ -49,6 +58,8 @@ import scipy.sparse as sp
 
 from metampc_common.params import check_fields, param
 from metampc_controller.latent_model import LatentModel
+from metampc_controller.offset_free import (DisturbanceEstimator, disturbance_model, FORMS,
+                                            SteadyStateTarget)
 from metampc_controller.terminal_cost import terminal_cost, TerminalCost
 
 Weights = Union[float, Sequence[float]]
@@ -89,6 +100,8 @@ class MpcConfig:
         adaptive_rho_interval: iterations between OSQP rho updates; fixed (not 0 = automatic
             by timing) so that iteration counts do not depend on the machine's speed. 25 gave
             the mean iterations of OSQP's 50 with a lower worst case (30 against 55).
+        offset_free: disturbance form of :mod:`~metampc_controller.offset_free`, or 'off'.
+        disturbance_gain: its estimator's filter gain g in (0, 1].
     """
 
     horizon: int = param(20, 'MPC horizon N, samples', ge=1, live=True)
@@ -101,6 +114,11 @@ class MpcConfig:
                                     'input; <= u_max)', scalar=True, live=True)
     u_max: Weights = param((1.0,), 'input upper bounds, one per input (one value: every '
                                    'input; >= u_min)', scalar=True, live=True)
+    offset_free: str = param('state', 'offset-free tracking: the integrating disturbance form '
+                                      '(state: latent and output, input, output; off: eq. mpc '
+                                      'as the paper writes it)', choices=FORMS, live=True)
+    disturbance_gain: float = param(0.3, 'offset-free estimator gain g of p <- (1 - g) p + g '
+                                         'p_inst (1: deadbeat)', gt=0, le=1, live=True)
     terminal_reg: float = 1e-6
     max_iter: int = param(500, 'OSQP iteration cap', ge=1)
     time_limit: float = param(0.05, 'OSQP wall-time cap per solve, s', gt=0)
@@ -167,6 +185,7 @@ class MpcResult:
         solve_time: wall-clock time of the whole solve() call, s.
         fallback: True when u_plan is the shifted previous plan (or held u_t), not a solution.
         terminal_fallback: True when the terminal weight is the output-weight fallback.
+        disturbance: (n_d,) offset-free disturbance estimate p the plan used (empty when off).
     """
 
     u: np.ndarray
@@ -178,6 +197,7 @@ class MpcResult:
     solve_time: float
     fallback: bool
     terminal_fallback: bool
+    disturbance: np.ndarray
 
 
 @dataclass
@@ -197,14 +217,14 @@ class QpSnapshot:
 class _Problem:
     """Everything solve() needs for one (model, config), swapped as one reference.
 
-    Per tick, with w = [z_t; u_t; r_{t+1..t+N}; 1] and m least-squares rows::
+    Per tick, with w = [z_t; u_t; r_{t+1..t+N}; e'; d'; s_ss] and m least-squares rows::
 
         [q; y0; b] = Gw w    q = -2 L'b: OSQP's linear cost, y0: free response of the outputs
                              (N n_y), b: target of L U (m)
         y_pred = Yu U + y0
 
-    Stacking everything the data determine into one matrix (constants in its last column)
-    makes the whole data-to-QP map a single matrix-vector product.
+    Stacking everything the data determine into one matrix makes the whole data-to-QP map a
+    single matrix-vector product.
     """
 
     model: LatentModel
@@ -213,11 +233,13 @@ class _Problem:
     P: sp.csc_matrix
     A: sp.csc_matrix
     L: np.ndarray          # (m, N n_u)
-    Gw: np.ndarray         # (N n_u + N n_y + m, n_z + n_u + N n_y + 1)
+    Gw: np.ndarray         # (N n_u + N n_y + m, n_z + n_u + N n_y + n_z + n_y + n_s)
     Yu: np.ndarray         # (N n_y, N n_u)
     lo: np.ndarray         # (N n_u,) bounds over the horizon
     hi: np.ndarray
     warm: bool             # MpcConfig.warm_start
+    target: SteadyStateTarget
+    estimator: Optional[DisturbanceEstimator]   # None: offset_free off
     w: np.ndarray = field(init=False)   # buffers reused every tick, and views into them
     qyb: np.ndarray = field(init=False)
     x_warm: np.ndarray = field(init=False)
@@ -231,12 +253,14 @@ class _Problem:
         n, n_ny = self.lo.size, self.Yu.shape[0]
         self.n_u, self.ref_shape = n_u, (n_ny // n_y, n_y)
         self.w = np.empty(self.Gw.shape[1])
-        self.w[-1] = 1.0
         self.qyb = np.empty(self.Gw.shape[0])
         self.x_warm = np.empty(n)
-        # (z_t, u_t, r (N, n_y)) slots of w; (q, y0, b) parts of qyb.
-        self.views = (self.w[:n_z], self.w[n_z:n_z + n_u], self.w[n_z + n_u:-1].reshape(
-                          self.ref_shape), self.qyb[:n], self.qyb[n:n + n_ny], self.qyb[n + n_ny:])
+        # (z_t, u_t, r (N, n_y), e', d', s_ss) slots of w; (q, y0, b) parts of qyb.
+        i_r, i_e = n_z + n_u, n_z + n_u + n_ny
+        i_d, i_s = i_e + n_z, i_e + n_z + n_y
+        self.views = (self.w[:n_z], self.w[n_z:i_r], self.w[i_r:i_e].reshape(self.ref_shape),
+                      self.qyb[:n], self.qyb[n:n + n_ny], self.qyb[n + n_ny:],
+                      self.w[i_e:i_d], self.w[i_d:i_s], self.w[i_s:])
         self.set_solver(self.solver)
 
     def set_solver(self, solver: osqp.OSQP) -> None:
@@ -264,6 +288,16 @@ class LatentMpc:
         """Terminal cost of the current model (P, DARE residual, fallback flag), or None."""
         return None if self._problem is None else self._problem.terminal
 
+    def describe_offset_free(self) -> str:
+        """One line: the offset-free form in use for the model and why it may be (its rank)."""
+        pb = self._problem
+        est = None if pb is None else pb.estimator
+        if est is None:
+            return 'off (eq. (mpc) as the paper writes it)'
+        dist = est.dist
+        return (f'{dist.form}: n_d = {dist.n_d} disturbances, detectable (rank '
+                f'[[A - I, B_d], [C, C_d]] = {dist.rank}), gain {est.gain:g}')
+
     def set_config(self, config: MpcConfig) -> None:
         """New settings; rebuilds the QP if a model is set. The previous plan is kept when the
         horizon is unchanged."""
@@ -281,9 +315,13 @@ class LatentMpc:
         pb = self._problem
         if pb is not None:
             pb.set_solver(_setup_solver(pb.P, pb.A, pb.lo, pb.hi, self._config))
+            if pb.estimator is not None:
+                pb.estimator.reset()
 
     def set_model(self, model: LatentModel) -> None:
-        """Build the condensed QP and the terminal cost for a model (once per model)."""
+        """Build the condensed QP, the terminal cost and the offset-free estimator for a model
+        (once per model). ValueError (one line) if the model does not fit, or fails the
+        offset-free form's detectability test."""
         model.validate()
         cfg = self._config
         n_u, n_y, N = model.n_u, model.n_y, cfg.horizon
@@ -293,6 +331,9 @@ class LatentMpc:
         r, u_min, u_max = (np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
                            for v in (cfg.r, cfg.u_min, cfg.u_max))
         term = terminal_cost(model, q, r, cfg.terminal_reg)
+        on = cfg.offset_free != 'off'
+        estimator = DisturbanceEstimator(model, disturbance_model(model, cfg.offset_free),
+                                         cfg.disturbance_gain) if on else None
         L, G, y_u, y_w = _least_squares(model, term, q, r, N)
         n = N * n_u
         hess = sp.csc_matrix(np.triu(2.0 * L.T @ L))
@@ -301,16 +342,24 @@ class LatentMpc:
         solver = _setup_solver(hess, eye, lo, hi, cfg)
         self._problem = _Problem(model=model, terminal=term, solver=solver, P=hess, A=eye, L=L,
                                  Gw=np.vstack([-2.0 * L.T @ G, y_w, G]), Yu=y_u, lo=lo, hi=hi,
-                                 warm=bool(cfg.warm_start))
+                                 warm=bool(cfg.warm_start),
+                                 target=SteadyStateTarget(model, q, term.ss_r, term.ss_e, u_min,
+                                                          u_max, bounded=on),
+                                 estimator=estimator)
         # The plan's size changes only with n_u, and then it says nothing about the new inputs.
         if self._plan is not None and self._plan.shape != (n,):
             self.reset()
 
-    def solve(self, z0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray) -> MpcResult:
+    def solve(self, z0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
+              y: Optional[np.ndarray] = None, step: Optional[int] = None) -> MpcResult:
         """Plan u_{t+1..t+N} from z_t (n_z,), the applied input u_t (n_u,) and the references
         r_{t+1..t+N} (N, n_y), in physical units (eq. (mpc)).
 
-        Per call: three copies into the data vector w, one finiteness check, one product
+        y: the measured y_t (n_y,), which the offset-free estimator takes (with the sample's
+        index `step`, so that a skipped tick is not read as one step); without it the
+        disturbance estimate stays as it is.
+
+        Per call: copies into the data vector w, one finiteness check, one product
         [q; y0; b] = Gw w, OSQP (q, primal warm start, solve), the clip into the bounds, the
         prediction y_pred = Yu U + y0; nothing is rebuilt or re-sent (settings, matrices).
         """
@@ -318,14 +367,24 @@ class LatentMpc:
         pb = self._problem
         if pb is None:
             raise RuntimeError('LatentMpc.solve() before set_model()')
-        w_z, w_u, w_r, q, y0, b = pb.views
+        w_z, w_u, w_r, q, y0, b, w_e, w_d, w_s = pb.views
         if y_ref.shape != pb.ref_shape:
             raise ValueError(f'y_ref has shape {y_ref.shape}, expected {pb.ref_shape}')
         n_u = pb.n_u
         w_z[:] = z0
         w_u[:] = u_prev
         w_r[:] = y_ref
-        # One dot product checks z_t, u_t and r for nan/inf before they can reach the solver.
+        est = pb.estimator
+        if est is None:
+            w_e[:], w_d[:] = pb.model.e, pb.model.d
+            disturbance = _NO_DISTURBANCE
+        else:
+            if y is not None:
+                est.update(z0, u_prev, y, step)
+            w_e[:], w_d[:] = est.constants()
+            disturbance = est.p.copy()
+        w_s[:] = pb.target(y_ref[-1], w_e, w_d)
+        # One dot product checks the data for nan/inf before they can reach the solver.
         valid = math.isfinite(np.dot(pb.w, pb.w))
         status, iters, x, cost = 'invalid data', 0, None, math.nan
         prev = self._plan
@@ -386,13 +445,17 @@ class LatentMpc:
         return MpcResult(u=plan[:n_u], u_plan=plan.reshape(-1, n_u),
                          y_pred=y_pred.reshape(pb.ref_shape), cost=cost, status=status,
                          iterations=iters, solve_time=time.perf_counter() - start,
-                         fallback=fallback, terminal_fallback=pb.terminal.fallback)
+                         fallback=fallback, terminal_fallback=pb.terminal.fallback,
+                         disturbance=disturbance)
 
     def last_qp(self) -> QpSnapshot:
         """Copy of the QP data of the last solve() (for benchmarks against raw OSQP)."""
         pb = self._problem
         return QpSnapshot(P=pb.P, q=pb.views[3].copy(), A=pb.A, l=pb.lo, u=pb.hi,
                           x_warm=None if self._x_warm is None else self._x_warm.copy())
+
+
+_NO_DISTURBANCE = np.zeros(0)
 
 
 def _setup_solver(P: sp.csc_matrix, A: sp.csc_matrix, lo: np.ndarray, hi: np.ndarray,
@@ -422,28 +485,36 @@ def _shift(v: np.ndarray, n_u: int) -> np.ndarray:
 
 def _least_squares(model: LatentModel, term: TerminalCost, q: np.ndarray, r: np.ndarray,
                    N: int) -> tuple:
-    """J(U) = ||L U - G w||^2 with w = [z_t; u_t; r_{t+1..t+N}; 1] (eq. (mpc) condensed).
+    """J(U) = ||L U - G w||^2 with w = [z_t; u_t; r_{t+1..t+N}; e'; d'; s_ss] (eq. (mpc)
+    condensed; e', d' stand for the model's e, d in every row).
 
     Returns L (m, N n_u), G (m, n_w), and the output prediction y_{t+1..t+N} = Yu U + Yw w as
     Yu (N n_y, N n_u), Yw (N n_y, n_w). Rows of L: Q^{1/2}-weighted tracked outputs at
     k = 1..N-1, the terminal rows T s_N, R^{1/2} du at k = 0..N-1.
     """
     n_z, n_u, n_y = model.n_z, model.n_u, model.n_y
-    n, n_w = N * n_u, n_z + n_u + N * n_y + 1
-    # Unrolled dynamics: z_{t+k} = fz[k-1] z_t + gz[k-1] U + hz[k-1], k = 1..N.
-    fz, gz, hz = np.empty((N, n_z, n_z)), np.empty((N, n_z, n)), np.empty((N, n_z))
-    z_f, z_g, z_h = np.eye(n_z), np.zeros((n_z, n)), np.zeros(n_z)
+    n, n_s = N * n_u, n_z + n_u
+    i_r, i_e = n_z + n_u, n_z + n_u + N * n_y          # column offsets of r and e' in w
+    i_d, i_s = i_e + n_z, i_e + n_z + n_y
+    n_w = i_s + n_s
+    # Unrolled dynamics: z_{t+k} = fz[k-1] z_t + gz[k-1] U + hz[k-1] e', k = 1..N.
+    fz, gz, hz = np.empty((N, n_z, n_z)), np.empty((N, n_z, n)), np.empty((N, n_z, n_z))
+    z_f, z_g, z_h = np.eye(n_z), np.zeros((n_z, n)), np.zeros((n_z, n_z))
     for k in range(N):
-        z_f, z_g, z_h = model.A @ z_f, model.A @ z_g, model.A @ z_h + model.e
+        z_f, z_g, z_h = model.A @ z_f, model.A @ z_g, model.A @ z_h + np.eye(n_z)
         z_g[:, k * n_u:(k + 1) * n_u] += model.B
         fz[k], gz[k], hz[k] = z_f, z_g, z_h
 
-    def g_rows(k: int, z_map: np.ndarray, r_map: np.ndarray, const: np.ndarray) -> np.ndarray:
-        """Rows of G for a target r_map r_{t+k+1} + const - z_map z_t."""
-        out = np.zeros((len(z_map), n_w))
-        out[:, :n_z] = -z_map
-        out[:, n_z + n_u + k * n_y:n_z + n_u + (k + 1) * n_y] = r_map
-        out[:, -1] = const
+    def g_rows(k: int, c_map: np.ndarray, r_map: np.ndarray, d_map: np.ndarray,
+               s_map: Optional[np.ndarray] = None) -> np.ndarray:
+        """Rows of G for a target r_map (r_{t+k+1} - d') + s_map s_ss - c_map z_{t+k+1}|U=0."""
+        out = np.zeros((len(c_map), n_w))
+        out[:, :n_z] = -c_map @ fz[k]
+        out[:, i_r + k * n_y:i_r + (k + 1) * n_y] = r_map
+        out[:, i_e:i_d] = -c_map @ hz[k]
+        out[:, i_d:i_s] = -d_map
+        if s_map is not None:
+            out[:, i_s:] = s_map
         return out
 
     tracked = q > 0
@@ -451,13 +522,15 @@ def _least_squares(model: LatentModel, term: TerminalCost, q: np.ndarray, r: np.
     c_t = sq[:, None] * model.C[tracked]                      # Q^{1/2} C, tracked rows
     sel_t = sq[:, None] * np.eye(n_y)[tracked]                # Q^{1/2}, tracked rows
     l_rows = [c_t @ gz[k] for k in range(N - 1)]
-    g_blocks = [g_rows(k, c_t @ fz[k], sel_t, -c_t @ hz[k] - sel_t @ model.d)
-                for k in range(N - 1)]
+    g_blocks = [g_rows(k, c_t, sel_t, sel_t) for k in range(N - 1)]
     t_z, t_u = term.T[:, :n_z], term.T[:, n_z:]               # T s_N = t_z z_N + t_u u_N
     l_rows.append(t_z @ gz[-1])
     l_rows[-1][:, n - n_u:] += t_u
-    g_blocks.append(g_rows(N - 1, t_z @ fz[-1], term.M,
-                           term.m - term.M @ model.d - t_z @ hz[-1]))
+    if term.fallback:       # T s_N - M (r_N - d')
+        g_blocks.append(g_rows(N - 1, t_z, term.M, term.M))
+    else:                   # T (s_N - s_ss)
+        zero = np.zeros((len(t_z), n_y))
+        g_blocks.append(g_rows(N - 1, t_z, zero, zero, term.T))
     sr = np.sqrt(r)
     l_rows.append(np.tile(sr, N)[:, None] * (np.eye(n) - np.eye(n, k=-n_u)))
     g_du = np.zeros((n, n_w))
@@ -466,5 +539,6 @@ def _least_squares(model: LatentModel, term: TerminalCost, q: np.ndarray, r: np.
     c_blk = np.kron(np.eye(N), model.C)
     y_w = np.zeros((N * n_y, n_w))
     y_w[:, :n_z] = c_blk @ fz.reshape(N * n_z, n_z)
-    y_w[:, -1] = c_blk @ hz.reshape(-1) + np.tile(model.d, N)
+    y_w[:, i_e:i_d] = c_blk @ hz.reshape(N * n_z, n_z)
+    y_w[:, i_d:i_s] = np.tile(np.eye(n_y), (N, 1))
     return np.vstack(l_rows), np.vstack(g_blocks), c_blk @ gz.reshape(N * n_z, n), y_w

@@ -31,8 +31,9 @@ Fallback, when the DARE fails (exception, non-finite or non-definite P, residual
 ``DARE_RTOL``, closed loop not stable; e.g. a learned pair that is not stabilisable): the
 terminal term is the stage output term ytilde_N' Q ytilde_N, P = Cbar' Q Cbar.
 
-Both cases are stored as least-squares rows, ``T s_N - (M (r_N - d) + m)``, whose squared norm is
-the terminal cost (P = T'T).
+Both cases are stored as least-squares rows whose squared norm is the terminal cost (P = T'T):
+``T (s_N - s_ss)`` with the DARE, ``T s_N - M (r_N - d)`` in the fallback. s_ss is data of the
+tick (the MPC gets it from ``ss_r``, ``ss_e``, or from offset_free's bounded target).
 """
 from dataclasses import dataclass
 
@@ -52,8 +53,10 @@ class TerminalCost:
     Attributes:
         P: (n_s, n_s) terminal weight (DARE solution, or Cbar' Q Cbar in the fallback).
         T: (m, n_s) factor with P = T' T (m = n_s, or the number of tracked outputs).
-        M: (m, n_y) map from the terminal reference offset r_N - d to the target of T s_N.
-        m: (m,) constant part of that target.
+        M: (m, n_y) fallback only: map from the terminal reference offset r_N - d to the
+            target of T s_N (zeros with the DARE, whose target is T s_ss).
+        ss_r: (n_s, n_y), ss_e: (n_s, n_z): the steady state s_ss = ss_r (r_N - d) + ss_e e
+            (affine in the model's constants, so a corrected e or d moves it exactly).
         fallback: True when the DARE was unusable and the output weight is used instead.
         residual: relative DARE residual ||DARE(P)||_F / ||P||_F (nan if no solution).
         reason: why the fallback was taken ('' otherwise).
@@ -62,7 +65,8 @@ class TerminalCost:
     P: np.ndarray
     T: np.ndarray
     M: np.ndarray
-    m: np.ndarray
+    ss_r: np.ndarray
+    ss_e: np.ndarray
     fallback: bool
     residual: float
     reason: str
@@ -116,26 +120,25 @@ def terminal_cost(model: LatentModel, q: np.ndarray, r: np.ndarray, reg: float) 
                 reason = f'DARE gain not stabilising (spectral radius {rho:.4f})'
             elif np.linalg.eigvalsh(p)[0] <= 0.0:
                 reason = 'DARE solution not positive definite'
+    s_r, s_e = _steady_state_map(model, q, c_bar)
     if reason:
         tracked = q > 0
         sq = np.sqrt(q[tracked])
         return TerminalCost(P=q_out, T=sq[:, None] * c_bar[tracked],
-                            M=sq[:, None] * np.eye(len(q))[tracked],
-                            m=np.zeros(int(tracked.sum())), fallback=True, residual=residual,
-                            reason=reason)
+                            M=sq[:, None] * np.eye(len(q))[tracked], ss_r=s_r, ss_e=s_e,
+                            fallback=True, residual=residual, reason=reason)
     t_fac = np.linalg.cholesky(p).T
-    s_r, s_e = _steady_state_map(model, q, c_bar)
-    return TerminalCost(P=p, T=t_fac, M=t_fac @ s_r, m=t_fac @ s_e, fallback=False,
-                        residual=residual, reason='')
+    return TerminalCost(P=p, T=t_fac, M=np.zeros((n_s, len(q))), ss_r=s_r, ss_e=s_e,
+                        fallback=False, residual=residual, reason='')
 
 
 def _steady_state_map(model: LatentModel, q: np.ndarray, c_bar: np.ndarray) -> tuple:
-    """(S_r (n_s, n_y), s_e (n_s,)) with s_ss = S_r (r - d) + s_e, the steady state that best
-    matches the reference r under weights q (KKT of the problem in the module docstring)."""
+    """(S_r (n_s, n_y), S_e (n_s, n_z)) with s_ss = S_r (r - d) + S_e e, the steady state that
+    best matches the reference r under weights q (KKT of the problem in the module docstring)."""
     n_z, n_s = model.n_z, c_bar.shape[1]
     eq = np.hstack([model.A - np.eye(n_z), model.B])
     kkt = np.block([[c_bar.T @ (q[:, None] * c_bar), eq.T], [eq, np.zeros((n_z, n_z))]])
     # pinv: when the tracked outputs leave part of the steady state free, any KKT solution is
     # optimal; stabilisability (checked by the DARE) makes eq full row rank, so one exists.
     kkt_inv = scipy.linalg.pinv(kkt)
-    return kkt_inv[:n_s, :n_s] @ (c_bar.T * q), -kkt_inv[:n_s, n_s:] @ model.e
+    return kkt_inv[:n_s, :n_s] @ (c_bar.T * q), -kkt_inv[:n_s, n_s:]

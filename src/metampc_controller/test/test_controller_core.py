@@ -338,3 +338,25 @@ def test_check_tuning_refuses_what_the_running_controller_cannot_take():
     assert core.check_tuning(wider) == 'q needs one weight per output (2), got [1.0, 0.0, 0.0]'
     two = ControllerConfig(mpc=MpcConfig(r=(0.1, 0.1)), n_u=2)
     assert core.check_tuning(two).startswith('r, u_min and u_max need one value per input (1)')
+
+
+def test_a_model_the_offset_free_form_cannot_take_is_refused_and_the_loop_goes_on():
+    """A latent mode at eigenvalue 1 that no output sees: an output disturbance cannot be told
+    from it (rank test), so the 'output' form refuses the model, and a live change to 'output'
+    is refused while that model is in use; the 'state' form takes it and the loop runs."""
+    core = ControllerCore(ControllerConfig(reference_kind='setpoint',
+                                           reference_params={'value': 0.5}))
+    plant = Plant(PlantConfig(theta=(0.5,)))
+    output_form = MpcConfig(time_limit=NO_TIME_LIMIT, offset_free='output')
+    with pytest.raises(WeightsError, match=r'offset_free output: the disturbance model is not '
+                                           r'detectable, rank .* = 4 < n_z \+ n_d = 5 \(A has '
+                                           r'an eigenvalue at 1:'):
+        manual_bundle(n_z=3, extra_decay=1.0, mpc=output_form)
+    core.offer_model(manual_bundle(version=4, n_z=3, extra_decay=1.0))
+    first = closed_loop(core, plant, 60)
+    assert core.check_tuning(ControllerConfig(mpc=output_form)).startswith(
+        'offset_free output: the disturbance model is not detectable')
+    assert core.check_tuning(ControllerConfig(mpc=MpcConfig(offset_free='input'))) == ''
+    results = first + closed_loop(core, plant, 60, start=60)
+    assert all(r.model_version == 4 and r.solver_status == 'solved' for r in results)
+    assert abs(plant.output()[0] - 0.5) < 1e-3

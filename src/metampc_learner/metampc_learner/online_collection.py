@@ -176,7 +176,7 @@ class OnlineCollector:
             else:
                 t = k - 1
                 z = predictor.encode(u[t - n_h + 1:t + 1], y[t - n_h + 1:t + 1])
-                result = mpc.solve(z, u[t], ref[t + 1:t + 1 + cfg.horizon])
+                result = mpc.solve(z, u[t], ref[t + 1:t + 1 + cfg.horizon], y[t], t)
                 self.stats.mpc_fallbacks += int(result.fallback)
                 u_k = result.u + cfg.noise_std * rng.standard_normal(fam.n_u)  # eq. (ub)
             u_k, _ = plant.saturate(u_k)

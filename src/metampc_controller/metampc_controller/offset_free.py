@@ -1,0 +1,234 @@
+"""Offset-free tracking for the latent MPC: integrating disturbances and the steady-state target.
+
+The MPC of eq. (mpc) plans with the affine latent model (latent_model)::
+
+    z_{k+1} = A z_k + B u_{k+1} + e,    y_k = C z_k + d
+
+Any model error at a set-point then becomes a steady offset. The remedy of Pannocchia &
+Rawlings (2003) and Maeder & Morari (2007): a constant disturbance p (n_d,) augments the model,
+
+    z_{k+1} = A z_k + B u_{k+1} + e + B_d p,    y_k = C z_k + d + C_d p,
+
+is estimated each tick from what was measured against what the model predicted, and the MPC
+plans with the corrected constants e + B_d p and d + C_d p, centring its terminal cost on the
+steady state (z_s, u_s) of the corrected model that best meets the reference within the input
+bounds. The forms (``MpcConfig.offset_free``):
+
+* ``state``: p = [w; v], B_d = [I, 0], C_d = [0, I] (n_d = n_z + n_y). The encoder measures
+  the latent state (z_t = f_enc of the last H samples), so a disturbance on every latent
+  coordinate is observable from the latent one-step residual; v takes what C z_t + d misses of
+  y_t. At a closed-loop steady state (z*, u*, y*) the estimate makes (z*, u*) an equilibrium
+  of the corrected model with output y*, so a plan that stays there leaves r - y* as cost and
+  the MPC moves on unless y* = r on the tracked outputs (or an input bound holds it).
+* ``input``: p = p_u (n_u,), B_d = B, C_d = 0: the latent residual projected onto range(B).
+* ``output``: p = p_y (n_y,), B_d = 0, C_d = I, from the output prediction error only (the
+  classical form with y the only measurement).
+
+Estimator (each tick t of an episode, after tick t-1): the one-step residuals against the
+nominal model,
+
+    rho_t = [z_t - (A z_{t-1} + B u_t + e);  y_t - (C (A z_{t-1} + B u_t + e) + d)],
+
+and the disturbance that explains them best, p_t^inst = H^+ rho_t with H = [B_d; C B_d + C_d]
+(only the y rows for a form that measures y alone), filtered p_t = (1 - g) p_{t-1} + g
+p_t^inst (g = ``disturbance_gain``). p is absolute, not an increment: at a steady state it is
+exactly the model's mismatch there, whatever g, and it integrates model error, never tracking
+error, so a saturated input cannot wind it up. The first tick of an episode keeps the episode's
+p = 0 (no previous z).
+
+Detectability (Pannocchia & Rawlings 2003, Lemma 1; Pannocchia & Bemporad 2007): the augmented
+system is detectable iff (A, C_m) is and
+
+    rank [[A - I, B_d], [C_m, C_dm]] = n_z + n_d,
+
+C_m the measured channels ([I; C] when z is measured, C otherwise) and C_dm their disturbance
+maps. :func:`disturbance_model` refuses a model that fails it, naming the rank and the reason
+(for ``output``: A has an eigenvalue at 1, whose mode and an output disturbance look alike).
+
+Steady-state target: s_s = [z_s; u_s] minimises ||Q^{1/2} (C z + d' - r_N)|| subject to
+(A - I) z + B u + e' = 0 (terminal_cost's affine map); when u_s leaves the bounds, u_s solves
+the same least squares over the box instead (z_s = (I - A)^{-1} (B u + e')), so the terminal
+cost never pulls towards an input the plant cannot get.
+"""
+from dataclasses import dataclass
+import math
+from typing import Optional
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from metampc_controller.latent_model import LatentModel
+
+FORMS = ('off', 'state', 'input', 'output')
+# Singular values below this (relative to the largest) count as zero in the rank test; an
+# eigenvalue of A within ~1e-9 of 1 is "at 1" (a learned A never lands there by chance).
+RANK_RTOL = 1e-9
+
+
+@dataclass(frozen=True)
+class DisturbanceModel:
+    """The disturbance of one form for one model.
+
+    Attributes:
+        form: one of FORMS other than 'off'.
+        Bd: (n_z, n_d) disturbance into the latent dynamics.
+        Cd: (n_y, n_d) disturbance onto the outputs.
+        measures_z: the estimator uses the encoder's z_t as a measurement.
+        H_pinv: (n_d, n_z + n_y) map from the one-step residuals to p (zero columns for
+            the residuals a form does not measure).
+        rank: rank of the detectability matrix (= n_z + n_d: it passed).
+    """
+
+    form: str
+    Bd: np.ndarray
+    Cd: np.ndarray
+    measures_z: bool
+    H_pinv: np.ndarray
+    rank: int
+
+    @property
+    def n_d(self) -> int:
+        return self.Bd.shape[1]
+
+
+def detectability_rank(A: np.ndarray, C_m: np.ndarray, Bd: np.ndarray,
+                       Cdm: np.ndarray) -> int:
+    """rank [[A - I, B_d], [C_m, C_dm]] (numerical, relative tolerance RANK_RTOL)."""
+    n_z = A.shape[0]
+    mat = np.block([[A - np.eye(n_z), Bd], [C_m, Cdm]])
+    sv = np.linalg.svd(mat, compute_uv=False)
+    return int(np.sum(sv > RANK_RTOL * max(sv[0], 1e-300)))
+
+
+def disturbance_model(model: LatentModel, form: str) -> DisturbanceModel:
+    """The disturbance of `form` for `model`, checked for detectability.
+
+    Raises:
+        ValueError: the form is unknown, or the augmented system is not detectable (one line
+            with the rank and, where A has an eigenvalue at 1, that eigenvalue).
+    """
+    n_z, n_u, n_y = model.n_z, model.n_u, model.n_y
+    if form == 'state':
+        Bd = np.hstack([np.eye(n_z), np.zeros((n_z, n_y))])
+        Cd = np.hstack([np.zeros((n_y, n_z)), np.eye(n_y)])
+        measures_z = True
+    elif form == 'input':
+        Bd, Cd, measures_z = model.B.copy(), np.zeros((n_y, n_u)), True
+    elif form == 'output':
+        Bd, Cd, measures_z = np.zeros((n_z, n_y)), np.eye(n_y), False
+    else:
+        raise ValueError(f'offset_free must be one of {", ".join(FORMS[1:])} here, got {form!r}')
+    n_d = Bd.shape[1]
+    if measures_z:
+        C_m = np.vstack([np.eye(n_z), model.C])
+        Cdm = np.vstack([np.zeros((n_z, n_d)), Cd])
+    else:
+        C_m, Cdm = model.C, Cd
+    rank = detectability_rank(model.A, C_m, Bd, Cdm)
+    if rank < n_z + n_d:
+        eig = np.linalg.eigvals(model.A)
+        at_one = eig[np.abs(eig - 1.0) < 1e-6]
+        why = (f' (A has an eigenvalue at {at_one[0].real:.6g}: that mode and the disturbance '
+               'cannot be told apart)' if at_one.size else '')
+        raise ValueError(f'offset_free {form}: the disturbance model is not detectable, rank '
+                         f'[[A - I, B_d], [C, C_d]] = {rank} < n_z + n_d = {n_z + n_d}{why}')
+    H = np.vstack([Bd, model.C @ Bd + Cd])
+    if not measures_z:
+        H[:n_z] = 0.0      # the latent residual is not a measurement of this form
+    return DisturbanceModel(form, Bd, Cd, measures_z, np.linalg.pinv(H), rank)
+
+
+class DisturbanceEstimator:
+    """The integrating estimate p of one model (module docstring), and the corrected constants.
+
+    update() once per tick of an episode, in order; reset() at a new episode.
+    """
+
+    def __init__(self, model: LatentModel, dist: DisturbanceModel, gain: float):
+        self.model, self.dist, self.gain = model, dist, gain
+        self.p = np.zeros(dist.n_d)
+        self._z_prev: Optional[np.ndarray] = None
+        self._step: Optional[int] = None
+        self._rho = np.empty(model.n_z + model.n_y)
+
+    def reset(self) -> None:
+        """A new episode: p = 0, no previous latent state."""
+        self.p[:] = 0.0
+        self._z_prev, self._step = None, None
+
+    def update(self, z: np.ndarray, u: np.ndarray, y: np.ndarray,
+               step: Optional[int] = None) -> np.ndarray:
+        """Take tick t's z_t (n_z,), applied u_t (n_u,), measured y_t (n_y,); returns p (n_d,).
+
+        `step`: the sample's index; when it does not follow the previous update's (a tick was
+        skipped) the residual would span two steps, so p is kept and only z_t is stored.
+        Non-finite data leave p unchanged.
+        """
+        m = self.model
+        follows = self._z_prev is not None and (step is None or self._step is None
+                                               or step == self._step + 1)
+        if follows:
+            z_pred = m.A @ self._z_prev + m.B @ u + m.e
+            rho = self._rho
+            rho[:m.n_z] = z - z_pred
+            rho[m.n_z:] = y - (m.C @ z_pred + m.d)
+            p_inst = self.dist.H_pinv @ rho
+            if all(map(math.isfinite, p_inst.tolist())):
+                self.p += self.gain * (p_inst - self.p)
+        if all(map(math.isfinite, np.asarray(z, dtype=float).tolist())):
+            self._z_prev = np.array(z, dtype=float)
+        self._step = step
+        return self.p
+
+    def constants(self) -> tuple:
+        """(e + B_d p (n_z,), d + C_d p (n_y,)): the corrected model's constants."""
+        return self.model.e + self.dist.Bd @ self.p, self.model.d + self.dist.Cd @ self.p
+
+
+class SteadyStateTarget:
+    """s_s = [z_s; u_s] of the (corrected) model for a terminal reference (module docstring).
+
+    ss_r (n_s, n_y), ss_e (n_s, n_z): the unconstrained target s = ss_r (r - d') + ss_e e'
+    (terminal_cost's KKT map). bounded: keep u_s within [u_min, u_max] (box least squares when
+    the unconstrained u_s leaves them).
+    """
+
+    def __init__(self, model: LatentModel, q: np.ndarray, ss_r: np.ndarray, ss_e: np.ndarray,
+                 u_min: np.ndarray, u_max: np.ndarray, bounded: bool):
+        self.ss_r, self.ss_e = ss_r, ss_e
+        self.u_min, self.u_max, self.bounded = u_min, u_max, bounded
+        n_z = model.n_z
+        self._n_z = n_z
+        tracked = q > 0
+        self._sq = np.sqrt(q[tracked])
+        self._c_t = model.C[tracked]
+        self._tracked = tracked
+        # z_s = (I - A)^{-1} (B u + e'): exact when I - A is invertible; otherwise the box
+        # case clips u_s and solves the equality in least squares.
+        ima = np.eye(n_z) - model.A
+        self._ima = ima
+        self._gain = None
+        if np.linalg.cond(ima) < 1e10:
+            self._ima_inv = np.linalg.inv(ima)
+            self._gain = self._c_t @ self._ima_inv @ model.B       # (n_tracked, n_u)
+        self._B = model.B
+
+    def __call__(self, r_n: np.ndarray, e: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """s_s (n_s,) for terminal reference r_n (n_y,) and constants e (n_z,), d (n_y,)."""
+        if not math.isfinite(float(np.dot(r_n, r_n) + np.dot(e, e) + np.dot(d, d))):
+            return np.full(self.ss_r.shape[0], math.nan)     # solve() falls back on it
+        s = self.ss_r @ (r_n - d) + self.ss_e @ e
+        u = s[self._n_z:]
+        if not self.bounded or (np.all(u >= self.u_min - 1e-12)
+                                and np.all(u <= self.u_max + 1e-12)):
+            return s
+        if self._gain is not None:
+            free = self._ima_inv @ e                 # z_s at u = 0
+            target = self._sq * (r_n[self._tracked] - d[self._tracked] - self._c_t @ free)
+            u = lsq_linear(self._sq[:, None] * self._gain, target,
+                           bounds=(self.u_min, self.u_max)).x
+            z = free + self._ima_inv @ (self._B @ u)
+        else:
+            u = np.clip(u, self.u_min, self.u_max)
+            z = np.linalg.lstsq(self._ima, self._B @ u + e, rcond=None)[0]
+        return np.concatenate([z, u])
