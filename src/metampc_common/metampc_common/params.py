@@ -54,6 +54,7 @@ class Rule:
     length: Optional[int] = None     # exact length of a list
     scalar: bool = False             # a lone number is a list of one (`-p theta:=0.7`)
     live: bool = False               # may change while the node runs
+    infinite: bool = False           # +-inf accepted (a bound that is no bound); never NaN
 
     def bounds(self) -> str:
         """'> 0', '>= 1', 'in [0, 1)', 'one of a, b' or ''."""
@@ -73,7 +74,8 @@ class Rule:
 def param(default: Any, description: str, *, ge: Optional[float] = None,
           gt: Optional[float] = None, le: Optional[float] = None, lt: Optional[float] = None,
           choices: Sequence[str] = (), item: Optional[type] = None,
-          length: Optional[int] = None, scalar: bool = False, live: bool = False) -> Any:
+          length: Optional[int] = None, scalar: bool = False, live: bool = False,
+          infinite: bool = False) -> Any:
     """A dataclass field that is a node parameter.
 
     Args:
@@ -88,8 +90,10 @@ def param(default: Any, description: str, *, ge: Optional[float] = None,
             bound, a one-component theta).
         live: the node takes a new value while it runs (``ros2 param set``; the node says how
             and when it applies it); the others are read-only.
+        infinite: numbers may be +-inf (e.g. a bound that leaves one side free); NaN never.
     """
-    rule = Rule(description, ge, gt, le, lt, tuple(choices), item, length, scalar, live)
+    rule = Rule(description, ge, gt, le, lt, tuple(choices), item, length, scalar, live,
+                infinite)
     if isinstance(default, (list, tuple)):
         frozen = tuple(default)
         return dataclasses.field(default=frozen, metadata={PARAM: rule})
@@ -129,7 +133,7 @@ def _scalar(name: str, value: Value, kind: type, rule: Rule) -> Any:
                                  f'got {value!r}')
         return value
     x = number(name, value, integer=kind is int)
-    if not math.isfinite(x):
+    if not math.isfinite(x) and not (rule.infinite and not math.isnan(x)):
         raise ParameterError(f'{name} must be finite, got {x}')
     _in_range(name, x, rule)
     return x

@@ -15,7 +15,7 @@ Pieces, each testable alone:
 * :class:`Tuning`: what a live parameter change replaces (weights, bounds, horizon, reference).
 * :class:`ControllerCore`: observe samples, tick -> :class:`TickResult`.
 """
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 import math
 import threading
 from typing import Any, List, NamedTuple, Optional, Sequence, Tuple
@@ -310,6 +310,8 @@ class TickResult:
     over those T steps (:class:`~metampc_controller.prediction_error.PredictionError`; NaN
     when none).
     request: the adaptation request this tick made (:mod:`adaptation_trigger`), if any.
+    disturbance: the latent MPC's offset-free disturbance estimate (empty otherwise);
+    slack: its largest planned violation of the soft output bounds.
     config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
 
@@ -331,6 +333,8 @@ class TickResult:
     y_ref: np.ndarray
     prediction_errors: Tuple[float, float, float]
     request: Optional[Request] = None
+    disturbance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slack: float = 0.0
 
 
 # No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
@@ -452,7 +456,7 @@ class ControllerCore:
             if exceeding:
                 return f'{exceeding} (plant_info): a change must stay within them'
         model = self.model
-        if model is not None and config.mpc.offset_free != 'off':
+        if model is not None and config.mpc.offset_free != 'none':
             try:
                 disturbance_model(model.predictor.latent, config.mpc.offset_free)
             except ValueError as err:
@@ -600,8 +604,9 @@ class ControllerCore:
             res = model.mpc.solve(z, u_prev, y_ref, history.y, step)
             version, fallback, terminal_fallback = (model.version, res.fallback,
                                                     res.terminal_fallback)
+            extra = dict(disturbance=res.disturbance, slack=res.slack)
         else:
-            errors, request = NO_ERRORS, None
+            errors, request, extra = NO_ERRORS, None, {}
             if (planner == 'nmpc' and self._nmpc is not None
                     and self._nmpc_version != tuning.version):
                 self._build_nmpc(tuning, self.plant)    # it was built for this plant before
@@ -621,7 +626,7 @@ class ControllerCore:
                             terminal_fallback=terminal_fallback, solver_status=res.status,
                             cost=float(res.cost), iterations=int(res.iterations),
                             solve_time=res.solve_time, u_plan=res.u_plan, y_pred=res.y_pred,
-                            prediction_errors=errors, request=request)
+                            prediction_errors=errors, request=request, **extra)
 
     @staticmethod
     def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,

@@ -214,6 +214,8 @@ class ControllerNode(Node):
         status.iterations = res.iterations
         status.fallback = res.fallback
         status.terminal_fallback = res.terminal_fallback
+        status.disturbance = _doubles(res.disturbance)
+        status.output_slack = res.slack
         status.model_version = res.model_version
         status.config_version = res.config_version
         status.planner = res.planner

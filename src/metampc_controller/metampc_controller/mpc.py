@@ -36,7 +36,7 @@ or non-finite data (z_t, u_t, r) give the previous plan shifted by one step (las
 repeated), or u_t held before any plan exists, clipped into the bounds and flagged
 ``fallback``. solve() never returns a non-finite or out-of-bounds input.
 
-Offset-free tracking (``offset_free``, default 'state'; 'off' is eq. (mpc) as the paper writes
+Offset-free tracking (``offset_free``, default 'state'; 'none' is eq. (mpc) as the paper writes
 it): solve() given the measured y_t updates the disturbance estimate of
 :mod:`~metampc_controller.offset_free` and plans with the corrected model, its terminal cost
 centred on the bounded steady-state target. Only vectors of the QP change (e', d', s_ss in w).
@@ -100,8 +100,14 @@ class MpcConfig:
         adaptive_rho_interval: iterations between OSQP rho updates; fixed (not 0 = automatic
             by timing) so that iteration counts do not depend on the machine's speed. 25 gave
             the mean iterations of OSQP's 50 with a lower worst case (30 against 55).
-        offset_free: disturbance form of :mod:`~metampc_controller.offset_free`, or 'off'.
+        offset_free: disturbance form of :mod:`~metampc_controller.offset_free`, or 'none'.
         disturbance_gain: its estimator's filter gain g in (0, 1].
+        y_min, y_max: soft output bounds, (n_y,) each or empty (none); +-inf leaves an output
+            unbounded on that side. Planned outputs y_{t+k}, k = 1..N, may leave them only by
+            a slack s >= 0 that costs soft_penalty * s (an exact penalty: with a penalty
+            above the constraint's multiplier the plan meets the bounds whenever it can, and
+            a plan always exists).
+        soft_penalty: rho of that penalty, cost units per output unit and step.
     """
 
     horizon: int = param(20, 'MPC horizon N, samples', ge=1, live=True)
@@ -115,10 +121,18 @@ class MpcConfig:
     u_max: Weights = param((1.0,), 'input upper bounds, one per input (one value: every '
                                    'input; >= u_min)', scalar=True, live=True)
     offset_free: str = param('state', 'offset-free tracking: the integrating disturbance form '
-                                      '(state: latent and output, input, output; off: eq. mpc '
+                                      '(state: latent and output, input, output; none: eq. mpc '
                                       'as the paper writes it)', choices=FORMS, live=True)
     disturbance_gain: float = param(0.3, 'offset-free estimator gain g of p <- (1 - g) p + g '
                                          'p_inst (1: deadbeat)', gt=0, le=1, live=True)
+    y_min: Sequence[float] = param((), 'soft output lower bounds, one per output (-inf: none; '
+                                       'empty: no soft bounds)', item=float, live=True,
+                                   infinite=True)
+    y_max: Sequence[float] = param((), 'soft output upper bounds, one per output (inf: none; '
+                                       'empty: no soft bounds; >= y_min)', item=float,
+                                   live=True, infinite=True)
+    soft_penalty: float = param(1e3, 'exact L1 penalty per unit of planned output-bound '
+                                     'violation (slack), per step', gt=0, live=True)
     terminal_reg: float = 1e-6
     max_iter: int = param(500, 'OSQP iteration cap', ge=1)
     time_limit: float = param(0.05, 'OSQP wall-time cap per solve, s', gt=0)
@@ -145,6 +159,10 @@ class MpcConfig:
                              f'got {self.r}, {self.u_min}, {self.u_max}')
         if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo > hi):
             raise ValueError(f'need u_min <= u_max, got {self.u_min}, {self.u_max}')
+        y_lo, y_hi = self.output_bounds(q.size)
+        if np.any(np.isnan(y_lo)) or np.any(np.isnan(y_hi)) or np.any(y_lo > y_hi):
+            raise ValueError(f'soft output bounds need y_min <= y_max, got {list(self.y_min)}, '
+                             f'{list(self.y_max)}')
         if not (self.terminal_reg > 0 and self.check_termination >= 1):
             raise ValueError('need terminal_reg > 0 and check_termination >= 1')
 
@@ -152,6 +170,20 @@ class MpcConfig:
     def n_u(self) -> int:
         """Inputs the weights and bounds are for: their longest length (1: any)."""
         return max(np.size(self.r), np.size(self.u_min), np.size(self.u_max))
+
+    def output_bounds(self, n_y: int) -> Tuple[np.ndarray, np.ndarray]:
+        """(y_min, y_max), each (n_y,) (-inf / inf where none); ValueError for a length that
+        is neither 0 nor n_y."""
+        out = []
+        for name, v, none in (('y_min', self.y_min, -np.inf), ('y_max', self.y_max, np.inf)):
+            v = np.asarray(v, dtype=float)
+            if v.size == 0:
+                v = np.full(n_y, none)
+            elif v.shape != (n_y,):
+                raise ValueError(f'{name} needs one value per output ({n_y}) or none, got '
+                                 f'{v.tolist()}')
+            out.append(v)
+        return out[0], out[1]
 
     def bounds(self, n_u: int) -> Tuple[np.ndarray, np.ndarray]:
         """(u_min, u_max), each broadcast to shape (n_u,)."""
@@ -185,7 +217,9 @@ class MpcResult:
         solve_time: wall-clock time of the whole solve() call, s.
         fallback: True when u_plan is the shifted previous plan (or held u_t), not a solution.
         terminal_fallback: True when the terminal weight is the output-weight fallback.
-        disturbance: (n_d,) offset-free disturbance estimate p the plan used (empty when off).
+        disturbance: (n_d,) offset-free disturbance estimate p the plan used (empty with 'none').
+        slack: the largest planned violation of the soft output bounds (0 without them, or
+            when the plan meets them).
     """
 
     u: np.ndarray
@@ -198,6 +232,7 @@ class MpcResult:
     fallback: bool
     terminal_fallback: bool
     disturbance: np.ndarray
+    slack: float = 0.0
 
 
 @dataclass
@@ -240,6 +275,7 @@ class _Problem:
     warm: bool             # MpcConfig.warm_start
     target: SteadyStateTarget
     estimator: Optional[DisturbanceEstimator]   # None: offset_free off
+    soft: Optional['_SoftBounds']       # None: no soft output bounds
     w: np.ndarray = field(init=False)   # buffers reused every tick, and views into them
     qyb: np.ndarray = field(init=False)
     x_warm: np.ndarray = field(init=False)
@@ -254,7 +290,7 @@ class _Problem:
         self.n_u, self.ref_shape = n_u, (n_ny // n_y, n_y)
         self.w = np.empty(self.Gw.shape[1])
         self.qyb = np.empty(self.Gw.shape[0])
-        self.x_warm = np.empty(n)
+        self.x_warm = np.empty(n if self.soft is None else n + self.soft.n_s)
         # (z_t, u_t, r (N, n_y), e', d', s_ss) slots of w; (q, y0, b) parts of qyb.
         i_r, i_e = n_z + n_u, n_z + n_u + n_ny
         i_d, i_s = i_e + n_z, i_e + n_z + n_y
@@ -264,8 +300,72 @@ class _Problem:
         self.set_solver(self.solver)
 
     def set_solver(self, solver: osqp.OSQP) -> None:
-        """Use this OSQP instance (set up for P, A, lo, hi) from the next solve on."""
+        """Use this OSQP instance (set up for P, A and osqp_bounds()) from the next solve on."""
         self.solver, self.ext = solver, _extension(solver)
+
+    def osqp_bounds(self) -> Tuple[np.ndarray, np.ndarray]:
+        """OSQP's (l, u) at set-up: the input box, and with soft bounds their rows."""
+        if self.soft is None:
+            return self.lo, self.hi
+        return self.soft.l, self.soft.u
+
+
+@dataclass
+class _SoftBounds:
+    """The soft output bounds of one QP: slacks s (n_s,) >= 0 on the bounded outputs of every
+    step, variables x = [U; s], rows [I 0; Yb I; Yb -I; 0 I] with, per tick,
+
+        y_min - y0_b <= Yb U + s,     Yb U - s <= y_max - y0_b,     s >= 0
+
+    (y0_b: the free response at the bounded rows). Only l, u and q change per tick."""
+
+    rows: np.ndarray        # (n_s,) indices into y0 (N n_y) of the bounded outputs
+    y_lo: np.ndarray        # (n_s,) bounds per row (-inf / inf where none)
+    y_hi: np.ndarray
+    l: np.ndarray           # (n + 3 n_s,) OSQP bounds, rewritten each tick
+    u: np.ndarray
+    q: np.ndarray           # (n + n_s,) linear cost [q_U; rho 1]
+    n: int                  # N n_u
+
+    @property
+    def n_s(self) -> int:
+        return self.rows.size
+
+    def update(self, q_u: np.ndarray, y0: np.ndarray) -> None:
+        """Write the tick's q, l and u from the QP's q_U and the free response y0."""
+        n, n_s = self.n, self.n_s
+        self.q[:n] = q_u
+        y0_b = y0[self.rows]
+        np.subtract(self.y_lo, y0_b, out=self.l[n:n + n_s])
+        np.subtract(self.y_hi, y0_b, out=self.u[n + n_s:n + 2 * n_s])
+
+
+def _soft_bounds(cfg: MpcConfig, y_u: np.ndarray, hess: sp.csc_matrix, lo: np.ndarray,
+                 hi: np.ndarray, n_y: int) -> tuple:
+    """(_SoftBounds or None, P, A) of the QP with the config's soft output bounds."""
+    n = lo.size
+    y_lo, y_hi = cfg.output_bounds(n_y)
+    bounded = np.isfinite(y_lo) | np.isfinite(y_hi)
+    if not bounded.any():
+        return None, hess, sp.identity(n, format='csc')
+    steps = y_u.shape[0] // n_y
+    rows = (np.arange(steps)[:, None] * n_y + np.flatnonzero(bounded)[None, :]).ravel()
+    n_s = rows.size
+    # OSQP's compiled update takes no inf (its Python wrapper clips it at set-up only).
+    big = osqp.constant('OSQP_INFTY')
+    y_lo, y_hi = np.clip(y_lo, -big, big), np.clip(y_hi, -big, big)
+    yb = sp.csc_matrix(y_u[rows])
+    eye_s = sp.identity(n_s, format='csc')
+    A = sp.vstack([sp.hstack([sp.identity(n), sp.csc_matrix((n, n_s))]),
+                   sp.hstack([yb, eye_s]), sp.hstack([yb, -eye_s]),
+                   sp.hstack([sp.csc_matrix((n_s, n)), eye_s])], format='csc')
+    P = sp.block_diag([hess, sp.csc_matrix((n_s, n_s))], format='csc')
+    inf = np.full(n_s, big)
+    soft = _SoftBounds(rows=rows, y_lo=np.tile(y_lo, steps)[rows], y_hi=np.tile(y_hi, steps)[rows],
+                       l=np.concatenate([lo, -inf, -inf, np.zeros(n_s)]),
+                       u=np.concatenate([hi, inf, inf, inf]),
+                       q=np.concatenate([np.zeros(n), np.full(n_s, cfg.soft_penalty)]), n=n)
+    return soft, P, A
 
 
 class LatentMpc:
@@ -293,7 +393,7 @@ class LatentMpc:
         pb = self._problem
         est = None if pb is None else pb.estimator
         if est is None:
-            return 'off (eq. (mpc) as the paper writes it)'
+            return 'none (eq. (mpc) as the paper writes it)'
         dist = est.dist
         return (f'{dist.form}: n_d = {dist.n_d} disturbances, detectable (rank '
                 f'[[A - I, B_d], [C, C_d]] = {dist.rank}), gain {est.gain:g}')
@@ -314,7 +414,7 @@ class LatentMpc:
         self._plan = None
         pb = self._problem
         if pb is not None:
-            pb.set_solver(_setup_solver(pb.P, pb.A, pb.lo, pb.hi, self._config))
+            pb.set_solver(_setup_solver(pb.P, pb.A, *pb.osqp_bounds(), self._config))
             if pb.estimator is not None:
                 pb.estimator.reset()
 
@@ -331,21 +431,22 @@ class LatentMpc:
         r, u_min, u_max = (np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
                            for v in (cfg.r, cfg.u_min, cfg.u_max))
         term = terminal_cost(model, q, r, cfg.terminal_reg)
-        on = cfg.offset_free != 'off'
+        on = cfg.offset_free != 'none'
         estimator = DisturbanceEstimator(model, disturbance_model(model, cfg.offset_free),
                                          cfg.disturbance_gain) if on else None
         L, G, y_u, y_w = _least_squares(model, term, q, r, N)
         n = N * n_u
-        hess = sp.csc_matrix(np.triu(2.0 * L.T @ L))
-        eye = sp.identity(n, format='csc')
         lo, hi = np.tile(u_min, N), np.tile(u_max, N)
-        solver = _setup_solver(hess, eye, lo, hi, cfg)
-        self._problem = _Problem(model=model, terminal=term, solver=solver, P=hess, A=eye, L=L,
+        soft, hess, cons = _soft_bounds(cfg, y_u, sp.csc_matrix(np.triu(2.0 * L.T @ L)), lo, hi,
+                                        n_y)
+        solver = _setup_solver(hess, cons, *((lo, hi) if soft is None else (soft.l, soft.u)),
+                               cfg)
+        self._problem = _Problem(model=model, terminal=term, solver=solver, P=hess, A=cons, L=L,
                                  Gw=np.vstack([-2.0 * L.T @ G, y_w, G]), Yu=y_u, lo=lo, hi=hi,
                                  warm=bool(cfg.warm_start),
                                  target=SteadyStateTarget(model, q, term.ss_r, term.ss_e, u_min,
                                                           u_max, bounded=on),
-                                 estimator=estimator)
+                                 estimator=estimator, soft=soft)
         # The plan's size changes only with n_u, and then it says nothing about the new inputs.
         if self._plan is not None and self._plan.shape != (n,):
             self.reset()
@@ -392,19 +493,26 @@ class LatentMpc:
             np.dot(pb.Gw, pb.w, out=pb.qyb)
             bb = float(np.dot(b, b))
             x_warm = None
+            n = prev.size if prev is not None else 0
             if pb.warm and prev is not None:
                 # Primal only: OSQP keeps its own duals from the last solve, which measured
                 # fewer iterations than shifted duals (8 against 18 on the paper task).
                 x_warm = pb.x_warm          # the previous plan shifted by one step
-                x_warm[:-n_u] = prev[n_u:]
-                x_warm[-n_u:] = prev[-n_u:]
+                x_warm[:n - n_u] = prev[n_u:]
+                x_warm[n - n_u:n] = prev[-n_u:]
+                x_warm[n:] = 0.0            # slacks, if any: none planned
             self._x_warm = x_warm
+            soft = pb.soft
+            q_osqp, l_osqp, u_osqp = q, None, None
+            if soft is not None:
+                soft.update(q, y0)
+                q_osqp, l_osqp, u_osqp = soft.q, soft.l, soft.u
             ext = pb.ext
             if ext is not None:
                 # What osqp.OSQP's update(q=), warm_start(x=) and solve() call, without the
                 # wrapper's per-call extras the tick never reads (solve() copies all of OSQP's
                 # info into a namespace: ~15 us, a third of a warm solve at N = 20).
-                ext.update_data_vec(q, None, None)
+                ext.update_data_vec(q_osqp, l_osqp, u_osqp)
                 if x_warm is not None:
                     ext.warm_start(x_warm, None)
                 ext.solve()
@@ -415,7 +523,10 @@ class LatentMpc:
                     x, cost = ext.solution.x, obj + bb
             else:
                 solver = pb.solver
-                solver.update(q=q)
+                if soft is None:
+                    solver.update(q=q)
+                else:
+                    solver.update(q=soft.q, l=soft.l, u=soft.u)
                 if x_warm is not None:
                     solver.warm_start(x=x_warm)
                 res = solver.solve(raise_error=False)
@@ -424,6 +535,12 @@ class LatentMpc:
                 if info.status_val in _USABLE and math.isfinite(obj):
                     x, cost = res.x, obj + bb
         fallback = x is None
+        slack = 0.0
+        if not fallback and pb.soft is not None:
+            n = pb.lo.size
+            slack = max(0.0, float(np.max(x[n:])))
+            cost -= pb.soft.q[n:] @ x[n:]      # J alone; the penalty is reported as slack
+            x = x[:n]
         if fallback:
             if prev is not None:
                 x = _shift(prev, n_u)
@@ -446,12 +563,14 @@ class LatentMpc:
                          y_pred=y_pred.reshape(pb.ref_shape), cost=cost, status=status,
                          iterations=iters, solve_time=time.perf_counter() - start,
                          fallback=fallback, terminal_fallback=pb.terminal.fallback,
-                         disturbance=disturbance)
+                         disturbance=disturbance, slack=slack)
 
     def last_qp(self) -> QpSnapshot:
         """Copy of the QP data of the last solve() (for benchmarks against raw OSQP)."""
         pb = self._problem
-        return QpSnapshot(P=pb.P, q=pb.views[3].copy(), A=pb.A, l=pb.lo, u=pb.hi,
+        lo, hi = pb.osqp_bounds()
+        q = pb.views[3] if pb.soft is None else pb.soft.q
+        return QpSnapshot(P=pb.P, q=q.copy(), A=pb.A, l=lo.copy(), u=hi.copy(),
                           x_warm=None if self._x_warm is None else self._x_warm.copy())
 
 

@@ -12,7 +12,7 @@ Rawlings (2003) and Maeder & Morari (2007): a constant disturbance p (n_d,) augm
 is estimated each tick from what was measured against what the model predicted, and the MPC
 plans with the corrected constants e + B_d p and d + C_d p, centring its terminal cost on the
 steady state (z_s, u_s) of the corrected model that best meets the reference within the input
-bounds. The forms (``MpcConfig.offset_free``):
+bounds. The forms (``MpcConfig.offset_free``; 'none' is eq. (mpc) as the paper writes it):
 
 * ``state``: p = [w; v], B_d = [I, 0], C_d = [0, I] (n_d = n_z + n_y). The encoder measures
   the latent state (z_t = f_enc of the last H samples), so a disturbance on every latent
@@ -59,7 +59,7 @@ from scipy.optimize import lsq_linear
 
 from metampc_controller.latent_model import LatentModel
 
-FORMS = ('off', 'state', 'input', 'output')
+FORMS = ('none', 'state', 'input', 'output')
 # Singular values below this (relative to the largest) count as zero in the rank test; an
 # eigenvalue of A within ~1e-9 of 1 is "at 1" (a learned A never lands there by chance).
 RANK_RTOL = 1e-9
@@ -70,7 +70,7 @@ class DisturbanceModel:
     """The disturbance of one form for one model.
 
     Attributes:
-        form: one of FORMS other than 'off'.
+        form: one of FORMS other than 'none'.
         Bd: (n_z, n_d) disturbance into the latent dynamics.
         Cd: (n_y, n_d) disturbance onto the outputs.
         measures_z: the estimator uses the encoder's z_t as a measurement.
@@ -165,8 +165,8 @@ class DisturbanceEstimator:
         Non-finite data leave p unchanged.
         """
         m = self.model
-        follows = self._z_prev is not None and (step is None or self._step is None
-                                               or step == self._step + 1)
+        follows = self._z_prev is not None and (
+            step is None or self._step is None or step == self._step + 1)
         if follows:
             z_pred = m.A @ self._z_prev + m.B @ u + m.e
             rho = self._rho

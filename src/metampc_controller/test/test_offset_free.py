@@ -3,12 +3,12 @@
 The plant is a linear oscillator simulated exactly (zero-order hold); the MPC's model is the
 same oscillator with a constant input disturbance the model does not know, or with its input
 gain 20 % off. The encoder is the identity (z_t = x_t), as for a measured state. The exact
-answer at a set-point is zero steady offset; the paper's eq. (mpc) ('off') keeps one.
+answer at a set-point is zero steady offset; the paper's eq. (mpc) ('none') keeps one.
 
 Tolerance of the offset: 1e-6. OSQP runs at 1e-9 here, so the plan meets the QP's optimum to
 ~1e-9; at the closed-loop steady state the estimate is the exact model mismatch (no filter lag
 left after 400 steps of a loop whose slowest pole is ~0.95: 0.95^400 ~ 1e-9), so what is left
-is solver tolerance times the loop's gain, far below 1e-6, while 'off' leaves offsets of
+is solver tolerance times the loop's gain, far below 1e-6, while 'none' leaves offsets of
 1e-2..1e-1 in the same runs.
 """
 import numpy as np
@@ -65,7 +65,7 @@ def test_zero_steady_offset(form, case):
     model = oscillator(1.2 if case == 'gain 20 % off' else 1.0)
     errors, res = closed_loop(form, oscillator(), model, 0.5, **kwargs)
     assert abs(errors[-1]) < 1e-6
-    off, _ = closed_loop('off', oscillator(), model, 0.5, **kwargs)
+    off, _ = closed_loop('none', oscillator(), model, 0.5, **kwargs)
     assert abs(off[-1]) > 1e-2          # what the paper's eq. (mpc) leaves: the test can fail
     if form == 'input' and case == 'input disturbance':
         # The input form's estimate is the disturbance itself (same model otherwise).

@@ -1,0 +1,144 @@
+#!/usr/bin/env python3
+"""Re-run a run folder's tracking in one process under other controller settings, paired by seed.
+
+Every seed's recorded adapted models fly again against the plant core (no ROS) under each
+variant of the controller's parameters; the true-model NMPC runs once per seed as the
+yardstick. Prints a table per variant (tracking cost / NMPC, median and worst, escapes, steady
+offsets) and writes RUN_DIR/retrack.json. Results are cached per (seed, variant) in
+RUN_DIR/retrack/, so a stopped run resumes.
+
+    python scripts/retrack.py runs/vdp --variant off:offset_free=off \\
+        --variant state:offset_free=state --variant input:offset_free=input --jobs 2
+
+A variant is NAME:key=value,key=value with controller parameter names (docs/nodes.md); values
+are YAML (``0.3``, ``off``, ``[1.0, 0.0]``). A bad name or value is one error line, exit 2.
+"""
+import argparse
+import hashlib
+import concurrent.futures as futures
+from dataclasses import asdict
+import json
+import os
+import sys
+from typing import Any, Dict, Tuple
+
+import numpy as np
+import yaml
+
+
+def parse_variant(text: str) -> Tuple[str, Dict[str, Any]]:
+    """'name:k=v,k=v' -> (name, {k: yaml(v)})."""
+    name, _, rest = text.partition(':')
+    if not name:
+        raise ValueError(f'variant {text!r}: expected NAME:key=value,...')
+    values = {}
+    for item in filter(None, rest.split(',')):
+        key, eq, value = item.partition('=')
+        if not eq:
+            raise ValueError(f'variant {name}: {item!r} is not key=value')
+        values[key.strip()] = yaml.safe_load(value)
+    return name, values
+
+
+def _job(run_dir: str, seed: int, recording: str, name: str, overrides: Dict[str, Any],
+         nmpc: bool) -> Dict[str, Any]:
+    from metampc_bringup.experiment_config import load
+    from metampc_bringup.retrack import retrack_seed
+    import torch
+    torch.set_num_threads(1)
+    experiment = load(os.path.join(run_dir, 'config.yaml'))
+    results = retrack_seed(experiment, seed, recording, overrides, nmpc=nmpc)
+    return {m: asdict(r) for m, r in results.items()}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('run_dir', help='a run folder of scripts/run_experiment.py')
+    parser.add_argument('--variant', action='append', default=[], metavar='NAME:k=v,...',
+                        help='controller settings to compare (repeatable; default: the '
+                             "recorded settings, as 'recorded')")
+    parser.add_argument('--jobs', type=int, default=1, help='seeds at once (processes)')
+    args = parser.parse_args(argv)
+    try:
+        variants = [parse_variant(v) for v in args.variant] or [('recorded', {})]
+    except ValueError as err:
+        parser.error(str(err))
+    from metampc_bringup.experiment_config import ConfigError, load
+    from metampc_bringup.retrack import controller_core, seed_recordings
+    from metampc_common.params import ParameterError
+    try:
+        experiment = load(os.path.join(args.run_dir, 'config.yaml'))
+    except ConfigError as err:
+        parser.error(f'{args.run_dir}: {err}')
+    for name, overrides in variants:
+        try:
+            controller_core(experiment, experiment.first_seed, overrides)
+        except (ParameterError, ValueError) as err:
+            parser.error(f'variant {name}: {err}')
+    recordings = seed_recordings(args.run_dir)
+    if not recordings:
+        parser.error(f'{args.run_dir}: no seed_<n>/recording.mcap in it')
+    cache_dir = os.path.join(args.run_dir, 'retrack')
+    os.makedirs(cache_dir, exist_ok=True)
+
+    def cached(seed: int, name: str, overrides: Dict[str, Any]) -> str:
+        digest = hashlib.sha1(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:12]
+        return os.path.join(cache_dir, f'seed_{seed}_{name}_{digest}.json')
+
+    todo = []
+    for seed, rec in recordings.items():
+        for i, (name, overrides) in enumerate(variants):
+            path = cached(seed, name, overrides)
+            if not os.path.exists(path):
+                todo.append((seed, rec, name, overrides, i == 0, path))
+    print(f'retrack: {len(recordings)} seeds x {len(variants)} variants, {len(todo)} to run',
+          file=sys.stderr)
+    with futures.ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        running = {pool.submit(_job, args.run_dir, seed, rec, name, overrides, nmpc): path
+                   for seed, rec, name, overrides, nmpc, path in todo}
+        for done, fut in enumerate(futures.as_completed(running), 1):
+            with open(running[fut], 'w') as f:
+                json.dump(fut.result(), f)
+            print(f'retrack: {done}/{len(todo)} {os.path.basename(running[fut])[:-5]}',
+                  file=sys.stderr)
+
+    table: Dict[str, Dict[str, Any]] = {}
+    for seed in recordings:
+        first = json.load(open(cached(seed, *variants[0])))
+        nmpc = first['nmpc']['cost']
+        for name, overrides in variants:
+            res = json.load(open(cached(seed, name, overrides)))
+            for method, r in res.items():
+                if method == 'nmpc':
+                    continue
+                row = table.setdefault(name, {}).setdefault(method, {
+                    'ratio': [], 'escaped': 0, 'rejected': 0, 'offset': [], 'seeds': []})
+                row['seeds'].append(seed)
+                row['ratio'].append(r['cost'] / nmpc if not r['escaped'] else float('inf'))
+                row['escaped'] += int(r['escaped'])
+                row['rejected'] += int(bool(r['rejected']))
+                row['offset'].append(float(np.mean(r['offsets'])) if r['offsets'] else None)
+    summary = {}
+    print(f'{"variant":<12}{"method":<10}{"median":>8}{"worst":>10}{"escapes":>9}'
+          f'{"offset":>9}  ratios by seed')
+    for name, methods in table.items():
+        for method, row in methods.items():
+            ratios = np.array(row['ratio'])
+            offsets = [o for o in row['offset'] if o is not None]
+            summary.setdefault(name, {})[method] = {
+                'median': float(np.median(ratios)), 'worst': float(np.max(ratios)),
+                'escapes': row['escaped'], 'rejected': row['rejected'],
+                'mean_offset': float(np.mean(offsets)) if offsets else None,
+                'ratios': dict(zip(row['seeds'], row['ratio'])), 'offsets': dict(
+                    zip(row['seeds'], row['offset']))}
+            s = summary[name][method]
+            print(f'{name:<12}{method:<10}{s["median"]:>8.3f}{s["worst"]:>10.3f}'
+                  f'{s["escapes"]:>9}{(s["mean_offset"] or 0):>9.4f}  '
+                  + ' '.join(f'{r:.2f}' for r in ratios))
+    with open(os.path.join(args.run_dir, 'retrack.json'), 'w') as f:
+        json.dump({'variants': dict(variants), 'summary': summary}, f, indent=1)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

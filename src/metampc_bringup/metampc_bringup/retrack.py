@@ -1,0 +1,148 @@
+"""Re-run the tracking runs of a run folder in one process, under other controller settings.
+
+Each seed's recording holds the adapted models the experiment's controller flew. retrack
+rebuilds, per seed and method, the controller core of the experiment (its controller section,
+parsed as the node parses it) with parameter overrides (e.g. ``offset_free: off``), offers it
+the recorded adapted model and runs the tracking episode against the plant core at theta*
+(:mod:`metampc_controller.closed_loop`); the true-model NMPC runs the same episode as the
+yardstick. Without overrides it reproduces the recorded tracking cost (a lockstep run is
+deterministic), which :func:`retrack_seed` reports beside its own so that a reader can see it.
+
+No ROS: seconds per seed instead of a graph's minutes, so controller designs can be compared
+paired by seed on exactly the models an experiment produced.
+"""
+from dataclasses import dataclass, field
+import os
+from typing import Any, Dict, List, Mapping, Optional
+
+import numpy as np
+
+from metampc_controller.closed_loop import run_episode
+from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
+from metampc_controller.controller_params import parse_params as parse_controller
+from metampc_controller.controller_params import PARAMETERS as CONTROLLER_PARAMETERS
+from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
+from metampc_plant.plant_params import parse_params as parse_plant
+from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
+from metampc_plant.simulator import Plant
+
+from .experiment_config import ExperimentConfig
+from .recording_reader import read_recording
+
+NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
+
+
+@dataclass
+class MethodResult:
+    """One method's tracking episode of one seed.
+
+    Attributes:
+        cost: tracking cost (the experiment's: squared errors of the tracked outputs).
+        escaped: the plant diverged (the episode stopped there).
+        rejected: why the model could not fly under these settings ('' if it flew).
+        offsets: mean |y - r| of the tracked outputs over the last quarter of each set-point
+            segment (the steady offset), one per segment.
+    """
+
+    cost: float
+    escaped: bool
+    rejected: str = ''
+    offsets: List[float] = field(default_factory=list)
+
+
+def adapted_models(recording: str) -> Dict[str, Any]:
+    """The last adapted NssmWeights message of each method in a recording."""
+    rec = read_recording(recording)
+    topics = [t.name for t in rec.topics.values() if t.type_name == NSSM_WEIGHTS]
+    out: Dict[str, Any] = {}
+    for _, _, msg in rec.decoded(topics):
+        if msg.stage == 'adapted':
+            out[msg.method] = msg
+    return out
+
+
+def controller_core(experiment: ExperimentConfig, seed: int, overrides: Mapping[str, Any],
+                    planner: str = 'latent_mpc') -> ControllerCore:
+    """The experiment's controller core of `seed` with parameter `overrides` (checked as the
+    node checks them: ParameterError naming the parameter)."""
+    values = _with_defaults(CONTROLLER_PARAMETERS, experiment.node_parameters('controller', seed))
+    values.update(overrides)
+    values['planner'] = planner
+    values['active'] = True
+    return ControllerCore(parse_controller(values))
+
+
+def _with_defaults(table: Mapping[str, Any], values: Mapping[str, Any]) -> Dict[str, Any]:
+    """A node's parameter values: the declared defaults, then `values` (as the node sees them)."""
+    out = {name: spec.default for name, spec in table.items()}
+    out.update(values)
+    return out
+
+
+def segment_offsets(y: np.ndarray, ref: np.ndarray, tracked: List[int], preview: int
+                    ) -> List[float]:
+    """Steady offset per constant-reference segment: mean |y - r| over the last quarter of
+    the part of the segment before the next set-point enters the MPC's horizon (`preview`
+    samples: a planner that sees the step coming leaves the old set-point early, which is
+    not an offset). y, ref: (K, n_y) aligned; tracked columns."""
+    r = ref[:, tracked]
+    change = np.flatnonzero(np.any(np.diff(r, axis=0) != 0, axis=1)) + 1
+    ends = np.r_[change - preview, len(r)]
+    starts = np.r_[0, change]
+    out = []
+    for a, b in zip(starts, ends):
+        if b - a >= 4:
+            tail = slice(b - (b - a) // 4, b)
+            out.append(float(np.mean(np.abs(y[tail][:, tracked] - r[tail]))))
+    return out
+
+
+def retrack_seed(experiment: ExperimentConfig, seed: int, recording: str,
+                 overrides: Mapping[str, Any], methods: Optional[List[str]] = None,
+                 nmpc: bool = True) -> Dict[str, MethodResult]:
+    """Tracking of every recorded adapted model (or `methods`) of one seed, plus 'nmpc' (the
+    yardstick: unaffected by the latent MPC's settings, and the slowest part; `nmpc` False
+    leaves it out)."""
+    cfg = experiment.resolved()
+    plant_cfg = parse_plant(_with_defaults(PLANT_PARAMETERS,
+                                           cfg.node_parameters('plant', seed))).plant
+    theta = cfg.target_theta(seed)
+    description = PlantDescription(family=cfg.family, theta=tuple(theta), dt=plant_cfg.dt,
+                                   u_min=plant_cfg.u_min, u_max=plant_cfg.u_max,
+                                   n_y=cfg.plant_family.n_y, lockstep=True)
+    tracked = list(cfg.tracked_outputs)
+    steps = cfg.track_steps()
+    models = adapted_models(recording)
+    wanted = methods if methods is not None else sorted(models)
+    results: Dict[str, MethodResult] = {}
+    for method in wanted + (['nmpc'] if nmpc else []):
+        core = controller_core(cfg, seed, overrides,
+                               planner='nmpc' if method == 'nmpc' else 'latent_mpc')
+        core.set_plant(description)
+        if method != 'nmpc':
+            msg = models.get(method)
+            if msg is None:
+                continue
+            try:
+                core.offer_model(build_model(weights_from_fields(fields_of(msg)), msg.version,
+                                             msg.method, msg.stage, core.config.mpc, core.n_u,
+                                             core.n_y, core.config.history))
+            except WeightsError as err:
+                results[method] = MethodResult(float('nan'), False, rejected=str(err))
+                continue
+        episode = run_episode(core, Plant(plant_cfg), steps, theta, cfg.track_x0)
+        results[method] = MethodResult(
+            cost=episode.tracking_cost(tracked), escaped=episode.escaped_at is not None,
+            offsets=segment_offsets(episode.y[1:], episode.y_ref, tracked,
+                                    core.config.mpc.horizon))
+    return results
+
+
+def seed_recordings(run_dir: str) -> Dict[int, str]:
+    """{seed: recording path} of a run folder (seed_<n>/recording.mcap)."""
+    out = {}
+    for name in sorted(os.listdir(run_dir)):
+        path = os.path.join(run_dir, name, 'recording.mcap')
+        if name.startswith('seed_') and name[5:].isdigit() and os.path.exists(path):
+            out[int(name[5:])] = path
+    return out

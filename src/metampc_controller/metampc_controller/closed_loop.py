@@ -1,0 +1,72 @@
+"""One lockstep episode of the controller core against the plant core, in one process (no ROS).
+
+What a lockstep run of the nodes computes, sample for sample: the plant resets to (theta, x0)
+and sends y_0 with u_0 = 0; for k = 0..steps-1 the controller observes (k, u_k, y_k) and its
+tick answers u_{k+1} (held over (k, k+1]), which the plant applies (clipped to its bounds) to
+give y_{k+1}. The experiment's tracking cost pairs y_{k+1} with the reference r_{k+1} of the
+tick that answered step k (``metrics.reference_pairs``), summed over the tracked outputs.
+An episode stops at the first diverged sample, as a run bounded by ``stop_at_escape`` does.
+
+Used to score controller settings on recorded or freshly adapted models in seconds instead of
+a ROS graph's minutes (scripts/retrack.py), and by the tests as the loop of the nodes.
+"""
+from dataclasses import dataclass
+from typing import List, Optional, Sequence
+
+import numpy as np
+
+from metampc_controller.controller_core import ControllerCore, TickResult
+from metampc_plant.simulator import Plant
+
+
+@dataclass
+class Episode:
+    """One closed-loop episode.
+
+    Attributes:
+        u: (K + 1, n_u) inputs u_0..u_K (u_0 = 0, before any answer), as the plant held them.
+        y: (K + 1, n_y) outputs y_0..y_K.
+        y_ref: (K, n_y) references r_1..r_K (first row of each tick's horizon).
+        ticks: the K TickResults.
+        escaped_at: index k of the first diverged y_k, or None.
+    """
+
+    u: np.ndarray
+    y: np.ndarray
+    y_ref: np.ndarray
+    ticks: List[TickResult]
+    escaped_at: Optional[int]
+
+    def tracking_cost(self, tracked: Sequence[int]) -> float:
+        """sum_k ||y_k - r_k||^2 over the tracked outputs, k = 1..K (the experiment's cost)."""
+        err = self.y[1:, list(tracked)] - self.y_ref[:, list(tracked)]
+        return float(np.sum(err ** 2))
+
+
+def run_episode(core: ControllerCore, plant: Plant, steps: int,
+                theta: Optional[Sequence[float]] = None,
+                x0: Optional[Sequence[float]] = None) -> Episode:
+    """Reset `plant` to (theta, x0) and let `core` answer `steps` samples (module docstring).
+
+    The core keeps its model and tuning across episodes; a plant reset is a new episode for it
+    (the step index goes back), so its planners start cold, as in the nodes.
+    """
+    y0 = plant.reset(theta, x0)
+    n_u = plant.family.n_u
+    u = np.zeros((steps + 1, n_u))
+    y = np.zeros((steps + 1, len(y0)))
+    y[0] = y0
+    refs, ticks, escaped = [], [], (0 if plant.diverged else None)
+    k = 0
+    while k < steps and escaped is None:
+        core.observe(k, u[k], y[k])
+        res = core.tick()
+        ticks.append(res)
+        refs.append(res.y_ref[0] if len(res.y_ref) else np.full(len(y0), np.nan))
+        u[k + 1], _ = plant.saturate(res.u)
+        y[k + 1] = plant.step(u[k + 1])
+        k += 1
+        if plant.diverged:
+            escaped = k
+    return Episode(u=u[:k + 1], y=y[:k + 1], y_ref=np.array(refs).reshape(k, len(y0)),
+                   ticks=ticks, escaped_at=escaped)
