@@ -25,6 +25,7 @@ import numpy as np
 from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
+from metampc_controller.model_check import check
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
@@ -50,6 +51,7 @@ class History:
 
     def __init__(self, capacity: int, n_u: int, n_y: int):
         self.capacity = capacity
+        self._lock = threading.Lock()     # append (executor) against snapshot (builder)
         self._u = np.zeros((2 * capacity, n_u))
         self._y = np.zeros((2 * capacity, n_y))
         self._pos = 0
@@ -59,18 +61,29 @@ class History:
     def append(self, step: int, u: Sequence[float], y: Sequence[float]) -> bool:
         """Add sample (u_k, y_k) of step k; True if it starts a new episode."""
         new_episode = self.step is None or step != self.step + 1
-        if new_episode:
-            self._u[:] = u
-            self._y[:] = y
-            self._pos, self.length = 0, 1
-        else:
-            pos = self._pos = (self._pos + 1) % self.capacity
-            self.length += 1
-            # Rows pos and pos + capacity in one assignment (one conversion of the value).
-            self._u[pos::self.capacity] = u
-            self._y[pos::self.capacity] = y
-        self.step = step
+        with self._lock:
+            if new_episode:
+                self._u[:] = u
+                self._y[:] = y
+                self._pos, self.length = 0, 1
+            else:
+                pos = self._pos = (self._pos + 1) % self.capacity
+                self.length += 1
+                # Rows pos and pos + capacity in one assignment (one conversion of the value).
+                self._u[pos::self.capacity] = u
+                self._y[pos::self.capacity] = y
+            self.step = step
         return new_episode
+
+    def snapshot(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Copies (u (n, n_u), y (n, n_y)) of the current episode's samples held, oldest first
+        (n = min(length, capacity)); safe from another thread."""
+        with self._lock:
+            if self.step is None:
+                return np.zeros((0, self._u.shape[1])), np.zeros((0, self._y.shape[1]))
+            n = min(self.length, self.capacity)
+            end = self._pos + self.capacity + 1
+            return self._u[end - n:end].copy(), self._y[end - n:end].copy()
 
     def window(self, h: int) -> Tuple[np.ndarray, np.ndarray]:
         """(u (h, n_u), y (h, n_y)): the newest h samples, oldest first (read-only views)."""
@@ -429,6 +442,22 @@ class ControllerCore:
         with self._setup_lock:
             self._setup = self._setup._replace(model=bundle, model_status='ok')
         return None
+
+    def vet(self, bundle: ModelBundle, request_step: int = 0) -> str:
+        """The check a new model must pass before :meth:`offer_model` (builder thread): ''
+        to fly it, else the reason (:mod:`model_check`), and the model in use stays; a refused
+        answer to the pending adaptation request ends that request, so that the loop goes on
+        with the model in use at once."""
+        u, y = self.history.snapshot()
+        current = self.model
+        verdict = check(bundle.predictor, current.predictor if current is not None else None,
+                        u, y, self.tuning.config.mpc.horizon, self.tuning.config.model_check)
+        if verdict.ok:
+            return ''
+        pending = self.trigger.pending
+        if request_step and pending is not None and request_step == pending.step:
+            self.trigger.give_up()
+        return verdict.reason
 
     def reject_model(self, reason: str) -> None:
         """Report rejected weights; the previous model stays in use (builder thread)."""

@@ -83,7 +83,7 @@ from metampc_controller.controller_params import ControllerConfig, PARAMETERS, p
 from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
-            'retunes', 'adapt_requests', 'adapt_timeouts')
+            'retunes', 'adapt_requests', 'adapt_timeouts', 'refused_models')
 DELIVERY_TIMEOUT = Duration(seconds=10.0)   # deactivation's wait for the readers' acks
 HOLD_POLL_S = 0.002     # how often an answer waiting for a requested model looks for it, s
 
@@ -371,6 +371,11 @@ class ControllerNode(Node):
             return
         except Exception as err:    # a bug, not bad weights: say so, never lose it silently
             self._reject(msg, f'{type(err).__name__}: {err}')
+            return
+        refused = core.vet(bundle, msg.request_step)
+        if refused:
+            self._counts['refused_models'] += 1
+            self._reject(msg, refused)
             return
         requested = core.offer_model(bundle, msg.request_step)
         self._counts['models'] += 1

@@ -18,6 +18,7 @@ from metampc_common.params import (build, param, ParameterError, ParamSpec, Sect
 
 from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_controller.excitation import ExcitationConfig
+from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.references import make_reference, PaperConfig
 
@@ -121,6 +122,7 @@ class ControllerConfig:
         history: required H of the weights, 0 for any up to MAX_HISTORY.
         active: publish inputs from the start.
         trigger: when to ask the learner for adaptation in the loop.
+        model_check: the check a new model must pass before it flies.
     """
 
     rate_hz: float = param(10.0, 'tick rate on the node clock, Hz (sim time under a lockstep '
@@ -140,14 +142,16 @@ class ControllerConfig:
                             f'{MAX_HISTORY})', ge=0, le=MAX_HISTORY)
     active: bool = param(True, 'publish inputs from the start (service set_active toggles)')
     trigger: TriggerConfig = field(default_factory=TriggerConfig)
+    model_check: ModelCheckConfig = field(default_factory=ModelCheckConfig)
 
 
 MPC = Section(MpcConfig)
 REFERENCE = Section(ReferenceParams, 'reference_', rename={'kind': 'reference'})
 EXCITATION = Section(ExcitationParams, 'excitation_')
 TRIGGER = Section(TriggerConfig)
+CHECK = Section(ModelCheckConfig)
 NODE = Section(ControllerConfig)
-SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER)
+SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, CHECK)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -174,6 +178,7 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
     node.excitation = excitation.within(*mpc.bounds(node.n_u))
     node.excitation_seed = excitation.seed
     node.trigger = build(TRIGGER, values)
+    node.model_check = build(CHECK, values)
     return node
 
 

@@ -1,0 +1,112 @@
+"""The check a new model must pass before the controller flies it.
+
+A model is judged by how it predicts what the controller will use it for: the N-step
+prediction of the plant under the inputs that were really applied (the MPC's own plans, as
+the plant held them), on the latest samples of the current episode. From every `stride`-th
+start t among those samples, with H samples up to t (eq. (z)) and N after it::
+
+    E = mean_{t, k = 1..N, i} ((y_{t+k,i} - yhat_{t+k|t,i}) / s_i)^2
+
+with yhat rolled by eqs. (z_next), (haty) from z_t under u_{t+1..t+N}, and s_i the std of
+output i over the samples scored (the same yardstick for every model, whatever its own
+normalisation). The candidate passes when
+
+    E_candidate <= (1 + margin) E_reference,
+
+E_reference the model in use's E on the same starts or, with none in use, that of persistence
+(yhat_{t+k} = y_t: a model that predicts the plant worse than "nothing moves" is not fit to
+control it). Too few samples in the episode to score (H + N + 1) pass unchecked, and say so.
+
+Pure numpy (no rclpy). The controller core calls it on its builder thread, outside the tick.
+"""
+from dataclasses import dataclass
+import math
+from typing import Optional
+
+import numpy as np
+
+from metampc_common.params import param
+from metampc_controller.predictor import NssmPredictor
+
+
+@dataclass
+class ModelCheckConfig:
+    """Settings of the check (node parameters, live)."""
+
+    model_check: bool = param(True, 'check each new model before flying it: its N-step '
+                                    'prediction of the latest samples against the model in use '
+                                    '(refused: the model in use stays)', live=True)
+    model_check_margin: float = param(0.25, 'a new model may predict up to this fraction worse '
+                                            'than the model in use and still fly', ge=0,
+                                      live=True)
+    model_check_window: int = param(200, 'latest samples of the episode the check scores', ge=1,
+                                    le=900, live=True)
+    model_check_stride: int = param(5, 'samples between the starts of the scored predictions',
+                                    ge=1, live=True)
+
+
+@dataclass
+class Verdict:
+    """The check's answer.
+
+    Attributes:
+        ok: the candidate may fly.
+        reason: one line: why it may not, or what was compared ('unchecked: ...' without data).
+        candidate, reference: E of the candidate and of the yardstick (nan when unchecked).
+    """
+
+    ok: bool
+    reason: str
+    candidate: float = math.nan
+    reference: float = math.nan
+
+
+def n_step_error(predict, u: np.ndarray, y: np.ndarray, history: int, horizon: int,
+                 stride: int, scale: np.ndarray) -> float:
+    """E of a predictor over the samples (u (K, n_u), y (K, n_y); row k of u produced row k
+    of y): predict(u_hist (H, n_u), y_hist (H, n_y), u_future (N, n_u)) -> (N, n_y)."""
+    total, count = 0.0, 0
+    for t in range(history - 1, len(y) - horizon, stride):
+        lo = t - history + 1
+        pred = predict(u[lo:t + 1], y[lo:t + 1], u[t + 1:t + 1 + horizon])
+        err = (y[t + 1:t + 1 + horizon] - pred) / scale
+        total += float(np.sum(err * err))
+        count += err.size
+    return total / count if count else math.nan
+
+
+def _own_history(model: NssmPredictor):
+    """The model's predict, given the latest of (possibly more) history rows."""
+    h = model.config.history
+    return lambda u_hist, y_hist, u_future: model.predict(u_hist[-h:], y_hist[-h:], u_future)
+
+
+def _persistence(u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray) -> np.ndarray:
+    return np.repeat(y_hist[-1:], len(u_future), axis=0)
+
+
+def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndarray,
+          y: np.ndarray, horizon: int, config: ModelCheckConfig) -> Verdict:
+    """Verdict on `candidate` against `current` (None: persistence) on the latest samples
+    u (K, n_u), y (K, n_y) of the episode (module docstring)."""
+    if not config.model_check:
+        return Verdict(True, 'unchecked: model_check is off')
+    h = max(candidate.config.history, current.config.history if current is not None else 1)
+    u, y = u[-(config.model_check_window + h):], y[-(config.model_check_window + h):]
+    if len(y) < h + horizon + 1:
+        return Verdict(True, f'unchecked: {len(y)} samples in the episode, the check needs '
+                             f'{h + horizon + 1}')
+    scale = np.std(y, axis=0)
+    scale = np.where(scale > 1e-9, scale, 1.0)
+    args = (u, y, h, horizon, config.model_check_stride, scale)
+    new = n_step_error(_own_history(candidate), *args)
+    ref = n_step_error(_own_history(current) if current is not None else _persistence, *args)
+    what = 'the model in use' if current is not None else 'persistence (y stays)'
+    limit = (1.0 + config.model_check_margin) * ref
+    if not math.isfinite(new) or new > limit:
+        margin = config.model_check_margin
+        return Verdict(False, f'check: its {horizon}-step prediction error {new:.4g} on the '
+                              f'latest {len(y)} samples exceeds (1 + {margin:g}) x {ref:.4g} '
+                              f'of {what}', new, ref)
+    return Verdict(True, f'check passed: {horizon}-step prediction error {new:.4g} against '
+                         f'{ref:.4g} of {what}', new, ref)

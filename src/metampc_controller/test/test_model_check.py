@@ -1,0 +1,106 @@
+"""The check a new model must pass before it flies (model_check.py, ControllerCore.vet).
+
+Independent answers: the plant core's own data; a model linearised at the plant's theta
+(good), the same model with its input matrix negated (it predicts the plant to move the
+wrong way: bad), and persistence computed by hand.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from metampc_controller.controller_core import build_model, ControllerCore
+from metampc_controller.controller_params import ControllerConfig
+from metampc_controller.manual_model import linearised_vdp_nssm
+from metampc_controller.model_check import check, ModelCheckConfig, n_step_error
+from metampc_controller.mpc import MpcConfig
+from metampc_controller.predictor import NssmPredictor
+from metampc_controller.weights_codec import DecodedWeights
+from metampc_plant.simulator import Plant, PlantConfig
+
+MPC = MpcConfig(time_limit=30.0)
+
+
+def manual(theta=0.5, flip=False):
+    config, norm, params = linearised_vdp_nssm(theta, 0.1, 10)
+    if flip:
+        params = dict(params, B=-params['B'])
+    return DecodedWeights(config, norm, params)
+
+
+def predictor(**kw) -> NssmPredictor:
+    d = manual(**kw)
+    return NssmPredictor(d.config, d.norm, d.params)
+
+
+def plant_data(steps=200, seed=0):
+    """Samples of the van der Pol plant (theta 0.5) under a random input held 0.5 s."""
+    rng = np.random.default_rng(seed)
+    plant = Plant(PlantConfig(theta=(0.5,)))
+    u = np.repeat(rng.uniform(-0.8, 0.8, steps // 5 + 1), 5)[:steps, None]
+    y = np.empty((steps, 2))
+    y[0] = plant.output()
+    u[0] = 0.0
+    for k in range(1, steps):
+        y[k] = plant.step(u[k])
+    return u, y
+
+
+def test_n_step_error_of_persistence_by_hand():
+    u, y = plant_data(60)
+    scale = np.std(y, axis=0)
+    e = n_step_error(lambda uh, yh, uf: np.repeat(yh[-1:], len(uf), 0), u, y, 10, 5, 7, scale)
+    starts = range(9, 60 - 5, 7)
+    by_hand = np.mean([((y[t + k] - y[t]) / scale) ** 2 for t in starts for k in range(1, 6)])
+    assert e == pytest.approx(by_hand, rel=1e-12)
+
+
+def test_a_good_model_passes_a_bad_one_is_refused():
+    u, y = plant_data()
+    cfg = ModelCheckConfig()
+    good, bad = predictor(), predictor(flip=True)
+    first = check(good, None, u, y, 20, cfg)              # against persistence
+    assert first.ok and first.candidate < first.reference
+    assert first.reason.startswith('check passed') and 'persistence' in first.reason
+    refused = check(bad, good, u, y, 20, cfg)
+    assert not refused.ok and refused.candidate > 1.25 * refused.reference
+    assert refused.reason.startswith('check: its 20-step prediction error')
+    assert 'of the model in use' in refused.reason
+    assert check(good, bad, u, y, 20, cfg).ok            # better than the one in use
+    assert check(bad, good, u, y, 20, ModelCheckConfig(model_check=False)).ok
+    short = check(bad, good, u[:25], y[:25], 20, cfg)     # 25 < H + N + 1 = 31 samples
+    assert short.ok and short.reason.startswith('unchecked: 25 samples') and math.isnan(
+        short.candidate)
+
+
+def test_a_model_the_check_must_refuse_is_refused_and_the_loop_goes_on():
+    core = ControllerCore(ControllerConfig(reference_kind='setpoint',
+                                           reference_params={'value': 0.5}, mpc=MPC))
+    plant = Plant(PlantConfig(theta=(0.5,)))
+    good = build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2)
+    assert core.vet(good) == ''
+    core.offer_model(good)
+    y, u = plant.output(), 0.0
+    for k in range(200):
+        if k == 100:    # a bad model arrives mid-run
+            bad = build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2)
+            reason = core.vet(bad)
+            assert reason.startswith('check: its 20-step prediction error')
+            core.reject_model(reason)
+        core.observe(k, [u], y)
+        res = core.tick()
+        assert res.model_version == 1 and res.solver_status == 'solved'
+        u = float(res.u[0])
+        y = plant.step([u])
+    assert res.model_status.startswith('rejected: check:')
+    assert abs(plant.output()[0] - 0.5) < 1e-2
+
+
+def test_history_snapshot_is_the_episode_oldest_first():
+    core = ControllerCore(ControllerConfig())
+    for k in range(5):
+        core.observe(k, [float(k)], [k, -k])
+    u, y = core.history.snapshot()
+    assert u[:, 0].tolist() == [0, 1, 2, 3, 4] and y[:, 1].tolist() == [0, -1, -2, -3, -4]
+    core.observe(0, [9.0], [9, 9])            # a plant reset: a new episode
+    assert core.history.snapshot()[0].tolist() == [[9.0]]
