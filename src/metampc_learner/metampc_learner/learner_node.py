@@ -224,7 +224,9 @@ class LearnerNode(Node):
         p = status.progress
         msg = TrainingProgress(phase=status.phase, method=status.method, iteration=p.iteration,
                                total=p.total, loss=float(p.loss), elapsed=float(p.elapsed),
-                               skipped_tasks=p.skipped, cg_residual=float(p.cg_residual))
+                               skipped_tasks=p.skipped, cg_residual=float(p.cg_residual),
+                               validation_loss=float(p.validation_loss),
+                               rollbacks=p.rollbacks, best_iteration=p.best_iteration)
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_progress.publish(msg)
 

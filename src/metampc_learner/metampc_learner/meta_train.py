@@ -19,6 +19,18 @@ Non-finite tasks: a task whose test loss or meta-gradient is non-finite is skipp
 of the mean) and counted; if more than ``max_skip_fraction`` of a batch is skipped for
 ``max_bad_steps`` consecutive steps, :class:`MetaTrainingError` names the tasks.
 
+Divergence guard (``validation_tasks`` > 0, on by default): that many source tasks (at most a
+fifth of them), drawn once from the seed, are held out of the task sampling. Every
+``validation_every`` outer steps the method's meta-test loss (the loss after the inner loop,
+the quantity eq. (outer) descends) on fixed windows of those tasks is the validation loss;
+the weights and Adam's state at the best one are kept. A validation loss that is non-finite
+or above ``spike_factor`` times the best rolls back to that checkpoint and multiplies beta_out
+by ``rollback_lr_factor`` (a smaller step from a good point); each rollback is counted in the
+progress reports and the result. The result's weights are the best checkpoint's, so a run
+that diverged after a good start returns the good start, never the divergence. Measured
+before this guard: the quadruple tank's tuned iMAML (gamma 0.01) ended at meta-test losses of
+1.1-48.7 on 5 of 7 source sets.
+
 Algorithm 1's online collection: an optional ``collector(task, theta, params_b)`` runs after
 each task's inner loop with its adapted weights omega_b and returns new trajectories of that
 system; they join the task's D_tr / D_test (capped in the source set, oldest dropped).
@@ -37,9 +49,11 @@ Determinism: task and window sampling use ``numpy.random.default_rng(seed)``, th
 weights ``init_params(config, seed)``; the same seed, backend, device and thread count give
 the same weights.
 """
+import copy
+import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, List, Optional, Sequence, Set
+from typing import Callable, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import torch
@@ -93,6 +107,10 @@ class MetaConfig:
         seed: seed of the initial weights and of task/window sampling.
         max_skip_fraction: a step is bad when more than this share of its tasks is skipped.
         max_bad_steps: consecutive bad steps that stop training.
+        validation_tasks: source tasks held out for the divergence guard (0: no guard).
+        validation_every: outer steps between validations.
+        spike_factor: a validation loss above this multiple of the best rolls back.
+        rollback_lr_factor: beta_out multiplier at each rollback.
     """
 
     method: str = param('imaml', 'meta-training method', choices=METHODS, live=True)
@@ -118,6 +136,12 @@ class MetaConfig:
                                'CUDA device)', choices=DEVICES)
     seed: int = param(0, 'seed of initial weights, task sampling, collection and the '
                          'supervised/oracle initialisation', ge=0, live=True)
+    validation_tasks: int = param(8, 'source tasks held out to validate on every '
+                                     'validation_every steps (0: no divergence guard)', ge=0)
+    validation_every: int = param(10, 'outer steps between validations', ge=1)
+    spike_factor: float = param(10.0, 'a validation loss above this multiple of the best (or '
+                                      'non-finite) rolls back to the best checkpoint', gt=1)
+    rollback_lr_factor: float = param(0.5, 'beta_out multiplier at each rollback', gt=0, lt=1)
     max_skip_fraction: float = 0.5
     max_bad_steps: int = 3
 
@@ -151,6 +175,10 @@ class MetaResult:
         collected_samples: collected samples held in the source set at the end.
         dropped_samples: collected samples dropped by the cap.
         elapsed: wall time, s.
+        validation_losses: (outer step, validation loss) of each validation.
+        best_iteration: outer step of the returned weights (the best validation; the last
+            step without the guard).
+        rollbacks: outer steps at which a spike rolled training back.
     """
 
     params: Params
@@ -161,6 +189,9 @@ class MetaResult:
     collected_samples: int = 0
     dropped_samples: int = 0
     elapsed: float = 0.0
+    validation_losses: List[Tuple[int, float]] = field(default_factory=list)
+    best_iteration: int = 0
+    rollbacks: List[int] = field(default_factory=list)
 
 
 @dataclass
@@ -217,6 +248,53 @@ def batch_gradient_fn(objective: FlatObjective, config: MetaConfig
     return loop
 
 
+class DivergenceGuard:
+    """The held-out tasks, their fixed windows, the best checkpoint and the rollbacks (module
+    docstring). ``tasks`` are excluded from training; check() runs at validation steps."""
+
+    def __init__(self, source: SourceSet, config: MetaConfig, batch_fn, device):
+        # At most a fifth of the tasks: the rest must still train (a source set of fewer than
+        # five tasks has no guard).
+        n_val = min(config.validation_tasks, len(source) // 5)
+        rng = np.random.default_rng([config.seed, 0x7a11d])
+        self.tasks = np.sort(rng.choice(len(source), size=max(n_val, 0), replace=False))
+        self.config, self._batch_fn = config, batch_fn
+        self.best = (float('inf'), 0, None, None)     # (loss, step, omega, Adam state)
+        if len(self.tasks):
+            train, test = source.sample(self.tasks, config.windows_per_task, rng)
+            self._windows = tuple(x.to(device) for x in (train.u, train.y, test.u, test.y))
+
+    @property
+    def on(self) -> bool:
+        return len(self.tasks) > 0
+
+    def loss(self, omega: torch.Tensor) -> float:
+        """Mean meta-test loss of the held-out tasks at omega (non-finite tasks: inf)."""
+        out = self._batch_fn(omega.detach(), *self._windows)
+        losses = out.test_loss
+        return float(losses.mean()) if bool(torch.isfinite(losses).all()) else float('inf')
+
+    def check(self, it: int, omega: torch.nn.Parameter, optimiser, result: 'MetaResult'
+              ) -> None:
+        """Validate at step `it`: keep a new best, or roll back on a spike."""
+        loss = self.loss(omega)
+        result.validation_losses.append((it, loss))
+        best_loss, _, best_omega, best_state = self.best
+        if math.isfinite(loss) and loss <= best_loss:
+            self.best = (loss, it, omega.detach().clone(), copy.deepcopy(optimiser.state_dict()))
+        elif best_omega is not None and (not math.isfinite(loss)
+                                         or loss > self.config.spike_factor * best_loss):
+            with torch.no_grad():
+                omega.copy_(best_omega)
+            optimiser.load_state_dict(best_state)
+            for group in optimiser.param_groups:
+                group['lr'] *= self.config.rollback_lr_factor
+            # The next rollback, if any, also starts from the smaller step.
+            self.best = (best_loss, self.best[1], best_omega,
+                         copy.deepcopy(optimiser.state_dict()))
+            result.rollbacks.append(it)
+
+
 def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
                progress: Optional[ProgressFn] = None, collector: Optional[Collector] = None,
                init: Optional[Params] = None) -> MetaResult:
@@ -246,12 +324,16 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
     batch_fn = batch_gradient_fn(objective, config)
     rng = np.random.default_rng(config.seed)
     result = MetaResult(params={})
+    guard = DivergenceGuard(source, config, batch_fn, device)
+    train_tasks = np.setdiff1d(np.arange(len(source)), guard.tasks)
+    if guard.on:
+        guard.check(0, omega, optimiser, result)
     bad_steps = 0
     bad_tasks: Set[int] = set()
     start = time.monotonic()
     for it in range(1, config.iterations + 1):
-        tasks = rng.choice(len(source), size=config.batch_size,
-                           replace=len(source) < config.batch_size)
+        tasks = rng.choice(train_tasks, size=config.batch_size,
+                           replace=len(train_tasks) < config.batch_size)
         train, test = source.sample(tasks, config.windows_per_task, rng)
         windows = (x.to(device) for x in (train.u, train.y, test.u, test.y))
         out = batch_fn(omega.detach(), *windows)
@@ -289,11 +371,17 @@ def meta_train(model: Nssm, source: SourceSet, config: MetaConfig,
         residual = float(out.cg_residual[ok].mean()) if ok.any() else float('nan')
         result.losses.append(loss)
         result.cg_residuals.append(residual)
+        if guard.on and (it % config.validation_every == 0 or it == config.iterations):
+            guard.check(it, omega, optimiser, result)
         if progress is not None:
             progress(Progress(it, config.iterations, loss, time.monotonic() - start,
-                              result.skipped, residual))
+                              result.skipped, residual,
+                              result.validation_losses[-1][1] if guard.on else math.nan,
+                              len(result.rollbacks), guard.best[1] if guard.on else it))
+    final = guard.best[2] if guard.on and guard.best[2] is not None else omega.detach()
+    result.best_iteration = guard.best[1] if guard.on else config.iterations
     result.params = {k: v.detach().cpu().clone()
-                     for k, v in objective.spec.unflatten(omega.detach()).items()}
+                     for k, v in objective.spec.unflatten(final).items()}
     result.collected_samples = source.collected_samples
     result.dropped_samples = source.dropped_samples
     result.elapsed = time.monotonic() - start

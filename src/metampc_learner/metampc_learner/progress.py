@@ -14,6 +14,9 @@ class Progress:
         elapsed: wall time since the phase started, s.
         skipped: tasks skipped so far because their loss or gradient turned non-finite.
         cg_residual: mean relative CG residual of the step's iMAML meta-gradients (NaN if none).
+        validation_loss: meta-training's latest validation loss on held-out tasks (NaN if none).
+        rollbacks: rollbacks to the best checkpoint so far (meta-training's divergence guard).
+        best_iteration: outer step of the best checkpoint so far.
     """
 
     iteration: int
@@ -22,6 +25,9 @@ class Progress:
     elapsed: float
     skipped: int = 0
     cg_residual: float = float('nan')
+    validation_loss: float = float('nan')
+    rollbacks: int = 0
+    best_iteration: int = 0
 
 
 ProgressFn = Callable[[Progress], None]

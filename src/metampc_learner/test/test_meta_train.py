@@ -1,4 +1,7 @@
-"""Meta-training loop: determinism, non-finite tasks, progress, Algorithm 1's collector."""
+"""Meta-training loop: determinism, non-finite tasks, progress, Algorithm 1's collector, the
+divergence guard."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -6,6 +9,7 @@ import torch
 from metampc_controller.nssm import init_params, Nssm, NssmConfig, prediction_loss
 from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
                                   SourceConfig, SourceData, SourceSet, Trajectory)
+from metampc_learner import meta_train as meta_module
 from metampc_learner.meta_train import (meta_train, MetaConfig, MetaTrainingError,
                                         task_gradient_fn)
 from metampc_learner.objective import FlatObjective
@@ -61,7 +65,8 @@ def _poisoned(n_bad):
 def test_non_finite_task_is_skipped_and_counted():
     model, source = _source(_poisoned(1))
     reports = []
-    result = meta_train(model, source, _fast(batch_size=6, iterations=4),  # every task, every step
+    # Every task, every step: no task held out for validation.
+    result = meta_train(model, source, _fast(batch_size=6, iterations=4, validation_tasks=0),
                         progress=reports.append)
     assert result.skipped == 4
     assert [r.skipped for r in reports] == [1, 2, 3, 4]
@@ -91,7 +96,7 @@ def test_outer_step_gets_the_mean_of_the_finite_task_gradients(monkeypatch):
     given = _record_sgd(monkeypatch)
     model, source = _source(_poisoned(1))
     config = _fast(method='imaml', batch_size=6, iterations=2, lr_outer=0.01,
-                   lr_schedule='constant')
+                   lr_schedule='constant', validation_tasks=0)
     result = meta_train(model, source, config)
     objective = FlatObjective(model)
     task_fn = task_gradient_fn(objective, config)
@@ -113,7 +118,8 @@ def test_outer_step_gets_the_mean_of_the_finite_task_gradients(monkeypatch):
 def test_training_stops_naming_the_tasks_when_most_of_a_batch_keeps_failing():
     model, source = _source(_poisoned(4))
     with pytest.raises(MetaTrainingError) as err:
-        meta_train(model, source, _fast(batch_size=6, iterations=10, max_bad_steps=2))
+        meta_train(model, source, _fast(batch_size=6, iterations=10, max_bad_steps=2,
+                                        validation_tasks=0))
     message = str(err.value)
     assert '2 consecutive steps (up to step 2)' in message
     for i in range(4):
@@ -206,3 +212,45 @@ def test_anchor_adds_the_weighted_gradient_of_the_loss_before_adaptation(method)
         a, f = anchored(omega, *task), free(omega, *task)
         assert torch.allclose(a.grad, f.grad + 0.3 * reference, rtol=1e-5, atol=1e-7)
         assert torch.equal(a.test_loss, f.test_loss) and torch.equal(a.adapted, f.adapted)
+
+
+def test_a_forced_loss_spike_is_rolled_back_to_the_best_checkpoint(monkeypatch):
+    """At outer step 13 the meta-gradient is multiplied by 1e4 (a forced spike: Adam is
+    replaced by SGD, which does not normalise it away). The validation at step 15 sees the
+    held-out loss explode, restores the weights and optimiser state of the best validation
+    (step 10 at the latest), halves beta_out, and training goes on to a finite end; the
+    returned weights are the best checkpoint's, whose validation loss is recomputed here."""
+    _record_sgd(monkeypatch)
+    model, source = _source(simulate_source(replace(SRC, n_systems=10)))
+    real = meta_module.batch_gradient_fn
+    calls = {'n': 0}
+
+    def spiking(objective, config):
+        fn = real(objective, config)
+
+        def wrapped(omega, *windows):
+            out = fn(omega, *windows)
+            if windows[0].shape[0] == config.batch_size:    # a training step, not a validation
+                calls['n'] += 1
+                if calls['n'] == 13:
+                    return out._replace(grad=out.grad * 1e4)
+            return out
+        return wrapped
+
+    monkeypatch.setattr(meta_module, 'batch_gradient_fn', spiking)
+    reports = []
+    config = _fast(iterations=30, batch_size=4, lr_outer=0.05, validation_tasks=2,
+                   validation_every=5, lr_schedule='constant')
+    result = meta_train(model, source, config, progress=reports.append)
+    losses = dict(result.validation_losses)
+    assert sorted(losses) == [0, 5, 10, 15, 20, 25, 30]
+    assert result.rollbacks == [15]
+    assert losses[15] > 10 * min(losses[s] for s in (0, 5, 10))
+    assert result.best_iteration in (0, 5, 10, 20, 25, 30)
+    assert losses[result.best_iteration] == min(losses.values())
+    assert result.lr_outer[15] == pytest.approx(0.025)          # halved from step 16 on
+    assert [r.rollbacks for r in reports][14:16] == [1, 1] and reports[13].rollbacks == 0
+    guard = meta_module.DivergenceGuard(source, config, real(FlatObjective(model), config),
+                                        torch.device('cpu'))
+    again = guard.loss(FlatObjective(model).spec.flatten(result.params))
+    assert again == pytest.approx(losses[result.best_iteration], rel=1e-6)

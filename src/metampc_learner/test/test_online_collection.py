@@ -73,7 +73,7 @@ def test_without_noise_the_inputs_are_the_mpc_plan():
     n_h = TINY.history
     for t in range(n_h - 1, len(traj) - 1):          # row i holds sample i + 1
         z = predictor.encode(traj.u[t - n_h + 1:t + 1], traj.y[t - n_h + 1:t + 1])
-        plan = mpc.solve(z, traj.u[t], np.zeros((5, 2)))
+        plan = mpc.solve(z, traj.u[t], np.zeros((5, 2)), traj.y[t], t)
         assert traj.u[t + 1, 0] == min(max(plan.u[0], -1.0), 1.0)
 
 
