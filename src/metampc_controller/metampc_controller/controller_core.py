@@ -25,7 +25,7 @@ import numpy as np
 from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
-from metampc_controller.model_check import check
+from metampc_controller.model_check import applies, check
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
@@ -447,15 +447,21 @@ class ControllerCore:
         """The check a new model must pass before :meth:`offer_model` (builder thread): ''
         to fly it, else the reason (:mod:`model_check`), and the model in use stays; a refused
         answer to the pending adaptation request ends that request, so that the loop goes on
-        with the model in use at once."""
+        with the model in use at once. The yardstick is the model in use when `bundle` is of
+        its method (an update of it), persistence otherwise."""
+        config = self.tuning.config
+        pending = self.trigger.pending
+        answers = bool(request_step) and pending is not None and request_step == pending.step
+        if not applies(config.model_check, answers):
+            return ''
         u, y = self.history.snapshot()
         current = self.model
-        verdict = check(bundle.predictor, current.predictor if current is not None else None,
-                        u, y, self.tuning.config.mpc.horizon, self.tuning.config.model_check)
+        same = current is not None and current.method == bundle.method
+        verdict = check(bundle.predictor, current.predictor if same else None, u, y,
+                        config.mpc.horizon, config.model_check)
         if verdict.ok:
             return ''
-        pending = self.trigger.pending
-        if request_step and pending is not None and request_step == pending.step:
+        if answers:
             self.trigger.give_up()
         return verdict.reason
 

@@ -13,9 +13,15 @@ normalisation). The candidate passes when
 
     E_candidate <= (1 + margin) E_reference,
 
-E_reference the model in use's E on the same starts or, with none in use, that of persistence
-(yhat_{t+k} = y_t: a model that predicts the plant worse than "nothing moves" is not fit to
-control it). Too few samples in the episode to score (H + N + 1) pass unchecked, and say so.
+E_reference the model in use's E on the same starts when the candidate updates it (the same
+method: an adaptation of it), else that of persistence (yhat_{t+k} = y_t: a model that
+predicts the plant worse than "nothing moves" is not fit to control it). Too few samples in
+the episode to score (H + N + 1) pass unchecked, and say so.
+
+Which models are checked (``model_check``): ``requested`` (default) those that answer the
+controller's own adaptation requests, which arrive while it controls and would otherwise be
+swapped in unchecked; ``all`` every model (a model sent on purpose, e.g. by an experiment
+that compares methods, is then judged too); ``off`` none.
 
 Pure numpy (no rclpy). The controller core calls it on its builder thread, outside the tick.
 """
@@ -28,14 +34,16 @@ import numpy as np
 from metampc_common.params import param
 from metampc_controller.predictor import NssmPredictor
 
+CHECKED = ('requested', 'all', 'off')
+
 
 @dataclass
 class ModelCheckConfig:
     """Settings of the check (node parameters, live)."""
 
-    model_check: bool = param(True, 'check each new model before flying it: its N-step '
-                                    'prediction of the latest samples against the model in use '
-                                    '(refused: the model in use stays)', live=True)
+    model_check: str = param('requested', 'which new models must pass the check before they '
+                                          'fly: requested (answers to adaptation requests), '
+                                          'all, off', choices=CHECKED, live=True)
     model_check_margin: float = param(0.25, 'a new model may predict up to this fraction worse '
                                             'than the model in use and still fly', ge=0,
                                       live=True)
@@ -59,6 +67,11 @@ class Verdict:
     reason: str
     candidate: float = math.nan
     reference: float = math.nan
+
+
+def applies(config: ModelCheckConfig, requested: bool) -> bool:
+    """Whether a new model is checked: `requested` if it answers an adaptation request."""
+    return config.model_check == 'all' or (config.model_check == 'requested' and requested)
 
 
 def n_step_error(predict, u: np.ndarray, y: np.ndarray, history: int, horizon: int,
@@ -88,9 +101,8 @@ def _persistence(u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray) -
 def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndarray,
           y: np.ndarray, horizon: int, config: ModelCheckConfig) -> Verdict:
     """Verdict on `candidate` against `current` (None: persistence) on the latest samples
-    u (K, n_u), y (K, n_y) of the episode (module docstring)."""
-    if not config.model_check:
-        return Verdict(True, 'unchecked: model_check is off')
+    u (K, n_u), y (K, n_y) of the episode (module docstring); which models to check is the
+    caller's (:func:`applies`)."""
     h = max(candidate.config.history, current.config.history if current is not None else 1)
     u, y = u[-(config.model_check_window + h):], y[-(config.model_check_window + h):]
     if len(y) < h + horizon + 1:

@@ -12,7 +12,7 @@ import pytest
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.model_check import check, ModelCheckConfig, n_step_error
+from metampc_controller.model_check import applies, check, ModelCheckConfig, n_step_error
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.predictor import NssmPredictor
 from metampc_controller.weights_codec import DecodedWeights
@@ -67,15 +67,21 @@ def test_a_good_model_passes_a_bad_one_is_refused():
     assert refused.reason.startswith('check: its 20-step prediction error')
     assert 'of the model in use' in refused.reason
     assert check(good, bad, u, y, 20, cfg).ok            # better than the one in use
-    assert check(bad, good, u, y, 20, ModelCheckConfig(model_check=False)).ok
     short = check(bad, good, u[:25], y[:25], 20, cfg)     # 25 < H + N + 1 = 31 samples
     assert short.ok and short.reason.startswith('unchecked: 25 samples') and math.isnan(
         short.candidate)
 
 
+def test_which_models_are_checked():
+    requested, all_, off = (ModelCheckConfig(model_check=m) for m in ('requested', 'all', 'off'))
+    assert [applies(c, True) for c in (requested, all_, off)] == [True, True, False]
+    assert [applies(c, False) for c in (requested, all_, off)] == [False, True, False]
+
+
 def test_a_model_the_check_must_refuse_is_refused_and_the_loop_goes_on():
     core = ControllerCore(ControllerConfig(reference_kind='setpoint',
-                                           reference_params={'value': 0.5}, mpc=MPC))
+                                           reference_params={'value': 0.5}, mpc=MPC,
+                                           model_check=ModelCheckConfig(model_check='all')))
     plant = Plant(PlantConfig(theta=(0.5,)))
     good = build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2)
     assert core.vet(good) == ''
