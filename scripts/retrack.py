@@ -4,14 +4,17 @@
 Every seed's recorded adapted models fly again against the plant core (no ROS) under each
 variant of the controller's parameters; the true-model NMPC runs once per seed as the
 yardstick. Prints a table per variant (tracking cost / NMPC, median and worst, escapes, steady
-offsets) and writes RUN_DIR/retrack.json. Results are cached per (seed, variant) in
-RUN_DIR/retrack/, so a stopped run resumes.
+offsets, the paired comparison with the first variant: seeds where it is cheaper, median ratio
+with its 95 % bootstrap interval, Wilcoxon p) and writes RUN_DIR/retrack.json and
+RUN_DIR/retrack.png (steady offset and cost ratio per seed, per variant and method). Results
+are cached per (seed, variant) in RUN_DIR/retrack/, so a stopped run resumes.
 
-    python scripts/retrack.py runs/vdp --variant off:offset_free=off \\
+    python scripts/retrack.py runs/vdp --variant none:offset_free=none \\
         --variant state:offset_free=state --variant input:offset_free=input --jobs 2
 
-A variant is NAME:key=value,key=value with controller parameter names (docs/nodes.md); values
-are YAML (``0.3``, ``off``, ``[1.0, 0.0]``). A bad name or value is one error line, exit 2.
+A variant is NAME:key=value,key=value with controller parameter names (docs/controller.md);
+values are YAML (``0.3``, ``none``, ``[1.0, 0.0]``; YAML reads ``off`` as false). A bad name
+or value is one error line, exit 2.
 """
 import argparse
 import hashlib
@@ -22,7 +25,6 @@ import os
 import sys
 from typing import Any, Dict, Tuple
 
-import numpy as np
 import yaml
 
 
@@ -64,7 +66,10 @@ def main(argv=None) -> int:
     except ValueError as err:
         parser.error(str(err))
     from metampc_bringup.experiment_config import ConfigError, load
-    from metampc_bringup.retrack import controller_core, seed_recordings
+    from metampc_bringup.analysis import json_safe
+    from metampc_bringup.paired_stats import format_claim
+    from metampc_bringup.plots import plot_variants
+    from metampc_bringup.retrack import controller_core, seed_recordings, summarise
     from metampc_common.params import ParameterError
     try:
         experiment = load(os.path.join(args.run_dir, 'config.yaml'))
@@ -102,41 +107,23 @@ def main(argv=None) -> int:
             print(f'retrack: {done}/{len(todo)} {os.path.basename(running[fut])[:-5]}',
                   file=sys.stderr)
 
-    table: Dict[str, Dict[str, Any]] = {}
-    for seed in recordings:
-        first = json.load(open(cached(seed, *variants[0])))
-        nmpc = first['nmpc']['cost']
-        for name, overrides in variants:
-            res = json.load(open(cached(seed, name, overrides)))
-            for method, r in res.items():
-                if method == 'nmpc':
-                    continue
-                row = table.setdefault(name, {}).setdefault(method, {
-                    'ratio': [], 'escaped': 0, 'rejected': 0, 'offset': [], 'seeds': []})
-                row['seeds'].append(seed)
-                row['ratio'].append(r['cost'] / nmpc if not r['escaped'] else float('inf'))
-                row['escaped'] += int(r['escaped'])
-                row['rejected'] += int(bool(r['rejected']))
-                row['offset'].append(float(np.mean(r['offsets'])) if r['offsets'] else None)
-    summary = {}
+    per_seed = {seed: {name: json.load(open(cached(seed, name, overrides)))
+                       for name, overrides in variants} for seed in recordings}
+    summary = summarise(per_seed)
+    first = variants[0][0]
     print(f'{"variant":<12}{"method":<10}{"median":>8}{"worst":>10}{"escapes":>9}'
-          f'{"offset":>9}  ratios by seed')
-    for name, methods in table.items():
+          f'{"offset":>9}  {"vs " + first:<44} ratios by seed')
+    for name, methods in summary.items():
         for method, row in methods.items():
-            ratios = np.array(row['ratio'])
-            offsets = [o for o in row['offset'] if o is not None]
-            summary.setdefault(name, {})[method] = {
-                'median': float(np.median(ratios)), 'worst': float(np.max(ratios)),
-                'escapes': row['escaped'], 'rejected': row['rejected'],
-                'mean_offset': float(np.mean(offsets)) if offsets else None,
-                'ratios': dict(zip(row['seeds'], row['ratio'])), 'offsets': dict(
-                    zip(row['seeds'], row['offset']))}
-            s = summary[name][method]
-            print(f'{name:<12}{method:<10}{s["median"]:>8.3f}{s["worst"]:>10.3f}'
-                  f'{s["escapes"]:>9}{(s["mean_offset"] or 0):>9.4f}  '
-                  + ' '.join(f'{r:.2f}' for r in ratios))
+            claim = row.get('vs_' + first)
+            print(f'{name:<12}{method:<10}{row["median"]:>8.3f}{row["worst"]:>10.3f}'
+                  f'{row["escapes"]:>9}{row["mean_offset"]:>9.4f}  '
+                  f'{format_claim(claim) if claim else "":<44} '
+                  + ' '.join(f'{r:.2f}' for r in row['ratios'].values()))
     with open(os.path.join(args.run_dir, 'retrack.json'), 'w') as f:
-        json.dump({'variants': dict(variants), 'summary': summary}, f, indent=1)
+        json.dump(json_safe({'variants': dict(variants), 'summary': summary}), f, indent=1)
+    path = plot_variants(summary, os.path.join(args.run_dir, 'retrack.png'))
+    print(f'retrack: {os.path.join(args.run_dir, "retrack.json")}, {path}', file=sys.stderr)
     return 0
 
 

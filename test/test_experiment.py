@@ -22,6 +22,7 @@ from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_config import ConfigError, load
 from metampc_bringup.offline import learner_config
 from metampc_bringup.processes import session_pids
+from metampc_bringup.retrack import retrack_seed
 from metampc_learner.heldout import target_heldout
 from metampc_testing import read_with_rosbags
 
@@ -140,6 +141,13 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
         target_heldout(config.theta, learner.source, per_seed['seed']),
         learner.nssm.horizon), rel=1e-4)
     assert b0['imaml'] == per_seed['methods']['imaml']['adapt']['loss_curve'][0]
+    # The same tracking runs in one process (closed_loop, no ROS) give the same costs: the
+    # lockstep graph adds nothing and loses nothing (scripts/retrack.py's premise).
+    again = retrack_seed(config, per_seed['seed'], os.path.join(seed_dir, 'recording.mcap'), {})
+    assert set(again) == set(config.methods)
+    for method, result in again.items():
+        recorded = per_seed['methods'][method]['tracking']['tracking']['cost']
+        assert result.cost == pytest.approx(recorded, rel=1e-9, abs=1e-12), method
     with open(os.path.join(out, 'report.md')) as f:
         text = f.read()
     assert '(a) final meta-training loss' in text and 'fig2_meta_training.png' in text

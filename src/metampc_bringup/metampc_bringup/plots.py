@@ -177,3 +177,35 @@ def write_plots(series: RunSeries, out_dir: str,
         plot_training_loss(series, os.path.join(out_dir, 'training_loss.png')),
     ]
     return [p for p in written if p is not None]
+
+
+def plot_variants(summary: dict, path: str) -> Optional[str]:
+    """Per controller variant and method (retrack.summarise): steady offset per seed (left)
+    and tracking cost / NMPC per seed (right, log scale; an escape drawn at the top)."""
+    rows = [(name, method, row) for name, methods in summary.items()
+            for method, row in methods.items()]
+    if not rows:
+        return None
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 0.45 * len(rows) + 1.5),
+                                      sharey=True)
+    labels = []
+    top = max([r for _, _, row in rows for r in row['ratios'].values() if np.isfinite(r)]
+              + [1.0]) * 2
+    for i, (name, method, row) in enumerate(rows):
+        labels.append(f'{name} {method}')
+        offsets = np.array(list(row['offsets'].values()), dtype=float)
+        ratios = np.array(list(row['ratios'].values()), dtype=float)
+        jitter = np.linspace(-0.15, 0.15, len(ratios))
+        left.plot(offsets, i + jitter, 'o', ms=4, alpha=0.7)
+        right.plot(np.where(np.isfinite(ratios), ratios, top), i + jitter, 'o', ms=4,
+                   alpha=0.7)
+    left.set_yticks(range(len(rows)), labels)
+    left.set_xlabel('steady offset: mean |y - r| over the last quarter of each set-point')
+    right.set_xscale('log')
+    right.axvline(1.0, color='k', lw=0.8)
+    right.set_xlabel('tracking cost / true-model NMPC (escape: right edge)')
+    for ax in (left, right):
+        ax.grid(True, alpha=0.3)
+        ax.invert_yaxis()
+    fig.suptitle('Controller variants on the same recorded models, paired by seed')
+    return _save(fig, path)

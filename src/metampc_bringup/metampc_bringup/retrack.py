@@ -12,6 +12,7 @@ No ROS: seconds per seed instead of a graph's minutes, so controller designs can
 paired by seed on exactly the models an experiment produced.
 """
 from dataclasses import dataclass, field
+import math
 import os
 from typing import Any, Dict, List, Mapping, Optional
 
@@ -27,6 +28,7 @@ from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
 from metampc_plant.simulator import Plant
 
 from .experiment_config import ExperimentConfig
+from .paired_stats import paired_claim
 from .recording_reader import read_recording
 
 NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
@@ -146,3 +148,43 @@ def seed_recordings(run_dir: str) -> Dict[int, str]:
         if name.startswith('seed_') and name[5:].isdigit() and os.path.exists(path):
             out[int(name[5:])] = path
     return out
+
+
+def summarise(per_seed: Mapping[int, Mapping[str, Mapping[str, dict]]]) -> Dict[str, Any]:
+    """Per variant and method: tracking cost / NMPC by seed (inf: escaped), median, worst,
+    escapes, refusals, mean steady offset by seed; and, for every variant after the first,
+    the paired claim "variant < first variant" on the cost ratios (log ratios, Wilcoxon;
+    :func:`paired_claim`).
+
+    per_seed: {seed: {variant: {method: MethodResult as a dict}}}, every variant's dict
+    holding 'nmpc' or the first variant's does.
+    """
+    table: Dict[str, Dict[str, Dict[str, Any]]] = {}
+    for seed in sorted(per_seed):
+        variants = per_seed[seed]
+        nmpc = next(v['nmpc']['cost'] for v in variants.values() if 'nmpc' in v)
+        for name, results in variants.items():
+            for method, r in results.items():
+                if method == 'nmpc':
+                    continue
+                row = table.setdefault(name, {}).setdefault(method, {
+                    'ratios': {}, 'offsets': {}, 'escapes': 0, 'rejected': 0})
+                row['ratios'][seed] = math.inf if r['escaped'] else r['cost'] / nmpc
+                row['escapes'] += int(r['escaped'])
+                row['rejected'] += int(bool(r['rejected']))
+                row['offsets'][seed] = (float(np.mean(r['offsets'])) if r['offsets']
+                                        else math.nan)
+    first = next(iter(table), None)
+    for name, methods in table.items():
+        for method, row in methods.items():
+            ratios = np.array(list(row['ratios'].values()))
+            offsets = np.array(list(row['offsets'].values()))
+            row.update(median=float(np.median(ratios)), worst=float(np.max(ratios)),
+                       mean_offset=float(np.nanmean(offsets)) if np.isfinite(offsets).any()
+                       else math.nan)
+            base = table[first].get(method)
+            if name != first and base is not None:
+                seeds = sorted(set(row['ratios']) & set(base['ratios']))
+                row['vs_' + first] = paired_claim([row['ratios'][s] for s in seeds],
+                                                  [base['ratios'][s] for s in seeds], log=True)
+    return table

@@ -360,3 +360,28 @@ def test_a_model_the_offset_free_form_cannot_take_is_refused_and_the_loop_goes_o
     results = first + closed_loop(core, plant, 60, start=60)
     assert all(r.model_version == 4 and r.solver_status == 'solved' for r in results)
     assert abs(plant.output()[0] - 0.5) < 1e-3
+
+
+def test_run_episode_is_the_lockstep_loop_replayed_exactly():
+    """closed_loop.run_episode against an independent replay: a fresh plant fed the episode's
+    inputs gives its outputs bit for bit, each tick's first reference is the reference of the
+    next step, and the tracking cost is the experiment's (metrics.tracking_metrics on the
+    pairs y_{k+1}, r_{k+1}). A plant that escapes ends the episode at the escape."""
+    from metampc_controller.closed_loop import run_episode
+    core = ControllerCore(ControllerConfig(mpc=MpcConfig(time_limit=NO_TIME_LIMIT)))
+    core.set_plant(vdp_plant(0.5))
+    core.offer_model(manual_bundle(theta=0.5))
+    episode = run_episode(core, Plant(PlantConfig(theta=(0.5,))), 120, (0.5,), (0.0, 0.0))
+    replay = Plant(PlantConfig(theta=(0.5,)))
+    y = [replay.reset((0.5,), (0.0, 0.0))] + [replay.step(u) for u in episode.u[1:]]
+    np.testing.assert_array_equal(np.array(y), episode.y)
+    assert episode.escaped_at is None and len(episode.ticks) == 120
+    refs = core.tuning.reference.evaluate(0.0, 0.1, 120)     # r_1 .. r_120 (from step 0)
+    np.testing.assert_allclose(episode.y_ref, refs, atol=1e-12)
+    err = episode.y[1:, 0] - refs[:, 0]
+    assert episode.tracking_cost([0]) == pytest.approx(float(np.sum(err ** 2)), rel=1e-12)
+    # An escape: theta = -1.5 from x0 = (3, 3) with the input held at 0 leaves the box.
+    idle = ControllerCore(ControllerConfig(active=True))
+    idle.set_plant(vdp_plant(-1.5))
+    escaped = run_episode(idle, Plant(PlantConfig(theta=(-1.5,))), 300, (-1.5,), (3.0, 3.0))
+    assert escaped.escaped_at is not None and len(escaped.y) == escaped.escaped_at + 1
