@@ -38,6 +38,9 @@ def main(argv=None) -> int:
     parser.add_argument('--thetas', type=int, default=d.thetas, help='validation targets')
     parser.add_argument('--seed', type=int, default=d.seed,
                         help='seed of the configuration draws')
+    parser.add_argument('--score', default=d.score, choices=('control', 'prediction'),
+                        help='control: closed-loop tracking cost / NMPC of the adapted models '
+                             '(default); prediction: their held-out loss')
     parser.add_argument('--jobs', type=int, default=d.jobs, help='worker processes')
     parser.add_argument('--threads', type=int, default=d.threads,
                         help='torch threads per worker')

@@ -73,6 +73,7 @@ class Settings:
         target_samples: adaptation samples per target.
         adapt_steps: adaptation steps scored.
         meta_defaults: MetaConfig fields applied before a job's own (e.g. cg_steps).
+        control: closed-loop scoring (None: prediction only); see :class:`ControlScoring`.
     """
 
     learner: LearnerNodeConfig
@@ -80,6 +81,32 @@ class Settings:
     target_samples: int
     adapt_steps: int
     meta_defaults: Dict[str, Any] = field(default_factory=dict)
+    control: Optional['ControlScoring'] = None
+
+
+@dataclass
+class ControlScoring:
+    """Closed-loop scoring of adapted models (the tuning's control score).
+
+    Each adapted model of a validation target tracks the experiment's reference in one
+    process (the experiment's controller core and plant core, :mod:`closed_loop`), from the
+    experiment's track_x0 for its track_duration; its cost over the true-model NMPC's on the
+    same target is the target's ratio (inf when the plant escapes or the model is rejected).
+    A step size's control score is the geometric mean of the ratios over the targets.
+
+    Attributes:
+        controller: the controller node's parameter values (the experiment's section).
+        plant: the plant node's parameter values but theta (the experiment's).
+        x0, steps, tracked: track_x0, samples of a tracking run, tracked outputs.
+        nmpc: the NMPC's tracking cost of each validation target (computed once).
+    """
+
+    controller: Dict[str, Any]
+    plant: Dict[str, Any]
+    x0: Tuple[float, ...]
+    steps: int
+    tracked: Tuple[int, ...]
+    nmpc: Tuple[float, ...] = ()
 
 
 @dataclass
@@ -156,12 +183,63 @@ def validation_thetas(n: int, family: PlantFamily) -> Tuple[Tuple[float, ...], .
 
 
 def settings_from(config_path: str, n_thetas: int, adapt_steps: int,
-                  meta_defaults: Optional[Dict[str, Any]] = None) -> Settings:
-    """Settings from an experiment YAML: its learner set-up, validation targets."""
+                  meta_defaults: Optional[Dict[str, Any]] = None,
+                  control: bool = False) -> Settings:
+    """Settings from an experiment YAML: its learner set-up, validation targets, and with
+    `control` the closed-loop scoring (the NMPC's costs on the targets are computed here:
+    seconds to a minute per target)."""
     experiment = load(config_path)
-    return Settings(learner_config(experiment, VALIDATION_SEED),
-                    validation_thetas(n_thetas, experiment.plant_family),
-                    experiment.target_samples, adapt_steps, dict(meta_defaults or {}))
+    thetas = validation_thetas(n_thetas, experiment.plant_family)
+    scoring = None
+    if control:
+        cfg = experiment.resolved()
+        plant = cfg.node_parameters('plant', VALIDATION_SEED)
+        plant.pop('theta', None)
+        scoring = ControlScoring(cfg.node_parameters('controller', VALIDATION_SEED), plant,
+                                 tuple(cfg.track_x0), cfg.track_steps(),
+                                 tuple(cfg.tracked_outputs))
+        scoring = replace(scoring, nmpc=tuple(track(scoring, theta, None)
+                                              for theta in thetas))
+    return Settings(learner_config(experiment, VALIDATION_SEED), thetas,
+                    experiment.target_samples, adapt_steps, dict(meta_defaults or {}),
+                    scoring)
+
+
+def track(scoring: 'ControlScoring', theta: Sequence[float], model) -> float:
+    """Tracking cost of the adapted NSSM `model` (an Nssm with its weights as params, or
+    None for the true-model NMPC) on the target theta; inf when the plant escapes or the
+    controller rejects the model."""
+    from metampc_controller.closed_loop import run_episode
+    from metampc_controller.controller_core import (build_model, ControllerCore,
+                                                    PlantDescription)
+    from metampc_controller.controller_params import PARAMETERS as CONTROLLER
+    from metampc_controller.controller_params import parse_params as parse_controller
+    from metampc_controller.weights_codec import DecodedWeights, WeightsError
+    from metampc_plant.plant_params import PARAMETERS as PLANT
+    from metampc_plant.plant_params import parse_params as parse_plant
+    from metampc_plant.simulator import Plant
+    values = {name: spec.default for name, spec in CONTROLLER.items()}
+    values.update(scoring.controller, planner='nmpc' if model is None else 'latent_mpc',
+                  active=True)
+    core = ControllerCore(parse_controller(values))
+    plant_values = {name: spec.default for name, spec in PLANT.items()}
+    plant_values.update(scoring.plant, theta=list(theta))
+    plant_cfg = parse_plant(plant_values).plant
+    core.set_plant(PlantDescription(plant_cfg.family, tuple(theta), plant_cfg.dt,
+                                    plant_cfg.u_min, plant_cfg.u_max, len(core.history.y),
+                                    True))
+    if model is not None:
+        config, norm, params = model
+        try:
+            core.offer_model(build_model(DecodedWeights(config, norm, params), 1, 'tuning',
+                                         'adapted', core.config.mpc, core.n_u, core.n_y,
+                                         core.config.history))
+        except WeightsError:
+            return math.inf
+    episode = run_episode(core, Plant(plant_cfg), scoring.steps, theta, scoring.x0)
+    if episode.escaped_at is not None:
+        return math.inf
+    return episode.tracking_cost(scoring.tracked)
 
 
 def build_validation(settings: Settings, source_seed: int, nssm: Dict[str, Any],
@@ -267,10 +345,12 @@ def run_job(job: Job) -> dict:
                    **_spectrum(params))
     out['adapt'] = []
     start = time.monotonic()
+    scoring = settings.control if job.target_theta is None else None
     for lr in job.lrs:
         step = AdaptConfig(steps=settings.adapt_steps, lr=lr)
         curves: List[List[float]] = []
-        for train, held in zip(val.train, val.heldout):
+        ratios: List[float] = []
+        for i, (train, held) in enumerate(zip(val.train, val.heldout)):
             try:
                 res: AdaptResult = (
                     supervised(val.model, train, held, step, seed=VALIDATION_SEED)
@@ -278,11 +358,20 @@ def run_job(job: Job) -> dict:
                 curves.append(res.heldout_loss)
             except ValueError:
                 curves.append([math.inf] * (settings.adapt_steps + 1))
+                res = None
+            if scoring is not None:
+                cost = math.inf if res is None else track(
+                    scoring, settings.thetas[i], (val.model.config, val.model.norm, res.params))
+                ratios.append(cost / scoring.nmpc[i])
         final = [c[-1] for c in curves]
-        out['adapt'].append({
-            'lr': lr, 'score': float(np.mean(final)), 'heldout_final': final,
-            'heldout_at': {str(k): [c[k] for c in curves]
-                           for k in CURVE_STEPS if k <= settings.adapt_steps}})
+        entry = {'lr': lr, 'score': float(np.mean(final)), 'heldout_final': final,
+                 'heldout_at': {str(k): [c[k] for c in curves]
+                                for k in CURVE_STEPS if k <= settings.adapt_steps}}
+        if scoring is not None:
+            # Control decides: a configuration that predicts better and controls worse loses.
+            entry.update(prediction_score=entry['score'], control_ratios=ratios,
+                         score=float(np.exp(np.mean(np.log(ratios)))))
+        out['adapt'].append(entry)
     out['adapt_seconds'] = round(time.monotonic() - start, 1)
     out['cpu_seconds'] = round(time.process_time() - cpu, 1)
     if out['adapt']:

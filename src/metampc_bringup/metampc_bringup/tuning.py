@@ -20,9 +20,15 @@ Every method gets the same search budget, spent on validation systems only (docs
   turn). Every meta-trained model is then adapted (eq. infer, gamma = 0, ``adapt_steps``
   plain steps) with every step size of :data:`ADAPT_LRS`; supervised training, which has no
   meta-training, gets the same step sizes (8 = K configurations).
-- Score of a (configuration, step size): the mean over the validation targets of the held-out
-  loss (normalised units, eq. l_SSM) after the adaptation steps; a configuration's score is
-  that of its best step size, and the winner of a method is its best configuration.
+- Score of a (configuration, step size), ``score`` 'control' (default): every adapted model
+  of a validation target tracks the experiment's reference in one process (the experiment's
+  controller core, its offset-free MPC included, against the plant core at that theta; no
+  ROS), and its tracking cost over the true-model NMPC's on the same target is that target's
+  ratio (inf when the plant escapes); the score is the geometric mean of the ratios, so a
+  configuration that predicts better and controls worse loses. The held-out loss after the
+  adaptation steps (normalised units, eq. l_SSM), the score of ``score`` 'prediction' and of
+  the searches before, is kept as ``prediction_score``. A configuration's score is that of its
+  best step size, and the winner of a method is its best configuration.
 - Refinement (stage 2, the same ``refine`` budget per meta method): neighbours of the
   method's stage-1 winner (one hyperparameter moved one grid step, not tried yet) drawn at
   random, topped up from the neighbours of the next best configurations when the winner has
@@ -33,7 +39,8 @@ Every method gets the same search budget, spent on validation systems only (docs
   300) outer steps on each of ``robust_seeds`` validation source sets (``source_seed`` = meta
   seed = 1000, 1001, ...) and scored with every step size; a finalist's robust score is the
   mean over the source sets at its best step size, and the winner of a meta method is its
-  finalist with the lowest robust score. One source set is not enough: a winner of the one-seed
+  finalist with the lowest robust score; ``robust_seeds`` defaults to 5, so that a winner that
+  diverges on another source set loses. One source set is not enough: a winner of the one-seed
   search (Adam 1e-2 for iMAML) diverged on another one, and on the stable model both finalists
   of a 2-finalist search (gamma 0.01) diverged at 300 steps while the incumbent and the third
   best did not (docs/tuning.md).
@@ -206,6 +213,15 @@ def request_fields(best: dict, full_iterations: int, batch_size: int, adapt_step
     return out
 
 
+SCORES = {
+    'control': 'geometric mean over the validation thetas of the closed-loop tracking cost / '
+               'true-model NMPC of the adapted model (the experiment\'s controller and '
+               'reference, in one process; an escape is inf), best adaptation step size per '
+               'configuration; the held-out loss is kept as prediction_score',
+    'prediction': 'mean over validation thetas of held-out l_SSM after adapt_steps steps '
+                  '(normalised units), best adaptation step size per configuration'}
+
+
 @dataclass
 class TuneConfig:
     """The search's budget and set-up (the flags of ``scripts/tune.py``)."""
@@ -216,13 +232,14 @@ class TuneConfig:
     iterations: int = 150
     full_iterations: int = 300
     finalists: int = 3
-    robust_seeds: int = 3
+    robust_seeds: int = 5
     batch_size: int = 16
     adapt_steps: int = 20
     thetas: int = 6
     seed: int = 0
     jobs: int = 2
     threads: int = 1
+    score: str = 'control'
 
     def validate(self) -> None:
         """ValueError naming the first setting out of range."""
@@ -233,6 +250,8 @@ class TuneConfig:
         for name in ('refine', 'finalists', 'robust_seeds', 'adapt_steps', 'seed'):
             if getattr(self, name) < 0:
                 raise ValueError(f'{name} must be >= 0, got {getattr(self, name)}')
+        if self.score not in SCORES:
+            raise ValueError(f'score must be one of {", ".join(SCORES)}, got {self.score!r}')
         if self.finalists and not self.robust_seeds:
             raise ValueError('robust_seeds must be >= 1 when finalists > 0')
         check_jobs(self.jobs, self.threads)
@@ -243,7 +262,8 @@ def tune(cfg: TuneConfig) -> dict:
     cfg.validate()
     start, load_start = time.monotonic(), os.getloadavg()
     settings = settings_from(cfg.config, cfg.thetas, cfg.adapt_steps,
-                             {'batch_size': cfg.batch_size, 'curvature': CURVATURE})
+                             {'batch_size': cfg.batch_size, 'curvature': CURVATURE},
+                             control=cfg.score == 'control')
     jobs = draw_jobs(cfg.k, cfg.iterations, cfg.seed)
     context = multiprocessing.get_context('spawn')
     with futures.ProcessPoolExecutor(cfg.jobs, context, init_worker,
@@ -274,8 +294,8 @@ def tune(cfg: TuneConfig) -> dict:
             'windows_per_task': settings.learner.meta.windows_per_task,
             'n_systems': settings.learner.source.n_systems,
             'hidden': list(settings.learner.nssm.hidden), 'draw_seed': cfg.seed,
-            'score': 'mean over validation thetas of held-out l_SSM after adapt_steps steps '
-                     '(normalised units), best adaptation step size per configuration',
+            'score': SCORES[cfg.score],
+            'nmpc_costs': list(settings.control.nmpc) if settings.control else None,
             'robust_score': 'mean of the score over the robust_seeds source sets at '
                             'full_iterations outer steps, best adaptation step size'},
         'validation': {

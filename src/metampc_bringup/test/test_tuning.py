@@ -172,3 +172,27 @@ def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert existing.read_text() == '{"an": "earlier record"}'
     assert not (tmp_path / 'new.json').exists()
+
+
+def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models():
+    """A tiny search job on the CI config scored on control: each step size's score is the
+    geometric mean over the validation targets of (tracking cost of the adapted model) / (the
+    NMPC's); the held-out loss stays as prediction_score; the NMPC's yardstick is the same
+    closed loop run again (deterministic). That the in-process loop is the experiment's is
+    test_experiment's check (retrack reproduces every recorded tracking cost)."""
+    import numpy as np
+    from metampc_bringup import offline
+    config = os.path.join(ROOT, 'config', 'ci.yaml')
+    settings = offline.settings_from(config, 2, 2, {'batch_size': 4}, control=True)
+    scoring = settings.control
+    assert len(scoring.nmpc) == 2 and all(0 < c < math.inf for c in scoring.nmpc)
+    assert offline.track(scoring, settings.thetas[0], None) == scoring.nmpc[0]
+    offline.init_worker(settings, 1)
+    job = offline.Job('maml', 0, {'inner_steps': 2}, 3, (0.05,), 'search')
+    out = offline.run_job(job)
+    entry = out['adapt'][0]
+    assert len(entry['control_ratios']) == 2 and entry['prediction_score'] == pytest.approx(
+        float(np.mean(entry['heldout_final'])))
+    assert entry['score'] == pytest.approx(float(np.exp(np.mean(np.log(
+        entry['control_ratios'])))))
+    assert out['score'] == entry['score']
