@@ -27,6 +27,7 @@ from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
 from metampc_controller.mpc import LatentMpc, MpcConfig
+from metampc_controller.planner import PlanResult
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
 from metampc_controller.prediction_error import PredictionError
@@ -393,7 +394,6 @@ class ControllerCore:
         self.plant: Optional[PlantDescription] = None
         self._override: Optional[np.ndarray] = None
         self._nmpc: Optional[Nmpc] = None
-        self._nmpc_version = 0      # the tuning the NMPC was built with
         self._theta_from_y = False  # the samples tell theta (observe)
         self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
         self._setup_lock = threading.Lock()     # the builder thread and a queued swap
@@ -502,15 +502,18 @@ class ControllerCore:
         """Use `config` as tuning `version` from the next tick on (builder thread).
 
         Builds the QP of the model in use for it (OSQP set-up and DARE: milliseconds, while
-        the ticks go on with the tuning before), then swaps both in as one. The new QP starts
+        the ticks go on with the tuning before) and the NMPC of its weights, then swaps them
+        in. The new QP starts
         cold, as on a new model. ValueError if the model does not fit (check_tuning first)."""
         with self._setup_lock:
             setup = self._setup
             model = setup.model
             if model is not None:
                 model = replace(model, mpc=latent_mpc(config.mpc, model.predictor))
-            self._setup = setup._replace(tuning=Tuning.of(config, version, self.n_u),
-                                         model=model)
+            tuning = Tuning.of(config, version, self.n_u)
+            if config.planner == 'nmpc' and self.plant is not None and self._nmpc is not None:
+                self._build_nmpc(tuning, self.plant)    # here, never in the tick
+            self._setup = setup._replace(tuning=tuning, model=model)
         self.trigger.config = config.trigger
 
     @property
@@ -519,15 +522,17 @@ class ControllerCore:
         return self.plant.dt if self.plant is not None else 1.0 / self.config.rate_hz
 
     def _build_nmpc(self, tuning: Tuning, plant: PlantDescription) -> str:
-        """Build the NMPC of the plant with the tuning (no set-up: cheap); '' or why not."""
-        self._nmpc, self._nmpc_version = None, tuning.version
+        """Build the NMPC of the plant with the tuning (no set-up: cheap) and swap it in as one
+        reference; '' or why not (then there is none)."""
         mpc = tuning.config.mpc
         try:
-            self._nmpc = for_plant(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r,
-                                              u_min=tuning.u_min, u_max=tuning.u_max,
-                                              dt=plant.dt), plant.family, plant.theta)
+            nmpc = for_plant(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r,
+                                        u_min=tuning.u_min, u_max=tuning.u_max, dt=plant.dt),
+                             plant.family, plant.theta)
         except ValueError as err:     # unknown family, or no / a wrong theta
+            self._nmpc = None
             return str(err)
+        self._nmpc = nmpc
         return ''
 
     def set_plant(self, plant: PlantDescription) -> List[str]:
@@ -631,44 +636,31 @@ class ControllerCore:
         u_prev = history.u
         y_ref = self.references(step, tuning)
         planner = tuning.config.planner
+        errors, request, version = NO_ERRORS, None, 0
         if planner == 'latent_mpc' and model is not None:
             u_hist, y_hist = history.window(model.history)
             z = model.predictor.encode(u_hist, y_hist)
             errors = model.prediction.update(step, u_prev, history.y, z)
             request = self.trigger.update(step, self.dt, errors[1], errors[2], model.version)
-            res = model.mpc.solve(z, u_prev, y_ref, history.y, step)
-            version, fallback, terminal_fallback = (model.version, res.fallback,
-                                                    res.terminal_fallback)
-            extra = dict(disturbance=res.disturbance, slack=res.slack)
+            res, version = model.mpc.solve(z, u_prev, y_ref, history.y, step), model.version
+        elif planner == 'nmpc' and self._nmpc is not None:
+            res = self._nmpc.solve(history.y, u_prev, y_ref)
         else:
-            errors, request, extra = NO_ERRORS, None, {}
-            if (planner == 'nmpc' and self._nmpc is not None
-                    and self._nmpc_version != tuning.version):
-                self._build_nmpc(tuning, self.plant)    # it was built for this plant before
-            if planner == 'nmpc' and self._nmpc is not None:
-                res = self._nmpc.solve(history.y, u_prev, y_ref)
-                version, fallback, terminal_fallback = 0, False, False
-            else:
-                return self._answer(
-                    step, tuning, model_status, y_ref, u_prev,
-                    tuning.pre_model.value(step, self.dt), model_version=0, fallback=False,
-                    terminal_fallback=False, solver_status='no_model'
-                    if planner == 'latent_mpc' else 'no_plant_info', cost=math.nan,
-                    iterations=-1, solve_time=0.0, u_plan=np.zeros((0, self.n_u)),
-                    y_pred=np.zeros((0, self.n_y)), prediction_errors=errors)
-        return self._answer(step, tuning, model_status, y_ref, u_prev, res.u,
-                            model_version=version, fallback=fallback,
-                            terminal_fallback=terminal_fallback, solver_status=res.status,
-                            cost=float(res.cost), iterations=int(res.iterations),
-                            solve_time=res.solve_time, u_plan=res.u_plan, y_pred=res.y_pred,
-                            prediction_errors=errors, request=request, **extra)
+            res = PlanResult(u=tuning.pre_model.value(step, self.dt), u_plan=np.zeros(
+                (0, self.n_u)), y_pred=np.zeros((0, self.n_y)), cost=math.nan,
+                status='no_model' if planner == 'latent_mpc' else 'no_plant_info',
+                iterations=-1, solve_time=0.0)
+        return self._answer(step, tuning, model_status, y_ref, u_prev, res, version, errors,
+                            request)
 
     @staticmethod
     def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,
-                u_prev: np.ndarray, u: np.ndarray, fallback: bool, **fields) -> TickResult:
-        """The tick's result with u checked: finite (else u_prev, or 0, and `fallback`) and
-        clipped into the tuning's bounds (the planners promise both; the plant must get it)."""
-        u = np.asarray(u, dtype=float)
+                u_prev: np.ndarray, res: PlanResult, version: int, errors: tuple,
+                request: Optional[Request]) -> TickResult:
+        """The tick's result from any planner's plan, with u checked: finite (else u_prev, or
+        0, and `fallback`) and clipped into the tuning's bounds (the planners promise both;
+        the plant must get it)."""
+        u, fallback = np.asarray(res.u, dtype=float), res.fallback
         if not all(map(math.isfinite, u.tolist())):
             u = np.where(np.isfinite(u_prev), u_prev, 0.0)
             fallback = True
@@ -677,4 +669,8 @@ class ControllerCore:
         return TickResult(step=step, u=u, planner=tuning.config.planner,
                           model_status=model_status, y_ref=y_ref,
                           config_version=tuning.version, q=tuning.q, fallback=fallback,
-                          **fields)
+                          model_version=version, terminal_fallback=res.terminal_fallback,
+                          solver_status=res.status, cost=float(res.cost),
+                          iterations=int(res.iterations), solve_time=res.solve_time,
+                          u_plan=res.u_plan, y_pred=res.y_pred, prediction_errors=errors,
+                          request=request, disturbance=res.disturbance, slack=res.slack)

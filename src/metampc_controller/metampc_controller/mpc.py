@@ -58,6 +58,7 @@ import scipy.sparse as sp
 
 from metampc_common.params import check_fields, param
 from metampc_controller.latent_model import LatentModel
+from metampc_controller.planner import PlanResult
 from metampc_controller.offset_free import (DisturbanceEstimator, disturbance_model, FORMS,
                                             SteadyStateTarget)
 from metampc_controller.terminal_cost import terminal_cost, TerminalCost
@@ -197,42 +198,6 @@ class MpcConfig:
                     warm_starting=self.warm_start, polishing=self.polish,
                     check_termination=self.check_termination, scaling=self.scaling,
                     adaptive_rho_interval=self.adaptive_rho_interval)
-
-
-@dataclass
-class MpcResult:
-    """One solve of eq. (mpc) at tick t.
-
-    Attributes:
-        u: (n_u,) input to apply over (t, t+1], u_{t+1} (read-only, a view of u_plan).
-        u_plan: (N, n_u) planned inputs u_{t+1..t+N}; always finite and within the bounds
-            (read-only: the next tick warm-starts from it).
-        y_pred: (N, n_y) outputs y_{t+1..t+N} predicted under u_plan (nan if the data were not
-            finite).
-        cost: J at OSQP's solution (obj_val + b'b: before the clip into the bounds, which moves
-            it by O(eps_abs)); J(u_plan) on a fallback; nan if the data were not finite.
-        status: OSQP status string, or 'invalid data' when z_t, u_t or the reference were not
-            finite (then OSQP does not run). Pass finite values for untracked outputs too.
-        iterations: OSQP iterations (0 when OSQP did not run).
-        solve_time: wall-clock time of the whole solve() call, s.
-        fallback: True when u_plan is the shifted previous plan (or held u_t), not a solution.
-        terminal_fallback: True when the terminal weight is the output-weight fallback.
-        disturbance: (n_d,) offset-free disturbance estimate p the plan used (empty with 'none').
-        slack: the largest planned violation of the soft output bounds (0 without them, or
-            when the plan meets them).
-    """
-
-    u: np.ndarray
-    u_plan: np.ndarray
-    y_pred: np.ndarray
-    cost: float
-    status: str
-    iterations: int
-    solve_time: float
-    fallback: bool
-    terminal_fallback: bool
-    disturbance: np.ndarray
-    slack: float = 0.0
 
 
 @dataclass
@@ -452,7 +417,7 @@ class LatentMpc:
             self.reset()
 
     def solve(self, z0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
-              y: Optional[np.ndarray] = None, step: Optional[int] = None) -> MpcResult:
+              y: Optional[np.ndarray] = None, step: Optional[int] = None) -> PlanResult:
         """Plan u_{t+1..t+N} from z_t (n_z,), the applied input u_t (n_u,) and the references
         r_{t+1..t+N} (N, n_y), in physical units (eq. (mpc)).
 
@@ -559,11 +524,11 @@ class LatentMpc:
                 cost = float(resid @ resid)
         else:
             y_pred = np.full(pb.Yu.shape[0], math.nan)
-        return MpcResult(u=plan[:n_u], u_plan=plan.reshape(-1, n_u),
-                         y_pred=y_pred.reshape(pb.ref_shape), cost=cost, status=status,
-                         iterations=iters, solve_time=time.perf_counter() - start,
-                         fallback=fallback, terminal_fallback=pb.terminal.fallback,
-                         disturbance=disturbance, slack=slack)
+        return PlanResult(u=plan[:n_u], u_plan=plan.reshape(-1, n_u),
+                          y_pred=y_pred.reshape(pb.ref_shape), cost=cost, status=status,
+                          iterations=iters, solve_time=time.perf_counter() - start,
+                          fallback=fallback, terminal_fallback=pb.terminal.fallback,
+                          disturbance=disturbance, slack=slack)
 
     def last_qp(self) -> QpSnapshot:
         """Copy of the QP data of the last solve() (for benchmarks against raw OSQP)."""

@@ -27,7 +27,9 @@ from typing import Optional, Sequence, Union
 import numpy as np
 from scipy.optimize import minimize
 
-# The plant's equations: the one module of the controller that imports the plant package.
+from metampc_controller.planner import PlanResult
+# The plant's equations (the controller's other import of the plant package is closed_loop's
+# plant core, a harness outside the node).
 from metampc_plant.family import PlantFamily
 from metampc_plant.integrate import rk4_sample
 from metampc_plant.registry import get_family
@@ -61,20 +63,6 @@ class NmpcConfig:
     substeps: int = 2
     max_iter: int = 50
     fd_step: float = 1e-6
-
-
-@dataclass
-class NmpcResult:
-    """One solve: u (first input, shape (n_u,)), u_plan (N, n_u), y_pred (N, n_y), cost,
-    status, iterations, solve_time (s)."""
-
-    u: np.ndarray
-    u_plan: np.ndarray
-    y_pred: np.ndarray
-    cost: float
-    status: str
-    iterations: int
-    solve_time: float
 
 
 class Nmpc:
@@ -147,7 +135,7 @@ class Nmpc:
             return rk4_sample(self.family, x[None], np.asarray(u, dtype=float)[None],
                               self.theta[None], self.config.dt, self.config.substeps)[0]
 
-    def solve(self, y: np.ndarray, u_prev: Sequence[float], y_ref: np.ndarray) -> NmpcResult:
+    def solve(self, y: np.ndarray, u_prev: Sequence[float], y_ref: np.ndarray) -> PlanResult:
         """Plan from the measured y_t (n_y,) and the previous input u_t (n_u,) for references
         y_ref (N, n_y)."""
         cfg, n_u = self.config, self.family.n_u
@@ -170,15 +158,17 @@ class Nmpc:
         res = minimize(fun, guess, jac=True, method='L-BFGS-B', bounds=list(zip(lo, hi)),
                        options={'maxiter': cfg.max_iter})
         plan = np.clip(res.x, lo, hi)
-        if not np.isfinite(res.fun):
+        fallback = not np.isfinite(res.fun)
+        if fallback:
             plan = np.clip(guess, lo, hi)
         self._plan = plan
         plans = plan.reshape(1, n, n_u)
         y_pred = self.rollout(x0, plans)[0]
-        return NmpcResult(u=plan[:n_u].copy(), u_plan=plans[0].copy(), y_pred=y_pred,
+        return PlanResult(u=plan[:n_u].copy(), u_plan=plans[0].copy(), y_pred=y_pred,
                           cost=float(self.costs(x0, u_prev, y_ref, plan[None])[0]),
                           status='solved' if res.success else f'stopped: {res.message}',
-                          iterations=int(res.nit), solve_time=time.perf_counter() - start)
+                          iterations=int(res.nit), solve_time=time.perf_counter() - start,
+                          fallback=fallback)
 
 
 def for_plant(config: NmpcConfig, family: str, theta: Sequence[float]) -> Nmpc:

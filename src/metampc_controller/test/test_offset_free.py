@@ -34,7 +34,7 @@ def oscillator(gain: float = 1.0, dt: float = 0.1) -> LatentModel:
 
 def closed_loop(form: str, plant: LatentModel, model: LatentModel, setpoints,
                 u_dist: float = 0.0, steps: int = 400, **cfg) -> tuple:
-    """(y_1 - r per step (steps,), the last MpcResult) of the MPC on `model` driving `plant`
+    """(y_1 - r per step (steps,), the last PlanResult) of the MPC on `model` driving `plant`
     from rest, the plant's input being u + u_dist; setpoints: one value, or one per step."""
     mpc = LatentMpc(MpcConfig(horizon=20, q=(1.0, 0.0), r=0.05, offset_free=form, **TIGHT,
                               **cfg))
