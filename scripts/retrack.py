@@ -60,6 +60,9 @@ def main(argv=None) -> int:
                         help='controller settings to compare (repeatable; default: the '
                              "recorded settings, as 'recorded')")
     parser.add_argument('--jobs', type=int, default=1, help='seeds at once (processes)')
+    parser.add_argument('--trajectory', type=int, metavar='SEED',
+                        help="also plot that seed's tracked output, input and disturbance "
+                             'estimate under every variant (RUN_DIR/retrack_seed<SEED>.png)')
     args = parser.parse_args(argv)
     try:
         variants = [parse_variant(v) for v in args.variant] or [('recorded', {})]
@@ -68,8 +71,9 @@ def main(argv=None) -> int:
     from metampc_bringup.experiment_config import ConfigError, load
     from metampc_bringup.analysis import json_safe
     from metampc_bringup.paired_stats import format_claim
-    from metampc_bringup.plots import plot_variants
-    from metampc_bringup.retrack import controller_core, seed_recordings, summarise
+    from metampc_bringup.plots import plot_episodes, plot_variants
+    from metampc_bringup.retrack import (controller_core, retrack_seed, seed_recordings,
+                                         summarise)
     from metampc_common.params import ParameterError
     try:
         experiment = load(os.path.join(args.run_dir, 'config.yaml'))
@@ -123,6 +127,17 @@ def main(argv=None) -> int:
     with open(os.path.join(args.run_dir, 'retrack.json'), 'w') as f:
         json.dump(json_safe({'variants': dict(variants), 'summary': summary}), f, indent=1)
     path = plot_variants(summary, os.path.join(args.run_dir, 'retrack.png'))
+    if args.trajectory is not None:
+        if args.trajectory not in recordings:
+            parser.error(f'--trajectory {args.trajectory}: no such seed in {args.run_dir}')
+        runs = {}
+        for name, overrides in variants:
+            runs[name] = {}
+            retrack_seed(experiment, args.trajectory, recordings[args.trajectory], overrides,
+                         nmpc=name == variants[0][0], episodes=runs[name])
+        plot_episodes(runs, experiment.resolved().tracked_outputs, os.path.join(
+            args.run_dir, f'retrack_seed{args.trajectory}.png'),
+            f'{args.run_dir}, seed {args.trajectory}')
     print(f'retrack: {os.path.join(args.run_dir, "retrack.json")}, {path}', file=sys.stderr)
     return 0
 

@@ -209,3 +209,29 @@ def plot_variants(summary: dict, path: str) -> Optional[str]:
         ax.invert_yaxis()
     fig.suptitle('Controller variants on the same recorded models, paired by seed')
     return _save(fig, path)
+
+
+def plot_episodes(runs: dict, tracked: Sequence[int], path: str, title: str) -> str:
+    """Closed-loop episodes of one seed ({variant: {method: closed_loop.Episode}}): the first
+    tracked output against its reference, the first input, and the norm of the offset-free
+    disturbance estimate, one line per (variant, method)."""
+    fig, axes = plt.subplots(3, 1, figsize=(11, 8), sharex=True, squeeze=False)
+    j = tracked[0] if tracked else 0
+    ref_drawn = False
+    for name, by_method in runs.items():
+        for method, ep in by_method.items():
+            k = np.arange(len(ep.y))
+            label = 'NMPC (true model)' if method == 'nmpc' else f'{method}, {name}'
+            style = dict(color='k', lw=1.5) if method == 'nmpc' else dict(lw=1)
+            if not ref_drawn and len(ep.y_ref):
+                axes[0, 0].plot(k[1:], ep.y_ref[:, j], 'k--', lw=0.8, label='reference')
+                ref_drawn = True
+            axes[0, 0].plot(k, ep.y[:, j], label=label, **style)
+            axes[1, 0].plot(k, ep.u[:, 0], label=label, **style)
+            if method != 'nmpc':
+                norms = [float(np.linalg.norm(t.disturbance)) for t in ep.ticks]
+                axes[2, 0].plot(k[:len(norms)], norms, label=label, **style)
+    axes[0, 0].set_ylabel(f'y[{j}]')
+    axes[1, 0].set_ylabel('u[0]')
+    axes[2, 0].set_ylabel('|p| (offset-free estimate)')
+    return _finish_panels(fig, axes, 'step', title, path)

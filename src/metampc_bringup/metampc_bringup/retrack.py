@@ -18,7 +18,7 @@ from typing import Any, Dict, List, Mapping, Optional
 
 import numpy as np
 
-from metampc_controller.closed_loop import run_episode
+from metampc_controller.closed_loop import Episode, run_episode
 from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
 from metampc_controller.controller_params import parse_params as parse_controller
 from metampc_controller.controller_params import PARAMETERS as CONTROLLER_PARAMETERS
@@ -101,10 +101,11 @@ def segment_offsets(y: np.ndarray, ref: np.ndarray, tracked: List[int], preview:
 
 def retrack_seed(experiment: ExperimentConfig, seed: int, recording: str,
                  overrides: Mapping[str, Any], methods: Optional[List[str]] = None,
-                 nmpc: bool = True) -> Dict[str, MethodResult]:
+                 nmpc: bool = True, episodes: Optional[Dict[str, Episode]] = None
+                 ) -> Dict[str, MethodResult]:
     """Tracking of every recorded adapted model (or `methods`) of one seed, plus 'nmpc' (the
     yardstick: unaffected by the latent MPC's settings, and the slowest part; `nmpc` False
-    leaves it out)."""
+    leaves it out). `episodes`, if given, receives each method's :class:`Episode`."""
     cfg = experiment.resolved()
     plant_cfg = parse_plant(_with_defaults(PLANT_PARAMETERS,
                                            cfg.node_parameters('plant', seed))).plant
@@ -133,6 +134,8 @@ def retrack_seed(experiment: ExperimentConfig, seed: int, recording: str,
                 results[method] = MethodResult(float('nan'), False, rejected=str(err))
                 continue
         episode = run_episode(core, Plant(plant_cfg), steps, theta, cfg.track_x0)
+        if episodes is not None:
+            episodes[method] = episode
         results[method] = MethodResult(
             cost=episode.tracking_cost(tracked), escaped=episode.escaped_at is not None,
             offsets=segment_offsets(episode.y[1:], episode.y_ref, tracked,
