@@ -31,8 +31,8 @@ import yaml
 def parse_variant(text: str) -> Tuple[str, Dict[str, Any]]:
     """'name:k=v,k=v' -> (name, {k: yaml(v)})."""
     name, _, rest = text.partition(':')
-    if not name:
-        raise ValueError(f'variant {text!r}: expected NAME:key=value,...')
+    if not name or name == 'nmpc':
+        raise ValueError(f'variant {text!r}: expected NAME:key=value,... (NAME not nmpc)')
     values = {}
     for item in filter(None, rest.split(',')):
         key, eq, value = item.partition('=')
@@ -42,14 +42,16 @@ def parse_variant(text: str) -> Tuple[str, Dict[str, Any]]:
     return name, values
 
 
-def _job(run_dir: str, seed: int, recording: str, name: str, overrides: Dict[str, Any],
+def _job(run_dir: str, seed: int, recording: str, overrides: Dict[str, Any],
          nmpc: bool) -> Dict[str, Any]:
+    """The recorded models of one seed under `overrides`, or (`nmpc`) the NMPC alone."""
     from metampc_bringup.experiment_config import load
     from metampc_bringup.retrack import retrack_seed
     import torch
     torch.set_num_threads(1)
     experiment = load(os.path.join(run_dir, 'config.yaml'))
-    results = retrack_seed(experiment, seed, recording, overrides, nmpc=nmpc)
+    results = retrack_seed(experiment, seed, recording, overrides, nmpc=nmpc,
+                           methods=[] if nmpc else None)
     return {m: asdict(r) for m, r in results.items()}
 
 
@@ -60,6 +62,10 @@ def main(argv=None) -> int:
                         help='controller settings to compare (repeatable; default: the '
                              "recorded settings, as 'recorded')")
     parser.add_argument('--jobs', type=int, default=1, help='seeds at once (processes)')
+    parser.add_argument('--check', action='store_true',
+                        help="also say what the model check (docs/mpc.md) makes of each seed's "
+                             "adapted models on the seed's NMPC tracking run, against their "
+                             'meta-model and persistence (RUN_DIR/retrack_check.json)')
     parser.add_argument('--trajectory', type=int, metavar='SEED',
                         help="also plot that seed's tracked output, input and disturbance "
                              'estimate under every variant (RUN_DIR/retrack_seed<SEED>.png)')
@@ -72,8 +78,8 @@ def main(argv=None) -> int:
     from metampc_bringup.analysis import json_safe
     from metampc_bringup.paired_stats import format_claim
     from metampc_bringup.plots import plot_episodes, plot_variants
-    from metampc_bringup.retrack import (controller_core, retrack_seed, seed_recordings,
-                                         summarise)
+    from metampc_bringup.retrack import (check_verdicts, controller_core, retrack_seed,
+                                         seed_recordings, summarise)
     from metampc_common.params import ParameterError
     try:
         experiment = load(os.path.join(args.run_dir, 'config.yaml'))
@@ -94,25 +100,28 @@ def main(argv=None) -> int:
         digest = hashlib.sha1(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:12]
         return os.path.join(cache_dir, f'seed_{seed}_{name}_{digest}.json')
 
-    todo = []
+    todo = []       # the NMPC once per seed (the yardstick), then every variant
     for seed, rec in recordings.items():
-        for i, (name, overrides) in enumerate(variants):
+        for name, overrides in [('nmpc', {})] + variants:
             path = cached(seed, name, overrides)
             if not os.path.exists(path):
-                todo.append((seed, rec, name, overrides, i == 0, path))
+                todo.append((seed, rec, overrides, name == 'nmpc', path))
     print(f'retrack: {len(recordings)} seeds x {len(variants)} variants, {len(todo)} to run',
           file=sys.stderr)
     with futures.ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        running = {pool.submit(_job, args.run_dir, seed, rec, name, overrides, nmpc): path
-                   for seed, rec, name, overrides, nmpc, path in todo}
+        running = {pool.submit(_job, args.run_dir, seed, rec, overrides, nmpc): path
+                   for seed, rec, overrides, nmpc, path in todo}
         for done, fut in enumerate(futures.as_completed(running), 1):
             with open(running[fut], 'w') as f:
                 json.dump(fut.result(), f)
             print(f'retrack: {done}/{len(todo)} {os.path.basename(running[fut])[:-5]}',
                   file=sys.stderr)
 
-    per_seed = {seed: {name: json.load(open(cached(seed, name, overrides)))
-                       for name, overrides in variants} for seed in recordings}
+    per_seed = {}
+    for seed in recordings:
+        nmpc = json.load(open(cached(seed, 'nmpc', {})))['nmpc']
+        per_seed[seed] = {name: {**json.load(open(cached(seed, name, overrides))), 'nmpc': nmpc}
+                          for name, overrides in variants}
     summary = summarise(per_seed)
     first = variants[0][0]
     print(f'{"variant":<12}{"method":<10}{"median":>8}{"worst":>10}{"escapes":>9}'
@@ -127,6 +136,18 @@ def main(argv=None) -> int:
     with open(os.path.join(args.run_dir, 'retrack.json'), 'w') as f:
         json.dump(json_safe({'variants': dict(variants), 'summary': summary}), f, indent=1)
     path = plot_variants(summary, os.path.join(args.run_dir, 'retrack.png'))
+    if args.check:
+        verdicts = {}
+        for seed, rec in recordings.items():
+            runs = {}
+            retrack_seed(experiment, seed, rec, {}, methods=[], episodes=runs)
+            verdicts[seed] = check_verdicts(experiment, seed, rec, runs['nmpc'])
+            print(f'check, seed {seed}: ' + '; '.join(
+                f"{m}: {'flies' if v['vs_meta'] and v['vs_meta']['ok'] else 'refused'} vs meta, "
+                f"{'flies' if v['vs_persistence']['ok'] else 'refused'} vs persistence"
+                for m, v in verdicts[seed].items()))
+        with open(os.path.join(args.run_dir, 'retrack_check.json'), 'w') as f:
+            json.dump(json_safe(verdicts), f, indent=1)
     if args.trajectory is not None:
         if args.trajectory not in recordings:
             parser.error(f'--trajectory {args.trajectory}: no such seed in {args.run_dir}')

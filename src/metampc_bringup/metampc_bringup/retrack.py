@@ -11,7 +11,7 @@ deterministic), which :func:`retrack_seed` reports beside its own so that a read
 No ROS: seconds per seed instead of a graph's minutes, so controller designs can be compared
 paired by seed on exactly the models an experiment produced.
 """
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 import math
 import os
 from typing import Any, Dict, List, Mapping, Optional
@@ -22,6 +22,8 @@ from metampc_controller.closed_loop import Episode, run_episode
 from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
 from metampc_controller.controller_params import parse_params as parse_controller
 from metampc_controller.controller_params import PARAMETERS as CONTROLLER_PARAMETERS
+from metampc_controller.model_check import check
+from metampc_controller.predictor import NssmPredictor
 from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
 from metampc_plant.plant_params import parse_params as parse_plant
 from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
@@ -52,15 +54,40 @@ class MethodResult:
     offsets: List[float] = field(default_factory=list)
 
 
-def adapted_models(recording: str) -> Dict[str, Any]:
-    """The last adapted NssmWeights message of each method in a recording."""
+def adapted_models(recording: str, stage: str = 'adapted') -> Dict[str, Any]:
+    """The last NssmWeights message of `stage` of each method in a recording."""
     rec = read_recording(recording)
     topics = [t.name for t in rec.topics.values() if t.type_name == NSSM_WEIGHTS]
     out: Dict[str, Any] = {}
     for _, _, msg in rec.decoded(topics):
-        if msg.stage == 'adapted':
+        if msg.stage == stage:
             out[msg.method] = msg
     return out
+
+
+def check_verdicts(experiment: ExperimentConfig, seed: int, recording: str,
+                   episode: Episode) -> Dict[str, Dict[str, Any]]:
+    """What model_check says of each recorded adapted model on `episode`'s samples (e.g. the
+    NMPC's tracking run of the seed, which a controller holds when the adapted models come):
+    against its own meta-model (an update of it) and against persistence (a first model)."""
+    cfg = experiment.resolved()
+    core = controller_core(cfg, seed, {})
+    horizon, config = core.config.mpc.horizon, core.config.model_check
+    metas = adapted_models(recording, 'meta')
+    out = {}
+    for method, msg in adapted_models(recording).items():
+        new = _predictor(msg)
+        meta = metas.get(method)
+        out[method] = {
+            'vs_meta': asdict(check(new, _predictor(meta), episode.u, episode.y, horizon,
+                                    config)) if meta is not None else None,
+            'vs_persistence': asdict(check(new, None, episode.u, episode.y, horizon, config))}
+    return out
+
+
+def _predictor(msg) -> NssmPredictor:
+    decoded = weights_from_fields(fields_of(msg))
+    return NssmPredictor(decoded.config, decoded.norm, decoded.params)
 
 
 def controller_core(experiment: ExperimentConfig, seed: int, overrides: Mapping[str, Any],
