@@ -141,20 +141,33 @@ def disturbance_model(model: LatentModel, form: str) -> DisturbanceModel:
 class DisturbanceEstimator:
     """The integrating estimate p of one model (module docstring), and the corrected constants.
 
-    update() once per tick of an episode, in order; reset() at a new episode.
+    update() once per tick of an episode, in order; reset() at a new episode. Per update two
+    small matrix-vector products: p_inst = K_m [z_t; y_t] - K_p [z_{t-1}; u_t] - k with
+    K_m = H^+, K_p = H^+ [[A, B], [C A, C B]], k = H^+ [e; C e + d] (precomputed).
     """
 
     def __init__(self, model: LatentModel, dist: DisturbanceModel, gain: float):
         self.model, self.dist, self.gain = model, dist, gain
+        n_z, n_u, n_y = model.n_z, model.n_u, model.n_y
         self.p = np.zeros(dist.n_d)
-        self._z_prev: Optional[np.ndarray] = None
+        pred = np.block([[model.A, model.B], [model.C @ model.A, model.C @ model.B]])
+        self._k_meas = dist.H_pinv
+        self._k_pred = dist.H_pinv @ pred
+        self._k_const = dist.H_pinv @ np.concatenate([model.e, model.C @ model.e + model.d])
+        self._meas = np.empty(n_z + n_y)         # [z_t; y_t]
+        self._prev = np.empty(n_z + n_u)         # [z_{t-1}; u_t]
+        self._p_inst = np.empty(dist.n_d)
+        self._n_z = n_z
+        self._have_prev = False
         self._step: Optional[int] = None
-        self._rho = np.empty(model.n_z + model.n_y)
+        # [e'; d'] = [e; d] + [B_d; C_d] p
+        self._const = np.concatenate([model.e, model.d])
+        self._dist_map = np.vstack([dist.Bd, dist.Cd])
 
     def reset(self) -> None:
         """A new episode: p = 0, no previous latent state."""
         self.p[:] = 0.0
-        self._z_prev, self._step = None, None
+        self._have_prev, self._step = False, None
 
     def update(self, z: np.ndarray, u: np.ndarray, y: np.ndarray,
                step: Optional[int] = None) -> np.ndarray:
@@ -164,41 +177,50 @@ class DisturbanceEstimator:
         skipped) the residual would span two steps, so p is kept and only z_t is stored.
         Non-finite data leave p unchanged.
         """
-        m = self.model
-        follows = self._z_prev is not None and (
-            step is None or self._step is None or step == self._step + 1)
-        if follows:
-            z_pred = m.A @ self._z_prev + m.B @ u + m.e
-            rho = self._rho
-            rho[:m.n_z] = z - z_pred
-            rho[m.n_z:] = y - (m.C @ z_pred + m.d)
-            p_inst = self.dist.H_pinv @ rho
-            if all(map(math.isfinite, p_inst.tolist())):
-                self.p += self.gain * (p_inst - self.p)
-        if all(map(math.isfinite, np.asarray(z, dtype=float).tolist())):
-            self._z_prev = np.array(z, dtype=float)
+        n_z, prev = self._n_z, self._prev
+        if self._have_prev and (step is None or self._step is None or step == self._step + 1):
+            meas, p_inst = self._meas, self._p_inst
+            meas[:n_z] = z
+            meas[n_z:] = y
+            prev[n_z:] = u
+            np.dot(self._k_meas, meas, out=p_inst)
+            p_inst -= np.dot(self._k_pred, prev)
+            p_inst -= self._k_const
+            if math.isfinite(np.dot(p_inst, p_inst)):
+                p_inst -= self.p
+                p_inst *= self.gain
+                self.p += p_inst
+        self._have_prev = math.isfinite(np.dot(z, z))
+        if self._have_prev:
+            prev[:n_z] = z
         self._step = step
         return self.p
 
-    def constants(self) -> tuple:
-        """(e + B_d p (n_z,), d + C_d p (n_y,)): the corrected model's constants."""
-        return self.model.e + self.dist.Bd @ self.p, self.model.d + self.dist.Cd @ self.p
+    def constants(self, out: np.ndarray) -> np.ndarray:
+        """[e + B_d p (n_z,); d + C_d p (n_y,)], the corrected model's constants, into `out`."""
+        np.dot(self._dist_map, self.p, out=out)
+        out += self._const
+        return out
 
 
 class SteadyStateTarget:
     """s_s = [z_s; u_s] of the (corrected) model for a terminal reference (module docstring).
 
     ss_r (n_s, n_y), ss_e (n_s, n_z): the unconstrained target s = ss_r (r - d') + ss_e e'
-    (terminal_cost's KKT map). bounded: keep u_s within [u_min, u_max] (box least squares when
-    the unconstrained u_s leaves them).
+    (terminal_cost's KKT map), computed as ss_r r + T_c [e'; d'] with T_c = [ss_e, -ss_r].
+    bounded: keep u_s within [u_min, u_max] (box least squares when the unconstrained u_s
+    leaves them).
     """
 
     def __init__(self, model: LatentModel, q: np.ndarray, ss_r: np.ndarray, ss_e: np.ndarray,
                  u_min: np.ndarray, u_max: np.ndarray, bounded: bool):
-        self.ss_r, self.ss_e = ss_r, ss_e
-        self.u_min, self.u_max, self.bounded = u_min, u_max, bounded
+        self.ss_r = ss_r
+        self._t_const = np.hstack([ss_e, -ss_r])
+        self.bounded = bounded
+        self._box = list(zip(u_min.tolist(), u_max.tolist()))
+        self.u_min, self.u_max = u_min, u_max
         n_z = model.n_z
-        self._n_z = n_z
+        self._n_z, self._n_y = n_z, model.n_y
         tracked = q > 0
         self._sq = np.sqrt(q[tracked])
         self._c_t = model.C[tracked]
@@ -213,22 +235,29 @@ class SteadyStateTarget:
             self._gain = self._c_t @ self._ima_inv @ model.B       # (n_tracked, n_u)
         self._B = model.B
 
-    def __call__(self, r_n: np.ndarray, e: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """s_s (n_s,) for terminal reference r_n (n_y,) and constants e (n_z,), d (n_y,)."""
-        if not math.isfinite(float(np.dot(r_n, r_n) + np.dot(e, e) + np.dot(d, d))):
-            return np.full(self.ss_r.shape[0], math.nan)     # solve() falls back on it
-        s = self.ss_r @ (r_n - d) + self.ss_e @ e
-        u = s[self._n_z:]
-        if not self.bounded or (np.all(u >= self.u_min - 1e-12)
-                                and np.all(u <= self.u_max + 1e-12)):
-            return s
+    def __call__(self, r_n: np.ndarray, const: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """s_s (n_s,) into `out` for terminal reference r_n (n_y,) and the constants
+        const = [e' (n_z); d' (n_y)]. Non-finite data give a non-finite s_s (solve() falls
+        back on it)."""
+        np.dot(self._t_const, const, out=out)
+        out += np.dot(self.ss_r, r_n)
+        if not self.bounded:
+            return out
+        u = out[self._n_z:].tolist()
+        if all(lo - 1e-12 <= v <= hi + 1e-12 for v, (lo, hi) in zip(u, self._box)):
+            return out
+        if not all(map(math.isfinite, u)):
+            return out
+        e, d = const[:self._n_z], const[self._n_z:]
         if self._gain is not None:
             free = self._ima_inv @ e                 # z_s at u = 0
             target = self._sq * (r_n[self._tracked] - d[self._tracked] - self._c_t @ free)
-            u = lsq_linear(self._sq[:, None] * self._gain, target,
-                           bounds=(self.u_min, self.u_max)).x
-            z = free + self._ima_inv @ (self._B @ u)
+            u_s = lsq_linear(self._sq[:, None] * self._gain, target,
+                             bounds=(self.u_min, self.u_max)).x
+            z_s = free + self._ima_inv @ (self._B @ u_s)
         else:
-            u = np.clip(u, self.u_min, self.u_max)
-            z = np.linalg.lstsq(self._ima, self._B @ u + e, rcond=None)[0]
-        return np.concatenate([z, u])
+            u_s = np.clip(u, self.u_min, self.u_max)
+            z_s = np.linalg.lstsq(self._ima, self._B @ u_s + e, rcond=None)[0]
+        out[:self._n_z] = z_s
+        out[self._n_z:] = u_s
+        return out

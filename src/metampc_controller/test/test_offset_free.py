@@ -139,7 +139,7 @@ def test_bounded_target_against_brute_force():
     target = SteadyStateTarget(model, np.array([1.0, 0.0]), term.ss_r, term.ss_e,
                                np.array([-1.0]), np.array([1.0]), bounded=True)
     for r1 in (0.4, 2.0, -3.0):
-        s = target(np.array([r1, 0.0]), model.e, model.d)
+        s = target(np.array([r1, 0.0]), np.r_[model.e, model.d], np.empty(3))
         grid = np.linspace(-1.0, 1.0, 20001)
         best = grid[np.argmin(np.abs(0.8 * grid - r1))]
         assert s[2] == pytest.approx(best, abs=1e-4)
