@@ -174,7 +174,7 @@ def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path
     assert not (tmp_path / 'new.json').exists()
 
 
-def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models():
+def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models(monkeypatch):
     """A tiny search job on the CI config scored on control: each step size's score is the
     geometric mean over the validation targets of (tracking cost of the adapted model) / (the
     NMPC's); the held-out loss stays as prediction_score; the NMPC's yardstick is the same
@@ -187,6 +187,9 @@ def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models():
     scoring = settings.control
     assert len(scoring.nmpc) == 2 and all(0 < c < math.inf for c in scoring.nmpc)
     assert offline.track(scoring, settings.thetas[0], None) == scoring.nmpc[0]
+    # This process's worker state (other tests' settings and validation sets) set aside.
+    monkeypatch.setattr(offline, '_VALIDATIONS', {})
+    monkeypatch.setattr(offline, '_SETTINGS', None)
     offline.init_worker(settings, 1)
     job = offline.Job('maml', 0, {'inner_steps': 2}, 3, (0.05,), 'search')
     out = offline.run_job(job)
