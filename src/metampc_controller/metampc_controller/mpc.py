@@ -124,7 +124,7 @@ class MpcConfig:
     offset_free: str = param('state', 'offset-free tracking: the integrating disturbance form '
                                       '(state: latent and output, input, output; none: eq. mpc '
                                       'as the paper writes it)', choices=FORMS, live=True)
-    disturbance_gain: float = param(0.3, 'offset-free estimator gain g of p <- (1 - g) p + g '
+    disturbance_gain: float = param(0.5, 'offset-free estimator gain g of p <- (1 - g) p + g '
                                          'p_inst (1: deadbeat)', gt=0, le=1, live=True)
     y_min: Sequence[float] = param((), 'soft output lower bounds, one per output (-inf: none; '
                                        'empty: no soft bounds)', item=float, live=True,
