@@ -55,6 +55,25 @@ def _job(run_dir: str, seed: int, recording: str, overrides: Dict[str, Any],
     return {m: asdict(r) for m, r in results.items()}
 
 
+def recorded_nmpc(run_dir: str) -> Dict[int, Dict[str, Any]]:
+    """{seed: the NMPC's tracking as a MethodResult dict} from RUN_DIR/report.json (empty
+    when there is none)."""
+    try:
+        with open(os.path.join(run_dir, 'report.json')) as f:
+            report = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    out = {}
+    for entry in report.get('per_seed', []):
+        tracking = ((entry.get('methods') or {}).get('nmpc') or {}).get('tracking') or {}
+        cost = (tracking.get('tracking') or {}).get('cost')
+        if cost is not None:
+            out[int(entry['seed'])] = {'cost': float(cost),
+                                       'escaped': bool(tracking.get('escaped')),
+                                       'rejected': '', 'offsets': []}
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('run_dir', help='a run folder of scripts/run_experiment.py')
@@ -62,6 +81,10 @@ def main(argv=None) -> int:
                         help='controller settings to compare (repeatable; default: the '
                              "recorded settings, as 'recorded')")
     parser.add_argument('--jobs', type=int, default=1, help='seeds at once (processes)')
+    parser.add_argument('--recompute-nmpc', action='store_true',
+                        help="run the NMPC again instead of taking its recorded tracking cost "
+                             "from RUN_DIR/report.json (the same number: a lockstep run is "
+                             'deterministic; the NMPC is the slow part)')
     parser.add_argument('--check', action='store_true',
                         help="also say what the model check (docs/mpc.md) makes of each seed's "
                              "adapted models on the seed's NMPC tracking run, against their "
@@ -100,6 +123,12 @@ def main(argv=None) -> int:
         digest = hashlib.sha1(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:12]
         return os.path.join(cache_dir, f'seed_{seed}_{name}_{digest}.json')
 
+    recorded = {} if args.recompute_nmpc else recorded_nmpc(args.run_dir)
+    for seed, episode in recorded.items():
+        path = cached(seed, 'nmpc', {})
+        if seed in recordings and not os.path.exists(path):
+            with open(path, 'w') as f:
+                json.dump({'nmpc': episode}, f)
     todo = []       # the NMPC once per seed (the yardstick), then every variant
     for seed, rec in recordings.items():
         for name, overrides in [('nmpc', {})] + variants:
