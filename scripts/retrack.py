@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     from metampc_bringup.analysis import json_safe
     from metampc_bringup.paired_stats import format_claim
     from metampc_bringup.plots import plot_episodes, plot_variants
-    from metampc_bringup.retrack import (check_verdicts, controller_core, retrack_seed,
+    from metampc_bringup.retrack import (check_verdicts, controller_config, retrack_seed,
                                          seed_recordings, summarise)
     from metampc_common.params import ParameterError
     try:
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
         parser.error(f'{args.run_dir}: {err}')
     for name, overrides in variants:
         try:
-            controller_core(experiment, experiment.first_seed, overrides)
+            controller_config(experiment, experiment.first_seed, overrides)
         except (ParameterError, ValueError) as err:
             parser.error(f'variant {name}: {err}')
     recordings = seed_recordings(args.run_dir)

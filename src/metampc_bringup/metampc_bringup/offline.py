@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from metampc_controller.nssm import Nssm
+from metampc_controller.weights_codec import DecodedWeights, WeightsError
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   SourceSet, Windows)
@@ -39,6 +40,7 @@ from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
 from metampc_plant.family import PlantFamily
 
 from .experiment_config import ExperimentConfig, load
+from .retrack import fly
 
 VALIDATION_SEED = 1000       # validation source set, meta seed and supervised init seed
 THETA_STREAM = 0x5a1         # validation thetas: rng([VALIDATION_SEED + i, THETA_STREAM])
@@ -96,7 +98,7 @@ class ControlScoring:
 
     Attributes:
         controller: the controller node's parameter values (the experiment's section).
-        plant: the plant node's parameter values but theta (the experiment's).
+        plant: the plant node's parameter values (the experiment's; theta is each target's).
         x0, steps, tracked: track_x0, samples of a tracking run, tracked outputs.
         nmpc: the NMPC's tracking cost of each validation target (computed once).
     """
@@ -193,9 +195,8 @@ def settings_from(config_path: str, n_thetas: int, adapt_steps: int,
     scoring = None
     if control:
         cfg = experiment.resolved()
-        plant = cfg.node_parameters('plant', VALIDATION_SEED)
-        plant.pop('theta', None)
-        scoring = ControlScoring(cfg.node_parameters('controller', VALIDATION_SEED), plant,
+        scoring = ControlScoring(cfg.node_parameters('controller', VALIDATION_SEED),
+                                 cfg.node_parameters('plant', VALIDATION_SEED),
                                  tuple(cfg.track_x0), cfg.track_steps(),
                                  tuple(cfg.tracked_outputs))
         scoring = replace(scoring, nmpc=tuple(track(scoring, theta, None)
@@ -206,37 +207,14 @@ def settings_from(config_path: str, n_thetas: int, adapt_steps: int,
 
 
 def track(scoring: 'ControlScoring', theta: Sequence[float], model) -> float:
-    """Tracking cost of the adapted NSSM `model` (an Nssm with its weights as params, or
-    None for the true-model NMPC) on the target theta; inf when the plant escapes or the
-    controller rejects the model."""
-    from metampc_controller.closed_loop import run_episode
-    from metampc_controller.controller_core import (build_model, ControllerCore,
-                                                    PlantDescription)
-    from metampc_controller.controller_params import PARAMETERS as CONTROLLER
-    from metampc_controller.controller_params import parse_params as parse_controller
-    from metampc_controller.weights_codec import DecodedWeights, WeightsError
-    from metampc_plant.plant_params import PARAMETERS as PLANT
-    from metampc_plant.plant_params import parse_params as parse_plant
-    from metampc_plant.simulator import Plant
-    values = {name: spec.default for name, spec in CONTROLLER.items()}
-    values.update(scoring.controller, planner='nmpc' if model is None else 'latent_mpc',
-                  active=True)
-    core = ControllerCore(parse_controller(values))
-    plant_values = {name: spec.default for name, spec in PLANT.items()}
-    plant_values.update(scoring.plant, theta=list(theta))
-    plant_cfg = parse_plant(plant_values).plant
-    core.set_plant(PlantDescription(plant_cfg.family, tuple(theta), plant_cfg.dt,
-                                    plant_cfg.u_min, plant_cfg.u_max, len(core.history.y),
-                                    True))
-    if model is not None:
-        config, norm, params = model
-        try:
-            core.offer_model(build_model(DecodedWeights(config, norm, params), 1, 'tuning',
-                                         'adapted', core.config.mpc, core.n_u, core.n_y,
-                                         core.config.history))
-        except WeightsError:
-            return math.inf
-    episode = run_episode(core, Plant(plant_cfg), scoring.steps, theta, scoring.x0)
+    """Tracking cost of the adapted NSSM `model` ((config, norm, params), or None for the
+    true-model NMPC) on the target theta (:func:`retrack.fly`); inf when the plant escapes
+    or the controller rejects the model."""
+    try:
+        episode = fly(scoring.controller, scoring.plant, theta, scoring.x0, scoring.steps,
+                      None if model is None else DecodedWeights(*model))
+    except WeightsError:
+        return math.inf
     if episode.escaped_at is not None:
         return math.inf
     return episode.tracking_cost(scoring.tracked)

@@ -14,17 +14,19 @@ paired by seed on exactly the models an experiment produced.
 from dataclasses import asdict, dataclass, field
 import math
 import os
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 import numpy as np
 
 from metampc_controller.closed_loop import Episode, run_episode
 from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
+from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.controller_params import parse_params as parse_controller
 from metampc_controller.controller_params import PARAMETERS as CONTROLLER_PARAMETERS
 from metampc_controller.model_check import check
 from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
+from metampc_controller.weights_codec import (DecodedWeights, fields_of, weights_from_fields,
+                                              WeightsError)
 from metampc_plant.plant_params import parse_params as parse_plant
 from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
 from metampc_plant.simulator import Plant
@@ -71,8 +73,8 @@ def check_verdicts(experiment: ExperimentConfig, seed: int, recording: str,
     NMPC's tracking run of the seed, which a controller holds when the adapted models come):
     against its own meta-model (an update of it) and against persistence (a first model)."""
     cfg = experiment.resolved()
-    core = controller_core(cfg, seed, {})
-    horizon, config = core.config.mpc.horizon, core.config.model_check
+    config = controller_config(cfg, seed, {})
+    horizon, config = config.mpc.horizon, config.model_check
     metas = adapted_models(recording, 'meta')
     out = {}
     for method, msg in adapted_models(recording).items():
@@ -90,15 +92,42 @@ def _predictor(msg) -> NssmPredictor:
     return NssmPredictor(decoded.config, decoded.norm, decoded.params)
 
 
-def controller_core(experiment: ExperimentConfig, seed: int, overrides: Mapping[str, Any],
-                    planner: str = 'latent_mpc') -> ControllerCore:
-    """The experiment's controller core of `seed` with parameter `overrides` (checked as the
-    node checks them: ParameterError naming the parameter)."""
-    values = _with_defaults(CONTROLLER_PARAMETERS, experiment.node_parameters('controller', seed))
-    values.update(overrides)
-    values['planner'] = planner
-    values['active'] = True
-    return ControllerCore(parse_controller(values))
+def controller_values(experiment: ExperimentConfig, seed: int, overrides: Mapping[str, Any]
+                      ) -> Dict[str, Any]:
+    """The controller node's parameter values of the experiment's run `seed`, with
+    `overrides` on top."""
+    return {**experiment.node_parameters('controller', seed), **overrides}
+
+
+def controller_config(experiment: ExperimentConfig, seed: int, overrides: Mapping[str, Any]
+                      ) -> ControllerConfig:
+    """The controller's configuration of `seed` with parameter `overrides`, checked as the
+    node checks it (ParameterError naming the parameter)."""
+    return parse_controller(_with_defaults(CONTROLLER_PARAMETERS,
+                                           controller_values(experiment, seed, overrides)))
+
+
+def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence[float],
+        x0: Sequence[float], steps: int, weights: Optional[DecodedWeights] = None) -> Episode:
+    """One tracking episode in one process (no ROS): the controller node's parameter values
+    `controller` (its declared defaults filled in), its latent MPC on `weights` or, with
+    None, its true-model NMPC, against the plant core of the plant node's parameter values
+    `plant` at `theta`, from `x0` for `steps` samples (:func:`closed_loop.run_episode`).
+
+    Raises:
+        WeightsError: the controller rejects the weights (one line).
+    """
+    values = _with_defaults(CONTROLLER_PARAMETERS, controller)
+    values.update(planner='nmpc' if weights is None else 'latent_mpc', active=True)
+    core = ControllerCore(parse_controller(values))
+    plant_cfg = parse_plant(_with_defaults(PLANT_PARAMETERS,
+                                           {**plant, 'theta': list(theta)})).plant
+    core.set_plant(PlantDescription(plant_cfg.family, tuple(theta), plant_cfg.dt,
+                                    plant_cfg.u_min, plant_cfg.u_max, core.n_y, True))
+    if weights is not None:
+        core.offer_model(build_model(weights, 1, 'retrack', 'adapted', core.config.mpc,
+                                     core.n_u, core.n_y, core.config.history))
+    return run_episode(core, Plant(plant_cfg), steps, theta, x0)
 
 
 def _with_defaults(table: Mapping[str, Any], values: Mapping[str, Any]) -> Dict[str, Any]:
@@ -134,39 +163,30 @@ def retrack_seed(experiment: ExperimentConfig, seed: int, recording: str,
     yardstick: unaffected by the latent MPC's settings, and the slowest part; `nmpc` False
     leaves it out). `episodes`, if given, receives each method's :class:`Episode`."""
     cfg = experiment.resolved()
-    plant_cfg = parse_plant(_with_defaults(PLANT_PARAMETERS,
-                                           cfg.node_parameters('plant', seed))).plant
+    controller = controller_values(cfg, seed, overrides)
+    plant = cfg.node_parameters('plant', seed)
+    horizon = controller_config(cfg, seed, overrides).mpc.horizon
     theta = cfg.target_theta(seed)
-    description = PlantDescription(family=cfg.family, theta=tuple(theta), dt=plant_cfg.dt,
-                                   u_min=plant_cfg.u_min, u_max=plant_cfg.u_max,
-                                   n_y=cfg.plant_family.n_y, lockstep=True)
     tracked = list(cfg.tracked_outputs)
-    steps = cfg.track_steps()
     models = adapted_models(recording)
     wanted = methods if methods is not None else sorted(models)
     results: Dict[str, MethodResult] = {}
     for method in wanted + (['nmpc'] if nmpc else []):
-        core = controller_core(cfg, seed, overrides,
-                               planner='nmpc' if method == 'nmpc' else 'latent_mpc')
-        core.set_plant(description)
+        weights = None
         if method != 'nmpc':
-            msg = models.get(method)
-            if msg is None:
+            if method not in models:
                 continue
-            try:
-                core.offer_model(build_model(weights_from_fields(fields_of(msg)), msg.version,
-                                             msg.method, msg.stage, core.config.mpc, core.n_u,
-                                             core.n_y, core.config.history))
-            except WeightsError as err:
-                results[method] = MethodResult(float('nan'), False, rejected=str(err))
-                continue
-        episode = run_episode(core, Plant(plant_cfg), steps, theta, cfg.track_x0)
+            weights = weights_from_fields(fields_of(models[method]))
+        try:
+            episode = fly(controller, plant, theta, cfg.track_x0, cfg.track_steps(), weights)
+        except WeightsError as err:
+            results[method] = MethodResult(float('nan'), False, rejected=str(err))
+            continue
         if episodes is not None:
             episodes[method] = episode
         results[method] = MethodResult(
             cost=episode.tracking_cost(tracked), escaped=episode.escaped_at is not None,
-            offsets=segment_offsets(episode.y[1:], episode.y_ref, tracked,
-                                    core.config.mpc.horizon))
+            offsets=segment_offsets(episode.y[1:], episode.y_ref, tracked, horizon))
     return results
 
 

@@ -27,9 +27,9 @@ from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.planner import PlanResult
-from metampc_controller.offset_free import disturbance_model
 from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
+from metampc_controller.offset_free import disturbance_model
+from metampc_controller.planner import PlanResult
 from metampc_controller.prediction_error import PredictionError
 from metampc_controller.predictor import NssmPredictor
 from metampc_controller.references import make_reference
@@ -503,8 +503,8 @@ class ControllerCore:
 
         Builds the QP of the model in use for it (OSQP set-up and DARE: milliseconds, while
         the ticks go on with the tuning before) and the NMPC of its weights, then swaps them
-        in. The new QP starts
-        cold, as on a new model. ValueError if the model does not fit (check_tuning first)."""
+        in. The new QP starts cold, as on a new model. ValueError if the model does not fit
+        (check_tuning first)."""
         with self._setup_lock:
             setup = self._setup
             model = setup.model
