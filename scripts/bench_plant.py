@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from metampc_bringup.domain import isolate
+from metampc_bringup.lifeline import hold
 from metampc_bringup.script_child import last_json_line, script_child
 
 WARMUP_STEPS = 200
@@ -112,6 +113,7 @@ def main() -> int:
     parser.add_argument('--echo', type=int, metavar='STEPS', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.echo:
+        hold()     # the benchmark's helper: ends with the benchmark
         echo(args.echo)
         return 0
     isolate()

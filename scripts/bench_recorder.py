@@ -30,6 +30,7 @@ import tempfile
 import time
 
 from metampc_bringup.procfs import live_cpu_seconds
+from metampc_bringup.lifeline import hold
 from metampc_bringup.script_child import last_json_line, script_child
 
 
@@ -124,6 +125,7 @@ def main() -> int:
     parser.add_argument('--publish', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.publish:
+        hold()     # the benchmark's helper: ends with the benchmark
         publish(args.rate, args.seconds, args.timeout)
         return 0
     from metampc_bringup.domain import isolate

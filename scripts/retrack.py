@@ -99,6 +99,7 @@ def main(argv=None) -> int:
         parser.error(str(err))
     from metampc_bringup.experiment_config import ConfigError, load
     from metampc_bringup.analysis import json_safe
+    from metampc_bringup.lifeline import hold_in_worker
     from metampc_bringup.paired_stats import format_claim
     from metampc_bringup.plots import plot_episodes, plot_variants
     from metampc_bringup.retrack import (check_verdicts, controller_config, retrack_seed,
@@ -137,7 +138,7 @@ def main(argv=None) -> int:
                 todo.append((seed, rec, overrides, name == 'nmpc', path))
     print(f'retrack: {len(recordings)} seeds x {len(variants)} variants, {len(todo)} to run',
           file=sys.stderr)
-    with futures.ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+    with futures.ProcessPoolExecutor(max(1, args.jobs), initializer=hold_in_worker) as pool:
         running = {pool.submit(_job, args.run_dir, seed, rec, overrides, nmpc): path
                    for seed, rec, overrides, nmpc, path in todo}
         for done, fut in enumerate(futures.as_completed(running), 1):

@@ -16,6 +16,8 @@ back. The child runs in a process group of its own and the shim forwards SIGINT 
 it, so Ctrl-C (or a signal to the shim's process group) reaches the node exactly once; rclpy
 nodes treat a second SIGINT during shutdown as an error. A SIGINT or SIGTERM that comes before
 the child started ends the shim without starting it (exit status 0, as a node stopped by Ctrl-C).
+Lifetime (metampc_bringup.lifeline): the node gets SIGTERM when the shim dies, and a shim
+started by a metampc spawner gets SIGTERM when that spawner dies, SIGKILL included.
 """
 import signal
 
@@ -38,6 +40,11 @@ signal.signal(signal.SIGTERM, forward)
 import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
+
+try:
+    from metampc_bringup import lifeline  # noqa: E402
+except ImportError:     # the workspace is not built: no package to run either
+    lifeline = None
 
 MARKER = os.path.join('share', 'ament_index', 'resource_index', 'packages')
 SUPPORTED = 'run, pkg list, pkg executables, pkg prefix'
@@ -91,7 +98,16 @@ def run(pkg, exe, args):
         return 1
     if PENDING:
         return 0    # stopped before the node started
-    proc = subprocess.Popen([matches[0]] + args, process_group=0)
+    shim = os.getpid()
+    # The node dies with this shim (and gets the parent-death signal's pid in its
+    # environment); the shim's other open files, a ROS domain's lock among them
+    # (metampc_bringup.domain), go on to the node, so the domain stays claimed until the node
+    # has ended.
+    proc = subprocess.Popen(
+        [matches[0]] + args, process_group=0, close_fds=False,
+        env=lifeline.child_env() if lifeline else None,
+        preexec_fn=(lambda: lifeline.parent_death_signal(signal.SIGTERM, shim))
+        if lifeline else None)
     CHILD.append(proc)
     for signum in PENDING:  # came while Popen forked and exec'd the child
         os.killpg(proc.pid, signum)
@@ -125,6 +141,8 @@ def other_verbs(argv):
 
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
+    if lifeline:
+        lifeline.hold()     # started by a metampc spawner: end with it
     if not argv or argv[0] not in ('run', 'pkg'):
         return other_verbs(argv)
     verb, rest = argv[0], argv[1:]

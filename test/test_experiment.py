@@ -4,6 +4,7 @@ The report is checked against the recording read by a reader this project did no
 (`rosbags`): the tracking RMSE of each method recomputed from the raw messages, the service
 results from the recorded events, a held-out target loss from the recorded weights by numpy.
 """
+import contextlib
 import json
 import math
 import os
@@ -278,6 +279,98 @@ def test_ctrl_c_while_the_nodes_start_leaves_no_process(tmp_path):
                 os.kill(pid, signal.SIGKILL)
     assert proc.returncode == 130 and 'Traceback' not in text, text
     assert _pids_in_domain(domain, ended) == [], 'processes left behind'
+
+
+def _start_run(args) -> subprocess.Popen:
+    """run_experiment.py on the CI config with `args`, in a session of its own."""
+    return subprocess.Popen(
+        [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+         CI_CONFIG, '--no-progress', *args],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def _read_until(proc: subprocess.Popen, pattern: str, lines: list) -> re.Match:
+    """Read proc's output into `lines` until a line matches `pattern`; the match."""
+    for line in proc.stdout:
+        lines.append(line)
+        found = re.search(pattern, line)
+        if found:
+            return found
+    raise AssertionError(f'{pattern!r} never printed:\n' + ''.join(lines))
+
+
+def _wait_domain_empty(domain: int, killed: float, timeout: float = 5.0) -> list:
+    """The run's processes still in `domain` `timeout` s after `killed` (none: empty)."""
+    deadline = time.monotonic() + timeout
+    while _pids_in_domain(domain, killed) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return _pids_in_domain(domain, killed)
+
+
+def _kill_leftovers(proc: subprocess.Popen, domains, out: str) -> None:
+    """After a failed assertion: nothing of the run may outlive the test (its session, its
+    domains' nodes, its seed children: their ROS_DOMAIN_ID is not in their /proc environ)."""
+    children = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
+                if out in _cmdline(pid)]
+    nodes = [p for d in domains for p in _pids_in_domain(d)]
+    for pid in session_pids(proc.pid) + children + nodes:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    proc.wait()
+
+
+def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
+    """run_experiment.py killed by SIGKILL while the learner meta-trains (no handler of its
+    runs): its `ros2 run` wrappers and nodes end within 5 s (metampc_bringup.lifeline)."""
+    out = str(tmp_path / 'run')
+    proc = _start_run(['--out', out, '--methods', 'imaml'])
+    lines, domains = [], []
+    try:
+        domains.append(int(_read_until(proc, r'ROS_DOMAIN_ID=(\d+)', lines).group(1)))
+        _read_until(proc, r'collect done', lines)     # meta_train is the next call
+        assert len(_pids_in_domain(domains[0])) >= 8, 'the nodes are up'
+        os.kill(proc.pid, signal.SIGKILL)
+        killed = _uptime()
+        proc.wait()
+        assert _wait_domain_empty(domains[0], killed) == [], 'processes left behind'
+    finally:
+        _kill_leftovers(proc, domains, out)
+        proc.stdout.close()
+
+
+def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
+    """--jobs 2: one seed's child killed by SIGKILL: its nodes end within 5 s; the other seed
+    runs to its end, and the run fails naming the killed seed, with nothing left running."""
+    out = str(tmp_path / 'run')
+    proc = _start_run(['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'])
+    lines, domains = [], {}
+    try:
+        while len(domains) < 2:
+            found = _read_until(proc, r'seed (\d): ROS_DOMAIN_ID=(\d+)', lines)
+            domains[int(found.group(1))] = int(found.group(2))
+        _read_until(proc, r'seed 0: collect done', lines)
+        child = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
+                 if _cmdline(pid)[-3:] == ['metampc_bringup.seed_jobs', out, '0']]
+        assert len(child) == 1, child
+        os.kill(child[0], signal.SIGKILL)
+        killed = _uptime()
+        assert _wait_domain_empty(domains[0], killed) == [], 'processes left behind'
+        text = ''.join(lines) + proc.communicate(timeout=300)[0]
+        ended = _uptime()
+        assert proc.returncode == 1 and 'seed 0 (exit status -9' in text, text
+        assert 'seed 1: done' in text, text
+        assert _pids_in_domain(domains[1], ended) == [], 'processes left behind'
+    finally:
+        _kill_leftovers(proc, domains.values(), out)
+        proc.stdout.close()
+
+
+def _cmdline(pid: int) -> list:
+    try:
+        with open(f'/proc/{pid}/cmdline', 'rb') as f:
+            return f.read().decode(errors='replace').split('\0')[:-1]
+    except OSError:
+        return []
 
 
 def test_config_errors_name_the_key(tmp_path):

@@ -1,4 +1,5 @@
-"""A ROS_DOMAIN_ID of one's own: claimed with an exclusive lock file, held until the process ends.
+"""A ROS_DOMAIN_ID of one's own: claimed with an exclusive lock file, held until the process and
+the nodes it started (they inherit the lock) end.
 
 Concurrent test sessions and experiments on one machine then never share a DDS domain. No
 rclpy here: claim the domain before ``rclpy.init`` and before starting any node process.
@@ -28,6 +29,14 @@ def claim_domain() -> int:
         return domain
     raise RuntimeError('no free ROS_DOMAIN_ID in 1..101 (each metampc test session or '
                        'experiment holds one)')
+
+
+def held_fds() -> List[int]:
+    """File descriptors of the domain locks this process holds. A node started with them
+    (:class:`.processes.ProcessGroup` passes them on) keeps its domain claimed until it ends:
+    a run killed before its nodes have stopped leaves no domain that a new run could share
+    with them."""
+    return [handle.fileno() for handle in _held]
 
 
 def isolate(discovery_range: str = 'LOCALHOST') -> int:

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Dict, Iterator, List, Sequence
 
 from .domain import isolated
+from .lifeline import child_env, hold
 
 log = logging.getLogger('metampc.netns')
 
@@ -245,7 +246,8 @@ def call_in_namespace(namespace: str, fn: Callable[..., Any], *args: Any,
         with open(call, 'wb') as f:
             pickle.dump((fn, args, kwargs, logs), f)
         child = subprocess.Popen(['ip', 'netns', 'exec', namespace, sys.executable, '-m',
-                                  __name__, call, result], start_new_session=True)
+                                  __name__, call, result], start_new_session=True,
+                                 env=child_env())
         try:
             child.wait()
         except KeyboardInterrupt:
@@ -272,6 +274,7 @@ def _child(call: str, result: str) -> int:
         fn, args, kwargs, (level, fmt, datefmt) = pickle.load(f)
     logging.basicConfig(level=level, format=fmt, datefmt=datefmt)
     try:
+        hold(signal.SIGINT)     # the caller killed: end the call as on Ctrl-C
         outcome = (True, fn(*args, **kwargs))
     except BaseException as err:    # KeyboardInterrupt too goes back to the caller
         outcome = (False, err)

@@ -40,6 +40,7 @@ from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
 from metampc_plant.family import PlantFamily
 
 from .experiment_config import ExperimentConfig, load
+from .lifeline import hold_in_worker
 from .retrack import fly
 
 VALIDATION_SEED = 1000       # validation source set, meta seed and supervised init seed
@@ -256,8 +257,9 @@ _VALIDATIONS: Dict[str, Validation] = {}
 
 
 def init_worker(settings: Settings, threads: int) -> None:
-    """Worker process start: torch threads and the settings."""
+    """Worker process start: a lifeline to the pool's maker, torch threads and the settings."""
     global _SETTINGS
+    hold_in_worker()
     torch.set_num_threads(threads)
     _SETTINGS = settings
 
@@ -278,6 +280,23 @@ def meta_config(job: Job, settings: Settings) -> MetaConfig:
     """The MetaConfig of a meta job: its fields on the experiment's learner defaults."""
     return replace(settings.learner.meta, method=job.method, iterations=job.iterations,
                    seed=job.source_seed, **{**settings.meta_defaults, **job.hyper})
+
+
+def returned_loss(result) -> float:
+    """The validation loss of the weights meta-training returned (its best checkpoint under
+    the divergence guard); without validations, the mean of the last 10 training losses."""
+    losses = dict(result.validation_losses)
+    if result.best_iteration in losses:
+        return float(losses[result.best_iteration])
+    return float(np.mean(result.losses[-10:]))
+
+
+def _diverged(runs: Sequence[dict], values: Sequence[float]) -> Tuple[float, List[int]]:
+    """(median of the finite values, source seeds non-finite or above DIVERGED_FACTOR x it)."""
+    finite = [v for v in values if math.isfinite(v)]
+    median = float(np.median(finite)) if finite else math.inf
+    return median, [r['source_seed'] for r, v in zip(runs, values)
+                    if not math.isfinite(v) or v > DIVERGED_FACTOR * median]
 
 
 def _spectrum(params) -> Dict[str, float]:
@@ -318,6 +337,9 @@ def run_job(job: Job) -> dict:
                    else math.inf,
                    meta_loss_every_10=[float(v) for v in losses[9::10]],
                    meta_skipped=result.skipped, meta_seconds=round(result.elapsed, 1),
+                   meta_returned_loss=returned_loss(result),
+                   meta_rollbacks=list(result.rollbacks),
+                   meta_best_iteration=result.best_iteration,
                    meta_cg_residual=float(np.nanmean(result.cg_residuals[-10:]))
                    if job.method == 'imaml' else None,
                    **_spectrum(params))
@@ -427,21 +449,27 @@ def robustness_jobs(experiment: ExperimentConfig, methods: Sequence[str], seeds:
 
 def robustness_summary(results: Sequence[dict]) -> Dict[str, Any]:
     """Per method: final losses per seed, median, the runs that diverged (non-finite, failed,
-    or a final loss above DIVERGED_FACTOR x the median), A's largest spectral radius, and
-    when every run was adapted, their scores (held-out loss after adaptation) and mean."""
+    or a final loss above DIVERGED_FACTOR x the median); the same for the loss of the weights
+    returned (`returned_loss`: the best checkpoint's validation loss under the divergence
+    guard) and the guard's rollbacks per run; A's largest spectral radius, and when every run
+    was adapted, their scores (held-out loss after adaptation) and mean."""
     out: Dict[str, Any] = {}
     for method in dict.fromkeys(r['method'] for r in results):
         runs = [r for r in results if r['method'] == method]
         final = [float(r.get('meta_final_loss', math.inf)) for r in runs]
-        finite = [v for v in final if math.isfinite(v)]
-        median = float(np.median(finite)) if finite else math.inf
-        diverged = [r['source_seed'] for r, v in zip(runs, final)
-                    if not math.isfinite(v) or v > DIVERGED_FACTOR * median]
+        returned = [float(r.get('meta_returned_loss', math.inf)) for r in runs]
+        median, diverged = _diverged(runs, final)
+        median_returned, diverged_returned = _diverged(runs, returned)
         out[method] = {
             'seeds': [r['source_seed'] for r in runs], 'final_loss': final,
             'median_final_loss': median, 'worst_final_loss': max(final),
             'max_loss': [r.get('meta_max_loss', math.inf) for r in runs],
             'diverged': diverged, 'n_diverged': len(diverged),
+            'returned_loss': returned, 'median_returned_loss': median_returned,
+            'worst_returned_loss': max(returned),
+            'diverged_returned': diverged_returned,
+            'n_diverged_returned': len(diverged_returned),
+            'rollbacks': [len(r.get('meta_rollbacks', ())) for r in runs],
             'a_radius': [r.get('a_radius', math.nan) for r in runs],
             'max_a_radius': max(r.get('a_radius', math.nan) for r in runs),
             'meta_seconds': [r.get('meta_seconds') for r in runs]}

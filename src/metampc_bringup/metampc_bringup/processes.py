@@ -2,7 +2,9 @@
 
 Used by the orchestrator and by the tests. Each node starts in a session of its own (`ros2 run`
 then puts the node in a process group of its own inside it), so a SIGINT to the session's
-leader reaches the node once, and SIGKILL can reach every process of the session.
+leader reaches the node once, and SIGKILL can reach every process of the session. Each node
+dies with the process that started it (:mod:`.lifeline`), whatever killed that, and holds that
+process's ROS domain claimed until it has ended (:func:`.domain.held_fds`).
 No rclpy here.
 """
 import contextlib
@@ -12,6 +14,9 @@ import subprocess
 import threading
 import time
 from typing import Dict, Iterable, Iterator, List, Optional
+
+from .domain import held_fds
+from .lifeline import child_env
 
 STACK_DUMP_S = 2.0    # s for a hung node to write its thread stacks (SIGUSR1) before SIGKILL
 LOG_TAIL = 6000       # characters of a hung node's output in the error
@@ -109,8 +114,9 @@ class ProcessGroup:
         with signals_held(), open(log_path, 'w') as log:
             proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, start_new_session=True,
-                                    env={**os.environ, **self.env, **(env or {}),
-                                         'PYTHONUNBUFFERED': '1'})
+                                    pass_fds=held_fds(),
+                                    env=child_env({**os.environ, **self.env, **(env or {}),
+                                                   'PYTHONUNBUFFERED': '1'}))
             proc.log_path = log_path
             self.procs.append(proc)
         return proc

@@ -11,6 +11,8 @@ import subprocess
 import sys
 from typing import Iterator, Sequence
 
+from .lifeline import child_env
+
 STOP_S = 5.0    # s for the child to end after SIGINT before SIGKILL
 
 
@@ -19,9 +21,10 @@ def script_child(script: str, args: Sequence[str], stop_s: float = STOP_S
                  ) -> Iterator[subprocess.Popen]:
     """`python script args...` in a session of its own, stdout piped as text, environment
     inherited; when the block ends with it still running, SIGINT to its process group, then
-    SIGKILL after `stop_s` s."""
+    SIGKILL after `stop_s` s. The child may hold a lifeline to this process
+    (:func:`.lifeline.hold`)."""
     child = subprocess.Popen([sys.executable, script, *args], stdout=subprocess.PIPE,
-                             text=True, start_new_session=True)
+                             text=True, start_new_session=True, env=child_env())
     try:
         yield child
     finally:

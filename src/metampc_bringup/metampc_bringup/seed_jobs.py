@@ -10,6 +10,9 @@ Determinism: a lockstep seed's result does not depend on what runs beside it, so
 reports equal those of ``--jobs 1`` (test_experiment checks it); the learner's torch thread
 count is part of the configuration and is not changed by ``--jobs``.
 
+A seed child dies with the parent (:mod:`.lifeline`: SIGINT when the parent ends, SIGKILL
+included), and stops its nodes then as on Ctrl-C.
+
 Ctrl-C (or SIGTERM) in the parent: no new seed starts, every running child gets SIGINT and
 stops its nodes as a one-process run does (controllers, plant, learner, recorder last, so
 every recording stays readable); then KeyboardInterrupt goes on. A seed that fails lets the
@@ -25,6 +28,7 @@ import time
 from typing import Dict, List, Sequence
 
 from .experiment_client import ExperimentError
+from .lifeline import child_env, hold
 from .processes import signals_held
 
 log = logging.getLogger('metampc.seed_jobs')
@@ -81,7 +85,7 @@ def _start(out_dir: str, seed: int, running: Dict[int, subprocess.Popen]) -> Non
     with signals_held():
         running[seed] = subprocess.Popen(
             [sys.executable, '-m', 'metampc_bringup.seed_jobs', out_dir, str(seed)],
-            stdin=subprocess.DEVNULL, start_new_session=True)
+            stdin=subprocess.DEVNULL, start_new_session=True, env=child_env())
 
 
 def _stop(children) -> None:
@@ -106,6 +110,7 @@ def child_main(argv: Sequence[str]) -> int:
     logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
                         datefmt='%H:%M:%S')
     try:
+        hold(signal.SIGINT)    # the parent killed: stop the nodes as on Ctrl-C
         from .domain import isolated
         from .experiment_config import load
         from .orchestrator import SeedRun, terminate_as_interrupt
