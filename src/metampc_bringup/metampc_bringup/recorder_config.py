@@ -36,7 +36,8 @@ class RecorderConfig:
                                     gt=0)
     flush_period: float = param(1.0, 'wall time, s, after which an open chunk is written '
                                      '(0: only when full)', ge=0)
-    qos_depth: int = param(1000, 'keep_last depth of the recording subscriptions', ge=1)
+    qos_depth: int = param(0, 'keep_last depth of the recording subscriptions (0: keep_all, '
+                              'so that a held-back publisher loses nothing)', ge=0)
 
     def __post_init__(self):
         self.topics = tuple(self.topics)

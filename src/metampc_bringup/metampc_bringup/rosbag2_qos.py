@@ -107,11 +107,14 @@ def request_for_offers(offers: Sequence[QosProfile], depth: int) -> QosProfile:
 
     Args:
         offers: the publishers' profiles (may be empty: then the defaults, reliable + volatile).
-        depth: keep_last depth of the subscription queue.
+        depth: keep_last depth of the subscription queue; 0: keep_all (every received
+            sample stays until it is taken; a full reader acknowledges no more until then, so
+            a publisher that waits for its acknowledgements, metampc_common.held_publisher,
+            loses none).
     """
     reliable = all(p.reliability == 'reliable' for p in offers)
     latched = bool(offers) and all(p.durability == 'transient_local' for p in offers)
-    return QosProfile(history='keep_last', depth=depth,
+    return QosProfile(history='keep_last' if depth else 'keep_all', depth=depth,
                       reliability='reliable' if reliable else 'best_effort',
                       durability='transient_local' if latched else 'volatile')
 

@@ -13,6 +13,7 @@ import time
 from mcap.reader import make_reader
 from metampc_bringup.msg_schema import DefinitionSource
 from metampc_bringup.recording_reader import read_recording
+from metampc_common.held_publisher import HeldPublisher, HoldConfig
 from metampc_bringup.rosbag2_qos import profiles_from_yaml
 from metampc_msgs.msg import PlantOutput
 import numpy as np
@@ -154,3 +155,23 @@ def test_recorder_keeps_up_with_a_fast_stream_and_finishes_on_sigterm(
         statistics = make_reader(f).get_summary().statistics
     assert statistics.message_count == n
     assert read_recording(str(path)).complete
+
+
+def test_a_held_stream_much_faster_than_the_recorder_is_recorded_whole(
+        tmp_path, procs, probe, recorders):
+    """5000 outputs published as fast as Python can (some 20 times the recorder's pace)
+    through a HeldPublisher: the recording holds every one. Writers that keep the last 1000,
+    as before (hold_for_readers false), lose most of such a burst (docs/speed.md)."""
+    n = 5000
+    path = tmp_path / 'burst.mcap'
+    recorder = recorders.start(path, flush_period=0.2)
+    config = HoldConfig()
+    pub = HeldPublisher(probe.node.create_publisher(PlantOutput, 'y', config.profile()), config)
+    recorders.wait_matched([pub])
+    assert all(pub.publish(output_msg(k)) for k in range(n))
+    recorders.wait_recorded(path, {'/y': n})
+    os.killpg(recorder.pid, signal.SIGTERM)
+    assert recorder.wait(10) == 0, procs.output(recorder)
+    with open(path, 'rb') as f:
+        assert make_reader(f).get_summary().statistics.message_count == n
+    assert pub.dropped == 0

@@ -60,14 +60,16 @@ it. ``MpcStatus.config_version`` names the tuning of every tick.
 """
 from array import array
 from concurrent.futures import Future, ThreadPoolExecutor
+from functools import partial
 import math
 import sys
 import time
 from typing import Optional
 
+from metampc_common.held_publisher import HeldPublisher
 from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
                                       loop_executor, run_node)
-from metampc_common.qos import BACKLOG, LATCHED, SPARSE, STREAM
+from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
 from metampc_msgs.srv import SetActive
 import numpy as np
@@ -83,7 +85,7 @@ from metampc_controller.controller_params import ControllerConfig, PARAMETERS, p
 from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
-            'retunes', 'adapt_requests', 'adapt_timeouts', 'refused_models')
+            'retunes', 'adapt_requests', 'adapt_timeouts', 'refused_models', 'dropped')
 DELIVERY_TIMEOUT = Duration(seconds=10.0)   # deactivation's wait for the readers' acks
 HOLD_POLL_S = 0.002     # how often an answer waiting for a requested model looks for it, s
 
@@ -120,10 +122,13 @@ class ControllerNode(Node):
         # with the weights in a group of their own measured ~1.6x the CPU per sample and fell
         # behind its y queue at 100 Hz on a loaded 2-core machine (docs/controller.md).
         self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix='model_builder')
-        # BACKLOG: readers outside the loop (the recorder) may fall ~1000 answers behind a
-        # fast lockstep run and lose none (with STREAM's 100 a recorder lost 63 of 300).
-        self._pub_u = self.create_publisher(ControlInput, 'u', BACKLOG)
-        self._pub_status = self.create_publisher(MpcStatus, 'mpc_status', BACKLOG)
+        # Held back while a reader that keeps all is full: the recorder never loses an
+        # answer, however fast the lockstep loop (metampc_common.held_publisher).
+        held, hold = partial(self._warn, 'dropped'), self.cfg.hold
+        self._pub_u = HeldPublisher(self.create_publisher(ControlInput, 'u', hold.profile()),
+                                    hold, held)
+        self._pub_status = HeldPublisher(
+            self.create_publisher(MpcStatus, 'mpc_status', hold.profile()), hold, held)
         self.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED)
         self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)

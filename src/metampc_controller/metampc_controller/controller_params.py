@@ -13,6 +13,7 @@ from typing import Any, Dict, Mapping, Sequence, Tuple
 
 import numpy as np
 
+from metampc_common.held_publisher import HoldConfig
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 
@@ -123,6 +124,7 @@ class ControllerConfig:
         active: publish inputs from the start.
         trigger: when to ask the learner for adaptation in the loop.
         model_check: the check a new model must pass before it flies.
+        hold: whether u and mpc_status wait for a full reader that keeps all.
     """
 
     rate_hz: float = param(10.0, 'tick rate on the node clock, Hz (sim time under a lockstep '
@@ -143,6 +145,7 @@ class ControllerConfig:
     active: bool = param(True, 'publish inputs from the start (service set_active toggles)')
     trigger: TriggerConfig = field(default_factory=TriggerConfig)
     model_check: ModelCheckConfig = field(default_factory=ModelCheckConfig)
+    hold: HoldConfig = field(default_factory=HoldConfig)
 
 
 MPC = Section(MpcConfig)
@@ -150,8 +153,9 @@ REFERENCE = Section(ReferenceParams, 'reference_', rename={'kind': 'reference'})
 EXCITATION = Section(ExcitationParams, 'excitation_')
 TRIGGER = Section(TriggerConfig)
 CHECK = Section(ModelCheckConfig)
+HOLD = Section(HoldConfig)
 NODE = Section(ControllerConfig)
-SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, CHECK)
+SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, CHECK, HOLD)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -179,6 +183,7 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
     node.excitation_seed = excitation.seed
     node.trigger = build(TRIGGER, values)
     node.model_check = build(CHECK, values)
+    node.hold = build(HOLD, values)
     return node
 
 

@@ -62,12 +62,14 @@ import math
 import sys
 import time
 from array import array
+from functools import partial
 from typing import Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
+from metampc_common.held_publisher import HeldPublisher
 from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
                                       loop_executor, run_node)
-from metampc_common.qos import BACKLOG, LATCHED, STREAM
+from metampc_common.qos import LATCHED, STREAM
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
 from metampc_plant.lockstep import Lockstep
@@ -81,7 +83,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Header
 
 GATE_PERIOD_S = 0.02    # lockstep start: how often to look for a subscriber and a publisher
-COUNTERS = ('stale', 'rejected', 'timeouts')
+COUNTERS = ('stale', 'rejected', 'timeouts', 'dropped')
 
 
 class PlantNode(Node):
@@ -107,7 +109,10 @@ class PlantNode(Node):
         self._clock_msg = ClockMsg()
 
         lockstep = self.cfg.mode == 'lockstep'
-        self._pub_y = self.create_publisher(PlantOutput, 'y', BACKLOG)
+        # Held back while a reader that keeps all (the recorder) is full: nothing lost.
+        self._pub_y = HeldPublisher(
+            self.create_publisher(PlantOutput, 'y', self.cfg.hold.profile()), self.cfg.hold,
+            partial(self._warn, 'dropped'))
         self._pub_info = self.create_publisher(PlantInfo, 'plant_info', LATCHED)
         self._pub_clock = (self.create_publisher(ClockMsg, '/clock', STREAM)
                            if lockstep and self.cfg.publish_clock else None)

@@ -9,6 +9,7 @@ line if that raises :class:`ParameterError`.
 from dataclasses import dataclass, field
 from typing import Dict, Mapping
 
+from metampc_common.held_publisher import HoldConfig
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 from metampc_plant.simulator import PlantConfig
@@ -49,13 +50,14 @@ class PlantNodeConfig:
     start_subscribers: int = param(1, 'lockstep: subscribers y must have before y_0 goes out '
                                       '(2: the controller and a recorder, so that the recording '
                                       'starts at step 0)', ge=1)
+    hold: HoldConfig = field(default_factory=HoldConfig)
 
     def sample_rate_hz(self) -> float:
         """The realtime rate: rate_hz, or 1/dt when it is 0."""
         return self.rate_hz or 1.0 / self.plant.dt
 
 
-SECTIONS = (Section(PlantConfig), Section(PlantNodeConfig))
+SECTIONS = (Section(PlantConfig), Section(PlantNodeConfig), Section(HoldConfig))
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -65,9 +67,9 @@ def parse_params(values: Mapping[str, Value]) -> PlantNodeConfig:
     Raises:
         ParameterError: naming the first parameter that is of the wrong type or out of range.
     """
-    plant_section, node_section = SECTIONS
+    plant_section, node_section, hold_section = SECTIONS
     plant = build(plant_section, values)
-    return build(node_section, values, plant=plant.resolved())
+    return build(node_section, values, plant=plant.resolved(), hold=build(hold_section, values))
 
 
 __all__ = ['MODES', 'PlantNodeConfig', 'SECTIONS', 'PARAMETERS', 'parse_params',

@@ -1,0 +1,103 @@
+"""A publisher held back by a reader that keeps all: the recorder loses no message, however
+fast the lockstep loop runs.
+
+Why: the lockstep loop publishes y, u and mpc_status at 300-1400 Hz (3 messages a step) and
+waits only for the controller. With writers that keep the last 1000 (qos.BACKLOG) a recorder
+that takes 2000-2500 messages/s fell behind and lost a quarter of a 5000-step run
+(docs/speed.md). These writers keep all (:data:`HELD`) and the recorder's readers keep all:
+DDS then holds a sample until every reliable reader has acknowledged it, a reader that keeps
+all acknowledges no more once its history is full, and the writer's ``publish`` blocks (for up
+to its max_blocking_time, 100 ms, then fails) until there is room. Readers that keep the last
+N acknowledge on receipt, so only a keep-all reader that is behind holds the loop back
+(measured with a keep-last reader stalled for 5 s: no wait). rcl's wait_for_all_acked was
+tried first: each wait took one heartbeat period (~2.8 s here).
+
+``publish`` retries a publish that failed that way until ``hold_timeout`` has passed; then the
+message is dropped for every reader, counted and reported through ``on_timeout`` (a reader
+that stopped taking messages must not stop the loop for good).
+"""
+from dataclasses import dataclass
+import time
+from typing import Callable, Optional
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from .params import param
+from .qos import BACKLOG
+
+# The writers of y, u and mpc_status: reliable, volatile, keep all (bounded by DDS's resource
+# limits: a full history blocks publish, it does not drop).
+HELD = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                  durability=DurabilityPolicy.VOLATILE)
+RETRY_S = 0.001     # pause between two tries of a held-back publish, s
+
+
+@dataclass
+class HoldConfig:
+    """Whether and how long the writers of y (plant), u and mpc_status (controller) wait for a
+    reader that keeps all.
+
+    Attributes:
+        hold_for_readers: writers keep all (:data:`HELD`); false: keep the last 1000
+            (qos.BACKLOG), as before: a reader that falls further behind loses messages.
+        hold_timeout: s a message may wait for room before it is dropped (and counted).
+    """
+
+    hold_for_readers: bool = param(True, 'y, u and mpc_status wait while a reader that keeps '
+                                         'all (the recorder) is full (false: keep the last '
+                                         '1000; a slow recorder loses messages)')
+    hold_timeout: float = param(10.0, 'longest wait, s, for a full reader that keeps all; '
+                                      'then the message is dropped and counted', gt=0)
+
+    def profile(self) -> QoSProfile:
+        """The writers' QoS profile."""
+        return HELD if self.hold_for_readers else BACKLOG
+
+
+class HeldPublisher:
+    """Wraps an rclpy publisher created with ``config.profile()``: ``publish`` waits while a
+    reader that keeps all is full.
+
+    Attributes:
+        held: publishes that had to wait; held_s: total s waited; dropped: messages given up
+            after hold_timeout.
+    """
+
+    def __init__(self, publisher, config: HoldConfig,
+                 on_timeout: Optional[Callable[[str], None]] = None):
+        """publisher: an rclpy Publisher; on_timeout(message): told of each dropped message."""
+        self.publisher = publisher
+        self.config = config
+        self._on_timeout = on_timeout or (lambda _message: None)
+        self.held = self.dropped = 0
+        self.held_s = 0.0
+
+    def publish(self, msg) -> bool:
+        """Publish, waiting up to hold_timeout for room; whether it went out."""
+        start = None
+        while True:
+            try:
+                self.publisher.publish(msg)
+                break
+            except Exception as err:    # rclpy's RCLError: DDS's history is full
+                if 'cannot publish data' not in str(err):
+                    raise
+            now = time.monotonic()
+            if start is None:
+                start = now
+                self.held += 1
+            elif now - start >= self.config.hold_timeout:
+                self.held_s += now - start
+                self.dropped += 1
+                self._on_timeout(f'{self.publisher.topic_name}: no room for a message in '
+                                 f'{self.config.hold_timeout:g} s (a reader that keeps all, '
+                                 'the recorder, has stopped taking them); dropped it')
+                return False
+            time.sleep(RETRY_S)
+        if start is not None:
+            self.held_s += time.monotonic() - start
+        return True
+
+    def __getattr__(self, name):
+        """Everything else (get_subscription_count, topic_name, ...) is the publisher's."""
+        return getattr(self.publisher, name)
