@@ -15,6 +15,7 @@ An :class:`ExperimentClient` is an rclpy node (spun in a thread, :class:`SpunNod
 """
 import json
 import logging
+import os
 import subprocess
 import threading
 import time
@@ -32,6 +33,8 @@ from std_msgs.msg import String
 from .spun_node import SpunNode
 
 EVENTS_TOPIC = 'experiment_events'
+RESEND_S = 1.0          # first resend of an unanswered request that carries an id, s
+RESEND_MAX_S = 30.0     # longest gap between two sends of it, s
 
 
 class ExperimentError(RuntimeError):
@@ -55,6 +58,64 @@ def time_seconds(stamp: Any) -> float:
 def stamp_seconds(msg: Any) -> float:
     """A message's header stamp in s."""
     return time_seconds(msg.header.stamp)
+
+
+class Call:
+    """One logical service call: the request, sent again with the same id while unanswered.
+
+    rmw_fastrtps drops a response whose writer has not matched the client's reader within
+    100 ms, so a first call can lose its answer however long one waits. A request with a
+    ``request_id`` (every state-changing service of the graph,
+    :mod:`metampc_common.replies`) is resent after RESEND_S, then twice as long each time
+    (at most RESEND_MAX_S); the server answers a repeated id with the first answer, so the
+    call runs once whichever answer arrives. A request without one is sent once.
+    """
+
+    def __init__(self, client: Any, request: Any, notify: Callable[[], None]):
+        self.client, self.request, self._notify = client, request, notify
+        self.futures: List[Any] = []
+        self.sends = 0
+        self._repeatable = bool(getattr(request, 'request_id', ''))
+        self._wait = RESEND_S
+        self._next = 0.0
+        self._send()
+
+    def _send(self) -> None:
+        future = self.client.call_async(self.request)
+        future.add_done_callback(lambda _: self._notify())
+        self.futures.append(future)
+        self.sends += 1
+        self._next = time.monotonic() + self._wait
+        self._wait = min(2 * self._wait, RESEND_MAX_S)
+
+    def resend_if_due(self) -> None:
+        """Send the request again if it carries an id and its time has come."""
+        if self._repeatable and not self.done() and time.monotonic() >= self._next:
+            self._send()
+
+    def _answered(self) -> Optional[Any]:
+        return next((f for f in self.futures if f.done()), None)
+
+    def done(self) -> bool:
+        return self._answered() is not None
+
+    def result(self) -> Any:
+        """The first answer; the other sends are dropped."""
+        answered = self._answered()
+        self._drop(answered)
+        return answered.result()
+
+    def exception(self) -> Optional[BaseException]:
+        return self._answered().exception()
+
+    def cancel(self) -> None:
+        self._drop(None)
+
+    def _drop(self, keep: Any) -> None:
+        for future in self.futures:
+            if future is not keep and not future.done():
+                self.client.remove_pending_request(future)
+                future.cancel()
 
 
 class ExperimentClient(SpunNode):
@@ -88,6 +149,7 @@ class ExperimentClient(SpunNode):
                for name, service in controllers.items()},
         }
         self._param_clients: Dict[str, Any] = {}
+        self._calls = 0     # request ids given so far
 
     # --- subscriptions ---------------------------------------------------------------------
 
@@ -165,30 +227,36 @@ class ExperimentClient(SpunNode):
         """Call service `name`; the response if it succeeded, else ExperimentError."""
         return self.finish(self.start(name, request), timeout, what, tick)
 
-    def start(self, name: str, request: Any) -> Any:
-        """Send a request to service `name` and return its future at once: the caller does
+    def start(self, name: str, request: Any) -> 'Call':
+        """Send a request to service `name` and return the call at once: the caller does
         other work meanwhile and then :meth:`finish` es it (or cancels it on failure)."""
         return self._send(self.clients[name], request)
 
-    def _send(self, client: Any, request: Any) -> Any:
-        future = client.call_async(request)
-        future.add_done_callback(lambda _: self._notify())
-        return future
+    def _send(self, client: Any, request: Any) -> 'Call':
+        if hasattr(request, 'request_id') and not request.request_id:
+            self._calls += 1
+            request.request_id = f'{self.node.get_name()}-{os.getpid()}-{self._calls}'
+        return Call(client, request, self._notify)
 
-    def finish(self, future: Any, timeout: float, what: str,
+    def finish(self, call: 'Call', timeout: float, what: str,
                tick: Optional[Callable[[], None]] = None) -> Any:
-        """Wait up to `timeout` s for a started call; the response if it succeeded, else
+        """Wait up to `timeout` s for a started call, resending a request that carries an id
+        while it is unanswered (:class:`Call`); the response if it succeeded, else
         ExperimentError (the call is cancelled on any failure, Ctrl-C included)."""
+        def waiting() -> None:
+            call.resend_if_due()
+            if tick:
+                tick()
         try:
-            self.wait_until(future.done, timeout, what, tick)
+            self.wait_until(call.done, timeout, what, waiting)
         except BaseException:   # ExperimentError, or Ctrl-C while the call runs
             # Cancelled, a pending call is dropped with the node; left pending, the node's
             # destruction would fail it later with an exception nobody retrieves (printed).
-            future.cancel()
+            call.cancel()
             raise
-        response = future.result()
+        response = call.result()
         if response is None:
-            raise ExperimentError(f'{what}: the call failed ({future.exception()})')
+            raise ExperimentError(f'{what}: the call failed ({call.exception()})')
         if hasattr(response, 'success') and not response.success:
             raise ExperimentError(f'{what}: {response.message}')
         return response

@@ -373,16 +373,16 @@ class SeedRun:
         request = MetaTrain.Request(method=method, **fields)
         client.progress = None
         started = time.monotonic()
-        future = client.start('meta_train', request)
+        call = client.start('meta_train', request)
         if meanwhile is not None:
             try:
                 meanwhile()
             except BaseException:
-                future.cancel()
+                call.cancel()
                 raise
         with self._bar(request.iterations or 0, f'meta_train {method}') as bar:
             response = client.finish(
-                future, max(config.timeouts.meta_train - (time.monotonic() - started), 0.0),
+                call, max(config.timeouts.meta_train - (time.monotonic() - started), 0.0),
                 f'meta_train {method}',
                 tick=lambda: _show_progress(bar, client.progress, 'meta_train'))
         client.event('meta_train', method=method, request=fields,

@@ -70,12 +70,14 @@ from metampc_common.held_publisher import HeldPublisher
 from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, SPARSE, STREAM
+from metampc_common.replies import Replies
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
 from metampc_msgs.srv import SetActive
 import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.task import Future as TaskFuture
 from std_msgs.msg import Float64MultiArray
 
 from metampc_controller.adaptation_trigger import Request
@@ -134,7 +136,8 @@ class ControllerNode(Node):
         self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)
         if self.cfg.planner == 'latent_mpc':
             self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED)
-        self.create_service(SetActive, 'set_active', self._on_set_active)
+        self._replies = Replies(TaskFuture)     # a repeated request id: the first answer
+        self.create_service(SetActive, 'set_active', self._replies.wrap(self._on_set_active))
         # Adaptation in the loop: a lockstep answer waiting for a requested model resumes
         # when the builder thread has it (or after adapt_timeout s of wall time). A polling
         # timer, only while an answer waits: the EventsExecutor has no guard conditions.

@@ -57,6 +57,7 @@ from typing import Any, Optional, Tuple
 from metampc_common.node_main import declare_parameters, LiveParameters, run_node
 from metampc_common.params import ParameterError
 from metampc_common.qos import BACKLOG, LATCHED, SPARSE
+from metampc_common.replies import Replies
 from metampc_msgs.msg import MpcStatus, NssmWeights, PlantInfo, PlantOutput, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, SetBuffering
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
@@ -120,14 +121,17 @@ class LearnerNode(Node):
         self._subscribe_y()
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED,
                                  callback_group=data)
-        self.create_service(SetBuffering, 'set_buffering', self._on_set_buffering,
+        replies = Replies(Future)   # a repeated request id: the first answer
+        self.create_service(SetBuffering, 'set_buffering', replies.wrap(self._on_set_buffering),
                             callback_group=data)
         if self.recent is not None:
             self.create_subscription(MpcStatus, 'mpc_status', self._on_status, BACKLOG,
                                      callback_group=data)
         jobs = ReentrantCallbackGroup()
-        self.create_service(MetaTrain, 'meta_train', self._on_meta_train, callback_group=jobs)
-        self.create_service(Adapt, 'adapt', self._on_adapt, callback_group=jobs)
+        self.create_service(MetaTrain, 'meta_train', replies.wrap_async(self._on_meta_train),
+                            callback_group=jobs)
+        self.create_service(Adapt, 'adapt', replies.wrap_async(self._on_adapt),
+                            callback_group=jobs)
         self.create_timer(self.cfg.progress_period, self._on_heartbeat,
                           callback_group=MutuallyExclusiveCallbackGroup(),
                           clock=Clock(clock_type=ClockType.STEADY_TIME))

@@ -70,6 +70,7 @@ from metampc_common.held_publisher import HeldPublisher
 from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, STREAM
+from metampc_common.replies import Replies
 from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from metampc_msgs.srv import ResetPlant
 from metampc_plant.lockstep import Lockstep
@@ -79,6 +80,7 @@ from metampc_plant.theta_schedule import ThetaSchedule
 import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Header
 
@@ -117,7 +119,8 @@ class PlantNode(Node):
         self._pub_clock = (self.create_publisher(ClockMsg, '/clock', STREAM)
                            if lockstep and self.cfg.publish_clock else None)
         self._sub_u = self.create_subscription(ControlInput, 'u', self._on_input, STREAM)
-        self.create_service(ResetPlant, 'reset', self._on_reset)
+        self._replies = Replies(Future)     # a repeated request id: the first answer
+        self.create_service(ResetPlant, 'reset', self._replies.wrap(self._on_reset))
 
         self._timeout_timer = None
         self._gate_timer = None
