@@ -1,16 +1,63 @@
-"""Session-wide test isolation: a ROS domain of our own, discovery on localhost only.
+"""Session-wide test isolation: a ROS domain of our own, discovery on localhost only; and no
+process left running after the suite.
 
 The domain id is claimed with an exclusive lock file, so concurrent test sessions on one
-machine never share a domain; every process a test starts inherits the environment.
+machine never share a domain; every process a test starts inherits the environment, with
+METAMPC_TEST_SESSION=<this pytest's pid>. When the session ends, a process that still holds
+that variable (whatever started it, wherever it was re-parented) 5 s later is an orphan: it
+is named, killed, and the session fails.
 """
 import os
+import signal
+import time
 
 import pytest
+
+SESSION_ENV = 'METAMPC_TEST_SESSION'
+ORPHAN_GRACE_S = 5.0    # the issue's bound: nothing of a stopped run left 5 s later
 
 
 def pytest_configure(config):
     from metampc_bringup.domain import isolate
     isolate('LOCALHOST')
+    os.environ[SESSION_ENV] = str(os.getpid())
+
+
+def _left_running() -> list:
+    """Processes this session started, directly or not, that still run; not this one, nor
+    the multiprocessing resource tracker a pool of this process started (it ends with it)."""
+    from metampc_bringup.procfs import pids_with_env
+    me = os.getpid()
+    left = []
+    for pid in pids_with_env(SESSION_ENV, str(me)):
+        try:
+            with open(f'/proc/{pid}/cmdline', 'rb') as f:
+                cmd = f.read().replace(b'\0', b' ').decode(errors='replace').strip()
+            with open(f'/proc/{pid}/stat') as f:
+                parent = int(f.read().rsplit(')', 1)[1].split()[1])
+        except OSError:
+            continue
+        if pid != me and not (parent == me and 'multiprocessing.resource_tracker' in cmd):
+            left.append((pid, cmd))
+    return left
+
+
+def pytest_sessionfinish(session, exitstatus):
+    deadline = time.monotonic() + ORPHAN_GRACE_S
+    while (left := _left_running()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    if not left:
+        return
+    reporter = session.config.pluginmanager.get_plugin('terminalreporter')
+    for pid, cmd in left:
+        if reporter:
+            reporter.write_line(f'ORPHAN left running after the suite: pid {pid}: {cmd[:200]}',
+                                red=True)
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 def pytest_report_header(config):

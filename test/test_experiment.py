@@ -23,6 +23,7 @@ from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_config import ConfigError, load
 from metampc_bringup.offline import learner_config
 from metampc_bringup.processes import session_pids
+from metampc_bringup.procfs import pids_with_env, uptime_s
 from metampc_bringup.retrack import retrack_seed
 from metampc_learner.heldout import target_heldout
 from metampc_testing import read_with_rosbags
@@ -164,31 +165,12 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
         assert 'Wall time: not recorded (report rebuilt from the recordings).' in f.read()
 
 
-def _uptime() -> float:
-    """Seconds since boot: the clock of /proc/<pid>/stat's start times."""
-    with open('/proc/uptime') as f:
-        return float(f.read().split()[0])
-
-
 def _pids_in_domain(domain: int, started_before: float = math.inf):
     """Live processes whose environment has ROS_DOMAIN_ID=domain (claimed by one run) and
     that started before `started_before` (s since boot). A run gives its domain back when it
     ends, and another test session on the machine may claim it at once: its processes start
     after the run ended and are not the run's leftovers."""
-    tick = os.sysconf('SC_CLK_TCK')
-    pids = []
-    for entry in filter(str.isdigit, os.listdir('/proc')):
-        try:
-            with open(f'/proc/{entry}/environ', 'rb') as f:
-                if f'ROS_DOMAIN_ID={domain}'.encode() not in f.read().split(b'\0'):
-                    continue
-            with open(f'/proc/{entry}/stat') as f:
-                started = int(f.read().rsplit(')', 1)[1].split()[19]) / tick
-        except OSError:
-            continue
-        if started < started_before:
-            pids.append(int(entry))
-    return pids
+    return pids_with_env('ROS_DOMAIN_ID', str(domain), started_before)
 
 
 def _interrupt_after_collection(args, collections: int, timeout: float):
@@ -217,7 +199,7 @@ def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
     out = str(tmp_path / 'run')
     # Interrupt once meta-training has started: every node is up then.
     code, text = _interrupt_after_collection(['--out', out, '--methods', 'imaml'], 1, 60)
-    ended = _uptime()
+    ended = uptime_s()
     assert code == 130, text
     domain = int(re.search(r'ROS_DOMAIN_ID=(\d+)', text).group(1))
     assert _pids_in_domain(domain, ended) == [], 'processes left behind'
@@ -272,7 +254,7 @@ def test_ctrl_c_while_the_nodes_start_leaves_no_process(tmp_path):
             time.sleep(0.002)
         os.killpg(proc.pid, signal.SIGINT)
         text = ''.join(lines) + proc.communicate(timeout=60)[0]
-        ended = _uptime()
+        ended = uptime_s()
     finally:
         if proc.poll() is None:
             for pid in session_pids(proc.pid):
@@ -330,7 +312,7 @@ def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
         _read_until(proc, r'collect done', lines)     # meta_train is the next call
         assert len(_pids_in_domain(domains[0])) >= 8, 'the nodes are up'
         os.kill(proc.pid, signal.SIGKILL)
-        killed = _uptime()
+        killed = uptime_s()
         proc.wait()
         assert _wait_domain_empty(domains[0], killed) == [], 'processes left behind'
     finally:
@@ -353,10 +335,10 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
                  if _cmdline(pid)[-3:] == ['metampc_bringup.seed_jobs', out, '0']]
         assert len(child) == 1, child
         os.kill(child[0], signal.SIGKILL)
-        killed = _uptime()
+        killed = uptime_s()
         assert _wait_domain_empty(domains[0], killed) == [], 'processes left behind'
         text = ''.join(lines) + proc.communicate(timeout=300)[0]
-        ended = _uptime()
+        ended = uptime_s()
         assert proc.returncode == 1 and 'seed 0 (exit status -9' in text, text
         assert 'seed 1: done' in text, text
         assert _pids_in_domain(domains[1], ended) == [], 'processes left behind'
@@ -452,7 +434,7 @@ def test_ctrl_c_with_jobs_2_stops_every_seed(tmp_path):
     out = str(tmp_path / 'run')
     code, text = _interrupt_after_collection(
         ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'], 2, 120)
-    ended = _uptime()
+    ended = uptime_s()
     assert code == 130, text
     domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
     assert len(domains) == 2, text

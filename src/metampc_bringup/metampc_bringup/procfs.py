@@ -4,6 +4,7 @@ fields, read once or sampled once a second.
 Used by the soak and the benchmarks to watch node processes and themselves. No rclpy here.
 """
 import contextlib
+import math
 import os
 import threading
 import time
@@ -50,6 +51,34 @@ def reset_peak_rss(pid: Pid = 'self') -> None:
     """Set the peak RSS (VmHWM) to the RSS now (Linux >= 4.0)."""
     with open(f'/proc/{pid}/clear_refs', 'w') as f:
         f.write('5')
+
+
+def uptime_s() -> float:
+    """Seconds since boot: the clock of the start times in /proc/PID/stat."""
+    with open('/proc/uptime') as f:
+        return float(f.read().split()[0])
+
+
+def pids_with_env(key: str, value: str, started_before: float = math.inf) -> List[int]:
+    """Running processes (zombies excluded) whose initial environment holds key=value and
+    that started before `started_before` (s since boot, :func:`uptime_s`).
+
+    A process's own later changes to its environment are not seen (/proc/PID/environ is
+    the one it was started with)."""
+    wanted = f'{key}={value}'.encode()
+    pids = []
+    for entry in filter(str.isdigit, os.listdir('/proc')):
+        try:
+            with open(f'/proc/{entry}/environ', 'rb') as f:
+                if wanted not in f.read().split(b'\0'):
+                    continue
+            with open(f'/proc/{entry}/stat') as f:
+                fields = f.read().rsplit(')', 1)[1].split()
+        except OSError:     # ended, or not ours to read
+            continue
+        if fields[0] != 'Z' and int(fields[19]) / TICKS < started_before:
+            pids.append(int(entry))
+    return pids
 
 
 class UsageSampler(threading.Thread):
