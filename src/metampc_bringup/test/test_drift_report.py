@@ -3,9 +3,11 @@ recover by its definition, and the before/after costs against the NMPC's."""
 import math
 
 import numpy as np
+import pytest
 
-from metampc_bringup.drift_report import (moving_cost, recovery_time, run_metrics,
-                                          RunSignals, squared_errors)
+from metampc_bringup.drift_report import (MOVING_WINDOW_S, moving_cost, RECOVERY_FACTOR,
+                                          recovery_time, run_metrics, RunSignals,
+                                          squared_errors)
 
 
 def test_moving_cost_is_the_trailing_mean():
@@ -57,3 +59,40 @@ def test_run_metrics_against_hand_computed_costs():
     assert m['recovery_s'] is None      # 9x the NMPC's to the end
     constant = run_metrics(sig, None, None, [0])
     assert 'ratio_after' not in constant and constant['adaptations'] == 1
+
+
+@pytest.mark.parametrize('dt, expected', [(0.1, 5.9), (0.25, 6.0)])
+def test_recovery_uses_a_five_second_window_whatever_the_sample_time(dt, expected):
+    """Pins the recovery window in seconds (MOVING_WINDOW_S = 5 s, docs: the 5-s moving cost)
+    on a run that does recover: the NMPC's squared error is 0.01 throughout, the method's 0.09
+    for the first second after t_c = 2 s and 0.01 again after. The independent answer is a loop
+    over output times, the moving cost at t the mean over outputs in (t - 5 s, t]: the ratio
+    is back within 1.2x once at most (dt = 0.1 s) one / (dt = 0.25 s) no burst sample is left
+    in the window, at t = 7.9 s / 8.0 s. A 5-sample window would give 1.5 s / 2.25 s."""
+    n = int(round(12.0 / dt)) + 1
+    t_out = dt * np.arange(n)
+    burst = (t_out > 2.0 + 1e-9) & (t_out <= 3.0 + 1e-9)
+    y = np.where(burst, 0.3, 0.1)
+
+    def run(values):
+        return RunSignals(t=t_out, y=values.reshape(n, 1), theta=np.zeros((n, 1)),
+                          step=np.arange(n - 1), model_version=np.ones(n - 1, dtype=np.int64),
+                          error_t=np.ones(n - 1), change_t=np.zeros(n - 1),
+                          request=np.zeros(n - 1, dtype=bool), trigger=[''] * (n - 1),
+                          ref=np.zeros((n - 1, 1)), compute=[])
+
+    m = run_metrics(run(y), run(np.full(n, 0.1)), 2.0, [0])
+    e2, ref = y[1:] ** 2, np.full(n - 1, 0.01)
+    times = t_out[1:]
+    by_hand = None
+    exceeded = False
+    for j, tj in enumerate(times):
+        inside = (times > tj - MOVING_WINDOW_S + 1e-9) & (times <= tj + 1e-9)
+        ratio = e2[inside].mean() / ref[inside].mean()
+        if tj > 2.0 + 1e-9:
+            exceeded = exceeded or ratio > RECOVERY_FACTOR
+            if exceeded and ratio <= RECOVERY_FACTOR:
+                by_hand = tj - 2.0
+                break
+    assert MOVING_WINDOW_S == 5.0 and by_hand == pytest.approx(expected)
+    assert m['recovery_s'] == pytest.approx(expected)

@@ -131,3 +131,105 @@ def test_the_core_swaps_a_requested_model_exactly_at_the_swap_step_under_lockste
         assert core2.waits_for_model() == (k == 30)
         if k < 30:
             core2.tick()
+
+
+def test_a_given_up_request_measures_the_baseline_again_before_asking_again():
+    """Pins give_up (the node's adapt_timeout; docstring: keep the model in use, ask again
+    later): the request is dropped and the model in use gets a fresh baseline and statistic,
+    so the errors that caused the request ask nothing while they are measured (3 s) and become
+    the new baseline (100); only errors 100 times that ask again, at the analytic step: log 100
+    - 1 = 3.6 per step, past 5 at the second."""
+    trigger = AdaptationTrigger(TriggerConfig(adaptation='triggered', baseline_s=3.0,
+                                              cusum_drift=1.0, cusum_threshold=5.0))
+    assert feed(trigger, [1.0] * 30 + [100.0] * 4) == [31]
+    trigger.give_up()
+    assert trigger.pending is None and not trigger.waits(41)
+    assert trigger.statistic == 0.0 and math.isnan(trigger.baseline)
+    assert feed(trigger, [100.0] * 30, start=34) == []      # the baseline, measured anew
+    assert trigger.baseline == 100.0
+    assert feed(trigger, [100.0] * 20, start=64) == []      # at its own level: nothing
+    assert feed(trigger, [1e4] * 3, start=84) == [85]       # asked again, model 1 kept
+    assert trigger.pending.version == 1
+
+
+def test_the_statistic_at_the_threshold_asks_nothing():
+    """Pins the threshold at equality against the documented rule (docs/adaptation.md and the
+    module: a request when s_k > cusum_threshold, strictly): baseline 1, drift 1, threshold
+    log 8 - 1 computed as the CUSUM adds it; an error of 8 brings s to the threshold exactly,
+    no request; the next one (s = 2 (log 8 - 1)) asks. A hair above 8 asks at once."""
+    threshold = 0.0 + math.log(8.0 / 1.0) - 1.0
+    cfg = TriggerConfig(adaptation='triggered', baseline_s=3.0, cusum_drift=1.0,
+                        cusum_threshold=threshold)
+    trigger = AdaptationTrigger(cfg)
+    assert feed(trigger, [1.0] * 30) == [] and trigger.baseline == 1.0
+    assert feed(trigger, [8.0], start=30) == []
+    assert trigger.statistic == cfg.cusum_threshold and trigger.pending is None
+    assert feed(trigger, [8.0], start=31) == [31]
+    above = AdaptationTrigger(cfg)
+    assert feed(above, [1.0] * 30 + [8.0 * (1 + 1e-12)]) == [30]
+
+
+def _lockstep_core(trigger: TriggerConfig):
+    bundle = build_model(DecodedWeights(*linearised_vdp_nssm(0.5, DT, 10)), 1, 'manual',
+                         'adapted', MpcConfig(time_limit=30.0), 1, 2)
+    core = ControllerCore(ControllerConfig(trigger=trigger))
+    core.set_plant(PlantDescription('vanderpol', (0.5,), DT, (-1.0,), (1.0,), 2, True))
+    core.offer_model(bundle)
+    return core, bundle
+
+
+def test_the_core_goes_on_after_a_given_up_request_and_forgets_one_at_a_plant_reset():
+    """Pins the trigger through ControllerCore (lockstep, periodic every 2 s): a request given
+    up (as the node's adapt_timeout does) no longer holds its swap step's answer, the model in
+    use stays, and the next period asks; a plant reset (step 0 again) forgets the pending
+    request and its queued answer (never swapped in; the new request's swap step waits) and
+    restarts the periods at the new episode's t = 0 (a request at its step 20, not 40)."""
+    core, bundle = _lockstep_core(TriggerConfig(adaptation='periodic', adapt_period=2.0))
+    plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
+    y, u, log = plant.output(), 0.0, []
+
+    def run(steps, first=0, before=None):
+        nonlocal y, u
+        for k in range(first, first + steps):
+            core.observe(k, [u], y)
+            if before is not None:
+                before(k)
+            waits = core.waits_for_model()
+            res = core.tick()
+            log.append((k, waits, res.model_version,
+                        None if res.request is None else res.request.swap_step))
+            u = float(res.u[0])
+            y = plant.step([u])
+
+    def give_up(k):
+        if k == 25:
+            core.trigger.give_up()
+
+    run(45, before=give_up)
+    assert [(k, s) for k, _, _, s in log if s is not None] == [(20, 30), (40, 50)]
+    assert not any(w for _, w, _, _ in log) and {v for _, _, v, _ in log} == {1}
+    assert core.offer_model(dataclasses.replace(bundle, version=2), 40) == 50   # queued
+    log.clear()
+    y, u = plant.reset(), 0.0
+    run(31)
+    assert core.trigger.pending is not None and core.trigger.pending.step == 20
+    assert [(k, s) for k, _, _, s in log if s is not None] == [(20, 30)]
+    assert [k for k, w, _, _ in log if w] == [30]   # the new request's, not the old one's
+    assert {v for _, _, v, _ in log} == {1}     # the forgotten answer never came into use
+
+
+def test_the_core_forgets_the_baseline_at_a_plant_reset():
+    """Pins new_episode through ControllerCore.observe (module docstring: a reset forgets the
+    baseline, the statistic and the request): a triggered core with a measured baseline (0.5
+    s) has none after step 0 comes again, and measures it anew over the new episode."""
+    core, _ = _lockstep_core(TriggerConfig(adaptation='triggered', baseline_s=0.5))
+    plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
+    y, u = plant.output(), 0.0
+    for k in range(30):
+        core.observe(k, [u], y)
+        u = float(core.tick().u[0])
+        y = plant.step([u])
+    assert math.isfinite(core.trigger.baseline)
+    core.trigger.statistic = 3.0
+    assert core.observe(0, [0.0], plant.reset()) is True
+    assert math.isnan(core.trigger.baseline) and core.trigger.statistic == 0.0

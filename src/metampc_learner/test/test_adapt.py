@@ -6,7 +6,7 @@ import torch
 from metampc_controller.nssm import init_params, Nssm, NssmConfig
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
 from metampc_learner.data import normalisation_from, simulate_target, SourceConfig, Windows
-from metampc_learner.objective import FlatObjective
+from metampc_learner.objective import ARMIJO_C, FlatObjective
 
 torch.set_num_threads(1)
 TINY = NssmConfig(history=4, horizon=5, hidden=(16, 16), n_z=3)
@@ -104,3 +104,45 @@ def test_a_rate_that_decreases_enough_is_plain_gradient_descent(target):
         flat = flat - 0.01 * torch.func.grad(objective.loss)(flat, train64.u, train64.y)
     got = objective.spec.flatten(result.params)
     torch.testing.assert_close(got, flat, rtol=1e-9, atol=1e-11)
+
+
+def test_armijo_backtracks_from_a_full_step_that_decreases_too_little(target):
+    """Pins the sufficient decrease of ``FlatObjective.armijo_step`` against the rule written
+    out here (float64): f(psi - r g) <= f(psi) - ARMIJO_C r ||g||^2, f the proximal objective,
+    g its gradient by autograd. The rate lr is found by bisection along -g just short of where
+    f climbs back to f(psi) (past the minimum along the line): the full step decreases f, but
+    by less than ARMIJO_C lr ||g||^2. So the rule must reject it and halve: the rate taken is
+    lr / 2^j with j >= 1, satisfies the rule, and twice it does not."""
+    model, train, _ = target
+    model64 = Nssm(TINY, model.norm, dtype=torch.float64)
+    u, y = train.u.double(), train.y.double()
+    objective = FlatObjective(model64)
+    psi = objective.spec.flatten(init_params(TINY, 3, torch.float64))
+    anchor, gamma = psi + 0.01, 0.5
+
+    def f(x):
+        return float(objective.prox_objective(x, anchor, u, y, gamma))
+
+    g = torch.func.grad(objective.prox_objective)(psi, anchor, u, y, gamma)
+    f0, g2 = f(psi), float(g.square().sum())
+
+    def phi(r):     # f along the step, less the midpoint of the too-little band
+        return f(psi - r * g) - (f0 - 0.5 * ARMIJO_C * r * g2)
+
+    below = 1e-6
+    above = below
+    while phi(above) < 0:
+        below, above = above, 2 * above
+    for _ in range(200):
+        mid = 0.5 * (below + above)
+        below, above = (mid, above) if phi(mid) < 0 else (below, mid)
+    lr = below
+    full = f(psi - lr * g)
+    assert f0 - ARMIJO_C * lr * g2 < full < f0     # decreases, but not sufficiently
+    new, rate = objective.armijo_step(psi, anchor, u, y, lr, gamma)
+    assert 0 < rate < lr
+    halvings = np.log2(lr / rate)
+    assert halvings == pytest.approx(round(halvings), abs=1e-9) and round(halvings) >= 1
+    torch.testing.assert_close(new, psi - rate * g, rtol=1e-12, atol=1e-14)
+    assert f(new) <= f0 - ARMIJO_C * rate * g2
+    assert f(psi - 2 * rate * g) > f0 - ARMIJO_C * 2 * rate * g2

@@ -8,7 +8,9 @@ import torch
 from metampc_controller.normalisation import Normalisation
 from metampc_controller.nssm import init_params, Nssm, NssmConfig
 from metampc_controller.weights_codec import fields_from_weights, weights_from_fields
-from metampc_learner.data import simulate_target, SourceConfig, Trajectory, Windows
+from metampc_learner import data, oracle
+from metampc_learner.data import (simulate_source, simulate_target, SourceConfig, Trajectory,
+                                  Windows)
 from metampc_learner.heldout import (HELDOUT_SAMPLES, heldout_loss, heldout_seed,
                                      model_heldout_loss, plant_source, target_heldout)
 from metampc_learner.oracle import oracle_data
@@ -67,6 +69,46 @@ def test_seeded_and_apart_from_the_runs_own_seeds():
     for s in (3, 4):
         drawn = oracle_data(THETA, SOURCE, 40, s) + simulate_target(THETA, SOURCE, 300, s)
         assert not starts & {tuple(t.y[0]) for t in drawn}
+
+
+@pytest.mark.parametrize('run_seed', [0, 3, 5])
+def test_no_held_out_episode_starts_near_a_training_or_oracle_start(monkeypatch, run_seed):
+    """Pins the held-out set's independence from the run's own draws, on the initial states
+    x0 themselves (a trajectory holds samples 1..K, so its first sample also depends on the
+    input and hides a shared x0). Independent answer: the seeds and x0 arrays actually handed
+    to the batch simulator, spied on, for the held-out set and for everything the run seeded
+    with s: the oracle's episodes (s and s + 1), a target collection (s) and the source set
+    (s). The held-out seed must be none of those, and every held-out x0 must lie more than
+    1e-3 (max norm) from every training / oracle x0 (measured: >= 2.9e-3 for these seeds,
+    while a set drawn with the run's seed shares its x0 exactly)."""
+    seeds, starts = [], []
+    real_episodes, real_simulate = data.simulate_episodes, data.simulate
+
+    def spy_episodes(thetas, config, seed):
+        seeds.append(int(seed))
+        return real_episodes(thetas, config, seed)
+
+    def spy_simulate(thetas, x0, u_seq, config):
+        starts.append(np.array(x0, dtype=float))
+        return real_simulate(thetas, x0, u_seq, config)
+
+    monkeypatch.setattr(data, 'simulate_episodes', spy_episodes)
+    monkeypatch.setattr(oracle, 'simulate_episodes', spy_episodes)
+    monkeypatch.setattr(data, 'simulate', spy_simulate)
+    target_heldout(THETA, SOURCE, run_seed)
+    held_seeds, held_starts = set(seeds), np.concatenate(starts)
+    assert held_seeds == {heldout_seed(run_seed)}
+    seeds.clear()
+    starts.clear()
+    oracle_data(THETA, SOURCE, 100, run_seed)
+    oracle_data(THETA, SOURCE, 20, run_seed + 1)
+    simulate_target(THETA, SOURCE, 300, run_seed)
+    simulate_source(replace(SOURCE, n_systems=100, seed=run_seed))
+    assert {run_seed, run_seed + 1} <= set(seeds) and not held_seeds & set(seeds)
+    drawn = np.concatenate(starts)
+    assert len(held_starts) >= HELDOUT_SAMPLES // SOURCE.episode_samples and len(drawn) >= 300
+    gap = np.abs(held_starts[:, None, :] - drawn[None, :, :]).max(axis=-1)
+    assert gap.min() > 1e-3
 
 
 def test_plant_source_takes_the_plants_sampling_bounds_and_box():

@@ -76,3 +76,52 @@ def test_a_uniform_prior_bounds_the_schedule():
         ThetaSchedule.parse([1, 1, 1.0, 2.0, 0.1], pendulum, pendulum.nominal_theta)
     with pytest.raises(ValueError, match='theta_schedule'):
         PlantConfig(family='pendulum', theta_schedule=(1, 1, 1.0, 2.0, 0.1)).resolved()
+
+
+def _vdp_rk4(x, u, theta, dt, substeps):
+    """One sample of x1' = x2, x2' = theta x2 (1 - x1^2) - x1 + u (the family's docstring) by
+    classical RK4 with u held, written out here."""
+    def f(s):
+        return np.array([s[1], theta * s[1] * (1.0 - s[0] ** 2) - s[0] + u])
+    h = dt / substeps
+    for _ in range(substeps):
+        k1 = f(x)
+        k2 = f(x + 0.5 * h * k1)
+        k3 = f(x + 0.5 * h * k2)
+        k4 = f(x + h * k3)
+        x = x + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def test_the_plant_integrates_each_sample_with_the_theta_of_its_start_away_from_rest():
+    """Pins the step at which the plant core (Plant.step) applies the schedule, away from the
+    equilibrium (where every theta gives the same state): x0 = (1, 0.5), inputs 0.5 sin(0.3 k),
+    dt = 0.05 s, a step 0.5 -> 1.5 at 30 s (step 600; 600 x 0.05 is 30.000000000000004) and a
+    ramp to 0.8 over [31, 32] s (steps 620..640). Independent answer: the van der Pol equations
+    integrated here by RK4, the sample from step k to k + 1 with theta(k dt) read off the
+    schedule by hand. The same integration with the step one sample early or late differs by
+    far more than the tolerance."""
+    dt, substeps, n = 0.05, 10, 660
+    plant = Plant(PlantConfig(theta=(0.5,), dt=dt, x0=(1.0, 0.5),
+                              theta_schedule=(30.0, 30.0, 1.5, 31.0, 32.0, 0.8)))
+    assert plant.config.substeps == substeps
+    inputs = 0.5 * np.sin(0.3 * np.arange(n))
+
+    def theta_by_hand(k, change=600):
+        if k < change:
+            return 0.5
+        return 1.5 if k <= 620 else (0.8 if k >= 640 else 1.5 - 0.7 * (k - 620) / 20)
+
+    def by_hand(change):
+        x, out = np.array([1.0, 0.5]), []
+        for k in range(n):
+            x = _vdp_rk4(x, inputs[k], theta_by_hand(k, change), dt, substeps)
+            out.append(x)
+        return np.array(out)
+
+    got = np.array([plant.step([u]) for u in inputs])
+    assert np.abs(got).max() < 5.0      # bounded: no escape, no clipping (|u| <= 1)
+    want = by_hand(600)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    for shifted in (599, 601):
+        assert np.abs(by_hand(shifted) - want)[595:].max() > 1e-4
