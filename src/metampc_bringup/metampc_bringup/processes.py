@@ -154,8 +154,12 @@ class ProcessGroup:
 
     @staticmethod
     def kill(proc: subprocess.Popen) -> None:
-        """SIGKILL every process of proc's session (kill -9 of the node and its `ros2 run`)."""
-        for pid in session_pids(proc.pid):
+        """SIGKILL every process of proc's session (kill -9 of the node and its `ros2 run`).
+
+        The nodes first: killed after their `ros2 run`, a node would get its lifeline's
+        SIGTERM first and could still end cleanly (a recorder finishing its file)."""
+        pids = session_pids(proc.pid)
+        for pid in sorted(pids, key=lambda p: p == proc.pid):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
         proc.wait()

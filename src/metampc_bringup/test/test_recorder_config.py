@@ -30,7 +30,7 @@ def test_defaults_match_the_config_and_round_trip():
     ({'metadata_json': '[1, 2]'}, 'JSON object'),
     ({'chunk_size': 0}, 'chunk_size'),
     ({'chunk_size': 1.5}, 'chunk_size'),
-    ({'qos_depth': 0}, 'qos_depth'),
+    ({'qos_depth': -1}, 'qos_depth'),
     ({'discovery_period': 0.0}, 'discovery_period'),
     ({'flush_period': -1.0}, 'flush_period'),
     ({'record_clock': 'yes'}, 'record_clock'),

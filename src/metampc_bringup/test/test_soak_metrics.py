@@ -83,9 +83,9 @@ def _summary(names, values):
 
 def test_stop_counts_of_the_nodes_stop_lines():
     plant = ('[INFO] [1717171717.123456789] [plant]: stopped at step 6003 after 2 reset(s): '
-             + _summary(PLANT_COUNTERS, (3, 0, 1)))
+             + _summary(PLANT_COUNTERS, (3, 0, 1, 2)))
     assert stop_counts('[INFO] [plant]: started\n' + plant + '\n') == {
-        'stale': 3, 'rejected': 0, 'timeouts': 1}
+        'stale': 3, 'rejected': 0, 'timeouts': 1, 'dropped': 2}
     values = tuple(118 - 7 * i for i in range(len(CONTROLLER_COUNTERS)))     # distinct
     controller = '[INFO] [1.5] [controller]: stopped at step 120: ' + _summary(
         CONTROLLER_COUNTERS, values)
