@@ -10,6 +10,7 @@ Idempotent: a second run changes nothing.
 
 usage: fix_cmake_paths.py VENV
 """
+import argparse
 import pathlib
 import re
 import sys
@@ -40,7 +41,17 @@ def fix(venv: pathlib.Path) -> int:
     return changed
 
 
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0],
+                                     epilog='Idempotent: a second run changes nothing.')
+    parser.add_argument('venv', help='the virtual environment whose share/ to fix')
+    args = parser.parse_args(argv)
+    venv = pathlib.Path(args.venv)
+    if not (venv / 'share').is_dir():
+        parser.error(f'{venv} has no share/ folder: not a venv with ROS wheels')
+    print(f'fix_cmake_paths: rewrote {fix(venv)} CMake file(s)')
+    return 0
+
+
 if __name__ == '__main__':
-    if len(sys.argv) != 2:
-        raise SystemExit(__doc__)
-    print(f'fix_cmake_paths: rewrote {fix(pathlib.Path(sys.argv[1]))} CMake file(s)')
+    sys.exit(main())

@@ -120,3 +120,23 @@ def test_sigint_before_the_child_starts_ends_the_shim_with_status_0(tree):
                                              'AMENT_PREFIX_PATH': tree['AMENT_PREFIX_PATH']})
     assert result.returncode == 0 and not result.stderr, result
     assert 'ready' not in result.stdout, 'the child was not started'
+
+
+def test_help_lists_every_verb_run_and_pkg_included(tree):
+    """`ros2 --help` names the verbs the shim handles itself as well as ros2cli's."""
+    out = _ros2(tree, '--help')
+    assert out.returncode == 0, out.stderr
+    listed = {line.split()[0] for line in out.stdout.splitlines()
+              if line.startswith('    ') and line.split()}
+    assert {'node', 'topic', 'service', 'param', 'interface', 'bag', 'pkg', 'run'} <= listed
+
+
+def test_fix_cmake_paths_help_prints_usage_and_changes_nothing(tmp_path):
+    script = SHIM.parent / 'fix_cmake_paths.py'
+    out = subprocess.run([sys.executable, str(script), '--help'], capture_output=True,
+                         text=True, timeout=30)
+    assert out.returncode == 0 and out.stdout.startswith('usage: fix_cmake_paths.py')
+    assert 'rewrote' not in out.stdout
+    out = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True,
+                         text=True, timeout=30)
+    assert out.returncode == 2 and 'has no share/ folder' in out.stderr

@@ -151,7 +151,7 @@ class ControllerNode(Node):
         mpc = self.cfg.mpc
         self.get_logger().info(
             f'{self.cfg.planner} controller at {self.cfg.rate_hz} Hz: N={mpc.horizon}, '
-            f'q={list(mpc.q)}, r={list(np.atleast_1d(mpc.r))}, u in '
+            f'q={list(mpc.q)}, r={np.atleast_1d(mpc.r).tolist()}, u in '
             f'[{self.core.u_min.tolist()}, {self.core.u_max.tolist()}], reference '
             f'{self.cfg.reference_kind}, pre-model input {self.cfg.pre_model_input}'
             + ('' if self.cfg.active else '; inactive until set_active'))

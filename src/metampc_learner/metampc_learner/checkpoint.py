@@ -35,9 +35,20 @@ def save_checkpoint(path: str, model: Nssm, params: Params, info: Dict[str, Any]
 
 
 def load_checkpoint(path: str) -> Checkpoint:
-    """Read a checkpoint written by save_checkpoint (weights_only load)."""
-    blob = torch.load(path, map_location='cpu', weights_only=True)
-    if blob.get('format') != FORMAT:
+    """Read a checkpoint written by save_checkpoint (weights_only load).
+
+    Raises:
+        OSError: the file cannot be read.
+        ValueError: anything else (not a torch file, a torch file of something else, weights
+            that do not fit their configuration): one line naming the file.
+    """
+    try:
+        blob = torch.load(path, map_location='cpu', weights_only=True)
+    except OSError:
+        raise
+    except Exception as err:    # UnpicklingError, EOFError, a zip RuntimeError, ...
+        raise ValueError(f'{path}: not a torch checkpoint ({type(err).__name__})') from None
+    if not isinstance(blob, dict) or blob.get('format') != FORMAT:
         raise ValueError(f'{path}: not a {FORMAT} checkpoint')
     # files from before the stable latent parameterisation hold a free A
     config = NssmConfig(**{'stable_latent': False, **blob['config']})

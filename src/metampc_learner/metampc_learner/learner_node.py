@@ -137,6 +137,7 @@ class LearnerNode(Node):
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         LiveParameters(self, PARAMETERS, values, self.cfg, parse_params, self._on_params)
+        nssm, src = self.cfg.nssm, self.cfg.source
         if self.cfg.meta_model_path:
             try:
                 record = self.session.load_meta(self.cfg.meta_model_path)
@@ -145,7 +146,7 @@ class LearnerNode(Node):
             self._publish_weights(record)
             self.get_logger().info(f'loaded {record.method} meta-model '
                                    f'{self.cfg.meta_model_path!r}: published as v{record.version}')
-        nssm, src = self.cfg.nssm, self.cfg.source
+            nssm = record.model.config      # the model that adapts is the loaded one
         self.get_logger().info(
             f'learner up: NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.horizon}, encoder '
             f'{list(nssm.hidden)}; {src.n_systems} source systems; D_target of '

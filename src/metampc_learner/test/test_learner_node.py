@@ -219,3 +219,24 @@ def test_bad_parameters_one_line_and_exit_2(procs):
         assert code == 2, (case, lines)
         assert len(lines) == 1 and 'invalid parameter' in lines[0], (case, lines)
         assert BAD_PARAMS[case][1] in lines[0], (case, lines)
+
+
+def test_an_unreadable_meta_model_is_one_line_and_exit_2(procs, tmp_path):
+    """A text file, an empty file and a torch file of something else: one error line naming
+    the file, exit status 2, no traceback (before: ~30 lines, exit 1)."""
+    empty, listing = tmp_path / 'empty.pt', tmp_path / 'list.pt'
+    empty.write_bytes(b'')
+    torch.save([1, 2, 3], listing)
+    readme = os.path.join(os.path.dirname(__file__), '..', '..', '..', 'README.md')
+    files = {'readme': (os.path.abspath(readme), 'not a torch checkpoint'),
+             'empty': (str(empty), 'not a torch checkpoint'),
+             'list': (str(listing), 'not a metampc.nssm/1 checkpoint')}
+    started = {case: procs.start('metampc_learner', 'learner', name=f'learner_{case}',
+                                 params={'meta_model_path': path})
+               for case, (path, _) in files.items()}
+    for case, proc in started.items():
+        code = proc.wait(60.0)
+        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        assert code == 2 and len(lines) == 1, (case, lines)
+        assert 'invalid parameter: meta_model_path: cannot load meta-model' in lines[0]
+        assert files[case][0] in lines[0] and files[case][1] in lines[0], (case, lines)

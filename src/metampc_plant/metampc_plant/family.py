@@ -203,6 +203,19 @@ class PlantFamily(ABC):
                              f'value(s) ({names}), got {list(values)}')
         return values
 
+    def check_theta_in_support(self, theta: Sequence[float]) -> Tuple[float, ...]:
+        """:meth:`check_theta`, and each component within its prior's support
+        (:attr:`ThetaComponent.support`): the one range check of a theta given from outside
+        (the plant's `theta` parameter, a reset, a schedule row). Sampled source systems are
+        not held to it (a normal prior's draws may, rarely, lie beyond)."""
+        values = self.check_theta(theta)
+        for component, value in zip(self.theta, values):
+            low, high = component.support
+            if not low <= value <= high:
+                raise ValueError(f'{component.name} = {value:g} lies outside the range '
+                                 f'[{low:g}, {high:g}] of family {self.name}')
+        return values
+
     @abstractmethod
     def rhs(self, x: Sequence, u: Sequence, theta: Sequence) -> Tuple:
         """dx/dt on components (floats or (B,) arrays); see the module docstring."""

@@ -291,7 +291,7 @@ class PlantNode(Node):
         fam = self.family
         if len(theta):
             try:
-                fam.check_theta(theta)
+                fam.check_theta_in_support(theta)
             except ValueError as err:
                 return f'{err} (or none to keep the current one)'
         try:

@@ -68,8 +68,12 @@ def parse_params(values: Mapping[str, Value]) -> PlantNodeConfig:
         ParameterError: naming the first parameter that is of the wrong type or out of range.
     """
     plant_section, node_section, hold_section = SECTIONS
-    plant = build(plant_section, values)
-    return build(node_section, values, plant=plant.resolved(), hold=build(hold_section, values))
+    plant = build(plant_section, values).resolved()
+    try:
+        plant.plant_family.check_theta_in_support(plant.theta)
+    except ValueError as err:
+        raise ParameterError(f'theta: {err}') from None
+    return build(node_section, values, plant=plant, hold=build(hold_section, values))
 
 
 __all__ = ['MODES', 'PlantNodeConfig', 'SECTIONS', 'PARAMETERS', 'parse_params',

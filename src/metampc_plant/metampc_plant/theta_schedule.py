@@ -73,11 +73,10 @@ class ThetaSchedule:
             if t_start < previous_end or t_end < t_start:
                 raise ValueError(f'{row}: need {previous_end:g} <= t_start <= t_end (segments in '
                                  'time order, not overlapping)')
-            for component, value in zip(family.theta, theta):
-                low, high = component.support
-                if not low <= value <= high:
-                    raise ValueError(f'{row}: {component.name} = {value:g} lies outside the '
-                                     f'range [{low:g}, {high:g}] of family {family.name}')
+            try:
+                family.check_theta_in_support(theta)
+            except ValueError as err:
+                raise ValueError(f'{row}: {err}') from None
             segments.append(Segment(t_start, t_end, tuple(theta)))
             previous_end = t_end
         return cls(family.check_theta(start), segments)

@@ -266,9 +266,10 @@ def test_divergence_flagged_then_reset(procs, probe):
     # Rejected resets change nothing: resent while unanswered (a first answer can be lost,
     # SpunNode.call).
     for bad in [dict(x0=[1.0, 2.0, 3.0]), dict(x0=[NAN, 0.0]), dict(theta=[INF]),
-                dict(theta=[0.5, 0.5]), dict(x0=[20.0, 0.0])]:
+                dict(theta=[0.5, 0.5]), dict(x0=[20.0, 0.0]), dict(theta=[9.0])]:
         result = call(probe, client, **bad, resend_every=3.0)
         assert not result.success and result.message.startswith('reset rejected'), bad
+    assert 'theta = 9 lies outside the range [-4, 4]' in result.message, result.message
     assert proc.poll() is None
 
     phase['drive'] = False
@@ -322,6 +323,9 @@ BAD_PARAMS = {
     'x0': ({'x0': [1.0]}, 'x0 of family vanderpol needs 2 values'),
     'family': ({'family': 'tank'}, "unknown plant family 'tank'; installed: duffing"),
     'theta': ({'family': 'duffing', 'theta': [0.1]}, 'theta of family duffing needs 3'),
+    # One range check wherever theta enters (before: only a schedule's rows had one).
+    'range': ({'theta': 9.0}, 'theta: theta = 9 lies outside the range [-4, 4] of family '
+                              'vanderpol'),
     'wide': ({'family': 'pendulum', 'u_max': 5.0}, 'outside those of family pendulum'),
     'rate': ({'rate_hz': -5.0}, 'rate_hz'),
     'timeout': ({'input_timeout': -1.0}, 'input_timeout'),

@@ -13,6 +13,9 @@ import sys
 from typing import Any, List, Optional
 
 VERBS = ('node', 'topic', 'service', 'param', 'interface', 'bag')
+# Handled by the `ros2` command itself before this module is imported (fast start of a node).
+SHIM_VERBS = {'pkg': 'Various package related sub-commands (list, executables, prefix)',
+              'run': 'Run a package specific executable'}
 
 
 def add_family(subparsers: Any, name: str, help: str) -> Any:
@@ -34,6 +37,10 @@ def parser() -> argparse.ArgumentParser:
                                   '<command> -h` for more detailed usage.')
     for name in VERBS:
         importlib.import_module(f'metampc_ros2cli.verbs.{name}').add_parser(families)
+    for name, text in SHIM_VERBS.items():   # listed in the help; the `ros2` command runs them
+        families.add_parser(name, help=text, description=text).set_defaults(
+            main=lambda args: f'ros2 {args._command}: run it through the `ros2` command '
+                              '(scripts/ros2_shim.py), not this module')
     return top
 
 
