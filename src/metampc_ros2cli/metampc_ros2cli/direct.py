@@ -14,6 +14,7 @@ DEFAULT_SPIN_TIME = 0.5     # s, as ros2cli's DirectNode
 # often sees the others only at their next announcement, about 3 s later).
 DISCOVERY_GRACE_S = 5.0
 NODE_NAME_PREFIX = '_ros2cli'
+SLICE_S = 0.1      # s: longest a wait for an answer holds off Ctrl-C
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,6 +60,15 @@ class DirectNode:
         self.executor.shutdown()
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.context)
+
+
+def wait_future(node: Any, future: Any) -> None:
+    """Spin `node` (a DirectNode's) until `future` is done or its context shuts down, in
+    slices of SLICE_S: Python runs its SIGINT handler only between them, so Ctrl-C ends the
+    wait at once (one unbounded rcl wait, as spin_until_future_complete does, held it off
+    until the answer came: forever, for a server that never answers)."""
+    while not future.done() and node.context.ok():
+        node.executor.spin_once(timeout_sec=SLICE_S)
 
 
 def wait_for(node: Any, found: Any, timeout: float = DISCOVERY_GRACE_S) -> Any:

@@ -134,7 +134,7 @@ def _ready_client(node: Any, node_name: str) -> Any:
 
 def _result(node: Any, future: Any, node_name: str) -> Any:
     """The response of a parameter service call, or ros2param's RuntimeError."""
-    node.executor.spin_until_future_complete(future)
+    direct.wait_future(node, future)
     response = future.result()
     if response is None:
         raise RuntimeError(f'Exception while calling service of node {node_name}: '
@@ -185,7 +185,7 @@ def list_params(args: Any) -> Any:
                       + _node_tuple(name))
                 continue
             future = client.list_parameters(prefixes=args.param_prefixes)
-            node.executor.spin_until_future_complete(future)
+            direct.wait_future(node, future)
             if future.result() is None:
                 print(f"Exception while calling service of node '{name}': "
                       f'{future.exception()}', file=sys.stderr)
@@ -282,7 +282,7 @@ def dump(args: Any) -> Any:
                   + name, file=sys.stderr)
             return 0
         future = client.list_parameters()
-        node.executor.spin_until_future_complete(future)
+        direct.wait_future(node, future)
         if future.result() is None:
             print(f"Exception while calling list_parameters service of node '{name}': "
                   f'{future.exception()}', file=sys.stderr)

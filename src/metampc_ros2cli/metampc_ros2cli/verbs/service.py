@@ -49,7 +49,7 @@ def call(args: Any) -> Any:
             print(f'requester: making request: {request!r}\n')
             last = time.monotonic()
             future = client.call_async(request)
-            node.executor.spin_until_future_complete(future)
+            direct.wait_future(node, future)
             if future.result() is None:
                 raise RuntimeError(f'Exception while calling service: {future.exception()!r}')
             print(f'response:\n{future.result()!r}\n')
