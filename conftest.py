@@ -42,7 +42,21 @@ def _left_running() -> list:
     return left
 
 
+def _stop_daemons() -> None:
+    """The `ros2` daemons this session's verbs started (they outlive a verb by design, as
+    ros2cli's): stopped as `ros2 daemon stop` does, before the orphan check."""
+    from metampc_bringup.procfs import pids_with_env
+    for pid in pids_with_env(SESSION_ENV, str(os.getpid())):
+        try:
+            with open(f'/proc/{pid}/cmdline', 'rb') as f:
+                if b'metampc_ros2cli.daemon' in f.read():
+                    os.kill(pid, signal.SIGTERM)
+        except OSError:
+            continue
+
+
 def pytest_sessionfinish(session, exitstatus):
+    _stop_daemons()
     deadline = time.monotonic() + ORPHAN_GRACE_S
     while (left := _left_running()) and time.monotonic() < deadline:
         time.sleep(0.1)

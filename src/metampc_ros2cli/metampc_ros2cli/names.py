@@ -4,7 +4,7 @@
 import functools
 from typing import Any, Callable, Dict, List, Tuple
 
-from metampc_ros2cli import api, direct
+from metampc_ros2cli import api, daemon, direct
 
 Query = Callable[[Any], List[Tuple[str, List[str]]]]     # node -> (name, types) pairs
 
@@ -35,6 +35,8 @@ def add_verbs(verbs: Any, kind: str, query: Query, example_type: str) -> Dict[st
         p.add_argument(f'--include-hidden-{plural}', dest='include_hidden', action='store_true',
                        help=f'Consider hidden {plural} as well')
         direct.add_arguments(p)
+    for verb in ('list', 'find'):   # the graph as a whole: the daemon's (type waits for one)
+        daemon.add_arguments(out[verb])
     return out
 
 
@@ -43,7 +45,7 @@ def listing(query: Query, node: Any, include_hidden: bool) -> List[Tuple[str, Li
 
 
 def list_names(query: Query, args: Any) -> int:
-    with direct.DirectNode(args) as node:
+    with daemon.graph(args) as node:
         pairs = listing(query, node, args.include_hidden)
     if args.count:
         print(len(pairs))
@@ -64,7 +66,7 @@ def print_type(query: Query, args: Any) -> int:
 
 
 def find(query: Query, args: Any) -> int:
-    with direct.DirectNode(args) as node:
+    with daemon.graph(args) as node:
         found = [n for n, t in listing(query, node, args.include_hidden) if args.type in t]
     if args.count:
         print(len(found))

@@ -2,7 +2,7 @@
 import sys
 from typing import Any, List
 
-from metampc_ros2cli import api, direct
+from metampc_ros2cli import api, daemon, direct
 from metampc_ros2cli.cli import add_family
 
 HIDDEN_NODE_PREFIX = '_'
@@ -16,6 +16,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument('-c', '--count-nodes', action='store_true',
                    help='Only display the number of nodes discovered')
     direct.add_arguments(p)
+    daemon.add_arguments(p)
     p.set_defaults(main=list_nodes)
 
     p = verbs.add_parser('info', help='Output information about a node')
@@ -34,7 +35,7 @@ def full_names(node: Any, include_hidden: bool) -> List[str]:
 
 
 def list_nodes(args: Any) -> int:
-    with direct.DirectNode(args) as node:
+    with daemon.graph(args) as node:
         names = sorted(full_names(node, args.all))
     if args.count_nodes:
         print(len(names))
