@@ -166,8 +166,10 @@ def test_bad_adapt_requests(fields, match):
 def test_the_request_defaults_and_only_they_are_live():
     """Live: the parameter behind each request field that falls back to one (docs/learner.md);
     a change reaches the next request, resolved against the re-parsed config."""
-    meta_fields = set(MetaTrain.Request.get_fields_and_field_types())
-    adapt_fields = set(Adapt.Request.get_fields_and_field_types()) - {'method', 'n_samples'}
+    # request_id names a call (docs/nodes.md, calls that are safe to repeat): no default.
+    meta_fields = set(MetaTrain.Request.get_fields_and_field_types()) - {'request_id'}
+    adapt_fields = set(Adapt.Request.get_fields_and_field_types()) - {'method', 'n_samples',
+                                                                      'request_id'}
     expected = meta_fields | {f'adapt_{f}' for f in adapt_fields} | {
         f'oracle_{f}' for f in adapt_fields - {'gamma'}}
     assert {name for name, spec in PARAMETERS.items() if spec.live} == expected
