@@ -4,6 +4,7 @@ The plant runs without a controller (short input_timeout: it holds u = 0 and ste
 20 ms on its limit cycle), so ``y`` flows while the learner trains. The probe calls the
 services, watches ``progress`` and ``y``, and subscribes late to ``nssm_weights``.
 """
+import itertools
 import math
 import os
 
@@ -35,6 +36,16 @@ PLANT = {'theta': 1.0, 'x0': [1.0, 0.0], 'start_timeout': 0.2, 'input_timeout': 
 
 def call(probe, client, request, timeout=30.0, resend_every=None):
     return probe.call(client, request, timeout, resend_every)
+
+
+_IDS = itertools.count()
+
+
+def buffering_call(probe, client, on: bool):
+    """set_buffering with an id of its own, resent while unanswered: a repeat is answered
+    with the first answer (docs/nodes.md), so a lost answer costs nothing."""
+    request = SetBuffering.Request(buffering=on, request_id=f'test-{next(_IDS)}')
+    return probe.call(client, request, 30.0, resend_every=5.0)
 
 
 class Latest:
@@ -127,16 +138,15 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
         result = call(probe, client, request)
         assert not result.success and result.message.startswith('busy: meta_train (imaml)')
     # Stopping a stopped buffer changes nothing: safe to resend while the first answer is out.
-    call(probe, buffering, SetBuffering.Request(buffering=False), resend_every=5.0)
-    result = call(probe, buffering, SetBuffering.Request(buffering=True))
+    buffering_call(probe, buffering, False)
+    result = buffering_call(probe, buffering, True)
     assert result.success and (result.cleared, result.capacity) == (0, CAPACITY), result
     # The learner says when its y subscription has matched the plant (its side of DDS).
-    probe.wait_for(lambda: call(probe, buffering, SetBuffering.Request(buffering=True)
-                                ).matched_publishers == 1, 60.0,
+    probe.wait_for(lambda: buffering_call(probe, buffering, True).matched_publishers == 1, 60.0,
                    "the learner's y matched to the plant")
     probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 60.0,
                    'a full D_target')
-    result = call(probe, buffering, SetBuffering.Request(buffering=False))
+    result = buffering_call(probe, buffering, False)
     # Nothing lost while the job trains: the step index never jumped ahead.
     assert (result.kept, result.skipped, result.lost, result.cleared) == (CAPACITY, 0, 0, 0)
     assert result.message == f'buffering stopped: {CAPACITY} samples kept (0 skipped, 0 lost)'
@@ -146,13 +156,12 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     probe.wait_for(lambda: 'learner' not in {
         i.node_name for i in probe.node.get_subscriptions_info_by_topic('/y')}, 30.0,
         "the learner's y subscription gone")
-    assert call(probe, buffering, SetBuffering.Request(buffering=False)).matched_publishers == 0
-    probe.wait_for(lambda: call(probe, buffering, SetBuffering.Request(buffering=True)
-                                ).matched_publishers == 1, 60.0,
+    assert buffering_call(probe, buffering, False).matched_publishers == 0
+    probe.wait_for(lambda: buffering_call(probe, buffering, True).matched_publishers == 1, 60.0,
                    "the learner's new y subscription matched to the plant")
     probe.wait_for(lambda: procs.output(learner).count('D_target full: 40 samples') == 2, 60.0,
                    'a full D_target after the restart')
-    result = call(probe, buffering, SetBuffering.Request(buffering=False))
+    result = buffering_call(probe, buffering, False)
     assert (result.kept, result.lost) == (CAPACITY, 0), result
 
     # Ctrl-C during the long job: the job is cancelled at its next step, the node exits 0.
@@ -175,8 +184,8 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     # Adaptation of the loaded meta-model to freshly buffered target samples.
     for client in (adapt, buffering):
         assert client.wait_for_service(timeout_sec=60.0), client.srv_name
-    call(probe, buffering, SetBuffering.Request(buffering=False), resend_every=5.0)
-    result = call(probe, buffering, SetBuffering.Request(buffering=True))
+    buffering_call(probe, buffering, False)
+    result = buffering_call(probe, buffering, True)
     assert result.success, result.message
     probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 60.0,
                    'a full D_target')
