@@ -17,7 +17,8 @@ it, so Ctrl-C (or a signal to the shim's process group) reaches the node exactly
 nodes treat a second SIGINT during shutdown as an error. A SIGINT or SIGTERM that comes before
 the child started ends the shim without starting it (exit status 0, as a node stopped by Ctrl-C).
 Lifetime (metampc_bringup.lifeline): the node gets SIGTERM when the shim dies, and a shim
-started by a metampc spawner gets SIGTERM when that spawner dies, SIGKILL included.
+started by a metampc spawner gets SIGTERM when that spawner dies, SIGKILL included; it passes
+it on to the node and SIGKILLs the node ORPHAN_GRACE_S later if it still runs.
 """
 import signal
 
@@ -26,16 +27,35 @@ PENDING = []
 CHILD = []
 
 
+ORPHAN_GRACE_S = 2.0    # s a node whose run was killed may take to stop before SIGKILL
+
+
 def forward(signum, _frame):
-    """Pass a signal on to the child's process group once it runs; note it before."""
+    """Pass a signal on to the child's process group once it runs; note it before. A SIGTERM
+    from the lifeline (the spawner is gone): SIGKILL follows after ORPHAN_GRACE_S, so that
+    nothing of a killed run outlives it by more than a few seconds, however loaded the
+    machine."""
     if CHILD and CHILD[0].poll() is None:
         os.killpg(CHILD[0].pid, signum)
+        if signum == signal.SIGTERM and spawner_gone():
+            signal.setitimer(signal.ITIMER_REAL, ORPHAN_GRACE_S)
     elif not CHILD:
         PENDING.append(signum)
 
 
+def kill_child(_signum, _frame):
+    if CHILD and CHILD[0].poll() is None:
+        os.killpg(CHILD[0].pid, signal.SIGKILL)
+
+
+def spawner_gone():
+    spawner = os.environ.get(lifeline.ENV, '') if lifeline else ''
+    return spawner.isdigit() and os.getppid() != int(spawner)
+
+
 signal.signal(signal.SIGINT, forward)
 signal.signal(signal.SIGTERM, forward)
+signal.signal(signal.SIGALRM, kill_child)
 
 import os  # noqa: E402
 import subprocess  # noqa: E402
