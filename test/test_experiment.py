@@ -289,12 +289,17 @@ def _wait_domain_empty(domain: int, killed: float, timeout: float = 5.0) -> list
     return _pids_in_domain(domain, killed)
 
 
-def _kill_leftovers(proc: subprocess.Popen, domains, out: str) -> None:
+def _kill_leftovers(proc: subprocess.Popen, domains, out: str, killed: float) -> None:
     """After a failed assertion: nothing of the run may outlive the test (its session, its
-    domains' nodes, its seed children: their ROS_DOMAIN_ID is not in their /proc environ)."""
+    domains' nodes, its seed children: their ROS_DOMAIN_ID is not in their /proc environ).
+
+    Only processes that started before `killed` (s since boot: the kill, or now if it never
+    came): until then the run held its domains, so nobody else's process can be in them; once
+    its nodes are gone another test session may claim a domain, and its processes are not
+    ours to kill (measured: a recorder of a second suite SIGKILLed at start-up)."""
     children = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
                 if out in _cmdline(pid)]
-    nodes = [p for d in domains for p in _pids_in_domain(d)]
+    nodes = [p for d in domains for p in _pids_in_domain(d, killed)]
     for pid in session_pids(proc.pid) + children + nodes:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
@@ -306,7 +311,7 @@ def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
     runs): its `ros2 run` wrappers and nodes end within 5 s (metampc_bringup.lifeline)."""
     out = str(tmp_path / 'run')
     proc = _start_run(['--out', out, '--methods', 'imaml'])
-    lines, domains = [], []
+    lines, domains, killed = [], [], None
     try:
         domains.append(int(_read_until(proc, r'ROS_DOMAIN_ID=(\d+)', lines).group(1)))
         _read_until(proc, r'collect done', lines)     # meta_train is the next call
@@ -316,7 +321,7 @@ def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
         proc.wait()
         assert _wait_domain_empty(domains[0], killed) == [], 'processes left behind'
     finally:
-        _kill_leftovers(proc, domains, out)
+        _kill_leftovers(proc, domains, out, killed if killed is not None else uptime_s())
         proc.stdout.close()
 
 
@@ -325,7 +330,7 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
     runs to its end, and the run fails naming the killed seed, with nothing left running."""
     out = str(tmp_path / 'run')
     proc = _start_run(['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'])
-    lines, domains = [], {}
+    lines, domains, killed = [], {}, None
     try:
         while len(domains) < 2:
             found = _read_until(proc, r'seed (\d): ROS_DOMAIN_ID=(\d+)', lines)
@@ -343,7 +348,8 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
         assert 'seed 1: done' in text, text
         assert _pids_in_domain(domains[1], ended) == [], 'processes left behind'
     finally:
-        _kill_leftovers(proc, domains.values(), out)
+        _kill_leftovers(proc, domains.values(), out,
+                        killed if killed is not None else uptime_s())
         proc.stdout.close()
 
 
