@@ -16,13 +16,12 @@ tried first: each wait took one heartbeat period (~2.8 s here).
 message is dropped for every reader, counted and reported through ``on_timeout`` (a reader
 that stopped taking messages must not stop the loop for good).
 """
-from dataclasses import dataclass
 import time
 from typing import Callable, Optional
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from .params import param
+from .hold_config import HoldConfig
 from .qos import BACKLOG
 
 # The writers of y, u and mpc_status: reliable, volatile, keep all (bounded by DDS's resource
@@ -31,27 +30,7 @@ HELD = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.
                   durability=DurabilityPolicy.VOLATILE)
 RETRY_S = 0.001     # pause between two tries of a held-back publish, s
 
-
-@dataclass
-class HoldConfig:
-    """Whether and how long the writers of y (plant), u and mpc_status (controller) wait for a
-    reader that keeps all.
-
-    Attributes:
-        hold_for_readers: writers keep all (:data:`HELD`); false: keep the last 1000
-            (qos.BACKLOG), as before: a reader that falls further behind loses messages.
-        hold_timeout: s a message may wait for room before it is dropped (and counted).
-    """
-
-    hold_for_readers: bool = param(True, 'y, u and mpc_status wait while a reader that keeps '
-                                         'all (the recorder) is full (false: keep the last '
-                                         '1000; a slow recorder loses messages)')
-    hold_timeout: float = param(10.0, 'longest wait, s, for a full reader that keeps all; '
-                                      'then the message is dropped and counted', gt=0)
-
-    def profile(self) -> QoSProfile:
-        """The writers' QoS profile."""
-        return HELD if self.hold_for_readers else BACKLOG
+__all__ = ['BACKLOG', 'HELD', 'HeldPublisher', 'HoldConfig']
 
 
 class HeldPublisher:

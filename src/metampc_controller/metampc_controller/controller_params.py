@@ -13,7 +13,7 @@ from typing import Any, Dict, Mapping, Sequence, Tuple
 
 import numpy as np
 
-from metampc_common.held_publisher import HoldConfig
+from metampc_common.hold_config import HoldConfig
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 

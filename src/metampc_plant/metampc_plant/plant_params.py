@@ -9,7 +9,7 @@ line if that raises :class:`ParameterError`.
 from dataclasses import dataclass, field
 from typing import Dict, Mapping
 
-from metampc_common.held_publisher import HoldConfig
+from metampc_common.hold_config import HoldConfig
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 from metampc_plant.simulator import PlantConfig
