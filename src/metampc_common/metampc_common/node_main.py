@@ -11,6 +11,7 @@ import difflib
 import faulthandler
 import math
 import signal
+import sys
 import threading
 import time
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
@@ -191,6 +192,17 @@ def loop_executor() -> Executor:
     return EventsExecutor()
 
 
+def error_line(name: str, message: str) -> None:
+    """Write one error line to stderr in rcutils' default console format.
+
+    Not through rcutils: with a node half built (a ParameterError from its constructor), rcl's
+    rosout handler publishes the line through that node's rosout writer; one of 14 plants started
+    at once hung there after the line reached stderr (faulthandler: main thread in
+    logger.error). A start-up error needs the console only.
+    """
+    print(f'[ERROR] [{time.time():.9f}] [{name}]: {message}', file=sys.stderr, flush=True)
+
+
 def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[str]] = None,
              executor: Optional[Callable[[], Executor]] = None) -> int:
     """Init rclpy, build the node, spin it until Ctrl-C or shutdown; return the exit code.
@@ -210,7 +222,6 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
         name: logger name for the error lines.
         executor: factory of the executor to spin in (default: a SingleThreadedExecutor).
     """
-    logger = rclpy.logging.get_logger(name)
     sigint = _SigintSeen()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, sigint)
@@ -220,7 +231,7 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     except _rclpy.RCLError as err:  # e.g. `-p x0:=[1, 0.5]`: YAML lists must be of one type
         # rcl has logged a generic line already; add what it could not parse.
         why = str(err).split(', at ')[0].replace('failed to initialize rcl: ', '')
-        logger.error(f'invalid arguments: {why}')
+        error_line(name, f'invalid arguments: {why}')
         return 2
     if sigint.seen:
         rclpy.try_shutdown()
@@ -236,7 +247,7 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
         while ex.context.ok():
             ex.spin_once(timeout_sec=SHUTDOWN_POLL_S)
     except ParameterError as err:
-        logger.error(f'invalid parameter: {err}')
+        error_line(name, f'invalid parameter: {err}')
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
