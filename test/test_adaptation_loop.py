@@ -60,7 +60,11 @@ def run(procs, probe, tmp_path, adaptation: str, name: str):
         'adapt_timeout': 20.0})
     plant = procs.start('metampc_plant', 'plant', remaps=ns, params={
         'theta': 0.5, 'x0': [0.0, 0.0], 'input_timeout': 0.0,
-        'theta_schedule': [CHANGE * 0.1, CHANGE * 0.1, -1.5]})
+        'theta_schedule': [CHANGE * 0.1, CHANGE * 0.1, -1.5],
+        # y_0 once the probe, the learner and the controller subscribe: with the default 1
+        # (the probe's, there first) y_0 could go out before the controller's match, and
+        # the controller never held it (seen beside a second suite: 60 s waiting for y_0).
+        'start_subscribers': 3})
     client = probe.node.create_client(SetActive, f'/{name}/set_active')
     buffering = probe.node.create_client(SetBuffering, f'/{name}/set_buffering')
     assert client.wait_for_service(timeout_sec=60.0)

@@ -114,13 +114,18 @@ def start_run(procs, probe, subscribers_of_y=2):
 
     asked = []
 
-    def model_in_use():      # the model a tick would use: then y_0 is answered with it
+    readers = subscribers_of_y - 1     # of u and mpc_status: the probe (and the recorder)
+
+    def ready():      # the model a tick would use (y_0 is answered with it); readers matched
         # A first answer can be lost (docs/nodes.md): resent with its id, answered once.
-        asked.append(f'model_in_use-{len(asked)}')
+        asked.append(f'ready-{len(asked)}')
         answer = probe.call(client, SetActive.Request(active=True, request_id=asked[-1]), 30.0,
                             resend_every=2.0)
-        return answer.model_version == 1
-    probe.wait_for(model_in_use, START_TIMEOUT, 'the model in use')
+        # An answer sent before a reader's match never reaches it (seen under two suites:
+        # the recorder missed the first 31 statuses).
+        return (answer.model_version == 1 and answer.matched_subscribers >= readers
+                and answer.matched_status_subscribers >= readers)
+    probe.wait_for(ready, START_TIMEOUT, 'the model in use and the readers matched')
     probe.node.destroy_client(client)
     plant = procs.start('metampc_plant', 'plant', remaps={'u': 'u_paced'},
                         params={**PLANT, 'start_subscribers': subscribers_of_y})

@@ -158,7 +158,9 @@ class SeedRun:
         subscribers['u'] += ['plant']
         self.client.wait_ready(subscribers, config.timeouts.startup)
         for name in controllers:
-            self._wait_input_matched(name, len(subscribers['u']), t0 + config.timeouts.startup)
+            self._wait_outputs_matched(name, len(subscribers['u']),
+                                       len(subscribers.get('mpc_status', ())),
+                                       t0 + config.timeouts.startup)
         self.timings['startup'] = time.monotonic() - t0
         self.client.event('start', seed=seed, theta=self.theta, methods=config.methods,
                           nodes=sorted(self.procs))
@@ -286,19 +288,25 @@ class SeedRun:
             controller, lambda a: a.latest_step == 0 and time_seconds(a.latest_stamp) == stamp,
             EPISODE_START_S, HOLD_POLL_S)
 
-    def _wait_input_matched(self, controller: str, readers: int, deadline: float) -> None:
-        """Wait until `controller`'s u publisher has matched the `readers` subscriptions of u
-        (the plant's, the recorder's) from its own side.
+    def _wait_outputs_matched(self, controller: str, readers_u: int, readers_status: int,
+                              deadline: float) -> None:
+        """Wait until `controller`'s u and mpc_status publishers have matched the `readers_u`
+        subscriptions of u (the plant's, the recorder's) and the `readers_status` ones of
+        mpc_status (the recorder's) from their own side.
 
         The graph lists a subscription before the publisher's side of the DDS match is
         complete; an input sent in between never reaches the plant, and a lockstep plant then
         waits for it forever (measured: with the nodes in three network namespaces, 1 of 17
-        runs on a loaded 2-core machine stalled so at step 0).
+        runs on a loaded 2-core machine stalled so at step 0); a status sent in between is
+        missing from the recording (seen: the first 31 of a test's run beside a second suite).
         """
-        if not self.client.poll_inactive(controller, lambda a: a.matched_subscribers >= readers,
-                                         max(deadline - time.monotonic(), 0.0), MATCH_POLL_S):
-            raise ExperimentError(f"start-up: {controller}'s u publisher never matched the "
-                                  f'{readers} subscriptions of u within '
+        if not self.client.poll_inactive(
+                controller, lambda a: (a.matched_subscribers >= readers_u
+                                       and a.matched_status_subscribers >= readers_status),
+                max(deadline - time.monotonic(), 0.0), MATCH_POLL_S):
+            raise ExperimentError(f"start-up: {controller}'s u and mpc_status publishers never "
+                                  f'matched the {readers_u} subscriptions of u and the '
+                                  f'{readers_status} of mpc_status within '
                                   f'{self.config.timeouts.startup:g} s')
 
     def _start_buffering(self) -> None:

@@ -21,7 +21,7 @@ Interfaces (relative names, so a namespace can wrap them):
   waits); activation answers the newest unanswered y at once. The response carries the step
   answered at once (``answered_step``, -1: none), the step and stamp of the newest y
   (``latest_step``, ``latest_stamp``), ``matched_subscribers`` (subscriptions of ``u`` matched
-  from this side) and ``model_version``, the model of the next
+  from this side), ``matched_status_subscribers`` (the same for ``mpc_status``) and ``model_version``, the model of the next
   tick (0: none). A deactivation with ``wait_delivered`` answers once every u and
   mpc_status sent is acknowledged by every reader (``delivered``; at most 10 s): before the
   node is stopped, its answers still on their way to a recorder would die with it. An
@@ -276,6 +276,7 @@ class ControllerNode(Node):
         # Matched from our side: an input published before the plant's u subscription matched
         # never reaches it, and a lockstep plant would wait for it forever. Callers wait on it.
         response.matched_subscribers = self._pub_u.get_subscription_count()
+        response.matched_status_subscribers = self._pub_status.get_subscription_count()
         # Which sample an activation would answer: a caller activates once it is the one meant.
         if self._stamp is not None:
             response.latest_step, response.latest_stamp = self.core.history.step, self._stamp

@@ -182,7 +182,8 @@ class Loop:
 
 
 def stop_cleanly(procs, proc) -> str:
-    code = procs.interrupt(proc)
+    # 30 s, not the default 10: a controller beside a second suite once took over 10 s.
+    code = procs.interrupt(proc, timeout=30.0)
     out = procs.output(proc)
     assert code == 0, out
     assert 'Traceback' not in out, out
