@@ -21,8 +21,8 @@ Interfaces (relative names, so a namespace can wrap them):
   waits); activation answers the newest unanswered y at once. The response carries the step
   answered at once (``answered_step``, -1: none), the step and stamp of the newest y
   (``latest_step``, ``latest_stamp``), ``matched_subscribers`` (subscriptions of ``u`` matched
-  from this side), ``matched_status_subscribers`` (the same for ``mpc_status``) and ``model_version``, the model of the next
-  tick (0: none). A deactivation with ``wait_delivered`` answers once every u and
+  from this side), ``matched_status_subscribers`` (the same for ``mpc_status``) and
+  ``model_version``, the model of the next tick (0: none). A deactivation with ``wait_delivered`` answers once every u and
   mpc_status sent is acknowledged by every reader (``delivered``; at most 10 s): before the
   node is stopped, its answers still on their way to a recorder would die with it. An
   activation may bound the run: with
