@@ -25,9 +25,10 @@ Interfaces (relative names, so a namespace can wrap them):
   ``model_version``, the model of the next tick (0: none). A deactivation with
   ``wait_delivered`` answers once every u and mpc_status sent is acknowledged by every reader
   (``delivered``; at most 10 s): before the node is stopped, its answers still on their way
-  to a recorder would die with it. An activation may bound the run: with ``until_step`` > 0 the node goes inactive by itself after answering that step, with
-  ``stop_at_escape`` at the first diverged y (unanswered), so a lockstep run stops exactly
-  there however late its caller looks.
+  to a recorder would die with it. An activation may bound the run: with ``until_step`` > 0
+  the node goes inactive by itself after answering that step, with ``stop_at_escape`` at the
+  first diverged y (unanswered), so a lockstep run stops exactly there however late its
+  caller looks.
 
 Adaptation in the loop (parameter ``adaptation``: periodic or triggered; rules and
 hysteresis in :mod:`metampc_controller.adaptation_trigger`): every MpcStatus carries the
