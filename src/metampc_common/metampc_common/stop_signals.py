@@ -4,9 +4,9 @@ callbacks, and the node is gone before its context is shut down.
 Why not rclpy's handler (what ``rclpy.init`` installs by default): its thread shuts the context
 down the moment the signal arrives, whatever the executor is doing. A callback publishing then
 fails ("Failed to publish: publisher's context is invalid"; the EventsExecutor of the plant and
-the controller logs it as FATAL, and the controller exited with status 130: test_faults'
-Ctrl-C test, on the first try), and every line logged from then on fails its /rosout copy
-("Failed to publish log message to rosout: publisher's context is invalid").
+the controller logs it as FATAL with the callback's stack: 2 of 4 runs of test_faults' Ctrl-C
+test), and every line logged from then on fails its /rosout copy ("Failed to publish log
+message to rosout: publisher's context is invalid").
 
 Here the first signal is only noted, by Python's handler (in the main thread, between two
 bytecodes, so never inside a half-built object), and the executor is woken: Python writes the
