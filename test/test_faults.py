@@ -19,6 +19,7 @@ ends with the same checks (:meth:`Rig.finish`):
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -543,6 +544,30 @@ def test_sigkill_and_restart_of_the_controller(procs, probe, tmp_path):
     out = rig.finish()['plant']
     timeouts = int(re.search(r'stopped at step \d+ .* (\d+) timeouts', out).group(1))
     assert timeouts >= 2, out
+
+
+def test_ctrl_c_of_the_running_loop_prints_no_rcl_error(procs, probe, tmp_path):
+    """Ctrl-C to the plant and the controller at once (as to a terminal's process group) while
+    the lockstep loop runs: each exits 0 with its stop line and nothing from rcl (issue 31:
+    "Failed to publish log message to rosout: publisher's context is invalid" after the
+    stop line of each, every time)."""
+    rig = Rig(procs, probe, tmp_path)
+    pub = probe.node.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
+    pub.publish(weights(1))
+    start_loop(rig, {'theta': 0.5}, {})
+    rig.wait_status(lambda s: s.model_version == 1, 'model 1')
+    rig.wait_steps(20)
+    for name in ('plant', 'controller'):     # one SIGINT each, as `ros2 run` passes it on
+        os.killpg(rig.nodes[name].pid, signal.SIGINT)
+    for name in ('plant', 'controller'):
+        proc = rig.nodes[name]
+        code = proc.wait(60.0)
+        rig.killed.add(name)
+        out = rig.output(name)
+        assert code == 0 and 'Traceback' not in out, f'{name} exited with {code}:\n{out}'
+        assert session_pids(proc.pid) == [], f'a process of {name} outlived ros2 run'
+        assert re.search(r'\[' + name + r'\]: stopped at step \d+', out), out
+        assert 'rosout' not in out and 'context is invalid' not in out, out
 
 
 def test_sigkill_of_the_learner_during_meta_train(procs, probe, tmp_path):

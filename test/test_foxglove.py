@@ -4,10 +4,13 @@ A WebSocket client speaking the Foxglove protocol (metampc_bringup.foxglove_clie
 the node, checks the advertised channels and their schemas, subscribes and decodes the CDR
 payloads with rclpy; the probe subscribes to the plant directly and is the reference.
 """
+import base64
+import hashlib
 import json
 import os
 import re
 import socket
+import struct
 import time
 
 from metampc_msgs.msg import PlantInfo, PlantOutput
@@ -17,7 +20,9 @@ from rclpy.serialization import deserialize_message
 from websockets.exceptions import ConnectionClosed
 
 from metampc_bringup.foxglove_client import FoxgloveClient
-from metampc_bringup.msg_schema import DefinitionSource, package_share_directory
+from metampc_bringup.foxglove_server import LiveServer
+from metampc_bringup.msg_schema import (DefinitionSource, MessageDefinition,
+                                        package_share_directory)
 from metampc_bringup.rclpy_adapters import message_class
 from metampc_bringup.run_series import DEFAULT_TOPICS
 from metampc_testing import session_pids
@@ -27,6 +32,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 PLANT_OUTPUT, PLANT_INFO = 'metampc_msgs/msg/PlantOutput', 'metampc_msgs/msg/PlantInfo'
 TIMEOUT = 60.0      # s: generous, for a loaded 2-core machine
+WS_PROTOCOL = 'foxglove.websocket.v1'   # what @foxglove/ws-protocol's client offers
 
 
 def start_live_view(procs, probe, **params) -> tuple:
@@ -99,8 +105,10 @@ def test_client_gets_channels_with_schemas_and_the_plants_messages(procs, probe)
         assert deserialize_message(got['/plant_info'][0].data, PlantInfo) == infos[-1]
         assert infos[-1].rate_hz == 50.0
 
-        # plant_info went out once, long ago: the node sends it again to a new subscriber.
-        with FoxgloveClient(url, TIMEOUT) as late:
+        # plant_info went out once, long ago: the node sends it again to a new subscriber,
+        # here one that offers only the ws-protocol's subprotocol.
+        with FoxgloveClient(url, TIMEOUT, subprotocols=[WS_PROTOCOL]) as late:
+            assert late.subprotocol == WS_PROTOCOL
             late.subscribe(late.channel('/plant_info', TIMEOUT))
             msg = late.message(TIMEOUT)
             assert msg.topic == '/plant_info'
@@ -111,6 +119,107 @@ def test_client_gets_channels_with_schemas_and_the_plants_messages(procs, probe)
         with pytest.raises(ConnectionClosed):
             while True:                 # the frames sent before, then the end
                 client.message(TIMEOUT)
+
+
+def raw_handshake(port: int, subprotocol: str) -> tuple:
+    """An RFC 6455 upgrade request over a plain socket, offering `subprotocol` ('' none).
+
+    Returns (status code, headers with lower-case names, the bytes after the head, the socket,
+    the Sec-WebSocket-Accept value the RFC requires for the key sent)."""
+    key = base64.b64encode(os.urandom(16)).decode()
+    offer = f'Sec-WebSocket-Protocol: {subprotocol}\r\n' if subprotocol else ''
+    sock = socket.create_connection(('127.0.0.1', port), timeout=TIMEOUT)
+    sock.sendall((f'GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n'
+                  f'Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n'
+                  f'Sec-WebSocket-Version: 13\r\n{offer}\r\n').encode())
+    data = b''
+    while b'\r\n\r\n' not in data:
+        chunk = sock.recv(65536)
+        assert chunk, f'the server hung up after {data!r}'
+        data += chunk
+    head, _, rest = data.partition(b'\r\n\r\n')
+    status, *lines = head.decode().split('\r\n')
+    headers = {name.strip().lower(): value.strip()
+               for name, _, value in (line.partition(':') for line in lines)}
+    accept = base64.b64encode(hashlib.sha1(
+        (key + '258EAFA5-E914-47DA-95CA-C5AB0DC85B11').encode()).digest()).decode()
+    return int(status.split()[1]), headers, rest, sock, accept
+
+
+def read_text_frame(sock: socket.socket, data: bytes) -> str:
+    """The first frame of a server's stream (unmasked, RFC 6455 5.2), which must be text;
+    `data`: what was already read."""
+    def need(n: int) -> None:
+        nonlocal data
+        while len(data) < n:
+            chunk = sock.recv(65536)
+            assert chunk, 'the server hung up'
+            data += chunk
+    need(2)
+    assert data[0] == 0x81, f'a final text frame, got {data[:2]!r}'
+    length, start = data[1] & 0x7F, 2
+    if length == 126:
+        need(4)
+        length, start = struct.unpack_from('>H', data, 2)[0], 4
+    elif length == 127:
+        need(10)
+        length, start = struct.unpack_from('>Q', data, 2)[0], 10
+    need(start + length)
+    return data[start:start + length].decode()
+
+
+@pytest.fixture
+def live_server():
+    """A LiveServer (no ROS) on a free port with one channel, /a, of a stand-in type."""
+    server = LiveServer('test', '127.0.0.1', 0,
+                        definitions=lambda name: MessageDefinition('ros2msg', 'float64 x'))
+    server.add_topic('/a', 'pkg/msg/A', latched=False)
+    yield server
+    server.close()
+
+
+def test_a_ws_protocol_client_gets_a_session_under_its_own_subprotocol(live_server):
+    """@foxglove/ws-protocol offers only foxglove.websocket.v1: the handshake succeeds under
+    that name (a valid accept key), the session starts with serverInfo, and a subscriber
+    gets the channel's messages (the SDK alone answers HTTP 400)."""
+    status, headers, rest, sock, accept = raw_handshake(live_server.port, WS_PROTOCOL)
+    with sock:
+        assert status == 101, (headers, rest)
+        assert headers['sec-websocket-protocol'] == WS_PROTOCOL
+        assert headers['sec-websocket-accept'] == accept
+        assert json.loads(read_text_frame(sock, rest))['op'] == 'serverInfo'
+    with FoxgloveClient(f'ws://127.0.0.1:{live_server.port}', TIMEOUT,
+                        subprotocols=[WS_PROTOCOL]) as client:
+        assert client.subprotocol == WS_PROTOCOL
+        client.subscribe(client.channel('/a', TIMEOUT))
+        payload = struct.pack('<4xd', 2.5)     # CDR little endian: header, then x
+        deadline = time.monotonic() + TIMEOUT
+        while True:     # the subscription takes effect some time after it is sent
+            live_server.publish('/a', payload, 123)
+            try:
+                msg = client.message(0.2)
+                break
+            except TimeoutError:
+                assert time.monotonic() < deadline, 'no message within the timeout'
+        assert (msg.topic, msg.log_time, msg.data) == ('/a', 123, payload)
+
+
+@pytest.mark.parametrize('offer', ['', 'foxglove.websocket.v2'])
+def test_a_client_offering_neither_subprotocol_is_told_which_to_offer(live_server, offer):
+    status, headers, rest, sock, _ = raw_handshake(live_server.port, offer)
+    with sock:
+        while len(rest) < int(headers['content-length']):
+            rest += sock.recv(65536)
+    assert status == 400
+    assert 'offer the WebSocket subprotocol foxglove.sdk.v1' in rest.decode(), rest
+
+
+def test_the_sdk_subprotocol_goes_through_unchanged(live_server):
+    status, headers, rest, sock, accept = raw_handshake(live_server.port, 'foxglove.sdk.v1')
+    with sock:
+        assert (status, headers['sec-websocket-protocol']) == (101, 'foxglove.sdk.v1')
+        assert headers['sec-websocket-accept'] == accept
+        assert json.loads(read_text_frame(sock, rest))['op'] == 'serverInfo'
 
 
 def test_bad_port_is_one_line_and_exit_2(procs):
@@ -134,7 +243,7 @@ def test_port_in_use_is_one_clear_line_and_exit_2(procs):
     lines = [line for line in procs.output(proc).splitlines() if line.strip()]
     assert code == 2, lines
     assert len(lines) == 1, lines
-    assert (f'invalid parameter: port: cannot serve on 127.0.0.1:{port}: Failed to bind port: '
+    assert (f'invalid parameter: port: cannot serve on 127.0.0.1:{port}: '
             'Address already in use') in lines[0]
 
 

@@ -3,18 +3,19 @@
 What Foxglove does when it connects to a live view: read ``serverInfo`` and the ``advertise``d
 channels (JSON text frames), ``subscribe`` to some, then take MessageData binary frames:
 opcode 1 (u8), subscription id (u32 LE), log time in ns (u64 LE), the payload (here CDR).
-The SDK's server accepts only the subprotocol ``foxglove.sdk.v1`` (0.30.3: a client that offers
-only ws-protocol's ``foxglove.websocket.v1`` gets HTTP 400), so both are offered. No rclpy.
+It offers the subprotocols ``foxglove.sdk.v1`` (the SDK's) and ``foxglove.websocket.v1`` (the
+ws-protocol's; the live view admits either, :mod:`.subprotocol_front`), or those given. No
+rclpy.
 """
 import json
 import re
 import struct
 import time
-from typing import Dict, List, NamedTuple
+from typing import Dict, List, NamedTuple, Sequence
 
 from websockets.sync.client import connect
 
-SUBPROTOCOLS = ['foxglove.sdk.v1', 'foxglove.websocket.v1']
+SUBPROTOCOLS = ('foxglove.sdk.v1', 'foxglove.websocket.v1')
 MESSAGE_DATA = 1
 STATUS_ERROR = 2
 _UNKNOWN_CHANNEL = re.compile(r'Unknown channel ID: (\d+)')
@@ -32,18 +33,21 @@ class Message(NamedTuple):
 
 
 class FoxgloveClient:
-    """Connected to `url`; `server_info` is the server's first message.
+    """Connected to `url` offering `subprotocols`; `server_info` is the server's first message.
 
     Attributes:
         server_info: the ``serverInfo`` object.
+        subprotocol: the one the server chose.
         channels: advertised channels by id (the ``advertise`` objects), kept up to date.
     """
 
-    def __init__(self, url: str, timeout: float = 10.0):
+    def __init__(self, url: str, timeout: float = 10.0,
+                 subprotocols: Sequence[str] = SUBPROTOCOLS):
         # No keepalive pings: a test reads only when it asks for a message, and meanwhile the
         # unread frames hold the pongs back.
-        self._ws = connect(url, subprotocols=SUBPROTOCOLS, open_timeout=timeout, max_size=None,
-                           ping_interval=None, legacy=True)
+        self._ws = connect(url, subprotocols=list(subprotocols), open_timeout=timeout,
+                           max_size=None, ping_interval=None, legacy=True)
+        self.subprotocol = self._ws.subprotocol
         self.server_info = json.loads(self._ws.recv(timeout))
         if self.server_info.get('op') != 'serverInfo':
             raise ValueError(f'expected serverInfo first, got {self.server_info!r}')

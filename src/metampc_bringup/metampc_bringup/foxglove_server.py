@@ -1,7 +1,9 @@
 """The live view's server: ROS 2 topics as Foxglove channels whose messages are the CDR bytes.
 
 No rclpy. :class:`LiveServer` runs the Foxglove SDK's WebSocket server (``foxglove-sdk``,
-subprotocol ``foxglove.sdk.v1``: the messages of the Foxglove WebSocket protocol v1). Each
+subprotocol ``foxglove.sdk.v1``: the messages of the Foxglove WebSocket protocol v1) on a free
+loopback port behind a :class:`.subprotocol_front.SubprotocolFront` on host:port, which also
+admits clients that offer only ``foxglove.websocket.v1`` (the protocol's older name). Each
 topic becomes a channel of message encoding ``cdr`` whose schema is the type's complete
 definition (:mod:`.msg_schema`, the same text a recording carries: encoding ``ros2msg``, or
 ``ros2idl`` for a type without a ``.msg`` file), so Foxglove decodes the bytes as received
@@ -19,6 +21,7 @@ from foxglove import Channel, Schema
 from foxglove.websocket import ChannelView, Client, ServerListener
 
 from .msg_schema import DefinitionSource, MessageDefinition
+from .subprotocol_front import SubprotocolFront
 
 MESSAGE_ENCODING = 'cdr'
 
@@ -47,17 +50,18 @@ class LiveServer(ServerListener):
         self._channels: Dict[str, Channel] = {}
         self._by_id: Dict[int, Channel] = {}
         self._latched: Dict[int, Optional[bytes]] = {}   # channel id -> newest message
+        self._server = foxglove.start_server(name=name, host='127.0.0.1', port=0,
+                                             context=self._context, server_listener=self)
         try:
-            self._server = foxglove.start_server(name=name, host=host, port=port,
-                                                 context=self._context, server_listener=self)
-        except RuntimeError as err:     # the SDK's FoxgloveError
-            reason = str(err).replace('FoxgloveError: ', '')
-            raise OSError(f'cannot serve on {host}:{port}: {reason}') from None
+            self._front = SubprotocolFront(host, port, self._server.port)
+        except OSError as err:
+            self._server.stop()
+            raise OSError(f'cannot serve on {host}:{port}: {err.strerror or err}') from None
 
     @property
     def port(self) -> int:
-        """The port the server listens on."""
-        return self._server.port
+        """The port the server listens on (its front's)."""
+        return self._front.port
 
     def add_topic(self, topic: str, type_name: str, latched: bool) -> None:
         """Advertise `topic` to every client (and to those that connect later).
@@ -93,5 +97,6 @@ class LiveServer(ServerListener):
     def close(self) -> None:
         """Stop the server (clients are disconnected) and close every channel."""
         self._server.stop()
+        self._front.close()
         for channel in self._channels.values():
             channel.close()

@@ -22,10 +22,12 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 from metampc_common.params import ParameterError, ParamSpec, Value
+from metampc_common.stop_signals import StopSignals
 
-SHUTDOWN_POLL_S = 0.5    # s: longest a node can take to notice that SIGINT shut it down
+SHUTDOWN_POLL_S = 0.5    # s: longest a node takes to notice a shutdown that woke nobody
 
 
 # Parameters a node takes besides its table: rclpy's own, and QoS overrides of its endpoints.
@@ -167,16 +169,6 @@ class EventCounts:
         return ', '.join(f'{n} {name}' for name, n in self.counts.items())
 
 
-class _SigintSeen:
-    """Python's part of SIGINT under :func:`run_node`: only note it (no KeyboardInterrupt)."""
-
-    def __init__(self):
-        self.seen = False
-
-    def __call__(self, signum, frame) -> None:
-        self.seen = True
-
-
 def loop_executor() -> Executor:
     """The executor of the nodes on a control loop's critical path (plant, controller).
 
@@ -207,12 +199,14 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
              executor: Optional[Callable[[], Executor]] = None) -> int:
     """Init rclpy, build the node, spin it until Ctrl-C or shutdown; return the exit code.
 
-    Ctrl-C: rclpy's signal handler (installed by rclpy.init) shuts the context down and wakes
-    the executor; the spin loop's bounded wait (SHUTDOWN_POLL_S) sees the shutdown even when
-    that wake-up came before the wait began. Python's KeyboardInterrupt on top of that would land
-    anywhere in the main thread, e.g. inside rclpy's Task.__init__, whose half-built object then
-    prints a traceback when it is collected; so the Python-level handler that rclpy chains to
-    only notes the signal (also one that arrives before rclpy.init: the node then exits at once).
+    Ctrl-C or SIGTERM (:mod:`.stop_signals`, main thread): noted and the executor woken; the
+    spin ends after the callback in progress, then the executor stops, the node is destroyed
+    (its stop line logged) and only then is the context shut down, so nothing publishes into a
+    dead context. A second signal shuts the context down at once. A signal that arrives while
+    the node is being built ends it as soon as it is built (one before rclpy.init: at once).
+    Called from another thread, rclpy's own handlers (which shut the context down at once)
+    stand in. The spin loop's bounded wait (SHUTDOWN_POLL_S) also sees a shutdown that came
+    from elsewhere.
 
     A node that hangs can be asked where: SIGUSR1 (``kill -USR1 PID``) prints the stack of
     every thread to stderr (faulthandler) and the node goes on.
@@ -222,29 +216,31 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
         name: logger name for the error lines.
         executor: factory of the executor to spin in (default: a SingleThreadedExecutor).
     """
-    sigint = _SigintSeen()
+    stop = None
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, sigint)
+        stop = StopSignals()
         faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=(
+            SignalHandlerOptions.ALL if stop is None else SignalHandlerOptions.NO))
     except _rclpy.RCLError as err:  # e.g. `-p x0:=[1, 0.5]`: YAML lists must be of one type
         # rcl has logged a generic line already; add what it could not parse.
         why = str(err).split(', at ')[0].replace('failed to initialize rcl: ', '')
         error_line(name, f'invalid arguments: {why}')
         return 2
-    if sigint.seen:
+    if stop is not None and stop.requested:     # before rclpy.init: nothing to build
         rclpy.try_shutdown()
         return 0
-    node = None
+    node = ex = None
     try:
         node = make_node()
         ex = SingleThreadedExecutor() if executor is None else executor()
         ex.add_node(node)
-        # Not ex.spin(): rclpy's signal thread wakes the executor, then shuts the context down
-        # in C, which wakes nobody; a wait that starts in between blocks for good (seen under
-        # load: a node deaf to SIGINT, its main thread in rcl_wait). A bounded wait sees it.
-        while ex.context.ok():
+        if stop is not None:
+            stop.wake_on_signal(ex)
+        # Not ex.spin(): a bounded wait also sees a context shut down by a second signal, which
+        # wakes nobody.
+        while ex.context.ok() and not (stop is not None and stop.requested):
             ex.spin_once(timeout_sec=SHUTDOWN_POLL_S)
     except ParameterError as err:
         error_line(name, f'invalid parameter: {err}')
@@ -252,12 +248,20 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
-        # rclpy's signal thread shuts the context down while the executor may be taking a
-        # message or a callback publishing (or the node is still being built); those then
-        # fail (RCLError, or pybind11's RuntimeError in take_message): a shutdown, not a crash.
+        # A second signal (or rclpy's handler, off the main thread) shuts the context down
+        # while the executor may be taking a message or a callback publishing (or the node is
+        # still being built); those then fail (RCLError, or pybind11's RuntimeError in
+        # take_message): a shutdown, not a crash.
         if rclpy.ok():
             raise
     finally:
+        if stop is not None:
+            stop.close()
+        # The executor first: an EventsExecutor (loop_executor) that still holds the node
+        # keeps its /rosout writer alive past destroy_node, and a line logged after it (the
+        # plant's and the controller's stop lines) would go to that writer.
+        if ex is not None:
+            ex.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

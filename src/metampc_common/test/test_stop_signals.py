@@ -1,0 +1,94 @@
+"""Ctrl-C under run_node (metampc_common.stop_signals): the callback that runs when SIGINT
+arrives finishes, its publish and its log line included, before the context is shut down; a
+second SIGINT shuts it down at once, ending a callback that waits on it.
+
+The race of a real loop (a callback publishing at the moment of Ctrl-C) made certain: the
+node's one callback sleeps, and SIGINT comes during the sleep. With rclpy's own handler the
+context was shut down at once and the publish after the sleep failed.
+"""
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+TIMEOUT = 60.0      # s: generous, for a loaded 2-core machine
+NODE = '''
+import sys
+import time
+
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from metampc_common.node_main import loop_executor, run_node
+
+
+class Slow(Node):
+    def __init__(self):
+        super().__init__('slow')
+        self.pub = self.create_publisher(String, 'slow', 10)
+        self.timer = self.create_timer(0.01, self.tick)
+
+    def tick(self):
+        self.timer.cancel()
+        print('in the callback', flush=True)
+        if sys.argv[2] == 'waits':
+            while rclpy.ok():
+                time.sleep(0.05)
+            return
+        time.sleep(2.0)     # SIGINT arrives here
+        self.pub.publish(String(data='after'))
+        self.get_logger().info('published after the signal')
+
+
+sys.exit(run_node(Slow, 'slow', executor=loop_executor if sys.argv[1] == 'events' else None))
+'''
+
+
+def start(tmp_path, executor: str, callback: str):
+    """The node, once its callback runs; (process, its log file)."""
+    log = tmp_path / 'node.log'
+    with open(log, 'w') as out:
+        proc = subprocess.Popen([sys.executable, '-c', NODE, executor, callback], stdout=out,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    deadline = time.monotonic() + TIMEOUT
+    while 'in the callback' not in log.read_text():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f'the callback did not start:\n{log.read_text()}')
+        time.sleep(0.05)
+    return proc, log
+
+
+def ended(proc, log) -> str:
+    """The node's output once it has exited 0 without a traceback."""
+    try:
+        code = proc.wait(TIMEOUT)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert code == 0 and 'Traceback' not in text, text
+    return text
+
+
+@pytest.mark.parametrize('executor', ['single', 'events'])
+def test_a_callback_running_at_ctrl_c_finishes_and_publishes(tmp_path, executor):
+    proc, log = start(tmp_path, executor, 'publishes')
+    proc.send_signal(signal.SIGINT)
+    text = ended(proc, log)
+    assert 'published after the signal' in text, text
+    assert 'context is invalid' not in text, text
+
+
+def test_a_second_ctrl_c_shuts_the_context_down_at_once(tmp_path):
+    proc, log = start(tmp_path, 'events', 'waits')
+    proc.send_signal(signal.SIGINT)
+    time.sleep(1.0)
+    assert proc.poll() is None, 'the first SIGINT left the context up: the callback goes on'
+    proc.send_signal(signal.SIGINT)
+    ended(proc, log)
