@@ -12,6 +12,7 @@ Pieces, each testable alone:
 * :class:`AnswerRule`: which tick answers which sample (each sample at most once).
 * :class:`PreModelInput`: the input before a model (zero or seeded excitation).
 * :func:`build_model`: checked weights -> NSSM predictor + latent MPC (outside the tick).
+* :class:`~metampc_controller.model_swap.ModelSwap`: from which tick a new model is used.
 * :class:`Tuning`: what a live parameter change replaces (weights, bounds, horizon, reference).
 * :class:`ControllerCore`: observe samples, tick -> :class:`TickResult`.
 """
@@ -26,6 +27,7 @@ from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
+from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
 from metampc_controller.offset_free import disturbance_model
@@ -398,7 +400,7 @@ class ControllerCore:
         self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
         self._setup_lock = threading.Lock()     # the builder thread and a queued swap
         self.trigger = AdaptationTrigger(config.trigger)
-        self._queued: Optional[Tuple[int, ModelBundle]] = None  # (from step, requested model)
+        self.swap: ModelSwap[ModelBundle] = ModelSwap(self.trigger)
 
     # --- inputs from other callbacks ----------------------------------------------------
 
@@ -428,20 +430,15 @@ class ControllerCore:
         return self._setup.model_status
 
     def offer_model(self, bundle: ModelBundle, request_step: int = 0) -> Optional[int]:
-        """Use this model (built for :attr:`tuning`) from the next tick on (builder thread).
-
-        The answer to the pending adaptation request (`request_step` its step) is queued
-        instead: under a lockstep plant used from the request's swap step, otherwise from the
-        next tick (:mod:`adaptation_trigger`). Returns that step (0: the next tick) for a
-        queued answer, None otherwise."""
-        pending = self.trigger.pending
-        if request_step and pending is not None and request_step == pending.step:
-            lockstep = self.plant is not None and self.plant.lockstep
-            self._queued = (pending.swap_step if lockstep else 0, bundle)
-            return self._queued[0]
-        with self._setup_lock:
-            self._setup = self._setup._replace(model=bundle, model_status='ok')
-        return None
+        """Use this model (built for :attr:`tuning`) as the swap rules say (builder thread,
+        :mod:`~metampc_controller.model_swap`): the answer to the pending adaptation request
+        (`request_step` its step) is queued, and its step is returned (0: the next tick);
+        any other model is used from the next tick on (None)."""
+        start = self.swap.offer(bundle, request_step)
+        if start is None:
+            with self._setup_lock:
+                self._setup = self._setup._replace(model=bundle, model_status='ok')
+        return start
 
     def vet(self, bundle: ModelBundle, request_step: int = 0) -> str:
         """The check a new model must pass before :meth:`offer_model` (builder thread): ''
@@ -450,9 +447,7 @@ class ControllerCore:
         with the model in use at once. The yardstick is the model in use when `bundle` is of
         its method (an update of it), persistence otherwise."""
         config = self.tuning.config
-        pending = self.trigger.pending
-        answers = bool(request_step) and pending is not None and request_step == pending.step
-        if not applies(config.model_check, answers):
+        if not applies(config.model_check, self.swap.answers(request_step)):
             return ''
         u, y = self.history.snapshot()
         current = self.model
@@ -461,8 +456,7 @@ class ControllerCore:
                         config.mpc.horizon, config.model_check)
         if verdict.ok:
             return ''
-        if answers:
-            self.trigger.give_up()
+        self.swap.refused(request_step)
         return verdict.reason
 
     def reject_model(self, reason: str) -> None:
@@ -473,8 +467,7 @@ class ControllerCore:
     def waits_for_model(self) -> bool:
         """True if the newest sample's answer must wait for the requested model (lockstep:
         its swap step has come and the model is not there yet)."""
-        return (self.plant is not None and self.plant.lockstep and self._queued is None
-                and self.trigger.waits(self.history.step))
+        return self.swap.waits(self.history.step)
 
     def check_tuning(self, config: ControllerConfig) -> str:
         """What the running controller refuses of a parsed config, beyond its parse: '' or
@@ -513,6 +506,8 @@ class ControllerCore:
             tuning = Tuning.of(config, version, self.n_u)
             if config.planner == 'nmpc' and self.plant is not None and self._nmpc is not None:
                 self._build_nmpc(tuning, self.plant)    # here, never in the tick
+            self.swap.retune(lambda answer: replace(
+                answer, mpc=latent_mpc(config.mpc, answer.predictor)))
             self._setup = setup._replace(tuning=tuning, model=model)
         self.trigger.config = config.trigger
 
@@ -541,6 +536,7 @@ class ControllerCore:
         schedule's segment may arrive after later samples."""
         if self._theta_from_y and self.plant is not None:
             plant = replace(plant, theta=self.plant.theta)
+        self.swap.lockstep = plant.lockstep
         tuning = self.tuning
         cfg = tuning.config
         warnings = []
@@ -598,7 +594,7 @@ class ControllerCore:
                 if planner is not None:
                     planner.reset()
             self.trigger.new_episode()
-            self._queued = None
+            self.swap.new_episode()
         nmpc = self._nmpc
         if nmpc is not None and len(theta) and self.config.planner == 'nmpc':
             self._theta_from_y = True
@@ -626,12 +622,10 @@ class ControllerCore:
         """Answer the newest sample (observe() must have been called at least once)."""
         history = self.history
         step = history.step
-        queued = self._queued
-        if queued is not None and step >= queued[0]:
-            self._queued = None
-            with self._setup_lock:
-                self._setup = self._setup._replace(model=queued[1], model_status='ok')
-            self.trigger.answered(queued[1].version)
+        with self._setup_lock:  # not between a retune's rebuild of the answer and its swap
+            answer = self.swap.due(step)
+            if answer is not None:
+                self._setup = self._setup._replace(model=answer, model_status='ok')
         tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)
