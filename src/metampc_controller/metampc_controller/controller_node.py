@@ -15,6 +15,9 @@ Interfaces (relative names, so a namespace can wrap them):
   empty array returns to the configured reference.
 * ``u`` (ControlInput, published, reliable): the input computed from y_k, with ``step = k``,
   held over (k, k+1], stamped with y_k's stamp, and the NSSM version that produced it.
+* ``u_hold`` (StepHold, published, reliable): under a lockstep plant, the step whose answer
+  waits for a requested model and the longest it may wait (``adapt_timeout``), so that the
+  plant waits with it instead of timing out.
 * ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it;
   ``config_version`` names the tuning the tick used (0 as started, +1 per live change).
 * ``set_active`` (metampc_msgs/SetActive): inactive, nothing is published (a lockstep plant
@@ -34,8 +37,10 @@ Adaptation in the loop (parameter ``adaptation``: periodic or triggered; rules a
 hysteresis in :mod:`metampc_controller.adaptation_trigger`): every MpcStatus carries the
 model's one-step and T-step prediction errors and the detector's state; a tick that asks for
 adaptation sets ``adapt_request`` (the learner adapts on the samples up to that step and
-answers with weights whose ``request_step`` names it). Under a lockstep plant the answer of
-the request's ``swap_step`` waits for that model (a 2-ms timer resumes it), so a seeded run
+answers with weights whose ``request_step`` names it). When a model is used is
+:class:`~metampc_controller.model_swap.ModelSwap`'s to say: under a lockstep plant the answer
+of the request's ``swap_step`` waits for that model (a 2-ms timer resumes it; ``u_hold``
+tells the plant, which waits as long, however long its ``input_timeout``), so a seeded run
 swaps at the same step on any machine; in real time the model is used from the tick after
 it was built and nothing waits. A request no model answers within ``adapt_timeout`` s of
 wall time is given up in either mode (the model in use is kept; the next may follow).
@@ -71,7 +76,8 @@ from metampc_common.node_main import (declare_parameters, EventCounts, LiveParam
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_common.replies import Replies
-from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
+from metampc_msgs.msg import (ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput,
+                              StepHold)
 from metampc_msgs.srv import SetActive
 import numpy as np
 from rclpy.clock import Clock, ClockType
@@ -131,6 +137,8 @@ class ControllerNode(Node):
                                     hold, held)
         self._pub_status = HeldPublisher(
             self.create_publisher(MpcStatus, 'mpc_status', hold.profile()), hold, held)
+        self._pub_hold = self.create_publisher(StepHold, 'u_hold', STREAM)
+        self._hold_msg = StepHold()
         self.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED)
         self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)
@@ -186,6 +194,13 @@ class ControllerNode(Node):
             if self._hold_timer is None:
                 self._hold_timer = self.create_timer(HOLD_POLL_S, self._on_hold,
                                                      clock=self._steady)
+                # The plant waits as long as this answer may (the request is given up by
+                # then), not its input_timeout: the swap stays exact.
+                hold = self._hold_msg
+                hold.header.stamp = self._stamp
+                hold.step = self.core.history.step
+                hold.hold_s = self.cfg.trigger.adapt_timeout
+                self._pub_hold.publish(hold)
             return
         retuning = self._retuning
         if retuning is not None:
