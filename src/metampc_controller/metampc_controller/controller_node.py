@@ -9,7 +9,8 @@ Interfaces (relative names, so a namespace can wrap them):
   worker thread, in arrival order, then used from the next tick on; invalid weights are rejected
   with one log line and ``model_status = 'rejected: <reason>'``, the previous model stays.
 * ``plant_info`` (PlantInfo, subscribed, latched): sample time dt (reference times, the
-  excitation), theta (planner 'nmpc'), bounds and clock mode (checked, warnings only).
+  excitation), family (planner 'nmpc'), bounds and clock mode (checked, warnings only). Its
+  theta is not used: theta comes with every y (below).
 * ``reference`` (std_msgs/Float64MultiArray, subscribed, optional): one set-point per output
   that replaces the configured reference from the next tick on, until the next message; an
   empty array returns to the configured reference.
@@ -44,7 +45,8 @@ tells the plant, which waits as long, however long its ``input_timeout``), so a 
 swaps at the same step on any machine; in real time the model is used from the tick after
 it was built and nothing waits. A request no model answers within ``adapt_timeout`` s of
 wall time is given up in either mode (the model in use is kept; the next may follow).
-The NMPC yardstick takes theta from every y (a plant under a theta_schedule).
+The NMPC yardstick takes theta from every y, its one channel (``PlantOutput.theta``: theta(k
+dt), under a theta_schedule too); a y without theta keeps the last told.
 
 Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
 plant, rate_hz = 1/dt). Each y is answered exactly once (controller_core.AnswerRule): a tick
@@ -177,6 +179,8 @@ class ControllerNode(Node):
                        f'{list(msg.u_applied)}')
             return
         core.observe(msg.step, msg.u_applied, msg.y, msg.theta)
+        if core.nmpc_problem:
+            self._warn_once([core.nmpc_problem])
         self._stamp = msg.header.stamp
         if msg.diverged and self.rule.diverged():
             self._stopped_by_itself(f'y of step {msg.step} is diverged')
@@ -307,18 +311,21 @@ class ControllerNode(Node):
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
         bounds = list(msg.u_min) + list(msg.u_max)
-        if not (all(map(math.isfinite, list(msg.theta) + bounds)) and msg.dt > 0
+        if not (all(map(math.isfinite, bounds)) and msg.dt > 0
                 and math.isfinite(msg.dt) and len(msg.u_min) == len(msg.u_max)):
-            self.get_logger().warning(f'ignored plant_info with theta={list(msg.theta)}, '
-                                      f'dt={msg.dt}, bounds {list(msg.u_min)}, '
-                                      f'{list(msg.u_max)}')
+            self.get_logger().warning(f'ignored plant_info with dt={msg.dt}, bounds '
+                                      f'{list(msg.u_min)}, {list(msg.u_max)}')
             return
         warnings = self.core.set_plant(PlantDescription(
-            family=msg.family, theta=tuple(msg.theta), dt=msg.dt, u_min=tuple(msg.u_min),
+            family=msg.family, dt=msg.dt, u_min=tuple(msg.u_min),
             u_max=tuple(msg.u_max), n_y=len(msg.output_names),
             lockstep=msg.clock_mode == 'lockstep'))
         self.rule.lockstep = msg.clock_mode == 'lockstep'
-        for text in set(warnings) - self._plant_warnings:  # once each, not at every reset
+        self._warn_once(warnings)
+
+    def _warn_once(self, warnings) -> None:
+        """Log each warning about the plant once, not at every reset or sample."""
+        for text in set(warnings) - self._plant_warnings:
             self.get_logger().warning(text)
         self._plant_warnings.update(warnings)
 

@@ -120,7 +120,7 @@ def test_a_live_change_between_queue_and_swap_step_applies_to_the_answer():
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
     config = ControllerConfig(trigger=TRIGGER)
     core = ControllerCore(config)
-    core.set_plant(PlantDescription('vanderpol', (0.5,), DT, (-1.0,), (1.0,), 2, True))
+    core.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
     core.offer_model(bundle)
     shorter = dataclasses.replace(config, mpc=MpcConfig(time_limit=30.0, horizon=10))
     for k in range(32):
