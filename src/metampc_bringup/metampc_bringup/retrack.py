@@ -122,7 +122,7 @@ def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence
     core = ControllerCore(parse_controller(values))
     plant_cfg = parse_plant(_with_defaults(PLANT_PARAMETERS,
                                            {**plant, 'theta': list(theta)})).plant
-    core.set_plant(PlantDescription(plant_cfg.family, tuple(theta), plant_cfg.dt,
+    core.set_plant(PlantDescription(plant_cfg.family, plant_cfg.dt,
                                     plant_cfg.u_min, plant_cfg.u_max, core.n_y, True))
     if weights is not None:
         core.offer_model(build_model(weights, 1, 'retrack', 'adapted', core.config.mpc,

@@ -8,7 +8,7 @@ import pytest
 from rosbags.typesys import get_types_from_msg
 
 METAMPC_TYPES = ['PlantOutput', 'PlantInfo', 'ControlInput', 'NssmWeights', 'MpcStatus',
-                 'TrainingProgress']
+                 'TrainingProgress', 'StepHold']
 
 
 def _file(package, name, ext='msg'):

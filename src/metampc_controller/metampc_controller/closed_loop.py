@@ -1,7 +1,8 @@
 """One lockstep episode of the controller core against the plant core, in one process (no ROS).
 
 What a lockstep run of the nodes computes, sample for sample: the plant resets to (theta, x0)
-and sends y_0 with u_0 = 0; for k = 0..steps-1 the controller observes (k, u_k, y_k) and its
+and sends y_0 with u_0 = 0; for k = 0..steps-1 the controller observes (k, u_k, y_k) with
+theta(k dt) (a theta_schedule's value, as y_k carries it) and its
 tick answers u_{k+1} (held over (k, k+1]), which the plant applies (clipped to its bounds) to
 give y_{k+1}. The experiment's tracking cost pairs y_{k+1} with the reference r_{k+1} of the
 tick that answered step k (``metrics.reference_pairs``), summed over the tracked outputs.
@@ -58,13 +59,15 @@ def run_episode(core: ControllerCore, plant: Plant, steps: int,
     y[0] = y0
     refs, ticks, escaped = [], [], (0 if plant.diverged else None)
     k = 0
+    theta_k = plant.theta     # theta(k dt), as y_k carries it
     while k < steps and escaped is None:
-        core.observe(k, u[k], y[k])
+        core.observe(k, u[k], y[k], theta_k)
         res = core.tick()
         ticks.append(res)
         refs.append(res.y_ref[0] if len(res.y_ref) else np.full(len(y0), np.nan))
         u[k + 1], _ = plant.saturate(res.u)
         y[k + 1] = plant.step(u[k + 1])
+        theta_k = plant.theta
         k += 1
         if plant.diverged:
             escaped = k

@@ -12,6 +12,7 @@ Pieces, each testable alone:
 * :class:`AnswerRule`: which tick answers which sample (each sample at most once).
 * :class:`PreModelInput`: the input before a model (zero or seeded excitation).
 * :func:`build_model`: checked weights -> NSSM predictor + latent MPC (outside the tick).
+* :class:`~metampc_controller.model_swap.ModelSwap`: from which tick a new model is used.
 * :class:`Tuning`: what a live parameter change replaces (weights, bounds, horizon, reference).
 * :class:`ControllerCore`: observe samples, tick -> :class:`TickResult`.
 """
@@ -26,14 +27,16 @@ from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_controller.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
+from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.nmpc import for_plant, Nmpc, NmpcConfig
+from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.planner import PlanResult
 from metampc_controller.prediction_error import PredictionError
 from metampc_controller.predictor import NssmPredictor
 from metampc_controller.references import make_reference
 from metampc_controller.weights_codec import DecodedWeights, WeightsError
+from metampc_plant.registry import get_family
 
 
 class History:
@@ -357,17 +360,22 @@ NO_ERRORS = (math.nan, math.nan, math.nan)
 
 @dataclass
 class PlantDescription:
-    """What the controller uses of PlantInfo: family name and theta (for the NMPC; theta
-    empty when unknown), sample time dt (s), input bounds (one per input), number of outputs,
-    clock mode."""
+    """What the controller uses of PlantInfo: family name (for the NMPC, whose theta comes
+    with the samples: :meth:`ControllerCore.observe`), sample time dt (s), input bounds (one
+    per input), number of outputs, clock mode."""
 
     family: str
-    theta: Tuple[float, ...]
     dt: float
     u_min: Tuple[float, ...]
     u_max: Tuple[float, ...]
     n_y: int
     lockstep: bool
+
+
+def nmpc_unavailable(reason: str) -> str:
+    """The line that says the nmpc planner has no model of the plant, and why."""
+    return (f'planner nmpc: the plant\'s model is not available ({reason}); answering with the '
+            'pre-model input')
 
 
 class _Setup(NamedTuple):
@@ -394,11 +402,12 @@ class ControllerCore:
         self.plant: Optional[PlantDescription] = None
         self._override: Optional[np.ndarray] = None
         self._nmpc: Optional[Nmpc] = None
-        self._theta_from_y = False  # the samples tell theta (observe)
+        self._theta: Tuple[float, ...] = ()     # the newest sample's theta (nmpc; (): untold)
+        self.nmpc_problem = ''      # why the nmpc planner has no model of the plant, or ''
         self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
         self._setup_lock = threading.Lock()     # the builder thread and a queued swap
         self.trigger = AdaptationTrigger(config.trigger)
-        self._queued: Optional[Tuple[int, ModelBundle]] = None  # (from step, requested model)
+        self.swap: ModelSwap[ModelBundle] = ModelSwap(self.trigger)
 
     # --- inputs from other callbacks ----------------------------------------------------
 
@@ -428,20 +437,15 @@ class ControllerCore:
         return self._setup.model_status
 
     def offer_model(self, bundle: ModelBundle, request_step: int = 0) -> Optional[int]:
-        """Use this model (built for :attr:`tuning`) from the next tick on (builder thread).
-
-        The answer to the pending adaptation request (`request_step` its step) is queued
-        instead: under a lockstep plant used from the request's swap step, otherwise from the
-        next tick (:mod:`adaptation_trigger`). Returns that step (0: the next tick) for a
-        queued answer, None otherwise."""
-        pending = self.trigger.pending
-        if request_step and pending is not None and request_step == pending.step:
-            lockstep = self.plant is not None and self.plant.lockstep
-            self._queued = (pending.swap_step if lockstep else 0, bundle)
-            return self._queued[0]
-        with self._setup_lock:
-            self._setup = self._setup._replace(model=bundle, model_status='ok')
-        return None
+        """Use this model (built for :attr:`tuning`) as the swap rules say (builder thread,
+        :mod:`~metampc_controller.model_swap`): the answer to the pending adaptation request
+        (`request_step` its step) is queued, and its step is returned (0: the next tick);
+        any other model is used from the next tick on (None)."""
+        start = self.swap.offer(bundle, request_step)
+        if start is None:
+            with self._setup_lock:
+                self._setup = self._setup._replace(model=bundle, model_status='ok')
+        return start
 
     def vet(self, bundle: ModelBundle, request_step: int = 0) -> str:
         """The check a new model must pass before :meth:`offer_model` (builder thread): ''
@@ -450,9 +454,7 @@ class ControllerCore:
         with the model in use at once. The yardstick is the model in use when `bundle` is of
         its method (an update of it), persistence otherwise."""
         config = self.tuning.config
-        pending = self.trigger.pending
-        answers = bool(request_step) and pending is not None and request_step == pending.step
-        if not applies(config.model_check, answers):
+        if not applies(config.model_check, self.swap.answers(request_step)):
             return ''
         u, y = self.history.snapshot()
         current = self.model
@@ -461,8 +463,7 @@ class ControllerCore:
                         config.mpc.horizon, config.model_check)
         if verdict.ok:
             return ''
-        if answers:
-            self.trigger.give_up()
+        self.swap.refused(request_step)
         return verdict.reason
 
     def reject_model(self, reason: str) -> None:
@@ -473,8 +474,7 @@ class ControllerCore:
     def waits_for_model(self) -> bool:
         """True if the newest sample's answer must wait for the requested model (lockstep:
         its swap step has come and the model is not there yet)."""
-        return (self.plant is not None and self.plant.lockstep and self._queued is None
-                and self.trigger.waits(self.history.step))
+        return self.swap.waits(self.history.step)
 
     def check_tuning(self, config: ControllerConfig) -> str:
         """What the running controller refuses of a parsed config, beyond its parse: '' or
@@ -511,8 +511,10 @@ class ControllerCore:
             if model is not None:
                 model = replace(model, mpc=latent_mpc(config.mpc, model.predictor))
             tuning = Tuning.of(config, version, self.n_u)
-            if config.planner == 'nmpc' and self.plant is not None and self._nmpc is not None:
-                self._build_nmpc(tuning, self.plant)    # here, never in the tick
+            if self._nmpc is not None:
+                self._build_nmpc(tuning)    # here, never in the tick
+            self.swap.retune(lambda answer: replace(
+                answer, mpc=latent_mpc(config.mpc, answer.predictor)))
             self._setup = setup._replace(tuning=tuning, model=model)
         self.trigger.config = config.trigger
 
@@ -521,26 +523,30 @@ class ControllerCore:
         """Sample time, s: the plant's, or 1 / rate_hz until plant_info has arrived."""
         return self.plant.dt if self.plant is not None else 1.0 / self.config.rate_hz
 
-    def _build_nmpc(self, tuning: Tuning, plant: PlantDescription) -> str:
-        """Build the NMPC of the plant with the tuning (no set-up: cheap) and swap it in as one
-        reference; '' or why not (then there is none)."""
+    def _build_nmpc(self, tuning: Tuning) -> str:
+        """Build the NMPC of the plant (plant_info: family, dt) with the samples' theta and the
+        tuning (no set-up: cheap) and swap it in as one reference; '' or why there is none. No
+        sample has told theta yet: none, and nothing to say."""
+        plant = self.plant
+        if plant is None or tuning.config.planner != 'nmpc':
+            return ''
         mpc = tuning.config.mpc
         try:
-            nmpc = for_plant(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r,
-                                        u_min=tuning.u_min, u_max=tuning.u_max, dt=plant.dt),
-                             plant.family, plant.theta)
-        except ValueError as err:     # unknown family, or no / a wrong theta
+            family = get_family(plant.family)
+            if not self._theta:
+                self._nmpc = None
+                return ''
+            nmpc = Nmpc(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r, u_min=tuning.u_min,
+                                   u_max=tuning.u_max, dt=plant.dt), family, self._theta)
+        except ValueError as err:     # unknown family, or a wrong theta
             self._nmpc = None
             return str(err)
         self._nmpc = nmpc
         return ''
 
     def set_plant(self, plant: PlantDescription) -> List[str]:
-        """Take the plant's description; returns warnings about disagreeing settings. Once the
-        samples tell theta (:meth:`observe`), theirs is kept: a plant_info re-sent at a
-        schedule's segment may arrive after later samples."""
-        if self._theta_from_y and self.plant is not None:
-            plant = replace(plant, theta=self.plant.theta)
+        """Take the plant's description; returns warnings about disagreeing settings."""
+        self.swap.lockstep = plant.lockstep
         tuning = self.tuning
         cfg = tuning.config
         warnings = []
@@ -557,14 +563,12 @@ class ControllerCore:
         if plant.lockstep and cfg.rate_hz * plant.dt < 1.0 - 1e-9:
             warnings.append(f'rate_hz {cfg.rate_hz} is below the lockstep plant\'s 1/dt = '
                             f'{1.0 / plant.dt}: steps will wait for input timeouts')
-        if cfg.planner == 'nmpc' and (self.plant is None or (
-                self.plant.family, self.plant.theta, self.plant.dt) != (
-                plant.family, plant.theta, plant.dt)):
-            error = self._build_nmpc(tuning, plant)
-            if error:
-                warnings.append(f'planner nmpc: the plant\'s model is not available ({error}); '
-                                'answering with the pre-model input')
+        known = self.plant
         self.plant = plant
+        if known is None or (known.family, known.dt) != (plant.family, plant.dt):
+            error = self._build_nmpc(tuning)
+            if error:
+                warnings.append(nmpc_unavailable(error))
         return warnings
 
     def set_override(self, values: Sequence[float]) -> str:
@@ -583,9 +587,12 @@ class ControllerCore:
         """Record plant sample k (and theta(k dt) where the plant tells it); True if it starts
         a new episode.
 
-        The NMPC yardstick is told the theta of every sample (a plant under a theta_schedule),
-        from the sample itself: plant_info, re-sent at a schedule's segments, arrives on its
-        own time, and a lockstep run must not depend on when.
+        The samples are the one channel of theta (planner nmpc; empty: the sample does not
+        tell it, the last told stays): the NMPC yardstick predicts with the theta of the
+        sample it plans from, under a theta_schedule too, ramps included; plant_info (family,
+        dt) is re-sent at a schedule's segments only, on its own time, and a lockstep run must
+        not depend on when. A theta that does not fit the family leaves no NMPC
+        (:attr:`nmpc_problem` says why; the ticks answer with the pre-model input).
 
         A new episode (a plant reset, or a gap in the steps) starts the planners cold, as
         on a fresh model: what the previous episode left (warm start, OSQP's duals and rho)
@@ -598,14 +605,29 @@ class ControllerCore:
                 if planner is not None:
                     planner.reset()
             self.trigger.new_episode()
-            self._queued = None
-        nmpc = self._nmpc
-        if nmpc is not None and len(theta) and self.config.planner == 'nmpc':
-            self._theta_from_y = True
-            if tuple(theta) != self.plant.theta:
-                nmpc.set_theta(theta)
-                self.plant = replace(self.plant, theta=tuple(theta))
+            self.swap.new_episode()
+        if self.config.planner == 'nmpc':
+            self._tell_theta(tuple(theta))
         return new_episode
+
+    def _tell_theta(self, theta: Tuple[float, ...]) -> None:
+        """A sample's theta (() : untold) for the NMPC (:meth:`observe`)."""
+        if not theta:
+            if not self._theta:
+                self.nmpc_problem = nmpc_unavailable('the plant\'s samples tell no theta')
+            return
+        if theta == self._theta:
+            return
+        self._theta = theta
+        nmpc, error = self._nmpc, ''
+        if nmpc is None:
+            error = self._build_nmpc(self.tuning)
+        else:
+            try:
+                nmpc.set_theta(theta)   # warm start kept
+            except ValueError as err:
+                self._nmpc, error = None, str(err)
+        self.nmpc_problem = nmpc_unavailable(error) if error else ''
 
     # --- the tick -----------------------------------------------------------------------
 
@@ -626,12 +648,10 @@ class ControllerCore:
         """Answer the newest sample (observe() must have been called at least once)."""
         history = self.history
         step = history.step
-        queued = self._queued
-        if queued is not None and step >= queued[0]:
-            self._queued = None
-            with self._setup_lock:
-                self._setup = self._setup._replace(model=queued[1], model_status='ok')
-            self.trigger.answered(queued[1].version)
+        with self._setup_lock:  # not between a retune's rebuild of the answer and its swap
+            answer = self.swap.due(step)
+            if answer is not None:
+                self._setup = self._setup._replace(model=answer, model_status='ok')
         tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)

@@ -9,12 +9,16 @@ Interfaces (relative names, so a namespace can wrap them):
   worker thread, in arrival order, then used from the next tick on; invalid weights are rejected
   with one log line and ``model_status = 'rejected: <reason>'``, the previous model stays.
 * ``plant_info`` (PlantInfo, subscribed, latched): sample time dt (reference times, the
-  excitation), theta (planner 'nmpc'), bounds and clock mode (checked, warnings only).
+  excitation), family (planner 'nmpc'), bounds and clock mode (checked, warnings only). Its
+  theta is not used: theta comes with every y (below).
 * ``reference`` (std_msgs/Float64MultiArray, subscribed, optional): one set-point per output
   that replaces the configured reference from the next tick on, until the next message; an
   empty array returns to the configured reference.
 * ``u`` (ControlInput, published, reliable): the input computed from y_k, with ``step = k``,
   held over (k, k+1], stamped with y_k's stamp, and the NSSM version that produced it.
+* ``u_hold`` (StepHold, published, reliable): under a lockstep plant, the step whose answer
+  waits for a requested model and the longest it may wait (``adapt_timeout``), so that the
+  plant waits with it instead of timing out.
 * ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it;
   ``config_version`` names the tuning the tick used (0 as started, +1 per live change).
 * ``set_active`` (metampc_msgs/SetActive): inactive, nothing is published (a lockstep plant
@@ -34,12 +38,15 @@ Adaptation in the loop (parameter ``adaptation``: periodic or triggered; rules a
 hysteresis in :mod:`metampc_controller.adaptation_trigger`): every MpcStatus carries the
 model's one-step and T-step prediction errors and the detector's state; a tick that asks for
 adaptation sets ``adapt_request`` (the learner adapts on the samples up to that step and
-answers with weights whose ``request_step`` names it). Under a lockstep plant the answer of
-the request's ``swap_step`` waits for that model (a 2-ms timer resumes it), so a seeded run
+answers with weights whose ``request_step`` names it). When a model is used is
+:class:`~metampc_controller.model_swap.ModelSwap`'s to say: under a lockstep plant the answer
+of the request's ``swap_step`` waits for that model (a 2-ms timer resumes it; ``u_hold``
+tells the plant, which waits as long, however long its ``input_timeout``), so a seeded run
 swaps at the same step on any machine; in real time the model is used from the tick after
 it was built and nothing waits. A request no model answers within ``adapt_timeout`` s of
 wall time is given up in either mode (the model in use is kept; the next may follow).
-The NMPC yardstick takes theta from every y (a plant under a theta_schedule).
+The NMPC yardstick takes theta from every y, its one channel (``PlantOutput.theta``: theta(k
+dt), under a theta_schedule too); a y without theta keeps the last told.
 
 Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
 plant, rate_hz = 1/dt). Each y is answered exactly once (controller_core.AnswerRule): a tick
@@ -71,7 +78,8 @@ from metampc_common.node_main import (declare_parameters, EventCounts, LiveParam
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_common.replies import Replies
-from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput
+from metampc_msgs.msg import (ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput,
+                              StepHold)
 from metampc_msgs.srv import SetActive
 import numpy as np
 from rclpy.clock import Clock, ClockType
@@ -131,6 +139,8 @@ class ControllerNode(Node):
                                     hold, held)
         self._pub_status = HeldPublisher(
             self.create_publisher(MpcStatus, 'mpc_status', hold.profile()), hold, held)
+        self._pub_hold = self.create_publisher(StepHold, 'u_hold', STREAM)
+        self._hold_msg = StepHold()
         self.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED)
         self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)
@@ -169,6 +179,8 @@ class ControllerNode(Node):
                        f'{list(msg.u_applied)}')
             return
         core.observe(msg.step, msg.u_applied, msg.y, msg.theta)
+        if core.nmpc_problem:
+            self._warn_once([core.nmpc_problem])
         self._stamp = msg.header.stamp
         if msg.diverged and self.rule.diverged():
             self._stopped_by_itself(f'y of step {msg.step} is diverged')
@@ -186,6 +198,13 @@ class ControllerNode(Node):
             if self._hold_timer is None:
                 self._hold_timer = self.create_timer(HOLD_POLL_S, self._on_hold,
                                                      clock=self._steady)
+                # The plant waits as long as this answer may (the request is given up by
+                # then), not its input_timeout: the swap stays exact.
+                hold = self._hold_msg
+                hold.header.stamp = self._stamp
+                hold.step = self.core.history.step
+                hold.hold_s = self.cfg.trigger.adapt_timeout
+                self._pub_hold.publish(hold)
             return
         retuning = self._retuning
         if retuning is not None:
@@ -292,18 +311,21 @@ class ControllerNode(Node):
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
         bounds = list(msg.u_min) + list(msg.u_max)
-        if not (all(map(math.isfinite, list(msg.theta) + bounds)) and msg.dt > 0
+        if not (all(map(math.isfinite, bounds)) and msg.dt > 0
                 and math.isfinite(msg.dt) and len(msg.u_min) == len(msg.u_max)):
-            self.get_logger().warning(f'ignored plant_info with theta={list(msg.theta)}, '
-                                      f'dt={msg.dt}, bounds {list(msg.u_min)}, '
-                                      f'{list(msg.u_max)}')
+            self.get_logger().warning(f'ignored plant_info with dt={msg.dt}, bounds '
+                                      f'{list(msg.u_min)}, {list(msg.u_max)}')
             return
         warnings = self.core.set_plant(PlantDescription(
-            family=msg.family, theta=tuple(msg.theta), dt=msg.dt, u_min=tuple(msg.u_min),
+            family=msg.family, dt=msg.dt, u_min=tuple(msg.u_min),
             u_max=tuple(msg.u_max), n_y=len(msg.output_names),
             lockstep=msg.clock_mode == 'lockstep'))
         self.rule.lockstep = msg.clock_mode == 'lockstep'
-        for text in set(warnings) - self._plant_warnings:  # once each, not at every reset
+        self._warn_once(warnings)
+
+    def _warn_once(self, warnings) -> None:
+        """Log each warning about the plant once, not at every reset or sample."""
+        for text in set(warnings) - self._plant_warnings:
             self.get_logger().warning(text)
         self._plant_warnings.update(warnings)
 

@@ -133,7 +133,7 @@ class ControllerConfig:
     n_y: int = 2
     n_u: int = 1
     planner: str = param('latent_mpc', 'latent_mpc is eq. mpc on the NSSM, nmpc the true-model '
-                                       'yardstick (theta from plant_info)', choices=PLANNERS)
+                                       'yardstick (theta from every y)', choices=PLANNERS)
     reference_kind: str = 'paper'
     reference_params: Dict[str, Any] = field(default_factory=dict)
     pre_model_input: str = param('zero', 'input before a model (excitation: seeded, within the '

@@ -32,7 +32,6 @@ from metampc_controller.planner import PlanResult
 # plant core, a harness outside the node).
 from metampc_plant.family import PlantFamily
 from metampc_plant.integrate import rk4_sample
-from metampc_plant.registry import get_family
 
 Weights = Union[float, Sequence[float]]
 
@@ -169,9 +168,3 @@ class Nmpc:
                           status='solved' if res.success else f'stopped: {res.message}',
                           iterations=int(res.nit), solve_time=time.perf_counter() - start,
                           fallback=fallback)
-
-
-def for_plant(config: NmpcConfig, family: str, theta: Sequence[float]) -> Nmpc:
-    """The NMPC of the plant family registered as `family` with parameters theta (as
-    plant_info names them); ValueError if the family is not installed or theta does not fit."""
-    return Nmpc(config, get_family(family), theta)

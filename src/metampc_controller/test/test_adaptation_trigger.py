@@ -105,7 +105,7 @@ def test_the_core_swaps_a_requested_model_exactly_at_the_swap_step_under_lockste
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
     config = ControllerConfig(trigger=TriggerConfig(adaptation='periodic', adapt_period=2.0))
     core = ControllerCore(config)
-    core.set_plant(PlantDescription('vanderpol', (0.5,), DT, (-1.0,), (1.0,), 2, True))
+    core.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
     core.offer_model(bundle)
     plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
     y, u, versions, requests = plant.output(), 0.0, [], []
@@ -124,7 +124,7 @@ def test_the_core_swaps_a_requested_model_exactly_at_the_swap_step_under_lockste
     assert versions[:30] == [1] * 30 and versions[30:] == [2] * 10
     # Without the model, the answer of the swap step waits (and not before).
     core2 = ControllerCore(config)
-    core2.set_plant(PlantDescription('vanderpol', (0.5,), DT, (-1.0,), (1.0,), 2, True))
+    core2.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
     core2.offer_model(bundle)
     for k in range(31):
         core2.observe(k, [0.0], [0.3, 0.0])
@@ -173,7 +173,7 @@ def _lockstep_core(trigger: TriggerConfig):
     bundle = build_model(DecodedWeights(*linearised_vdp_nssm(0.5, DT, 10)), 1, 'manual',
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
     core = ControllerCore(ControllerConfig(trigger=trigger))
-    core.set_plant(PlantDescription('vanderpol', (0.5,), DT, (-1.0,), (1.0,), 2, True))
+    core.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
     core.offer_model(bundle)
     return core, bundle
 

@@ -9,6 +9,7 @@ import pytest
 
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
                                                 History, PlantDescription, PreModelInput)
+from metampc_controller.closed_loop import run_episode
 from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.excitation import ExcitationConfig
 from metampc_controller.manual_model import linearised_vdp_nssm
@@ -155,18 +156,19 @@ def test_build_model_rejects_models_that_do_not_fit():
     assert (bundle.version, bundle.history) == (3, 10)
 
 
-def vdp_plant(theta: float, **fields) -> PlantDescription:
+def vdp_plant(**fields) -> PlantDescription:
     """plant_info of a lockstep van der Pol plant at dt = 0.1 s, |u| <= 1 (fields override)."""
-    return PlantDescription(**{**dict(family='vanderpol', theta=(theta,), dt=0.1, u_min=(-1.0,),
+    return PlantDescription(**{**dict(family='vanderpol', dt=0.1, u_min=(-1.0,),
                                       u_max=(1.0,), n_y=2, lockstep=True), **fields})
 
 
 def closed_loop(core: ControllerCore, plant: Plant, steps: int, start: int = 0):
-    """Run core against the plant core as the node does; returns the TickResults."""
+    """Run core against the plant core as the node does (theta(k dt) with every y_k);
+    returns the TickResults."""
     results = []
     y, u = plant.output(), 0.0
     for k in range(start, start + steps):
-        core.observe(k, [u], y)
+        core.observe(k, [u], y, plant.theta)
         res = core.tick()
         results.append(res)
         u = float(res.u[0])
@@ -201,7 +203,7 @@ def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
 def test_reference_time_restarts_with_each_episode_and_override():
     """'paper' reference: x1 = 0.8 until 7.5 s, then -0.5; times are step * dt."""
     core = ControllerCore(ControllerConfig(mpc=MpcConfig(horizon=2)))
-    core.set_plant(vdp_plant(0.0))
+    core.set_plant(vdp_plant())
     plant = Plant(PlantConfig())
     res = closed_loop(core, plant, 76)
     assert res[0].y_ref[:, 0].tolist() == [0.8, 0.8]
@@ -216,14 +218,15 @@ def test_reference_time_restarts_with_each_episode_and_override():
 
 
 def test_nmpc_planner_waits_for_plant_info_then_predicts_the_plant():
-    """With plant_info's theta, the NMPC's one-step prediction is the plant's response (same
-    RK4 model, 2 substeps against the plant's 10: ~1e-6 apart); with another theta it is not."""
+    """With plant_info's family and the samples' theta, the NMPC's one-step prediction is the
+    plant's response (same RK4 model, 2 substeps against the plant's 10: ~1e-6 apart); with
+    another theta told by a sample it is not."""
     cfg = ControllerConfig(planner='nmpc', mpc=MpcConfig(horizon=10), reference_kind='setpoint',
                            reference_params={'value': -0.4})
     core = ControllerCore(cfg)
     plant = Plant(PlantConfig(theta=(1.2,), x0=(0.5, 0.5)))
     assert closed_loop(core, plant, 1)[0].solver_status == 'no_plant_info'
-    warnings = core.set_plant(vdp_plant(1.2, u_min=(-0.5,), u_max=(0.5,)))
+    warnings = core.set_plant(vdp_plant(u_min=(-0.5,), u_max=(0.5,)))
     assert len(warnings) == 1 and 'exceed the plant' in warnings[0]
     for k in range(1, 4):
         y_before = plant.output()
@@ -232,26 +235,63 @@ def test_nmpc_planner_waits_for_plant_info_then_predicts_the_plant():
         assert (res.iterations > 0 or k > 1) and np.abs(res.u_plan).max() <= 1.0
         np.testing.assert_allclose(res.y_pred[0], plant.output(), atol=1e-5)
         assert np.abs(res.y_pred[0] - y_before).max() > 1e-2   # it did move
-    core.set_plant(vdp_plant(0.0))
-    res = closed_loop(core, plant, 1, start=4)[0]
+    core.observe(4, [float(res.u[0])], plant.output(), (0.0,))
+    res = core.tick()
+    plant.step(res.u)
     assert np.abs(res.y_pred[0] - plant.output()).max() > 1e-4
+
+
+def test_the_nmpc_follows_the_samples_theta_under_a_schedule():
+    """theta has one channel, the samples (ControllerCore.observe; plant_info tells none): in
+    the in-process loop (closed_loop.run_episode) as in the nodes, the NMPC predicts with
+    theta(k dt) of the sample it plans from, so under a schedule (a step 0.5 -> -1.0 at 2 s,
+    then a ramp to 1.5 over 3-5 s) its one-step prediction stays the plant's response at
+    every step. Before, run_episode told the core no theta and the NMPC kept theta 0.5."""
+    cfg = ControllerConfig(planner='nmpc', mpc=MpcConfig(horizon=10), reference_kind='setpoint',
+                           reference_params={'value': 0.4})
+    core = ControllerCore(cfg)
+    core.set_plant(vdp_plant())
+    plant = Plant(PlantConfig(theta=(0.5,), x0=(0.5, 0.0),
+                              theta_schedule=(2.0, 2.0, -1.0, 3.0, 5.0, 1.5)))
+    episode = run_episode(core, plant, 60)
+    assert episode.escaped_at is None
+    predicted = np.array([t.y_pred[0] for t in episode.ticks])
+    assert np.abs(predicted - episode.y[1:]).max() < 1e-5
+
+
+def test_a_sample_theta_that_does_not_fit_leaves_no_nmpc_and_the_loop_goes_on():
+    """A y whose theta does not fit the family (two values for van der Pol's one): no NMPC,
+    the reason in nmpc_problem, the pre-model input answers; a fitting theta brings the NMPC
+    back. A y that tells no theta: the reason says so. Before, the first raised in observe
+    (the controller node's callback)."""
+    core = ControllerCore(ControllerConfig(planner='nmpc'))
+    core.set_plant(vdp_plant())
+    core.observe(0, [0.0], [0.3, 0.0], (0.5, 1.0))
+    assert 'theta of family vanderpol needs 1 finite value(s)' in core.nmpc_problem
+    assert core.tick().solver_status == 'no_plant_info'
+    core.observe(1, [0.0], [0.3, 0.0], (0.5,))
+    assert core.nmpc_problem == '' and core.tick().solver_status == 'solved'
+    untold = ControllerCore(ControllerConfig(planner='nmpc'))
+    untold.set_plant(vdp_plant())
+    untold.observe(0, [0.0], [0.3, 0.0])
+    assert "samples tell no theta" in untold.nmpc_problem
+    assert untold.tick().solver_status == 'no_plant_info'
 
 
 def test_set_plant_warns_about_a_rate_below_the_lockstep_sample_rate():
     core = ControllerCore(ControllerConfig(rate_hz=5.0))
-    warnings = core.set_plant(vdp_plant(0.0))
+    warnings = core.set_plant(vdp_plant())
     assert len(warnings) == 1 and 'below the lockstep' in warnings[0]
-    assert core.set_plant(vdp_plant(0.0, lockstep=False)) == []
+    assert core.set_plant(vdp_plant(lockstep=False)) == []
 
 
 def test_set_plant_warns_about_a_plant_of_other_dimensions_and_an_unknown_model():
     core = ControllerCore(ControllerConfig(planner='nmpc'))
-    tank = PlantDescription('quadruple_tank', (0.7, 0.6), 5.0, (0.0, 0.0), (10.0, 10.0), 2,
-                            True)
+    tank = PlantDescription('quadruple_tank', 5.0, (0.0, 0.0), (10.0, 10.0), 2, True)
     warnings = core.set_plant(tank)
     assert len(warnings) == 1
     assert 'has 2 input(s) and 2 output(s), this controller 1 and 2' in warnings[0]
-    real = dataclasses.replace(vdp_plant(0.0), family='my_robot', theta=())
+    real = dataclasses.replace(vdp_plant(), family='my_robot')
     warnings = core.set_plant(real)
     assert len(warnings) == 1 and "planner nmpc: the plant's model is not available" in (
         warnings[0])
@@ -273,7 +313,7 @@ def test_each_episode_starts_cold_whatever_came_before(planner):
                                mpc=MpcConfig(horizon=10, time_limit=NO_TIME_LIMIT),
                                reference_kind='setpoint', reference_params={'value': 0.6})
         core = ControllerCore(cfg)
-        core.set_plant(vdp_plant(0.5))
+        core.set_plant(vdp_plant())
         if planner == 'latent_mpc':
             core.offer_model(manual_bundle(theta=0.5, mpc=cfg.mpc))
         return core
@@ -293,7 +333,7 @@ def test_retune_applies_from_the_next_tick_as_a_core_started_with_it(planner):
     cold at its first tick), with the new horizon, weights, bounds and set-point."""
     def core_with(cfg):
         core = ControllerCore(cfg)
-        core.set_plant(vdp_plant(0.5))
+        core.set_plant(vdp_plant())
         if planner == 'latent_mpc':
             core.offer_model(manual_bundle(theta=0.5, mpc=cfg.mpc))
         return core
@@ -329,7 +369,7 @@ def test_retune_applies_from_the_next_tick_as_a_core_started_with_it(planner):
 def test_check_tuning_refuses_what_the_running_controller_cannot_take():
     core = ControllerCore(ControllerConfig())
     assert core.check_tuning(ControllerConfig(mpc=MpcConfig(u_max=(2.0,)))) == ''  # no plant yet
-    core.set_plant(vdp_plant(0.5))
+    core.set_plant(vdp_plant())
     assert core.check_tuning(ControllerConfig(mpc=MpcConfig(u_max=(2.0,)))) == (
         "input bounds [[-1.0], [2.0]] exceed the plant's [[-1.0], [1.0]] (plant_info): a change "
         'must stay within them')
@@ -367,9 +407,8 @@ def test_run_episode_is_the_lockstep_loop_replayed_exactly():
     inputs gives its outputs bit for bit, each tick's first reference is the reference of the
     next step, and the tracking cost is the experiment's (metrics.tracking_metrics on the
     pairs y_{k+1}, r_{k+1}). A plant that escapes ends the episode at the escape."""
-    from metampc_controller.closed_loop import run_episode
     core = ControllerCore(ControllerConfig(mpc=MpcConfig(time_limit=NO_TIME_LIMIT)))
-    core.set_plant(vdp_plant(0.5))
+    core.set_plant(vdp_plant())
     core.offer_model(manual_bundle(theta=0.5))
     episode = run_episode(core, Plant(PlantConfig(theta=(0.5,))), 120, (0.5,), (0.0, 0.0))
     replay = Plant(PlantConfig(theta=(0.5,)))
@@ -382,6 +421,6 @@ def test_run_episode_is_the_lockstep_loop_replayed_exactly():
     assert episode.tracking_cost([0]) == pytest.approx(float(np.sum(err ** 2)), rel=1e-12)
     # An escape: theta = -1.5 from x0 = (3, 3) with the input held at 0 leaves the box.
     idle = ControllerCore(ControllerConfig(active=True))
-    idle.set_plant(vdp_plant(-1.5))
+    idle.set_plant(vdp_plant())
     escaped = run_episode(idle, Plant(PlantConfig(theta=(-1.5,))), 300, (-1.5,), (3.0, 3.0))
     assert escaped.escaped_at is not None and len(escaped.y) == escaped.escaped_at + 1

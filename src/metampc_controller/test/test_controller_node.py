@@ -268,7 +268,7 @@ def test_nmpc_reference_override_and_set_active(procs, probe):
     client = probe.node.create_client(SetActive, 'set_active')
     plant, ctl = loop.start(procs, PLANT, {**CONTROLLER, 'planner': 'nmpc', 'horizon': 10,
                                            'reference_values': [-0.5]})
-    loop.wait_tracked(-0.5)     # nmpc tracks with the plant_info theta
+    loop.wait_tracked(-0.5)     # nmpc tracks with the samples' theta
     st = loop.status[-1]
     assert (st.planner, st.model_version, st.model_status) == ('nmpc', 0, 'none')
     assert len(st.u_plan) == 10 and st.iterations > 0 and st.y_ref[0] == -0.5

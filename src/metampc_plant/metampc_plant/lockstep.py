@@ -1,6 +1,7 @@
 """The lockstep plant's rules: when y_0 goes out, which input answers a step, how long a step
-waits for it, and the sim-time stamp of every y. No rclpy: the node (plant_node) asks these
-rules and does the publishing; times are seconds of a monotonic wall clock that it passes in.
+waits for it (one its controller holds included), and the sim-time stamp of every y. No
+rclpy: the node (plant_node) asks these rules and does the publishing; times are seconds of a
+monotonic wall clock that it passes in.
 """
 from typing import Optional
 
@@ -11,7 +12,8 @@ GATE_SETTLE_S = 0.1
 
 
 class Lockstep:
-    """Start gate, stale inputs, input timeout and sim-time stamps of one lockstep plant.
+    """Start gate, stale inputs, input timeout, announced holds and sim-time stamps of one
+    lockstep plant.
 
     * Start gate: y_0 goes out once the graph has been matched (y subscribed, u published)
       without a break for ``settle_s``, or ``start_timeout`` s after the gate opened
@@ -20,6 +22,11 @@ class Lockstep:
       the plant's current step; any other is stale (ignored, counted).
     * Timeout: ``input_timeout`` s after each y without its answer, the plant steps with the
       held input (0: wait forever). The node arms a timer with :attr:`timeout_s` after each y.
+    * Announced hold: a controller that holds its answer to the current step (it waits for
+      a model it asked for, metampc_controller.model_swap) says so, with the longest it may
+      hold it (hold_s); the step then waits hold_s + input_timeout s from that notice
+      (:meth:`hold_timeout_s`), however long the timeout: the swap stays exact, and a plant
+      whose controller died while holding still moves on.
     * Stamps: the n-th y published since start (n = 0, 1, ...; resets included) is stamped
       n * dt, in whole nanoseconds of the rounded dt, so sim time never goes back and does not
       drift with float sums.
@@ -51,6 +58,14 @@ class Lockstep:
     def timeout_s(self) -> Optional[float]:
         """Wait for the answer to each y, s; None: wait forever."""
         return self._input_timeout if self._input_timeout > 0 else None
+
+    def hold_timeout_s(self, step: int, current: int, hold_s: float) -> Optional[float]:
+        """A controller holds its answer to `step` for at most `hold_s` s (finite, >= 0): the
+        wait from now for the answer to the current step, s; None if that changes nothing
+        (another step, before the start, or no timeout: the plant waits forever anyway)."""
+        if not self.answers(step, current) or self.timeout_s is None:
+            return None
+        return hold_s + self._input_timeout
 
     def gate(self, now: float, matched: bool) -> bool:
         """A look at the graph at `now`; True if y_0 is to go out now (then call :meth:`start`).

@@ -9,6 +9,9 @@ Interfaces (relative names, so a namespace can wrap them):
 * ``/clock`` (rosgraph_msgs/Clock, lockstep with ``publish_clock``): the sim time of the last
   y, so nodes started with ``use_sim_time:=true`` run on the plant's time.
 * ``u`` (ControlInput, subscribed, reliable): the input computed from y_k, held over (k, k+1].
+* ``u_hold`` (StepHold, subscribed, reliable; lockstep): the controller holds its answer to
+  step k for at most ``hold_s`` s (it waits for a model it asked for); that step then waits
+  ``hold_s`` + ``input_timeout`` s from the notice instead of ``input_timeout`` from y_k.
 * ``reset`` (ResetPlant service): new theta, x0 and/or theta_schedule; the step restarts at
   0 and y_0 is sent.
 
@@ -29,10 +32,13 @@ Clock modes:
   subscription callback, so a round trip costs the DDS latency plus one RK4 sample, with no
   polling. Inputs for another step are ignored and counted (stale). Without an answer within
   ``input_timeout`` s of wall time the plant holds the last input and steps anyway (throttled
-  warning), so a plant alone still moves. y_0 is published once ``y`` has had a subscriber
-  and ``u`` a publisher for ``lockstep.GATE_SETTLE_S`` (or after ``start_timeout``), so a
-  controller started together with the plant answers every step and a seeded run is
-  reproducible. These rules are :class:`metampc_plant.lockstep.Lockstep`'s; the node wires them.
+  warning), so a plant alone still moves; a step the controller announced it holds
+  (``u_hold``) waits for as long as it said, then ``input_timeout``, so an adaptation in the
+  loop that takes longer than the timeout still swaps at its exact step. y_0 is published
+  once ``y`` has had a subscriber and ``u`` a publisher for ``lockstep.GATE_SETTLE_S`` (or
+  after ``start_timeout``), so a controller started together with the plant answers every
+  step and a seeded run is reproducible. These rules are
+  :class:`metampc_plant.lockstep.Lockstep`'s; the node wires them.
 * realtime: a steady wall-clock timer at ``rate_hz`` steps the plant with the latest input.
 
 The other nodes of a lockstep run take ``use_sim_time:=true``: their clock is then the plant's
@@ -71,7 +77,7 @@ from metampc_common.node_main import (declare_parameters, EventCounts, LiveParam
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, STREAM
 from metampc_common.replies import Replies
-from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
+from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput, StepHold
 from metampc_msgs.srv import ResetPlant
 from metampc_plant.lockstep import Lockstep
 from metampc_plant.plant_params import PARAMETERS, parse_params, PlantNodeConfig
@@ -85,7 +91,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Header
 
 GATE_PERIOD_S = 0.02    # lockstep start: how often to look for a subscriber and a publisher
-COUNTERS = ('stale', 'rejected', 'timeouts', 'dropped')
+COUNTERS = ('stale', 'rejected', 'timeouts', 'holds', 'dropped')
 
 
 class PlantNode(Node):
@@ -123,6 +129,7 @@ class PlantNode(Node):
         self.create_service(ResetPlant, 'reset', self._replies.wrap(self._on_reset))
 
         self._timeout_timer = None
+        self._hold_timer = None         # the timeout of a step the controller holds
         self._gate_timer = None
         self._tick_timer = None
         if lockstep:
@@ -134,6 +141,7 @@ class PlantNode(Node):
                     autostart=False)
             self._gate_timer = self.create_timer(GATE_PERIOD_S, self._on_gate,
                                                  clock=self._steady)
+            self.create_subscription(StepHold, 'u_hold', self._on_hold, STREAM)
         else:
             period = 1.0 / self.cfg.sample_rate_hz()
             self._tick_timer = self.create_timer(period, self._on_tick, clock=self._steady)
@@ -177,6 +185,9 @@ class PlantNode(Node):
         if self._pub_clock is not None:
             self._clock_msg.clock = msg.header.stamp
             self._pub_clock.publish(self._clock_msg)
+        if self._hold_timer is not None:
+            self.destroy_timer(self._hold_timer)
+            self._hold_timer = None
         if self._timeout_timer is not None:
             self._timeout_timer.reset()
 
@@ -264,6 +275,21 @@ class PlantNode(Node):
         self._warn('timeouts', f'no input for step {self.plant.step_index} within '
                    f'{self.cfg.input_timeout} s; holding u = {list(self._held_u)}')
         self._advance(self._held_u)
+
+    def _on_hold(self, msg: StepHold) -> None:
+        """The controller holds its answer to msg.step: wait as long as it said, then the
+        input timeout (Lockstep.hold_timeout_s)."""
+        hold_s = msg.hold_s if math.isfinite(msg.hold_s) and msg.hold_s >= 0 else 0.0
+        wait = self.lockstep.hold_timeout_s(msg.step, self.plant.step_index, hold_s)
+        if wait is None:
+            return
+        self._timeout_timer.cancel()
+        if self._hold_timer is not None:
+            self.destroy_timer(self._hold_timer)
+        self._hold_timer = self.create_timer(wait, self._on_timeout, clock=self._steady)
+        self._counts['holds'] += 1
+        self.get_logger().info(f'the controller holds step {msg.step} for up to {hold_s:g} s '
+                               f'(it waits for a model): step {msg.step} waits {wait:g} s')
 
     def _on_gate(self) -> None:
         matched = (self._pub_y.get_subscription_count() >= self.cfg.start_subscribers

@@ -79,6 +79,15 @@ def test_input_timeout():
     assert rules(input_timeout=0.0).timeout_s is None           # wait forever
 
 
+def test_a_step_the_controller_holds_waits_its_hold_then_the_input_timeout():
+    lock = rules(input_timeout=0.5)
+    assert lock.hold_timeout_s(3, 3, 20.0) is None              # before the start: stale
+    lock.start()
+    assert lock.hold_timeout_s(3, 3, 20.0) == 20.5              # the current step
+    assert [lock.hold_timeout_s(s, 3, 20.0) for s in (2, 4)] == [None, None]   # other steps
+    assert rules(input_timeout=0.0).hold_timeout_s(0, 0, 20.0) is None   # waits forever
+
+
 def test_stamps_advance_by_dt_per_y_across_resets():
     lock = rules(dt=0.1)
     assert lock.stamp_ns == 0                       # plant_info before y_0
