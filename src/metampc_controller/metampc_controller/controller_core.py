@@ -449,12 +449,15 @@ class ControllerCore:
 
     def vet(self, bundle: ModelBundle, request_step: int = 0) -> str:
         """The check a new model must pass before :meth:`offer_model` (builder thread): ''
-        to fly it, else the reason (:mod:`model_check`), and the model in use stays; a refused
+        to fly it, else the reason (:mod:`model_check`), and the model in use stays. Under
+        ``requested`` every model naming a request is checked, late ones included; a refused
         answer to the pending adaptation request ends that request, so that the loop goes on
         with the model in use at once. The yardstick is the model in use when `bundle` is of
         its method (an update of it), persistence otherwise."""
         config = self.tuning.config
-        if not applies(config.model_check, self.swap.answers(request_step)):
+        # Any answer to one of our requests, also a late one (its request given up or
+        # forgotten by a reset), which is then used from the next tick like any model.
+        if not applies(config.model_check, bool(request_step)):
             return ''
         u, y = self.history.snapshot()
         current = self.model

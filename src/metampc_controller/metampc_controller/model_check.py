@@ -42,8 +42,9 @@ class ModelCheckConfig:
     """Settings of the check (node parameters, live)."""
 
     model_check: str = param('requested', 'which new models must pass the check before they '
-                                          'fly: requested (answers to adaptation requests), '
-                                          'all, off', choices=CHECKED, live=True)
+                                          'fly: requested (answers to adaptation requests, '
+                                          'late ones too), all, off', choices=CHECKED,
+                             live=True)
     model_check_margin: float = param(0.25, 'a new model may predict up to this fraction worse '
                                             'than the model in use and still fly', ge=0,
                                       live=True)

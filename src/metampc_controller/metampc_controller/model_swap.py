@@ -16,10 +16,11 @@ from which tick on it is used. Steps are plant steps k: the tick of step k answe
   - in real time from the next tick, before or after r + swap_delay: nothing waits.
 
 * The check (:mod:`~metampc_controller.model_check`, ``model_check``) judges the answers to the
-  controller's own requests (``requested``), every model (``all``) or none (``off``); a model it
-  refuses is never used and the model in use stays. A refused answer ends the request, so the
-  tick waiting for it goes on with the model in use at once; so does a request given up after
-  ``adapt_timeout`` s of wall time (the node's timer).
+  controller's own requests (``requested``; late ones too, whose request was given up), every
+  model (``all``) or none (``off``); a model it refuses is never used and the model in use
+  stays. A refused answer ends the request, so the tick waiting for it goes on with the model
+  in use at once; so does a request given up after ``adapt_timeout`` s of wall time (the
+  node's timer).
 * A live change of the tuning rebuilds a queued answer's QP for it, as the model in use's.
 * A new episode (a plant reset) forgets the queued answer with the request.
 

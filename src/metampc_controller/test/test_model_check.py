@@ -102,6 +102,26 @@ def test_a_model_the_check_must_refuse_is_refused_and_the_loop_goes_on():
     assert abs(plant.output()[0] - 0.5) < 1e-2
 
 
+def test_a_late_answer_to_a_given_up_request_is_checked_too():
+    """Under `requested`, an answer whose request was given up (it came after adapt_timeout)
+    is still an answer to this controller's request: it is used from the next tick if it
+    passes, so it must pass the check like a timely one."""
+    core = ControllerCore(ControllerConfig(reference_kind='setpoint',
+                                           reference_params={'value': 0.5}, mpc=MPC))
+    assert core.tuning.config.model_check.model_check == 'requested'
+    core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
+    plant = Plant(PlantConfig(theta=(0.5,)))
+    y, u = plant.output(), 0.0
+    for k in range(60):
+        core.observe(k, [u], y)
+        u = float(core.tick().u[0])
+        y = plant.step([u])
+    late = build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2)
+    assert core.trigger.pending is None     # no request pending: any earlier one is over
+    assert core.vet(late, request_step=40).startswith('check: its 20-step prediction error')
+    assert core.vet(late) == '', 'a model naming no request is not checked under requested'
+
+
 def test_history_snapshot_is_the_episode_oldest_first():
     core = ControllerCore(ControllerConfig())
     for k in range(5):
