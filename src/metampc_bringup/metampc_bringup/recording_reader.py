@@ -77,28 +77,34 @@ class Recording:
     message_count: int = 0
     start_ns: Optional[int] = None
     end_ns: Optional[int] = None
-    loaded: bool = True     # whether `messages` holds the messages (read with messages=True)
+    loaded: bool = True     # `messages` holds the messages (read with messages=True)
 
     def run_config(self) -> Dict[str, Any]:
         """The run configuration the recorder stored (``metampc`` record), {} if none."""
         text = self.metadata.get(RUN_METADATA_NAME, {}).get('config')
         return json.loads(text) if text else {}
 
-    def decoded(self, topics: Optional[Iterable[str]] = None
-                ) -> Iterator[Tuple[RecordedTopic, RawMessage, Any]]:
-        """(topic, raw message, decoded message) for `topics` (default all).
+    def raw(self, topics: Optional[Iterable[str]] = None) -> Iterator[RawMessage]:
+        """The messages of `topics` (default all).
 
         From a recording read with its messages: in log-time order. Otherwise the file is read
         again, streamed, in file order (the order the recorder received them: log-time order
-        unless its clock stepped back), holding one chunk and one message at a time. Decoded
-        messages have the fields of the ROS message as attributes (mcap_ros2).
+        unless its clock stepped back), holding one chunk and one message at a time.
         """
         wanted = set(self.topics if topics is None else topics)
+        if not self.loaded:
+            return _scan(self.path, _Summary(), wanted)
+        return (m for m in self.messages if m.topic in wanted)
+
+    def decoded(self, topics: Optional[Iterable[str]] = None
+                ) -> Iterator[Tuple[RecordedTopic, RawMessage, Any]]:
+        """(topic, raw message, decoded message) for `topics` (default all), in the order of
+        :meth:`raw`. Decoded messages have the fields of the ROS message as attributes
+        (mcap_ros2).
+        """
         factory = DecoderFactory()
         decoders: Dict[str, Callable[[bytes], Any]] = {}
-        for raw in self.messages if self.loaded else _scan(self.path, _Summary(), wanted):
-            if raw.topic not in wanted:
-                continue
+        for raw in self.raw(topics):
             topic = self.topics[raw.topic]
             if raw.topic not in decoders:
                 decoder = factory.decoder_for(topic.message_encoding, topic.schema)

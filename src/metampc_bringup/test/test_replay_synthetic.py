@@ -74,6 +74,28 @@ def test_replay_memory_does_not_grow_with_the_message_size(tmp_path):
     assert peak / n < 600, f'{peak / n:.0f} bytes a message at the peak'
 
 
+PLAY_PEAK = """import sys, tracemalloc
+from metampc_bringup.player import PlayConfig, run_player
+tracemalloc.start()
+counts = run_player(sys.argv[1], PlayConfig(rate=1e6))
+print(sum(counts.values()), tracemalloc.get_traced_memory()[1])"""
+
+
+def test_play_streams_the_recording(tmp_path):
+    # --play of 2000 and of 8000 ticks (horizon 50), as fast as it goes (no subscriber): the
+    # peak of Python's allocations does not grow with the recording's length.
+    got = {}
+    for ticks in (2000, 8000):
+        path = _written(tmp_path / f'{ticks}.mcap', SyntheticRun(ticks=ticks, horizon=50))
+        child = subprocess.run([sys.executable, '-c', PLAY_PEAK, str(path)],
+                               capture_output=True, text=True, timeout=300)
+        assert child.returncode == 0, child.stderr
+        got[ticks] = [int(v) for v in child.stdout.split()[-2:]]
+    (short, short_peak), (long, long_peak) = got[2000], got[8000]
+    assert long - short > 17_000
+    assert long_peak - short_peak < 1_000_000, f'{(long_peak - short_peak) / 2 ** 20:.1f} MiB'
+
+
 def test_an_injected_input_is_counted_apart_and_breaks_nothing(tmp_path):
     # docs/nodes.md's `ros2 topic pub --once /u "{step: 3, ...}"` in the middle of a run.
     run = SyntheticRun(ticks=3000, episode_steps=1000, missed_every=100)
