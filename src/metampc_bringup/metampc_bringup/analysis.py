@@ -2,7 +2,8 @@
 
 ``analyse(path)`` reads an MCAP file or a run folder holding one
 (:mod:`~metampc_bringup.recording_reader`), picks the metampc topics by message type, rebuilds
-the series (:mod:`~metampc_bringup.run_series`), computes the metrics
+the series (:mod:`~metampc_bringup.run_series`; the file is streamed through, message by
+message, so memory does not hold the recording), computes the metrics
 (:mod:`~metampc_bringup.metrics`), and writes ``report.json`` and the PNG plots
 (:mod:`~metampc_bringup.plots`) next to the recording. The recorder's run configuration (the
 ``metampc`` metadata record) is copied into the report; its key ``tracked_outputs`` (a list of

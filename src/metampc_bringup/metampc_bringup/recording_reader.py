@@ -4,7 +4,9 @@ The file is read front to back with :class:`mcap.stream_reader.StreamReader`, wh
 summary: a finished recording yields everything (and its Statistics record), one whose writer
 was killed yields every record up to the first incomplete one, i.e. every message of its
 complete chunks. Messages are decoded with `mcap_ros2`'s decoder from the schemas embedded in
-the file, so no ROS installation is needed. No rclpy here.
+the file, so no ROS installation is needed. :func:`read_recording` keeps every message in
+memory, or (``messages=False``) none: :meth:`Recording.raw` and :meth:`Recording.decoded` then
+stream the file again, for recordings of any length. No rclpy here.
 """
 import glob
 import json
