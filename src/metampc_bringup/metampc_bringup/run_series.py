@@ -152,9 +152,6 @@ class _Table:
             if kind == 'v':
                 self.data[name + '#'] = array('q')
 
-    def __len__(self) -> int:
-        return len(self.log_time)
-
     def add(self, log_time: int, arrival: int, values: Dict[str, Any]) -> None:
         self.log_time.append(log_time)
         self.arrival.append(arrival)
@@ -173,22 +170,28 @@ class _Table:
         return np.lexsort((np.frombuffer(self.arrival, dtype=np.int64),
                            np.frombuffer(self.log_time, dtype=np.int64)))
 
-    def column(self, name: str, order: np.ndarray) -> Any:
-        """Column `name` in `order`: [n], [n, width] for vectors, a list for strings."""
+    def column(self, name: str, rows: np.ndarray, pad: bool = False) -> Any:
+        """Column `name` at `rows` (indices): [n]; a list for strings; [n, width] for vectors,
+        whose lengths must agree (ValueError) unless `pad`: then NaN fills the shorter."""
         kind, values = self.kinds.get(name), self.data.get(name)
         if name == 'log_time':
-            return np.frombuffer(self.log_time, dtype=np.int64)[order]
+            return np.frombuffer(self.log_time, dtype=np.int64)[rows]
         if kind == 's':
-            return [values[i] for i in order.tolist()]
+            return [values[i] for i in rows.tolist()]
         if kind != 'v':
-            return np.frombuffer(values, dtype=np.int64 if kind == 'q' else float)[order]
+            return np.frombuffer(values, dtype=np.int64 if kind == 'q' else float)[rows]
         lengths = np.frombuffer(self.data[name + '#'], dtype=np.int64)
-        if lengths.size == 0:
-            return np.zeros((0, 0))
-        if np.any(lengths != lengths[0]):
+        starts = (np.cumsum(lengths) - lengths)[rows]
+        lengths = lengths[rows]
+        width = int(lengths.max()) if lengths.size else 0
+        if not pad and np.any(lengths != width):
             raise ValueError(f'{name} changes length across messages '
                              f'({sorted(set(lengths.tolist()))[:5]})')
-        return np.frombuffer(values, dtype=float).reshape(lengths.size, lengths[0])[order]
+        there = np.arange(width)[None, :] < lengths[:, None]
+        matrix = np.full((lengths.size, width), np.nan)
+        matrix[there] = np.frombuffer(values, dtype=float)[
+            (starts[:, None] + np.arange(width)[None, :])[there]]
+        return matrix
 
 
 _OUTPUT_COLUMNS = {'step': 'q', 'stamp': 'd', 'y': 'v', 'u_applied': 'v', 'saturated': 'q',
@@ -261,11 +264,12 @@ class SeriesBuilder:
 
     def _add_status(self, key: Tuple[int, int], msg: Any) -> None:
         # Of y_ref only the first row counts (StatusSeries.y_ref0); its width n_y is the
-        # outputs', known from the first output, else the whole y_ref is kept.
-        y_ref = msg.y_ref
-        head = list(y_ref[:self._n_y] if self._n_y is not None else y_ref)
+        # outputs' (known from the first output), which q has too; else all of y_ref is kept.
+        y_ref, q = msg.y_ref, getattr(msg, 'q', ())
+        n_y = self._n_y if self._n_y is not None else len(q) or None
+        head = list(y_ref[:n_y] if n_y is not None else y_ref)
         if self._q is None or key < self._q[0]:
-            self._q = (key, list(getattr(msg, 'q', ())))
+            self._q = (key, list(q))
         self._status.add(*key, {
             **{name: getattr(msg, name) for name in (
                 'step', 'cost', 'solve_time', 'tick_time', 'iterations', 'model_version',
@@ -284,11 +288,7 @@ class SeriesBuilder:
             diverged=out.column('diverged', o) != 0)
         n_y = outputs.y.shape[1]
         status = self._status_series(n_y)
-        inp, i = self._inputs, self._inputs.order()
-        inputs = InputSeries(
-            step=inp.column('step', i), stamp=inp.column('stamp', i),
-            log_time=inp.column('log_time', i), u=inp.column('u', i),
-            model_version=inp.column('model_version', i))
+        i = self._inputs.order()
         ours = self._controller_inputs(i)
         prog, p = self._progress, self._progress.order()
         progress = ProgressSeries(
@@ -297,20 +297,26 @@ class SeriesBuilder:
             total=prog.column('total', p), loss=prog.column('loss', p),
             elapsed=prog.column('elapsed', p), skipped_tasks=prog.column('skipped_tasks', p))
         return RunSeries(
-            outputs, _select(inputs, ours), status, progress,
+            outputs, self._input_series(i[ours]), status, progress,
             [w for _, w in sorted(self._weights, key=lambda kw: kw[0])],
             self._plant_info[1] if self._plant_info else None,
             [c for _, c in sorted(self._changes, key=lambda kc: kc[0])],
-            _select(inputs, ~ours))
+            self._input_series(i[~ours], pad=True))
+
+    def _input_series(self, rows: np.ndarray, pad: bool = False) -> InputSeries:
+        """The inputs at `rows`; `pad`: of any lengths of u (foreign inputs: NaN-padded)."""
+        inp = self._inputs
+        return InputSeries(
+            step=inp.column('step', rows), stamp=inp.column('stamp', rows),
+            log_time=inp.column('log_time', rows), u=inp.column('u', rows, pad),
+            model_version=inp.column('model_version', rows))
 
     def _status_series(self, n_y: int) -> StatusSeries:
         st, s = self._status, self._status.order()
-        heads = np.frombuffer(st.data['y_ref#'], dtype=np.int64)
-        starts = np.concatenate([[0], np.cumsum(heads)[:-1]]).astype(np.int64)[s]
-        complete = np.frombuffer(st.data['y_ref_len'], dtype=np.int64)[s] >= n_y
-        y_ref0 = np.full((len(s), n_y), np.nan)
-        flat = np.frombuffer(st.data['y_ref'], dtype=float)
-        y_ref0[complete] = flat[starts[complete, None] + np.arange(n_y)[None, :]]
+        heads = st.column('y_ref', s, pad=True)[:, :n_y]
+        y_ref0 = np.full((s.size, n_y), np.nan)     # NaN: a status without a reference
+        y_ref0[:, :heads.shape[1]] = heads
+        y_ref0[np.frombuffer(st.data['y_ref_len'], dtype=np.int64)[s] < n_y] = np.nan
         return StatusSeries(
             step=st.column('step', s), stamp=st.column('stamp', s),
             log_time=st.column('log_time', s), cost=st.column('cost', s),
@@ -333,13 +339,6 @@ class SeriesBuilder:
         rank[np.lexsort((arrivals, times))] = np.arange(times.size)
         return controller_inputs(rank[:order.size], inp.column('step', order),
                                  rank[order.size:], st.column('step', s))
-
-
-def _select(inputs: InputSeries, mask: np.ndarray) -> InputSeries:
-    """The inputs where `mask` [n] is true."""
-    return InputSeries(inputs.step[mask], inputs.stamp[mask], inputs.log_time[mask],
-                       inputs.u[mask] if inputs.u.shape[0] else inputs.u,
-                       inputs.model_version[mask])
 
 
 def _plant_info(info: Any) -> Dict[str, Any]:

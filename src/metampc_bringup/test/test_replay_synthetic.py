@@ -116,6 +116,27 @@ def test_an_injected_input_is_counted_apart_and_breaks_nothing(tmp_path):
     assert injected['recording']['topics']['/u']['count'] == answered + 1
 
 
+def test_a_foreign_input_of_another_width_is_counted_not_an_error():
+    # `ros2 topic pub --once /u ... "{step: 3, u: [0.2, 0.1]}"` to a plant of one input.
+    builder = SeriesBuilder()
+    header = Message(stamp=Message(sec=0, nanosec=0))
+    for k in range(6):
+        builder.add(CONTROL_INPUT, Message(header=header, step=k, u=[0.1 * k],
+                                           model_version=1), 10 * k)
+        builder.add(MPC_STATUS, Message(
+            header=header, step=k, cost=0.0, solve_time=0.0, tick_time=0.0,
+            solver_status='solved', iterations=1, fallback=False, terminal_fallback=False,
+            model_version=1, planner='latent_mpc', y_ref=[], q=[]), 10 * k + 1)
+        if k == 4:
+            builder.add(CONTROL_INPUT, Message(header=header, step=3, u=[0.2, 0.1],
+                                               model_version=0), 10 * k + 5)
+    series = builder.build()
+    assert series.inputs.step.tolist() == list(range(6))
+    assert series.inputs.u[:, 0].tolist() == [0.1 * k for k in range(6)]
+    assert series.foreign_inputs.step.tolist() == [3]
+    assert series.foreign_inputs.u.tolist() == [[0.2, 0.1]]
+
+
 def test_pairing_allows_drift_between_the_streams_and_not_across_episodes():
     # Recorded order: a foreign input of step 12; episode 0 (steps 0..9) whose statuses are
     # recorded 3 messages after their inputs; episode 1 (steps 0..14) whose statuses come
