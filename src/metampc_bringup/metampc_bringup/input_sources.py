@@ -46,10 +46,10 @@ def controller_inputs(input_order: Sequence[int], input_steps: Sequence[int],
     indices[np.asarray(status_order, dtype=np.int64)] = np.arange(len(status_steps))
     steps = (np.asarray(input_steps, dtype=np.int64).tolist(),
              np.asarray(status_steps, dtype=np.int64).tolist())
-    # Unpaired messages per side (inputs, statuses) by step, each (index, statuses recorded
-    # before it), oldest first; and all of them in recorded order, to drop those that fell
+    # Unpaired messages per side (inputs, statuses): their indices by step, oldest first; and
+    # (step, index, statuses recorded before it) in recorded order, to drop those that fell
     # out of the window.
-    waiting: Tuple[Dict[int, Deque[Tuple[int, int]]], ...] = ({}, {})
+    waiting: Tuple[Dict[int, Deque[int]], ...] = ({}, {})
     queue: Tuple[Deque[Tuple[int, int, int]], ...] = (deque(), deque())
     statuses = 0
     for kind, index in zip(kinds.tolist(), indices.tolist()):
@@ -57,20 +57,20 @@ def controller_inputs(input_order: Sequence[int], input_steps: Sequence[int],
             while queue[side] and queue[side][0][2] < statuses - window:
                 step, i, _ = queue[side].popleft()
                 pending = waiting[side].get(step)
-                if pending and pending[0][0] == i:
+                if pending and pending[0] == i:
                     _pop(waiting[side], step)
         step = steps[kind][index]
         if step in waiting[1 - kind]:
-            i, _ = _pop(waiting[1 - kind], step)
+            i = _pop(waiting[1 - kind], step)
             paired[index if kind == 0 else i] = True
         else:
-            waiting[kind].setdefault(step, deque()).append((index, statuses))
+            waiting[kind].setdefault(step, deque()).append(index)
             queue[kind].append((step, index, statuses))
         statuses += kind
     return paired
 
 
-def _pop(waiting: Dict[int, Deque[Tuple[int, int]]], step: int) -> Tuple[int, int]:
+def _pop(waiting: Dict[int, Deque[int]], step: int) -> int:
     """The oldest waiting message of `step`, removed (and its step once none waits)."""
     pending = waiting[step]
     got = pending.popleft()
