@@ -2,7 +2,8 @@
 
 ``analyse(path)`` reads an MCAP file or a run folder holding one
 (:mod:`~metampc_bringup.recording_reader`), picks the metampc topics by message type, rebuilds
-the series (:mod:`~metampc_bringup.run_series`), computes the metrics
+the series (:mod:`~metampc_bringup.run_series`; the file is streamed through, message by
+message, so memory does not hold the recording), computes the metrics
 (:mod:`~metampc_bringup.metrics`), and writes ``report.json`` and the PNG plots
 (:mod:`~metampc_bringup.plots`) next to the recording. The recorder's run configuration (the
 ``metampc`` metadata record) is copied into the report; its key ``tracked_outputs`` (a list of
@@ -54,7 +55,9 @@ def select_topics(topics: Dict[str, RecordedTopic],
 
 def series_from_recording(recording: Recording,
                           overrides: Optional[Dict[str, str]] = None) -> RunSeries:
-    """The run's series from the selected topics of a recording (log-time order)."""
+    """The run's series from the selected topics of a recording (log-time order); streamed
+    message by message into a SeriesBuilder when the recording was read without its
+    messages."""
     selected = select_topics(recording.topics, overrides)
     builder = SeriesBuilder()
     for topic, raw, msg in recording.decoded(selected.values()):
@@ -115,8 +118,8 @@ def analyse(path: str, out_dir: Optional[str] = None, tracked: Optional[Sequence
         FileExistsError: `out_dir` holds a report_name file that is not a report of this
             module (nothing is written then).
     """
-    recording = read_recording(path)
-    if not recording.messages:
+    recording = read_recording(path, messages=False)    # streamed: any size in bounded memory
+    if not recording.message_count:
         raise ValueError(f'{recording.path} holds no message ({os.path.getsize(recording.path)} '
                          'bytes: cut short before the first one?); nothing to analyse')
     config = recording.run_config()
@@ -141,18 +144,18 @@ def analyse(path: str, out_dir: Optional[str] = None, tracked: Optional[Sequence
         written = write_plots(series, out_dir,
                               (bounds['u_min'], bounds['u_max']) if bounds else None,
                               metrics['tracking']['tracked_outputs'])
-    times = [m.log_time for m in recording.messages]
+    start, end = recording.start_ns, recording.end_ns
     report = json_safe({
         'generator': GENERATOR,
         'recording': {
             'path': os.path.abspath(recording.path),
             'complete': recording.complete,
-            'message_count': len(recording.messages),
+            'message_count': recording.message_count,
             'topics': {t.name: {'type': t.type_name, 'count': t.count}
                        for t in recording.topics.values()},
-            'start_ns': min(times) if times else None,
-            'end_ns': max(times) if times else None,
-            'duration_s': (max(times) - min(times)) * 1e-9 if times else 0.0,
+            'start_ns': start,
+            'end_ns': end,
+            'duration_s': (end - start) * 1e-9,
         },
         'config': config,
         'metrics': metrics,
@@ -172,6 +175,26 @@ def _fmt(value) -> str:
     return str(value)
 
 
+RANGES_SHOWN = 3    # episodes whose step range a summary line names, at most
+
+
+def _ranges(ranges: List[Dict]) -> str:
+    """'steps 100-499 (episode 0), 0-35 (episode 1)': one range per episode."""
+    shown = [f"{r['first_step']}-{r['last_step']} (episode {r['episode']})"
+             for r in ranges[:RANGES_SHOWN]]
+    more = len(ranges) - RANGES_SHOWN
+    return 'steps ' + ', '.join(shown) + (f', ... {more} more episodes' if more > 0 else '')
+
+
+def _foreign(foreign: Dict) -> str:
+    """'0', or '2 (steps 3, 7)'."""
+    if not foreign['count']:
+        return '0'
+    steps = ', '.join(str(k) for k in foreign['steps'])
+    more = ', ...' if foreign['count'] > len(foreign['steps']) else ''
+    return f"{foreign['count']} (steps {steps}{more})"
+
+
 def summary_table(report: Dict) -> str:
     """A fixed-width two-column table of the main numbers of a report."""
     m = report['metrics']
@@ -187,8 +210,8 @@ def summary_table(report: Dict) -> str:
              ('tracking cost (sum of squared errors)', tr['cost']),
              ('tracking RMSE (all tracked)', tr['rmse'])]
     rows += [(f'  RMSE y[{i}]', v['rmse']) for i, v in tr['per_output'].items()]
-    rows += [(f"  config version {s['config_version']}, steps {s['first_step']}-"
-              f"{s['last_step']}", f"RMSE {_fmt(s['tracking']['rmse'])}")
+    rows += [(f"  config version {s['config_version']}",
+              f"RMSE {_fmt(s['tracking']['rmse'])}, {_ranges(s['ranges'])}")
              for s in m.get('tracking_segments', ())]
     bounds = m['input_bounds']
     rows += [('input-bound violations', bounds['violations'] if bounds else None),
@@ -196,6 +219,7 @@ def summary_table(report: Dict) -> str:
              ('diverged samples', m['diverged_samples']),
              ('missed ticks / considered', f"{m['ticks']['missed']} / "
                                            f"{m['ticks']['considered']}"),
+             ('foreign inputs (u not from the controller)', _foreign(m['foreign_inputs'])),
              ('fallbacks / terminal fallbacks', f"{m['fallbacks']} / "
                                                 f"{m['terminal_fallbacks']}")]
     st = m['solve_time']
@@ -203,7 +227,8 @@ def summary_table(report: Dict) -> str:
               ' / '.join(_fmt(None if v is None else 1e3 * v)
                          for v in (st['p50'], st['p99'], st['max']))),
              ('model versions published', m['model_versions']['published'])]
-    rows += [(f"training {t['phase']} {t['method']}",
+    rows += [(f"training {t['job']} {t['method']}"
+              + (f" {t['phase']}" if t['phase'] != t['job'] else ''),
               f"iteration {t['iteration']}/{t['total']}, loss {_fmt(t['final_loss'])}")
              for t in m['training']]
     rows += [(f"parameters of {c['node']} at {c['stamp']:.3f} s",

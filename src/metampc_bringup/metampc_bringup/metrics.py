@@ -9,6 +9,10 @@ Conventions:
   that row (pairs whose reference is not finite are left out).
 - Tracking cost: sum over paired samples and tracked outputs of the squared error (eq. mpc's
   stage cost with Q = I on the tracked outputs); RMSE per tracked output and over all of them.
+- Controller's inputs: a ControlInput counts as the controller's answer when the MpcStatus
+  of its step is recorded next to it (:mod:`~metampc_bringup.input_sources`); the others
+  (``ros2 topic pub /u ...``) are counted as ``foreign_inputs`` and left out of every other
+  metric, so an injected step neither starts an episode of ``u`` nor hides answers.
 - Missed tick: a plant step with no ControlInput answering it (same episode and step), counted
   from the first answered step up to, not including, the last output (whose answer may come
   after the recording stopped).
@@ -16,7 +20,8 @@ Conventions:
   linearly (numpy's default).
 - Live parameter changes: where the controller's ``config_version`` changes in its statuses,
   the tracking metrics are also given per segment of one version (``tracking_segments``, the
-  status of step k with the output of step k + 1 as above), and the recorded
+  status of step k with the output of step k + 1 as above; its step ``ranges`` one per
+  episode), and the recorded
   ``/parameter_events`` that changed values are listed (``parameter_changes``); neither key
   is there for a run without a change.
 
@@ -140,6 +145,14 @@ def version_segments(versions: Sequence[int]) -> List[Tuple[int, int]]:
     return list(zip(edges[:-1], edges[1:]))
 
 
+def step_ranges(steps: Sequence[int], episode: Sequence[int]) -> List[Dict]:
+    """Per episode of a step-indexed stretch (`steps` [n] with their `episode` [n]), in order:
+    its episode, first and last step; a range never spans a plant reset."""
+    steps, episode = np.asarray(steps, dtype=np.int64), np.asarray(episode, dtype=np.int64)
+    return [{'episode': int(episode[a]), 'first_step': int(steps[a]),
+             'last_step': int(steps[b - 1])} for a, b in version_segments(episode)]
+
+
 def tracking_segments(series: RunSeries, oi: np.ndarray, si: np.ndarray,
                       tracked: Sequence[int]) -> List[Dict]:
     """Tracking metrics per run of one config_version in the statuses (pairs `oi`, `si` of
@@ -148,24 +161,52 @@ def tracking_segments(series: RunSeries, oi: np.ndarray, si: np.ndarray,
     segments = version_segments(st.config_version)
     if len(segments) < 2:
         return []
+    episode = episodes(st.step)
     return [{'config_version': int(st.config_version[a]), 'first_step': int(st.step[a]),
              'last_step': int(st.step[b - 1]), 'statuses': b - a,
+             'ranges': step_ranges(st.step[a:b], episode[a:b]),
              'tracking': tracking_metrics(series.outputs.y[oi[(si >= a) & (si < b)]],
                                           st.y_ref0[si[(si >= a) & (si < b)]], tracked)}
             for a, b in segments]
 
 
+TERMINAL_PHASES = ('done', 'failed')    # TrainingProgress phases that end a job
+
+
 def training_summary(series: RunSeries) -> List[Dict]:
-    """Per (phase, method) of TrainingProgress: last iteration, total, loss, elapsed."""
+    """Per (job, phase, method) of TrainingProgress: last iteration, total, loss, elapsed.
+
+    The job is the phase of the training that ran ('meta_train', 'adapt', ...). A final
+    'done' or 'failed' message belongs to the job whose messages precede it (the learner
+    publishes iteration 0 when a job starts), so the end of a meta-training and of an
+    adaptation are rows of their own.
+    """
     p = series.progress
-    last: Dict[Tuple[str, str], int] = {}
-    for i, key in enumerate(zip(p.phase, p.method)):
+    last: Dict[Tuple[str, str, str], int] = {}
+    counts: Counter = Counter()
+    running: Dict[str, str] = {}    # method -> phase of its latest running job
+    for i, (phase, method) in enumerate(zip(p.phase, p.method)):
+        if phase not in TERMINAL_PHASES:
+            running[method] = phase
+        key = (running.get(method, ''), phase, method)
         last[key] = i
-    return [{'phase': phase, 'method': method, 'iteration': int(p.iteration[i]),
+        counts[key] += 1
+    return [{'job': job, 'phase': phase, 'method': method, 'iteration': int(p.iteration[i]),
              'total': int(p.total[i]), 'final_loss': float(p.loss[i]),
              'elapsed': float(p.elapsed[i]), 'skipped_tasks': int(p.skipped_tasks[i]),
-             'messages': int(sum(1 for k in zip(p.phase, p.method) if k == (phase, method)))}
-            for (phase, method), i in last.items()]
+             'messages': counts[(job, phase, method)]}
+            for (job, phase, method), i in last.items()]
+
+
+FOREIGN_STEPS_LISTED = 20   # steps of foreign inputs named in the report, at most
+
+
+def foreign_inputs(series: RunSeries) -> Dict:
+    """ControlInputs that are not the controller's answers (input_sources): how many, the
+    steps of the first FOREIGN_STEPS_LISTED and their log times, ns."""
+    f = series.foreign_inputs
+    return {'count': int(f.step.size), 'steps': f.step[:FOREIGN_STEPS_LISTED].tolist(),
+            'log_times': f.log_time[:FOREIGN_STEPS_LISTED].tolist()}
 
 
 def compute_metrics(series: RunSeries, tracked: Optional[Sequence[int]] = None,
@@ -199,6 +240,7 @@ def compute_metrics(series: RunSeries, tracked: Optional[Sequence[int]] = None,
         'diverged_samples': int(diverged.size),
         'first_diverged_step': int(out.step[diverged[0]]) if diverged.size else None,
         'ticks': tick_accounting(out.step, inp.step),
+        'foreign_inputs': foreign_inputs(series),
         'solve_time': percentile_summary(st.solve_time[solved]),
         'tick_time': percentile_summary(st.tick_time),
         'fallbacks': int(np.sum(st.fallback)),

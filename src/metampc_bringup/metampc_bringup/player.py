@@ -5,7 +5,8 @@ Each recorded topic gets a publisher with the QoS rosbag2 would offer for it
 deadline and liveliness, history keep_last 10), so a latched topic replays latched. The recorded
 CDR bytes are published unchanged (rclpy's ``Publisher.publish`` takes ``bytes`` as a serialized
 message) at the recorded log-time spacing divided by `rate`, from `start_offset` s into the
-recording, once or (`loop`) until interrupted. Used by ``scripts/replay.py --play`` and
+recording, once or (`loop`) until interrupted. :func:`run_player` streams the file (in the
+order it was recorded) rather than holding it. Used by ``scripts/replay.py --play`` and
 ``ros2 bag play``.
 
 As with ``ros2 bag play``, a volatile sample published before a subscriber has been discovered
@@ -88,18 +89,20 @@ def play(recording: Recording, node: Node, config: PlayConfig) -> Dict[str, int]
            and any(p.get_subscription_count() == 0 for p in volatile)):
         time.sleep(0.01)
     counts = {name: 0 for name in names}
-    messages = [m for m in recording.messages if m.topic in publishers]
-    start_log = (messages[0].log_time if messages else 0) + round(config.start_offset * 1e9)
-    messages = [m for m in messages if m.log_time >= start_log]
+    first = next(recording.raw(publishers), None)
+    start_log = (first.log_time if first else 0) + round(config.start_offset * 1e9)
     while True:
-        start_wall = time.monotonic()
-        for message in messages:
+        start_wall, played = time.monotonic(), 0
+        for message in recording.raw(publishers):   # streamed unless read with the messages
+            if message.log_time < start_log:
+                continue
             due = start_wall + (message.log_time - start_log) * 1e-9 / config.rate
             if due > time.monotonic():
                 time.sleep(due - time.monotonic())
             publishers[message.topic].publish(message.data)
             counts[message.topic] += 1
-        if not (config.loop and messages):
+            played += 1
+        if not (config.loop and played):
             break
         time.sleep(config.delay)
     for publisher in publishers.values():
@@ -110,7 +113,7 @@ def play(recording: Recording, node: Node, config: PlayConfig) -> Dict[str, int]
 def run_player(path: str, config: PlayConfig) -> Dict[str, int]:
     """Play `path` (MCAP file or run folder) from a node of its own, then shut down."""
     config.validate()
-    recording = read_recording(path)
+    recording = read_recording(path, messages=False)    # streamed: any size
     rclpy.init()
     node = Node('metampc_player')
     try:

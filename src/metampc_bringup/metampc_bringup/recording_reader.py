@@ -4,7 +4,9 @@ The file is read front to back with :class:`mcap.stream_reader.StreamReader`, wh
 summary: a finished recording yields everything (and its Statistics record), one whose writer
 was killed yields every record up to the first incomplete one, i.e. every message of its
 complete chunks. Messages are decoded with `mcap_ros2`'s decoder from the schemas embedded in
-the file, so no ROS installation is needed. No rclpy here.
+the file, so no ROS installation is needed. :func:`read_recording` keeps every message in
+memory, or (``messages=False``) none: :meth:`Recording.raw` and :meth:`Recording.decoded` then
+stream the file again, for recordings of any length. No rclpy here.
 """
 import glob
 import json
@@ -60,9 +62,12 @@ class Recording:
         path: the file.
         complete: True if the file ends with a footer (the writer finished it).
         topics: per topic name.
-        messages: in log-time order (stable: file order among equal times).
+        messages: in log-time order (stable: file order among equal times); empty when read
+            with ``messages=False``.
         metadata: Metadata records by name (the last one of each name).
         statistics: the summary's Statistics record (None when cut short).
+        message_count: messages in the file. start_ns, end_ns: their first and last log time
+            (None without messages).
     """
 
     path: str
@@ -71,24 +76,37 @@ class Recording:
     messages: List[RawMessage]
     metadata: Dict[str, Dict[str, str]] = field(default_factory=dict)
     statistics: Optional[Statistics] = None
+    message_count: int = 0
+    start_ns: Optional[int] = None
+    end_ns: Optional[int] = None
+    loaded: bool = True     # `messages` holds the messages (read with messages=True)
 
     def run_config(self) -> Dict[str, Any]:
         """The run configuration the recorder stored (``metampc`` record), {} if none."""
         text = self.metadata.get(RUN_METADATA_NAME, {}).get('config')
         return json.loads(text) if text else {}
 
-    def decoded(self, topics: Optional[Iterable[str]] = None
-                ) -> Iterator[Tuple[RecordedTopic, RawMessage, Any]]:
-        """(topic, raw message, decoded message) in log-time order, for `topics` (default all).
+    def raw(self, topics: Optional[Iterable[str]] = None) -> Iterator[RawMessage]:
+        """The messages of `topics` (default all).
 
-        Decoded messages have the fields of the ROS message as attributes (mcap_ros2).
+        From a recording read with its messages: in log-time order. Otherwise the file is read
+        again, streamed, in file order (the order the recorder received them: log-time order
+        unless its clock stepped back), holding one chunk and one message at a time.
         """
         wanted = set(self.topics if topics is None else topics)
+        if not self.loaded:
+            return _scan(self.path, _Summary(), wanted)
+        return (m for m in self.messages if m.topic in wanted)
+
+    def decoded(self, topics: Optional[Iterable[str]] = None
+                ) -> Iterator[Tuple[RecordedTopic, RawMessage, Any]]:
+        """(topic, raw message, decoded message) for `topics` (default all), in the order of
+        :meth:`raw`. Decoded messages have the fields of the ROS message as attributes
+        (mcap_ros2).
+        """
         factory = DecoderFactory()
         decoders: Dict[str, Callable[[bytes], Any]] = {}
-        for raw in self.messages:
-            if raw.topic not in wanted:
-                continue
+        for raw in self.raw(topics):
             topic = self.topics[raw.topic]
             if raw.topic not in decoders:
                 decoder = factory.decoder_for(topic.message_encoding, topic.schema)
@@ -148,39 +166,71 @@ def resolve_recording(path: str) -> str:
     return found[0]
 
 
-def read_recording(path: str) -> Recording:
-    """Read an MCAP file or run folder (see :func:`resolve_recording`) into a Recording."""
-    path = resolve_recording(path)
+@dataclass
+class _Summary:
+    """What a pass over a file gathers besides its messages."""
+
+    topics: Dict[str, RecordedTopic] = field(default_factory=dict)
+    metadata: Dict[str, Dict[str, str]] = field(default_factory=dict)
+    statistics: Optional[Statistics] = None
+    complete: bool = False
+    count: int = 0
+    start_ns: Optional[int] = None
+    end_ns: Optional[int] = None
+
+
+def _scan(path: str, got: _Summary,
+          topics: Optional[Iterable[str]] = None) -> Iterator[RawMessage]:
+    """The messages of `topics` (default all) of an MCAP file in file order, streamed; what
+    else the file holds goes into `got` (a fresh :class:`_Summary`) as it is read.
+
+    A file cut short ends at its first incomplete record.
+    """
+    wanted = None if topics is None else set(topics)
     schemas: Dict[int, Schema] = {}
     channels: Dict[int, Channel] = {}
-    topics: Dict[str, RecordedTopic] = {}
-    messages: List[RawMessage] = []
-    metadata: Dict[str, Dict[str, str]] = {}
-    statistics = None
-    complete = False
     with open(path, 'rb') as stream:
         try:
             for record in StreamReader(_ExactReads(stream)).records:
-                if isinstance(record, Schema):
+                if isinstance(record, Message):
+                    topic = channels[record.channel_id].topic
+                    got.topics[topic].count += 1
+                    got.count += 1
+                    t = record.log_time
+                    got.start_ns = t if got.start_ns is None else min(got.start_ns, t)
+                    got.end_ns = t if got.end_ns is None else max(got.end_ns, t)
+                    if wanted is None or topic in wanted:
+                        yield RawMessage(topic, t, record.publish_time, record.sequence,
+                                         record.data)
+                elif isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel) and record.id not in channels:
                     channels[record.id] = record
-                    topics[record.topic] = RecordedTopic(
+                    got.topics[record.topic] = RecordedTopic(
                         record.topic, schemas[record.schema_id].name if record.schema_id else '',
                         record.message_encoding, record.metadata.get('offered_qos_profiles', ''),
                         record.metadata.get('topic_type_hash', ''), schemas.get(record.schema_id))
-                elif isinstance(record, Message):
-                    topic = channels[record.channel_id].topic
-                    topics[topic].count += 1
-                    messages.append(RawMessage(topic, record.log_time, record.publish_time,
-                                               record.sequence, record.data))
                 elif isinstance(record, Metadata):
-                    metadata[record.name] = dict(record.metadata)
+                    got.metadata[record.name] = dict(record.metadata)
                 elif isinstance(record, Statistics):
-                    statistics = record
+                    got.statistics = record
                 elif isinstance(record, Footer):
-                    complete = True
+                    got.complete = True
         except McapError:
             pass    # cut short: keep every record read before the incomplete one
-    messages.sort(key=lambda m: m.log_time)
-    return Recording(path, complete, topics, messages, metadata, statistics)
+
+
+def read_recording(path: str, messages: bool = True) -> Recording:
+    """Read an MCAP file or run folder (see :func:`resolve_recording`) into a Recording.
+
+    Args:
+        messages: keep the messages (in memory, sorted by log time); False: one streaming pass
+            that keeps none (topics and counts, metadata, times), for recordings too large to
+            hold: :meth:`Recording.decoded` then streams the file again.
+    """
+    path = resolve_recording(path)
+    got = _Summary()
+    kept = list(_scan(path, got, None if messages else ()))
+    kept.sort(key=lambda m: m.log_time)
+    return Recording(path, got.complete, got.topics, kept, got.metadata, got.statistics,
+                     got.count, got.start_ns, got.end_ns, loaded=messages)

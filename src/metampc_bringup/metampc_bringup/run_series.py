@@ -8,10 +8,14 @@ recording after the fact or by the orchestrator while the run goes on, from the 
 Shapes: ``n`` samples, ``n_y`` outputs, ``n_u`` inputs; times in s (header stamps) and ns (log
 times). No rclpy here.
 """
+from array import array
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+import sys
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
+
+from .input_sources import controller_inputs
 
 PLANT_OUTPUT = 'metampc_msgs/msg/PlantOutput'
 CONTROL_INPUT = 'metampc_msgs/msg/ControlInput'
@@ -41,13 +45,6 @@ def parameter_value(value: Any) -> Any:
         return None
     got = getattr(value, field_name)
     return got if isinstance(got, (bool, int, float, str)) else list(got)
-
-
-def _matrix(rows: List[List[float]]) -> np.ndarray:
-    """Stack rows of equal length into (n, width); (0, 0) when empty."""
-    if not rows:
-        return np.zeros((0, 0))
-    return np.array(rows, dtype=float)
 
 
 @dataclass
@@ -117,7 +114,8 @@ class ProgressSeries:
 class RunSeries:
     """All series of one run; `weights`, `plant_info` and the parameter changes (each
     /parameter_events message that changed a value: log_time, stamp s, node, {name: value})
-    as plain dicts."""
+    as plain dicts. `inputs` are the controller's answers, `foreign_inputs` the ControlInputs
+    of other publishers (:mod:`~metampc_bringup.input_sources`)."""
 
     outputs: OutputSeries
     inputs: InputSeries
@@ -126,6 +124,9 @@ class RunSeries:
     weights: List[Dict[str, Any]] = field(default_factory=list)
     plant_info: Optional[Dict[str, Any]] = None
     parameter_changes: List[Dict[str, Any]] = field(default_factory=list)
+    foreign_inputs: InputSeries = field(default_factory=lambda: InputSeries(
+        *(np.zeros(0, dtype=t) for t in (np.int64, float, np.int64)), np.zeros((0, 0)),
+        np.zeros(0, dtype=np.int64)))
 
     @property
     def n_y(self) -> int:
@@ -133,84 +134,221 @@ class RunSeries:
         return self.outputs.y.shape[1]
 
 
+class _Table:
+    """Compact columns of one message type, filled one message at a time, in any order.
+
+    Numbers go into typed arrays (8 bytes a value), vectors into one flat array with their
+    lengths, strings into lists of interned strings: the messages themselves are not kept, so
+    a long recording is aggregated in bounded memory.
+    """
+
+    def __init__(self, columns: Dict[str, str]):
+        """`columns`: name -> 'q' (int), 'd' (float), 'v' (float vector) or 's' (string)."""
+        self.kinds = columns
+        self.log_time, self.arrival = array('q'), array('q')
+        self.data: Dict[str, Any] = {}
+        for name, kind in columns.items():
+            self.data[name] = [] if kind == 's' else array('d' if kind in 'dv' else 'q')
+            if kind == 'v':
+                self.data[name + '#'] = array('q')
+
+    def add(self, log_time: int, arrival: int, values: Dict[str, Any]) -> None:
+        self.log_time.append(log_time)
+        self.arrival.append(arrival)
+        for name, kind in self.kinds.items():
+            value = values[name]
+            if kind == 'v':
+                self.data[name].extend(value)
+                self.data[name + '#'].append(len(value))
+            elif kind == 's':
+                self.data[name].append(sys.intern(str(value)))
+            else:
+                self.data[name].append(value)
+
+    def order(self) -> np.ndarray:
+        """Row indices in (log time, arrival) order."""
+        return np.lexsort((np.frombuffer(self.arrival, dtype=np.int64),
+                           np.frombuffer(self.log_time, dtype=np.int64)))
+
+    def column(self, name: str, rows: np.ndarray, pad: bool = False) -> Any:
+        """Column `name` at `rows` (indices): [n]; a list for strings; [n, width] for vectors,
+        whose lengths must agree (ValueError) unless `pad`: then NaN fills the shorter."""
+        kind, values = self.kinds.get(name), self.data.get(name)
+        if name == 'log_time':
+            return np.frombuffer(self.log_time, dtype=np.int64)[rows]
+        if kind == 's':
+            return [values[i] for i in rows.tolist()]
+        if kind != 'v':
+            return np.frombuffer(values, dtype=np.int64 if kind == 'q' else float)[rows]
+        lengths = np.frombuffer(self.data[name + '#'], dtype=np.int64)
+        starts = (np.cumsum(lengths) - lengths)[rows]
+        lengths = lengths[rows]
+        width = int(lengths.max()) if lengths.size else 0
+        if not pad and np.any(lengths != width):
+            raise ValueError(f'{name} changes length across messages '
+                             f'({sorted(set(lengths.tolist()))[:5]})')
+        there = np.arange(width)[None, :] < lengths[:, None]
+        matrix = np.full((lengths.size, width), np.nan)
+        matrix[there] = np.frombuffer(values, dtype=float)[
+            (starts[:, None] + np.arange(width)[None, :])[there]]
+        return matrix
+
+
+_OUTPUT_COLUMNS = {'step': 'q', 'stamp': 'd', 'y': 'v', 'u_applied': 'v', 'saturated': 'q',
+                   'diverged': 'q'}
+_INPUT_COLUMNS = {'step': 'q', 'stamp': 'd', 'u': 'v', 'model_version': 'q'}
+_STATUS_COLUMNS = {'step': 'q', 'stamp': 'd', 'cost': 'd', 'solve_time': 'd', 'tick_time': 'd',
+                   'iterations': 'q', 'fallback': 'q', 'terminal_fallback': 'q',
+                   'model_version': 'q', 'solver_status': 's', 'planner': 's',
+                   'y_ref': 'v', 'y_ref_len': 'q', 'config_version': 'q'}
+_PROGRESS_COLUMNS = {'phase': 's', 'method': 's', 'iteration': 'q', 'total': 'q', 'loss': 'd',
+                     'elapsed': 'd', 'skipped_tasks': 'q'}
+
+
 class SeriesBuilder:
-    """Accumulates messages (any object with the message fields) into a :class:`RunSeries`."""
+    """Accumulates messages (any object with the message fields) into a :class:`RunSeries`.
+
+    Messages may come in any order: each series is put in log-time order (ties: the order of
+    :meth:`add`) when built. Only the fields the series need are kept, in compact columns, so
+    the memory grows by tens of bytes per message whatever the message size (MpcStatus: its
+    first y_ref row, not its plans).
+    """
 
     def __init__(self):
-        self._rows: Dict[str, List[Any]] = {t: [] for t in DEFAULT_TOPICS}
+        self._arrivals = 0
+        self._outputs = _Table(_OUTPUT_COLUMNS)
+        self._inputs = _Table(_INPUT_COLUMNS)
+        self._status = _Table(_STATUS_COLUMNS)
+        self._progress = _Table(_PROGRESS_COLUMNS)
+        self._q: Optional[Tuple[Tuple[int, int], List[float]]] = None   # of the first status
+        self._n_y: Optional[int] = None     # the first output's width
+        self._plant_info: Optional[Tuple[Tuple[int, int], Any]] = None   # the last one
+        self._weights: List[Tuple[Tuple[int, int], Dict[str, Any]]] = []
+        self._changes: List[Tuple[Tuple[int, int], Dict[str, Any]]] = []
 
     def add(self, type_name: str, msg: Any, log_time_ns: int = 0) -> bool:
         """Add one message of ROS type `type_name`; False (ignored) for other types."""
-        if type_name not in self._rows:
+        if type_name not in DEFAULT_TOPICS:
             return False
-        self._rows[type_name].append((log_time_ns, msg))
+        key = (int(log_time_ns), self._arrivals)
+        self._arrivals += 1
+        if type_name == PLANT_OUTPUT:
+            y = list(msg.y)
+            if self._n_y is None:
+                self._n_y = len(y)
+            self._outputs.add(*key, {
+                'step': msg.step, 'stamp': _stamp(msg), 'y': y, 'u_applied': list(msg.u_applied),
+                'saturated': bool(msg.saturated), 'diverged': bool(msg.diverged)})
+        elif type_name == CONTROL_INPUT:
+            self._inputs.add(*key, {'step': msg.step, 'stamp': _stamp(msg), 'u': list(msg.u),
+                                    'model_version': msg.model_version})
+        elif type_name == MPC_STATUS:
+            self._add_status(key, msg)
+        elif type_name == TRAINING_PROGRESS:
+            self._progress.add(*key, {name: getattr(msg, name) for name in _PROGRESS_COLUMNS})
+        elif type_name == NSSM_WEIGHTS:
+            self._weights.append((key, {
+                'log_time': key[0], 'version': int(msg.version), 'method': str(msg.method),
+                'stage': str(msg.stage), 'train_loss': float(msg.train_loss),
+                'train_steps': int(msg.train_steps), 'train_samples': int(msg.train_samples),
+                'seed': int(msg.seed)}))
+        elif type_name == PLANT_INFO:
+            if self._plant_info is None or key[0] >= self._plant_info[0][0]:
+                self._plant_info = (key, _plant_info(msg))
+        elif len(msg.changed_parameters):   # PARAMETER_EVENT
+            self._changes.append((key, {
+                'log_time': key[0], 'stamp': msg.stamp.sec + 1e-9 * msg.stamp.nanosec,
+                'node': str(msg.node), 'parameters': {str(p.name): parameter_value(p.value)
+                                                      for p in msg.changed_parameters}}))
         return True
+
+    def _add_status(self, key: Tuple[int, int], msg: Any) -> None:
+        # Of y_ref only the first row counts (StatusSeries.y_ref0); its width n_y is the
+        # outputs' (known from the first output), which q has too; else all of y_ref is kept.
+        y_ref, q = msg.y_ref, getattr(msg, 'q', ())
+        n_y = self._n_y if self._n_y is not None else len(q) or None
+        head = list(y_ref[:n_y] if n_y is not None else y_ref)
+        if self._q is None or key < self._q[0]:
+            self._q = (key, list(q))
+        self._status.add(*key, {
+            **{name: getattr(msg, name) for name in (
+                'step', 'cost', 'solve_time', 'tick_time', 'iterations', 'model_version',
+                'solver_status', 'planner')},
+            'stamp': _stamp(msg), 'fallback': bool(msg.fallback),
+            'terminal_fallback': bool(msg.terminal_fallback), 'y_ref': head,
+            'y_ref_len': len(y_ref), 'config_version': getattr(msg, 'config_version', 0)})
 
     def build(self) -> RunSeries:
         """The series of everything added so far."""
-        outs, ins, stats, prog = (self._rows[t] for t in (
-            PLANT_OUTPUT, CONTROL_INPUT, MPC_STATUS, TRAINING_PROGRESS))
+        out, o = self._outputs, self._outputs.order()
         outputs = OutputSeries(
-            step=np.array([m.step for _, m in outs], dtype=np.int64),
-            stamp=np.array([_stamp(m) for _, m in outs], dtype=float),
-            log_time=np.array([t for t, _ in outs], dtype=np.int64),
-            y=_matrix([list(m.y) for _, m in outs]),
-            u_applied=_matrix([list(m.u_applied) for _, m in outs]),
-            saturated=np.array([bool(m.saturated) for _, m in outs], dtype=bool),
-            diverged=np.array([bool(m.diverged) for _, m in outs], dtype=bool))
-        inputs = InputSeries(
-            step=np.array([m.step for _, m in ins], dtype=np.int64),
-            stamp=np.array([_stamp(m) for _, m in ins], dtype=float),
-            log_time=np.array([t for t, _ in ins], dtype=np.int64),
-            u=_matrix([list(m.u) for _, m in ins]),
-            model_version=np.array([m.model_version for _, m in ins], dtype=np.int64))
+            step=out.column('step', o), stamp=out.column('stamp', o),
+            log_time=out.column('log_time', o), y=out.column('y', o),
+            u_applied=out.column('u_applied', o), saturated=out.column('saturated', o) != 0,
+            diverged=out.column('diverged', o) != 0)
         n_y = outputs.y.shape[1]
-        status = StatusSeries(
-            step=np.array([m.step for _, m in stats], dtype=np.int64),
-            stamp=np.array([_stamp(m) for _, m in stats], dtype=float),
-            log_time=np.array([t for t, _ in stats], dtype=np.int64),
-            cost=np.array([m.cost for _, m in stats], dtype=float),
-            solve_time=np.array([m.solve_time for _, m in stats], dtype=float),
-            tick_time=np.array([m.tick_time for _, m in stats], dtype=float),
-            iterations=np.array([m.iterations for _, m in stats], dtype=np.int64),
-            fallback=np.array([bool(m.fallback) for _, m in stats], dtype=bool),
-            terminal_fallback=np.array([bool(m.terminal_fallback) for _, m in stats],
-                                       dtype=bool),
-            model_version=np.array([m.model_version for _, m in stats], dtype=np.int64),
-            solver_status=[str(m.solver_status) for _, m in stats],
-            planner=[str(m.planner) for _, m in stats],
-            y_ref0=np.array([list(m.y_ref[:n_y]) if len(m.y_ref) >= n_y else [np.nan] * n_y
-                             for _, m in stats], dtype=float).reshape(len(stats), n_y),
-            q=np.array(list(getattr(stats[0][1], 'q', ())) if stats else [], dtype=float),
-            config_version=np.array([getattr(m, 'config_version', 0) for _, m in stats],
-                                    dtype=np.int64))
+        status = self._status_series(n_y)
+        i = self._inputs.order()
+        ours = self._controller_inputs(i)
+        prog, p = self._progress, self._progress.order()
         progress = ProgressSeries(
-            log_time=np.array([t for t, _ in prog], dtype=np.int64),
-            phase=[str(m.phase) for _, m in prog], method=[str(m.method) for _, m in prog],
-            iteration=np.array([m.iteration for _, m in prog], dtype=np.int64),
-            total=np.array([m.total for _, m in prog], dtype=np.int64),
-            loss=np.array([m.loss for _, m in prog], dtype=float),
-            elapsed=np.array([m.elapsed for _, m in prog], dtype=float),
-            skipped_tasks=np.array([m.skipped_tasks for _, m in prog], dtype=np.int64))
-        weights = [{'log_time': t, 'version': int(m.version), 'method': str(m.method),
-                    'stage': str(m.stage), 'train_loss': float(m.train_loss),
-                    'train_steps': int(m.train_steps), 'train_samples': int(m.train_samples),
-                    'seed': int(m.seed)} for t, m in self._rows[NSSM_WEIGHTS]]
-        info_rows = self._rows[PLANT_INFO]
-        plant_info = None
-        if info_rows:
-            info = info_rows[-1][1]
-            plant_info = {name: getattr(info, name) for name in (
-                'theta', 'dt', 'substeps', 'u_min', 'u_max', 'process_noise_std',
-                'measurement_noise_std', 'seed', 'clock_mode', 'rate_hz', 'state_bound',
-                'diverged', 'n_resets')}
-            # Fields of the plant families (absent in recordings made before them).
-            plant_info.update({name: list(getattr(info, name, [])) for name in (
-                'theta_names', 'input_names', 'input_units', 'output_names', 'output_units')})
-            plant_info['family'] = str(getattr(info, 'family', ''))
-        changes = [{'log_time': t, 'stamp': m.stamp.sec + 1e-9 * m.stamp.nanosec,
-                    'node': str(m.node),
-                    'parameters': {str(p.name): parameter_value(p.value)
-                                   for p in m.changed_parameters}}
-                   for t, m in self._rows[PARAMETER_EVENT] if len(m.changed_parameters)]
-        return RunSeries(outputs, inputs, status, progress, weights, plant_info, changes)
+            log_time=prog.column('log_time', p), phase=prog.column('phase', p),
+            method=prog.column('method', p), iteration=prog.column('iteration', p),
+            total=prog.column('total', p), loss=prog.column('loss', p),
+            elapsed=prog.column('elapsed', p), skipped_tasks=prog.column('skipped_tasks', p))
+        return RunSeries(
+            outputs, self._input_series(i[ours]), status, progress,
+            [w for _, w in sorted(self._weights, key=lambda kw: kw[0])],
+            self._plant_info[1] if self._plant_info else None,
+            [c for _, c in sorted(self._changes, key=lambda kc: kc[0])],
+            self._input_series(i[~ours], pad=True))
+
+    def _input_series(self, rows: np.ndarray, pad: bool = False) -> InputSeries:
+        """The inputs at `rows`; `pad`: of any lengths of u (foreign inputs: NaN-padded)."""
+        inp = self._inputs
+        return InputSeries(
+            step=inp.column('step', rows), stamp=inp.column('stamp', rows),
+            log_time=inp.column('log_time', rows), u=inp.column('u', rows, pad),
+            model_version=inp.column('model_version', rows))
+
+    def _status_series(self, n_y: int) -> StatusSeries:
+        st, s = self._status, self._status.order()
+        heads = st.column('y_ref', s, pad=True)[:, :n_y]
+        y_ref0 = np.full((s.size, n_y), np.nan)     # NaN: a status without a reference
+        y_ref0[:, :heads.shape[1]] = heads
+        y_ref0[np.frombuffer(st.data['y_ref_len'], dtype=np.int64)[s] < n_y] = np.nan
+        return StatusSeries(
+            step=st.column('step', s), stamp=st.column('stamp', s),
+            log_time=st.column('log_time', s), cost=st.column('cost', s),
+            solve_time=st.column('solve_time', s), tick_time=st.column('tick_time', s),
+            iterations=st.column('iterations', s), fallback=st.column('fallback', s) != 0,
+            terminal_fallback=st.column('terminal_fallback', s) != 0,
+            model_version=st.column('model_version', s),
+            solver_status=st.column('solver_status', s), planner=st.column('planner', s),
+            y_ref0=y_ref0, q=np.array(self._q[1] if self._q else [], dtype=float),
+            config_version=st.column('config_version', s))
+
+    def _controller_inputs(self, order: np.ndarray) -> np.ndarray:
+        """Mask of the inputs (in `order`) that are the controller's (input_sources)."""
+        inp, st = self._inputs, self._status
+        s = st.order()
+        times = np.concatenate([inp.column('log_time', order), st.column('log_time', s)])
+        arrivals = np.concatenate([np.frombuffer(inp.arrival, dtype=np.int64)[order],
+                                   np.frombuffer(st.arrival, dtype=np.int64)[s]])
+        rank = np.empty(times.size, dtype=np.int64)
+        rank[np.lexsort((arrivals, times))] = np.arange(times.size)
+        return controller_inputs(rank[:order.size], inp.column('step', order),
+                                 rank[order.size:], st.column('step', s))
+
+
+def _plant_info(info: Any) -> Dict[str, Any]:
+    """The fields of a PlantInfo the analysis uses, as plain values."""
+    plant_info = {name: getattr(info, name) for name in (
+        'theta', 'dt', 'substeps', 'u_min', 'u_max', 'process_noise_std',
+        'measurement_noise_std', 'seed', 'clock_mode', 'rate_hz', 'state_bound',
+        'diverged', 'n_resets')}
+    # Fields of the plant families (absent in recordings made before them).
+    plant_info.update({name: list(getattr(info, name, [])) for name in (
+        'theta_names', 'input_names', 'input_units', 'output_names', 'output_units')})
+    plant_info['family'] = str(getattr(info, 'family', ''))
+    return plant_info
