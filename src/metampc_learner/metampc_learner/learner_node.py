@@ -5,9 +5,11 @@ Interfaces (relative names, so a namespace can wrap them):
 * ``y`` (PlantOutput, subscribed, reliable, depth 1000): target samples (step k, u_applied =
   u_k, y_k) go to D_target (:class:`TargetBuffer`): the first ``target_buffer_size`` valid
   samples after buffering (re)starts (at start-up if ``buffer_on_start``). Subscribed from
-  start-up and whenever buffering (re)starts, unsubscribed when it stops: a stopped buffer
-  takes nothing, and the subscription cost the node about 0.8 ms of CPU per plant step
-  (measured in lockstep tracking, where it held the loop back on a 2-core machine).
+  start-up and whenever buffering (re)starts, unsubscribed when it stops or D_target is full:
+  a buffer that takes nothing more costs nothing, whereas the subscription cost the node
+  about 0.8 ms of CPU per plant step (measured in lockstep tracking, where it held the loop
+  back on a 2-core machine; a full buffer left subscribed kept the learner of a by-hand
+  session at 37 % of a core, docs/nodes.md).
 * ``plant_info`` (PlantInfo, subscribed, latched): theta, dt and bounds of the target plant,
   for the ``oracle`` adaptation. The plant's dt is the one source of truth: a plant that
   samples at another dt than the ``dt`` parameter (the source systems') ends the node with
@@ -167,12 +169,22 @@ class LearnerNode(Node):
             self._sub_y = self.create_subscription(PlantOutput, 'y', self._on_y, BACKLOG,
                                                    callback_group=self._data)
 
+    def _unsubscribe_y(self) -> None:
+        """Stop taking y unless adaptation in the loop needs it: a sample nobody keeps costs
+        its transport and deserialisation all the same (same callback group as _on_y)."""
+        if self._sub_y is not None and self.recent is None:
+            self.destroy_subscription(self._sub_y)
+            self._sub_y = None
+
     def _on_y(self, msg: PlantOutput) -> None:
         if self.recent is not None:
             self.recent.add(msg.step, msg.u_applied, msg.y, msg.diverged)
         if self.buffer.add(msg.step, msg.u_applied, msg.y, msg.diverged) and self.buffer.full:
             self.get_logger().info(f'D_target full: {len(self.buffer)} samples '
-                                   f'({self.buffer.skipped} skipped, {self.buffer.lost} lost)')
+                                   f'({self.buffer.skipped} skipped, {self.buffer.lost} lost)'
+                                   + ('' if self.recent is not None else
+                                      '; y unsubscribed until buffering restarts'))
+            self._unsubscribe_y()
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
         plant = PlantFacts(family=msg.family, theta=tuple(msg.theta), dt=msg.dt,
@@ -196,10 +208,7 @@ class LearnerNode(Node):
                                 f'keeping the next {buffer.capacity} valid samples')
         else:
             buffer.freeze()
-            # (Kept for adaptation in the loop; same callback group as _on_y: not in use now.)
-            if self._sub_y is not None and self.recent is None:
-                self.destroy_subscription(self._sub_y)
-                self._sub_y = None
+            self._unsubscribe_y()
             response.message = (f'buffering stopped: {len(buffer)} samples kept '
                                 f'({buffer.skipped} skipped, {buffer.lost} lost)')
         response.kept, response.skipped, response.lost = len(buffer), buffer.skipped, buffer.lost
@@ -374,6 +383,9 @@ class LearnerNode(Node):
         def train():
             if not self.recent.wait_for(step, SAMPLE_WAIT_S):
                 raise LearnerError(f'sample {step} did not arrive within {SAMPLE_WAIT_S} s')
+            why = self.recent.refusal(step, self._loop_window)
+            if why:
+                raise LearnerError(f'not adapted: {why}')
             out = self.session.loop_adapt(version, self.recent.until(step, self._loop_window),
                                           self._slot.report)
             rec, loss = out.record, out.result.train_loss

@@ -211,6 +211,28 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
         'adapted_imaml_v3.pt', 'adapted_oracle_v4.pt', 'meta_imaml_v1.pt', 'meta_imaml_v2.pt']
 
 
+def y_subscribers(probe) -> set:
+    return {i.node_name for i in probe.node.get_subscriptions_info_by_topic('/y')}
+
+
+def test_a_full_d_target_takes_no_more_samples(procs, probe):
+    """Once D_target is full the learner leaves y (before: it stayed subscribed and took every
+    sample only to drop it, most of a core beside a free-running lockstep loop); buffering
+    restarted, it subscribes again."""
+    buffering = probe.node.create_client(SetBuffering, 'set_buffering')
+    learner = procs.start('metampc_learner', 'learner', params={**TINY, 'buffer_on_start': True})
+    procs.start('metampc_plant', 'plant', params=PLANT)
+    probe.wait_for(lambda: 'learner' in y_subscribers(probe), 60.0, "the learner's y")
+    probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 120.0,
+                   'a full D_target')
+    assert 'y unsubscribed until buffering restarts' in procs.output(learner)
+    probe.wait_for(lambda: 'learner' not in y_subscribers(probe), 30.0,
+                   "the learner's y subscription gone")
+    assert buffering_call(probe, buffering, True).cleared == CAPACITY
+    probe.wait_for(lambda: 'learner' in y_subscribers(probe), 30.0, "the learner's y again")
+    assert procs.interrupt(learner, timeout=60.0) == 0
+
+
 BAD_PARAMS = {
     'iterations': ({'iterations': 0}, 'iterations must be >= 1'),
     'method': ({'method': 'reptile'}, 'method must be one of'),

@@ -32,6 +32,34 @@ def test_recent_samples_keep_the_latest_of_the_episode_up_to_a_step():
     assert recent.until(100, 10).steps.tolist() == [2]
 
 
+def test_a_window_the_plant_no_longer_feeds_is_refused():
+    """An escaped plant holds its last finite state and flags every y diverged: the window up
+    to a later request is the samples before the escape, the same at every request (before:
+    adapted on again and again, window loss 0.1419 -> 0.1419 every 10 s)."""
+    rng = np.random.default_rng(0)
+    recent = RecentSamples(1100)
+    frozen = [3.0, -7.0]
+    for k in range(901):
+        escaped = k >= 412
+        recent.add(k, [0.1], frozen if escaped else rng.normal(size=2), diverged=escaped)
+    assert recent.refusal(411, 100) == ''
+    assert len(recent.until(900, 100)) == 100      # samples there are: 312..411
+    why = recent.refusal(900, 100)
+    assert why.startswith('489 of the samples from step 312 to 900 (the first at step 412, '
+                          'the last at 900) are diverged or non-finite'), why
+    # A non-finite sample inside the window refuses it too; one before the window does not.
+    recent.add(0, [0.0], [0.0, 0.0])        # a reset: a new episode
+    for k in range(1, 201):
+        recent.add(k, [0.1], [np.nan, 0.0] if k == 150 else rng.normal(size=2))
+    assert 'the first at step 150' in recent.refusal(200, 100)
+    assert recent.refusal(200, 40) == ''
+    # A plant whose outputs stopped changing (not flagged): nothing to adapt on.
+    recent.add(0, [0.0], [0.0, 0.0])
+    for k in range(1, 60):
+        recent.add(k, [0.0], [1.0, 2.0])
+    assert recent.refusal(59, 50).startswith('the outputs did not change from step 10 to 59')
+
+
 def test_the_anchor_is_the_proximal_centre():
     """From init psi_0 with the anchor elsewhere, a huge gamma pulls the result to the anchor
     (the data term is negligible); anchor = init is the former adaptation, bit for bit."""

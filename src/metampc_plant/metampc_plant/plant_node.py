@@ -39,6 +39,10 @@ Clock modes:
   after ``start_timeout``), so a controller started together with the plant answers every
   step and a seeded run is reproducible. These rules are
   :class:`metampc_plant.lockstep.Lockstep`'s; the node wires them.
+  ``real_time_factor`` > 0 paces the loop: an answer that comes sooner than dt /
+  real_time_factor of wall time after y_k is held until then (a steady one-shot timer started
+  with each y), so a session by hand runs at its sample rate instead of as fast as the
+  controller answers (300-1400 Hz here). The steps, inputs and stamps are the same at any pace.
 * realtime: a steady wall-clock timer at ``rate_hz`` steps the plant with the latest input.
 
 The other nodes of a lockstep run take ``use_sim_time:=true``: their clock is then the plant's
@@ -132,6 +136,9 @@ class PlantNode(Node):
         self._hold_timer = None         # the timeout of a step the controller holds
         self._gate_timer = None
         self._tick_timer = None
+        self._pace_timer = None
+        self._paced_u: Optional[Tuple[float, ...]] = None  # an answer held back by the pace
+        self._pace_open = True          # the pace lets the next answer step at once
         if lockstep:
             self.lockstep = Lockstep(self.cfg.plant.dt, self.cfg.input_timeout,
                                      self.cfg.start_timeout, time.monotonic())
@@ -142,6 +149,9 @@ class PlantNode(Node):
             self._gate_timer = self.create_timer(GATE_PERIOD_S, self._on_gate,
                                                  clock=self._steady)
             self.create_subscription(StepHold, 'u_hold', self._on_hold, STREAM)
+            if self.cfg.pace_s() > 0:
+                self._pace_timer = self.create_timer(self.cfg.pace_s(), self._on_pace,
+                                                     clock=self._steady, autostart=False)
         else:
             period = 1.0 / self.cfg.sample_rate_hz()
             self._tick_timer = self.create_timer(period, self._on_tick, clock=self._steady)
@@ -153,6 +163,8 @@ class PlantNode(Node):
             f'x0={list(sim.x0)}, u in [{list(sim.u_min)}, {list(sim.u_max)}]'
             + (f'; y_0 goes out once y has {self.cfg.start_subscribers} subscriber(s) and u a '
                f'publisher (at the latest after start_timeout = {self.cfg.start_timeout} s)'
+               + (f'; at most {self.cfg.real_time_factor:g}x real time'
+                  if self.cfg.real_time_factor > 0 else '')
                if lockstep
                else f', {self.cfg.sample_rate_hz()} Hz: '
                f'{self.cfg.sample_rate_hz() * sim.dt:g}x real time'))
@@ -190,6 +202,9 @@ class PlantNode(Node):
             self._hold_timer = None
         if self._timeout_timer is not None:
             self._timeout_timer.reset()
+        if self._pace_timer is not None:
+            self._pace_open, self._paced_u = False, None
+            self._pace_timer.reset()
 
     def _publish_info(self) -> None:
         sim, fam = self.cfg.plant, self.family
@@ -254,27 +269,46 @@ class PlantNode(Node):
             return None, f'non-finite input {list(u)}'
         return u, ''
 
+    def _answered(self, u: Tuple[float, ...]) -> None:
+        """Lockstep: the current step is answered with u; step now, or when the pace allows."""
+        if self._pace_open:
+            self._advance(u)
+            return
+        self._paced_u = u
+        if self._timeout_timer is not None:
+            self._timeout_timer.cancel()
+
+    def _on_pace(self) -> None:
+        self._pace_timer.cancel()
+        u, self._paced_u = self._paced_u, None
+        if u is None:
+            self._pace_open = True
+        else:
+            self._advance(u)
+
     def _on_input(self, msg: ControlInput) -> None:
         step = self.plant.step_index
-        if self.lockstep is not None and not self.lockstep.answers(msg.step, step):
-            self._warn('stale', f'ignored an input for step {msg.step}: waiting for step {step}')
+        if self.lockstep is not None and (not self.lockstep.answers(msg.step, step)
+                                          or self._paced_u is not None):
+            self._warn('stale', f'ignored an input for step {msg.step}: waiting for step '
+                       f'{step}' + (' (answered)' if self._paced_u is not None else ''))
             return
         u, why = self._check_input(msg.u)
         if u is None:
             self._warn('rejected', f'rejected the input for step {msg.step} ({why}); holding '
                        f'u = {list(self._held_u)}')
             if self.lockstep is not None:
-                self._advance(self._held_u)
+                self._answered(self._held_u)
             return
         if self.lockstep is not None:
-            self._advance(u)
+            self._answered(u)
         else:
             self._requested_u = u
 
     def _on_timeout(self) -> None:
         self._warn('timeouts', f'no input for step {self.plant.step_index} within '
                    f'{self.cfg.input_timeout} s; holding u = {list(self._held_u)}')
-        self._advance(self._held_u)
+        self._answered(self._held_u)
 
     def _on_hold(self, msg: StepHold) -> None:
         """The controller holds its answer to msg.step: wait as long as it said, then the

@@ -33,6 +33,9 @@ class PlantNodeConfig:
             and a publisher on u) before the first step; 0 waits forever. It covers the
             controller's start-up and DDS discovery, which took up to ~4 s here.
         start_subscribers: lockstep: subscribers on y before the first step.
+        real_time_factor: lockstep: at most this many times real time, each y no sooner than
+            dt / real_time_factor of wall time after the previous one; 0: as fast as the inputs
+            answer (see :meth:`pace_s`).
     """
 
     plant: PlantConfig = field(default_factory=lambda: PlantConfig().resolved())
@@ -50,7 +53,15 @@ class PlantNodeConfig:
     start_subscribers: int = param(1, 'lockstep: subscribers y must have before y_0 goes out '
                                       '(2: the controller and a recorder, so that the recording '
                                       'starts at step 0)', ge=1)
+    real_time_factor: float = param(0.0, 'lockstep: run at most this many times real time '
+                                         '(1: each y at least dt of wall time after the '
+                                         'previous one, a session watched by hand; 0: as fast '
+                                         'as the inputs answer)', ge=0)
     hold: HoldConfig = field(default_factory=HoldConfig)
+
+    def pace_s(self) -> float:
+        """Lockstep: the least wall time between two y, s (0: none)."""
+        return self.plant.dt / self.real_time_factor if self.real_time_factor > 0 else 0.0
 
     def sample_rate_hz(self) -> float:
         """The realtime rate: rate_hz, or 1/dt when it is 0."""

@@ -196,6 +196,40 @@ def test_lockstep_bad_and_stale_inputs_and_timeout(procs, probe):
     assert '2 stale, 4 rejected' in out, out
 
 
+def test_real_time_factor_paces_the_lockstep_loop(procs, probe):
+    """real_time_factor 1: each y at least dt of wall time after the previous one (a session
+    by hand runs at its sample rate; before: as fast as the answers came), with the same
+    steps, inputs, outputs and stamps as unpaced; a second answer to a step that the pace
+    holds back is stale, as it is once the plant has stepped."""
+    n, dt = 60, 0.05
+    heard = []
+
+    def policy(m):
+        heard.append(time.monotonic())
+        if m.step >= n:
+            return []
+        return [(m.step, [u_of(m.step)])] + ([(m.step, [0.9])] if m.step == 5 else [])
+
+    ctl = Controller(probe, policy)
+    proc = start_plant(procs, {'theta': 0.7, 'dt': dt, 'x0': [0.5, -0.2],
+                               'input_timeout': 30.0, 'real_time_factor': 1.0})
+    probe.wait_for(lambda: len(ctl.ys) > n, 60.0, f'{n} answered steps')
+    ys = ctl.ys[:n + 1]
+    assert [m.step for m in ys] == list(range(n + 1))
+    assert [ns(m.header.stamp) for m in ys] == [k * 50_000_000 for k in range(n + 1)]
+    plant = Plant(PlantConfig(theta=(0.7,), dt=dt, x0=(0.5, -0.2)))
+    expected = [plant.output()] + [plant.step([u_of(k)]) for k in range(n)]
+    assert np.array_equal(np.array([list(m.y) for m in ys]), np.array(expected))
+    # n steps took at least n dt of wall time; the probe hears a y late by its delivery
+    # (under load tens of ms), which the margin covers. Unpaced they take ~0.2 s here.
+    span = heard[n] - heard[0]
+    assert span >= n * dt - 0.25, f'{n} steps in {span:.2f} s'
+    out = stop_cleanly(procs, proc)
+    assert 'at most 1x real time' in out, out
+    assert 'ignored an input for step 5: waiting for step 5 (answered)' in out, out
+    assert '1 stale, 0 rejected, 0 timeouts' in out, out
+
+
 def test_realtime_rate_and_held_input(procs, probe):
     rate, span = 50, 5.0
     ctl = Controller(probe, lambda m: [])
