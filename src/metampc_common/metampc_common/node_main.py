@@ -28,6 +28,10 @@ from metampc_common.params import ParameterError, ParamSpec, Value
 from metampc_common.stop_signals import StopSignals
 
 SHUTDOWN_POLL_S = 0.5    # s: longest a node takes to notice a shutdown that woke nobody
+# s: longest a node may take to stop once its spin has ended; then SIGALRM ends it. Seen: a
+# recorder stopped after a fast session hung for good in rclpy's destroy_publisher, deaf to
+# every later signal, its lifeline's included (an orphan).
+STOP_DEADLINE_S = 20
 
 
 # Parameters a node takes besides its table: rclpy's own, and QoS overrides of its endpoints.
@@ -205,8 +209,9 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     dead context. A second signal shuts the context down at once. A signal that arrives while
     the node is being built ends it as soon as it is built (one before rclpy.init: at once).
     Called from another thread, rclpy's own handlers (which shut the context down at once)
-    stand in. The spin loop's bounded wait (SHUTDOWN_POLL_S) also sees a shutdown that came
-    from elsewhere.
+    stand in. Stopping (executor, node, context) that takes over STOP_DEADLINE_S ends the
+    process by SIGALRM (exit status -14), so a node never outlives its stop for good. The spin
+    loop's bounded wait (SHUTDOWN_POLL_S) also sees a shutdown that came from elsewhere.
 
     A node that hangs can be asked where: SIGUSR1 (``kill -USR1 PID``) prints the stack of
     every thread to stderr (faulthandler) and the node goes on.
@@ -257,6 +262,10 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
     finally:
         if stop is not None:
             stop.close()
+            # The kernel's default action, not a Python handler: it ends a process whose main
+            # thread is stuck in C holding the GIL as well.
+            signal.signal(signal.SIGALRM, signal.SIG_DFL)
+            signal.alarm(STOP_DEADLINE_S)
         # The executor first: an EventsExecutor (loop_executor) that still holds the node
         # keeps its /rosout writer alive past destroy_node, and a line logged after it (the
         # plant's and the controller's stop lines) would go to that writer.
@@ -265,4 +274,6 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        if stop is not None:
+            signal.alarm(0)
     return 0

@@ -22,6 +22,7 @@ import rclpy
 from rclpy.node import Node
 from std_msgs.msg import String
 
+from metampc_common import node_main
 from metampc_common.node_main import loop_executor, run_node
 
 
@@ -34,6 +35,8 @@ class Slow(Node):
     def tick(self):
         self.timer.cancel()
         print('in the callback', flush=True)
+        if sys.argv[2] == 'hangs_on_destroy':
+            return
         if sys.argv[2] == 'waits':
             while rclpy.ok():
                 time.sleep(0.05)
@@ -42,7 +45,14 @@ class Slow(Node):
         self.pub.publish(String(data='after'))
         self.get_logger().info('published after the signal')
 
+    def destroy_node(self):
+        if sys.argv[2] == 'hangs_on_destroy':   # as rclpy's destroy_publisher once did
+            while True:
+                time.sleep(0.05)
+        super().destroy_node()
 
+
+node_main.STOP_DEADLINE_S = 2
 sys.exit(run_node(Slow, 'slow', executor=loop_executor if sys.argv[1] == 'events' else None))
 '''
 
@@ -92,3 +102,19 @@ def test_a_second_ctrl_c_shuts_the_context_down_at_once(tmp_path):
     assert proc.poll() is None, 'the first SIGINT left the context up: the callback goes on'
     proc.send_signal(signal.SIGINT)
     ended(proc, log)
+
+
+def test_a_node_that_hangs_while_stopping_ends_after_the_stop_deadline(tmp_path):
+    """Stuck in destroy_node after Ctrl-C (deaf to later signals but SIGKILL): SIGALRM ends it
+    STOP_DEADLINE_S (2 s here) after its spin ended, not never."""
+    proc, log = start(tmp_path, 'events', 'hangs_on_destroy')
+    proc.send_signal(signal.SIGINT)
+    t0 = time.monotonic()
+    try:
+        code = proc.wait(TIMEOUT)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert code == -signal.SIGALRM, log.read_text()
+    assert 1.5 < time.monotonic() - t0, 'ended by the alarm, not at once'
