@@ -120,12 +120,19 @@ def _in_range(name: str, x: float, rule: Rule) -> None:
         raise ParameterError(f'{name} must be {rule.bounds()}, got {x:g}')
 
 
+YAML_BOOL_WORDS = {False: 'off', True: 'on'}
+
+
 def _scalar(name: str, value: Value, kind: type, rule: Rule) -> Any:
     if kind is bool:
         if not isinstance(value, bool):
             raise ParameterError(f'{name} must be true or false, got {value!r}')
         return value
     if kind is str:
+        # ROS reads `-p adaptation:=off` as YAML 1.1, where off/on (no/yes) are booleans; a
+        # choice spelled that way is what the user meant.
+        if isinstance(value, bool) and YAML_BOOL_WORDS[value] in rule.choices:
+            value = YAML_BOOL_WORDS[value]
         if not isinstance(value, str):
             raise ParameterError(f'{name} must be a string, got {value!r}')
         if rule.choices and value not in rule.choices:

@@ -121,3 +121,16 @@ def test_an_empty_list_from_the_command_line_is_the_empty_list():
     assert build(INNER, _values(in_names=b'')).names == ()
     with pytest.raises(ParameterError, match='in_rate must be a number, got None'):
         build(INNER, _values(in_rate=None))
+
+
+@dataclass
+class Mode:
+    mode: str = param('off', 'a mode', choices=('off', 'periodic'))
+
+
+def test_off_read_by_ros_as_a_yaml_boolean_is_the_choice_off():
+    """`-p mode:=off` reaches the node as False (YAML 1.1); a choice spelled off is meant."""
+    section = Section(Mode)
+    assert build(section, {'mode': False}) == Mode('off')
+    with pytest.raises(ParameterError, match="mode must be a string, got True"):
+        build(section, {'mode': True})      # `on` is not a choice here
