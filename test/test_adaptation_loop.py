@@ -18,7 +18,7 @@ from dataclasses import replace
 import math
 import time
 
-from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
+from metampc_msgs.msg import AdaptRefusal, ControlInput, MpcStatus, NssmWeights, PlantOutput
 from metampc_msgs.srv import SetActive, SetBuffering
 import numpy as np
 import pytest
@@ -175,54 +175,91 @@ def test_in_real_time_an_unanswered_request_is_given_up_and_the_loop_goes_on(pro
     assert 'no model answered the adaptation request' in procs.output(controller)
 
 
+class HeldRun:
+    """A lockstep run of 45 steps held at step 30 for the answer to the request of step 20
+    (periodic, every 2 s); the probe plays the learner. The plant has the default 1.0 s
+    input_timeout, the controller the default 60 s adapt_timeout."""
+
+    steps = 45
+
+    def __init__(self, procs, probe, name):
+        self.procs, self.probe = procs, probe
+        self.status, self.inputs, self.ys = {}, {}, {}
+        node = probe.node
+        node.create_subscription(MpcStatus, f'{name}/mpc_status',
+                                 lambda m: self.status.setdefault(m.step, m), RELIABLE)
+        node.create_subscription(ControlInput, f'{name}/u',
+                                 lambda m: self.inputs.setdefault(m.step, m), RELIABLE)
+        node.create_subscription(PlantOutput, f'{name}/y',
+                                 lambda m: self.ys.setdefault(m.step, m), RELIABLE)
+        self.weights = node.create_publisher(NssmWeights, f'{name}/nssm_weights', LATCHED)
+        self.refusals = node.create_publisher(AdaptRefusal, f'{name}/adapt_refusals', RELIABLE)
+        self.weights.publish(manual_weights(0.5, 0.1))
+        ns = {'__ns': name}
+        self.controller = procs.start('metampc_controller', 'controller', remaps=ns, params={
+            'active': False, 'adaptation': 'periodic', 'adapt_period': 2.0, 'time_limit': 30.0})
+        self.plant = procs.start('metampc_plant', 'plant', remaps=ns, params={
+            'theta': 0.5, 'x0': [0.3, 0.0], 'start_subscribers': 2})   # input_timeout 1.0
+        client = node.create_client(SetActive, f'{name}/set_active')
+        assert client.wait_for_service(timeout_sec=60.0)
+
+        def ready() -> bool:
+            held = probe.call(client, SetActive.Request(active=False), 10.0, resend_every=3.0)
+            return held.model_version == 1 and held.latest_step == 0
+        probe.wait_for(ready, 60.0, 'model 1 and y_0 in the controller')
+        answer = probe.call(client, SetActive.Request(active=True, until_step=self.steps - 1),
+                            10.0)
+        assert answer.answered_step == 0, answer
+        probe.wait_for(lambda: 29 in self.status, 60.0, 'the ticks up to the swap step')
+        assert [k for k in sorted(self.status) if self.status[k].adapt_request] == [20]
+        assert self.status[20].swap_step == 30
+        time.sleep(2.5)     # the adaptation: longer than the plant's input_timeout
+        assert 30 not in self.status     # the answer of the swap step waits for it
+
+    def finish(self, timeout: float):
+        """Wait up to `timeout` s for the last step, stop both nodes; their logs."""
+        last = self.steps - 1
+        self.probe.wait_for(lambda: last in self.status and last in self.ys, timeout,
+                            f'{self.steps} steps')
+        for proc in (self.controller, self.plant):
+            assert self.procs.interrupt(proc) == 0, self.procs.output(proc)
+        assert sorted(self.status) == list(range(self.steps))
+        assert all(list(self.ys[k + 1].u_applied) == list(self.inputs[k].u)
+                   for k in range(self.steps - 1))
+        # The plant's log: one announced hold, no timeout before the controller went inactive
+        # (after the last step the plant times out, as it should).
+        log = self.procs.output(self.plant)
+        assert 'the controller holds step 30 for up to 60 s' in log and ' 1 holds,' in log, log
+        timed_out = [int(line.split('no input for step ')[1].split()[0])
+                     for line in log.splitlines() if 'no input for step ' in line]
+        assert all(k >= self.steps for k in timed_out), log
+        return self.procs.output(self.controller), log
+
+
 def test_a_lockstep_swap_is_exact_when_the_answer_outlasts_the_input_timeout(procs, probe):
     """Issue 31, item 7: the first loop adaptation (2.09 s) outlasted the plant's default 1.0
-    s input_timeout, so the plant held its input and the swap was late. Here the probe plays
-    the learner and answers the request of step 20 (periodic, every 2 s) only 2.5 s after
-    the controller began to hold step 30 for it, with the plant's default input_timeout: the
-    answer is used from exactly step 30, every step is answered once, and every input the
-    plant applied is the answer to its step (none held, no timeout)."""
-    steps, ns, name = 45, {'__ns': '/hold'}, '/hold'
-    status, inputs, ys = {}, {}, {}
-    probe.node.create_subscription(MpcStatus, f'{name}/mpc_status',
-                                   lambda m: status.setdefault(m.step, m), RELIABLE)
-    probe.node.create_subscription(ControlInput, f'{name}/u',
-                                   lambda m: inputs.setdefault(m.step, m), RELIABLE)
-    probe.node.create_subscription(PlantOutput, f'{name}/y',
-                                   lambda m: ys.setdefault(m.step, m), RELIABLE)
-    weights = probe.node.create_publisher(NssmWeights, f'{name}/nssm_weights', LATCHED)
-    weights.publish(manual_weights(0.5, 0.1))
-    controller = procs.start('metampc_controller', 'controller', remaps=ns, params={
-        'active': False, 'adaptation': 'periodic', 'adapt_period': 2.0, 'time_limit': 30.0})
-    plant = procs.start('metampc_plant', 'plant', remaps=ns, params={
-        'theta': 0.5, 'x0': [0.3, 0.0], 'start_subscribers': 2})   # input_timeout 1.0
-    client = probe.node.create_client(SetActive, f'{name}/set_active')
-    assert client.wait_for_service(timeout_sec=60.0)
-
-    def ready() -> bool:
-        held = probe.call(client, SetActive.Request(active=False), 10.0, resend_every=3.0)
-        return held.model_version == 1 and held.latest_step == 0
-    probe.wait_for(ready, 60.0, 'model 1 and y_0 in the controller')
-    answer = probe.call(client, SetActive.Request(active=True, until_step=steps - 1), 10.0)
-    assert answer.answered_step == 0, answer
-    probe.wait_for(lambda: 29 in status, 60.0, 'the ticks up to the swap step')
-    assert [k for k in sorted(status) if status[k].adapt_request] == [20]
-    assert status[20].swap_step == 30
-    time.sleep(2.5)     # the adaptation: longer than the plant's input_timeout
-    assert 30 not in status     # the answer of the swap step waits for it
+    s input_timeout, so the plant held its input and the swap was late. Here the answer comes
+    2.5 s after the controller began to hold step 30 for it: it is used from exactly step 30,
+    every step is answered once, and every input the plant applied is the answer to its step
+    (none held, no timeout)."""
+    run = HeldRun(procs, probe, '/hold')
     late = manual_weights(0.5, 0.1, version=2)
     late.request_step = 20
-    weights.publish(late)
-    probe.wait_for(lambda: steps - 1 in status and steps - 1 in ys, 60.0, f'{steps} steps')
-    for proc in (controller, plant):
-        assert procs.interrupt(proc) == 0, procs.output(proc)
-    assert sorted(status) == list(range(steps))
-    assert [status[k].model_version for k in range(steps)] == [1] * 30 + [2] * (steps - 30)
-    assert all(list(ys[k + 1].u_applied) == list(inputs[k].u) for k in range(steps - 1))
-    # The plant's log: one announced hold, no timeout before the controller went inactive
-    # (after step steps - 1 the plant times out, as it should).
-    log = procs.output(plant)
-    assert 'the controller holds step 30 for up to 60 s' in log and ' 1 holds,' in log, log
-    timed_out = [int(line.split('no input for step ')[1].split()[0])
-                 for line in log.splitlines() if 'no input for step ' in line]
-    assert all(k >= steps for k in timed_out), log
+    run.weights.publish(late)
+    run.finish(60.0)
+    assert [run.status[k].model_version for k in range(run.steps)] == [1] * 30 + [2] * 15
+
+
+def test_a_refused_request_ends_the_hold_at_once(procs, probe):
+    """The learner cannot answer (busy, a window of an escaped or frozen plant) and says so on
+    adapt_refusals: the held step is answered with the model in use at once, not after the
+    controller's 60 s adapt_timeout, and the loop goes on."""
+    run = HeldRun(procs, probe, '/refused')
+    refused = time.monotonic()
+    run.refusals.publish(AdaptRefusal(request_step=20, reason='not adapted: a test'))
+    probe.wait_for(lambda: 30 in run.status, 60.0, 'the held step answered')
+    assert time.monotonic() - refused < 20.0, 'answered at once, not after adapt_timeout'
+    controller_log, _ = run.finish(60.0)
+    assert [run.status[k].model_version for k in range(run.steps)] == [1] * run.steps
+    assert ('the learner refused the adaptation request of step 20 (not adapted: a test)'
+            in controller_log), controller_log

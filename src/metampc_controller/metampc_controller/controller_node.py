@@ -78,8 +78,8 @@ from metampc_common.node_main import (declare_parameters, EventCounts, LiveParam
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_common.replies import Replies
-from metampc_msgs.msg import (ControlInput, MpcStatus, NssmWeights, PlantInfo, PlantOutput,
-                              StepHold)
+from metampc_msgs.msg import (AdaptRefusal, ControlInput, MpcStatus, NssmWeights, PlantInfo,
+                              PlantOutput, StepHold)
 from metampc_msgs.srv import SetActive
 import numpy as np
 from rclpy.clock import Clock, ClockType
@@ -95,7 +95,8 @@ from metampc_controller.controller_params import ControllerConfig, PARAMETERS, p
 from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
-            'retunes', 'adapt_requests', 'adapt_timeouts', 'refused_models', 'dropped')
+            'retunes', 'adapt_requests', 'adapt_timeouts', 'adapt_refusals', 'refused_models',
+            'dropped')
 DELIVERY_TIMEOUT = Duration(seconds=10.0)   # deactivation's wait for the readers' acks
 HOLD_POLL_S = 0.002     # how often an answer waiting for a requested model looks for it, s
 
@@ -146,6 +147,7 @@ class ControllerNode(Node):
         self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)
         if self.cfg.planner == 'latent_mpc':
             self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED)
+            self.create_subscription(AdaptRefusal, 'adapt_refusals', self._on_refusal, SPARSE)
         self._replies = Replies(TaskFuture)     # a repeated request id: the first answer
         self.create_service(SetActive, 'set_active', self._replies.wrap(self._on_set_active))
         # Adaptation in the loop: a lockstep answer waiting for a requested model resumes
@@ -378,13 +380,24 @@ class ControllerNode(Node):
             self.destroy_timer(timer)
             if self.core.trigger.pending is not request:     # answered (or given up) already
                 return
-            self.core.trigger.give_up()
-            self._warn('adapt_timeouts', f'no model answered the adaptation request of step '
-                       f'{request.step} within {self.cfg.trigger.adapt_timeout} s: going on '
-                       f'with model version {request.version}')
-            if self._hold_timer is not None:    # the answer waiting for it goes on now
-                self._on_hold()
+            self._give_up('adapt_timeouts', f'no model answered the adaptation request of step '
+                          f'{request.step} within {self.cfg.trigger.adapt_timeout} s: going on '
+                          f'with model version {request.version}')
         timer = self.create_timer(self.cfg.trigger.adapt_timeout, expire, clock=self._steady)
+
+    def _on_refusal(self, msg: AdaptRefusal) -> None:
+        """The learner cannot answer the request of msg.request_step: give it up now."""
+        if self.core.swap.answers(msg.request_step):
+            self._give_up('adapt_refusals', f'the learner refused the adaptation request of '
+                          f'step {msg.request_step} ({msg.reason}): going on with model '
+                          f'version {self.core.trigger.pending.version}')
+
+    def _give_up(self, counter: str, text: str) -> None:
+        """End the pending request; an answer waiting for it goes on now."""
+        self.core.trigger.give_up()
+        self._warn(counter, text)
+        if self._hold_timer is not None:
+            self._on_hold()
 
     def _on_weights(self, msg: NssmWeights) -> None:
         """Hand the weights to the builder thread (arrival order is kept)."""

@@ -60,7 +60,8 @@ from metampc_common.node_main import declare_parameters, LiveParameters, run_nod
 from metampc_common.params import ParameterError
 from metampc_common.qos import BACKLOG, LATCHED, SPARSE
 from metampc_common.replies import Replies
-from metampc_msgs.msg import MpcStatus, NssmWeights, PlantInfo, PlantOutput, TrainingProgress
+from metampc_msgs.msg import (AdaptRefusal, MpcStatus, NssmWeights, PlantInfo, PlantOutput,
+                              TrainingProgress)
 from metampc_msgs.srv import Adapt, MetaTrain, SetBuffering
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
@@ -118,6 +119,7 @@ class LearnerNode(Node):
         self._loop_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix='loop_adapt')
         self._pub_weights = self.create_publisher(NssmWeights, 'nssm_weights', LATCHED)
         self._pub_progress = self.create_publisher(TrainingProgress, 'progress', SPARSE)
+        self._pub_refusal = self.create_publisher(AdaptRefusal, 'adapt_refusals', SPARSE)
         self._data = data = MutuallyExclusiveCallbackGroup()
         self._sub_y = None
         self._subscribe_y()
@@ -373,11 +375,12 @@ class LearnerNode(Node):
     def _loop_adapt(self, step: int, version: int, trigger: str) -> None:
         """Answer the controller's request of `step` (worker thread): eq. (infer) on the
         latest window from model `version`, published with request_step = step. A request
-        that cannot be served (busy, unknown version, too few samples) is logged; the
-        controller then goes on with its model after its adapt_timeout."""
+        that cannot be served (busy, unknown version, too few samples, a window of an escaped
+        or frozen plant) is logged and refused on ``adapt_refusals``: the controller then
+        goes on with its model at once."""
         what = f'adaptation request of step {step} ({trigger}, model v{version})'
         if not self._slot.claim():
-            self.get_logger().warning(f'{what} refused: {self._slot.busy_reason()}')
+            self._refuse_request(step, f'{what} refused: {self._slot.busy_reason()}')
             return
 
         def train():
@@ -394,8 +397,19 @@ class LearnerNode(Node):
                               f'window loss {loss[0]:.4g} -> {loss[-1]:.4g}')
 
         record = self.session.records.get(version)
-        self._job('loop_adapt', record.method if record else '', self.cfg.loop.steps, train,
-                  what, request_step=step)
+        outcome, message, cancelled = self._job('loop_adapt', record.method if record else '',
+                                                self.cfg.loop.steps, train, what,
+                                                request_step=step)
+        if outcome is None and not cancelled:
+            self._refuse_request(step, message, logged=True)
+
+    def _refuse_request(self, step: int, message: str, logged: bool = False) -> None:
+        """Tell the controller that its request of `step` gets no answer (and why)."""
+        if not logged:
+            self.get_logger().warning(message)
+        msg = AdaptRefusal(request_step=step, reason=message)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub_refusal.publish(msg)
 
     def destroy_node(self) -> None:
         """Cancel a running job, wait for it to stop at its next step, destroy the node."""

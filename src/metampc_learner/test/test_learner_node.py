@@ -8,7 +8,7 @@ import itertools
 import math
 import os
 
-from metampc_msgs.msg import NssmWeights, TrainingProgress
+from metampc_msgs.msg import AdaptRefusal, MpcStatus, NssmWeights, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, SetBuffering
 import numpy as np
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -230,6 +230,24 @@ def test_a_full_d_target_takes_no_more_samples(procs, probe):
                    "the learner's y subscription gone")
     assert buffering_call(probe, buffering, True).cleared == CAPACITY
     probe.wait_for(lambda: 'learner' in y_subscribers(probe), 30.0, "the learner's y again")
+    assert procs.interrupt(learner, timeout=60.0) == 0
+
+
+def test_a_request_it_cannot_serve_is_refused_on_adapt_refusals(procs, probe):
+    """A loop adaptation request whose sample never arrives (no plant here) gets a typed
+    refusal naming its step, so the controller gives it up at once instead of holding the
+    loop for its adapt_timeout."""
+    refusals = []
+    probe.node.create_subscription(AdaptRefusal, 'adapt_refusals', refusals.append, RELIABLE)
+    status = probe.node.create_publisher(MpcStatus, 'mpc_status', RELIABLE)
+    learner = procs.start('metampc_learner', 'learner',
+                          params={**TINY, 'loop_adaptation': True})
+    probe.wait_for(lambda: status.get_subscription_count() > 0, 60.0, "the learner's status")
+    status.publish(MpcStatus(step=7, model_version=1, adapt_request=True,
+                             adapt_trigger='periodic'))
+    probe.wait_for(lambda: refusals, 60.0, 'a refusal')
+    assert refusals[0].request_step == 7
+    assert refusals[0].reason.startswith('adaptation request of step 7'), refusals[0].reason
     assert procs.interrupt(learner, timeout=60.0) == 0
 
 
