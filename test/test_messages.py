@@ -8,7 +8,7 @@ import metampc_msgs.msg
 import metampc_msgs.srv
 
 MESSAGES = ['PlantOutput', 'PlantInfo', 'ControlInput', 'NssmWeights', 'MpcStatus',
-            'TrainingProgress', 'StepHold']
+            'TrainingProgress', 'StepHold', 'AdaptRefusal']
 SERVICES = ['ResetPlant', 'MetaTrain', 'Adapt', 'SetActive', 'SetBuffering']
 
 
