@@ -73,14 +73,19 @@ def start(tmp_path, executor: str, callback: str):
     return proc, log
 
 
-def ended(proc, log) -> str:
-    """The node's output once it has exited 0 without a traceback."""
+def exit_code(proc) -> int:
+    """The node's exit status (killed if it has not ended within TIMEOUT)."""
     try:
-        code = proc.wait(TIMEOUT)
+        return proc.wait(TIMEOUT)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def ended(proc, log) -> str:
+    """The node's output once it has exited 0 without a traceback."""
+    code = exit_code(proc)
     text = log.read_text()
     assert code == 0 and 'Traceback' not in text, text
     return text
@@ -110,11 +115,5 @@ def test_a_node_that_hangs_while_stopping_ends_after_the_stop_deadline(tmp_path)
     proc, log = start(tmp_path, 'events', 'hangs_on_destroy')
     proc.send_signal(signal.SIGINT)
     t0 = time.monotonic()
-    try:
-        code = proc.wait(TIMEOUT)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert code == -signal.SIGALRM, log.read_text()
+    assert exit_code(proc) == -signal.SIGALRM, log.read_text()
     assert 1.5 < time.monotonic() - t0, 'ended by the alarm, not at once'
