@@ -17,6 +17,10 @@ REFERENCE = (0.8, -0.5)      # set-point of x1 before and from step 20 of an epi
 EPISODE_STEPS = (40, 20)     # outputs of episode 0 (then a reset) and of episode 1
 MISSED = {(0, 10), (0, 11), (1, 5)}      # (episode, step) the controller does not answer
 CLOCK = 'rosgraph_msgs/msg/Clock'
+STEP_HOLD = 'metampc_msgs/msg/StepHold'
+# s: the probe holds the run's last step this long (the plant then waits it out instead of
+# stepping on after its input_timeout; beside two suites SIGINT once came after 0.5 s).
+LAST_HOLD_S = 120.0
 
 
 def reference(k: int) -> float:
@@ -163,9 +167,10 @@ class ProbeController:
     It answers output y_k with a ControlInput (u = r + (r - y[0]) - 1.5 y[1], r the
     reference of step k + 1, not clipped, so the plant saturates some) and an MpcStatus whose
     y_ref rows are the reference of steps k+1..k+3, except the steps of MISSED and the last
-    step of each episode; after episode 0 it publishes adapted weights and adaptation progress
-    and resets the plant. Every message it receives or sends is kept per topic and fed to a
-    SeriesBuilder at once, as an orchestrator would.
+    step of each episode (the run's last step it holds, ``u_hold``, so that the plant waits
+    for the end instead of stepping on); after episode 0 it publishes adapted weights and
+    adaptation progress and resets the plant. Every message it receives or sends is kept per
+    topic and fed to a SeriesBuilder at once, as an orchestrator would.
     """
 
     def __init__(self, node, seed: int = 7):
@@ -174,25 +179,27 @@ class ProbeController:
                                                 PLANT_INFO, PLANT_OUTPUT, SeriesBuilder,
                                                 TRAINING_PROGRESS)
         from metampc_msgs.msg import (ControlInput, MpcStatus, NssmWeights, PlantInfo,
-                                      PlantOutput, TrainingProgress)
+                                      PlantOutput, StepHold, TrainingProgress)
         from metampc_msgs.srv import ResetPlant
         from rosgraph_msgs.msg import Clock
         self.node = node
         self.rng = np.random.default_rng(seed)
         self.types = {'/y': PLANT_OUTPUT, '/u': CONTROL_INPUT, '/mpc_status': MPC_STATUS,
                       '/nssm_weights': NSSM_WEIGHTS, '/progress': TRAINING_PROGRESS,
-                      '/plant_info': PLANT_INFO, '/clock': CLOCK}
+                      '/plant_info': PLANT_INFO, '/clock': CLOCK,
+                      '/u_hold': STEP_HOLD}
         self.published: Dict[str, List[Any]] = {topic: [] for topic in self.types}
         self.builder = SeriesBuilder()
         self.unanswered: Set[Tuple[int, int]] = set()
         self.episode, self.last_step, self.ticks, self.version = 0, -1, 0, 1
         self.done = False
         self._msg = {'/u': ControlInput, '/mpc_status': MpcStatus, '/nssm_weights': NssmWeights,
-                     '/progress': TrainingProgress}
+                     '/progress': TrainingProgress, '/u_hold': StepHold}
         self.pubs = {'/nssm_weights': node.create_publisher(
                          NssmWeights, 'nssm_weights', qos(latched=True)),
                      '/progress': node.create_publisher(TrainingProgress, 'progress', qos()),
-                     '/mpc_status': node.create_publisher(MpcStatus, 'mpc_status', qos())}
+                     '/mpc_status': node.create_publisher(MpcStatus, 'mpc_status', qos()),
+                     '/u_hold': node.create_publisher(StepHold, 'u_hold', qos())}
         self.y_subscription = node.create_subscription(PlantOutput, 'y', self._on_y, qos())
         node.create_subscription(PlantInfo, 'plant_info',
                                  lambda m: self._keep('/plant_info', m), qos(latched=True))
@@ -234,6 +241,7 @@ class ProbeController:
                               total=5, loss=0.1 / i, elapsed=0.2 * i, cg_residual=math.nan)
                 self.reset.call_async(self._reset_request)
             else:
+                self.send('/u_hold', step=k, hold_s=LAST_HOLD_S)
                 self.done = True
             return
         if (self.episode, k) in MISSED:
@@ -288,6 +296,8 @@ def run_closed_loop(procs, probe, path: Path) -> ClosedLoopRun:
     ctl.open_input()
     probe.wait_for(lambda: ctl.done, 60.0, 'the end of the lockstep run')
     assert procs.interrupt(plant) == 0, procs.output(plant)
+    last = EPISODE_STEPS[-1] - 1
+    assert f'the controller holds step {last} ' in procs.output(plant), procs.output(plant)
     counts = {topic: len(msgs) for topic, msgs in ctl.published.items()}
     recorders.wait_recorded(path, counts)
     assert procs.interrupt(recorder) == 0, procs.output(recorder)
