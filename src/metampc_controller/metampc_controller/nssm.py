@@ -17,6 +17,22 @@ Loss (the paper's l_SSM): ``1/T ||Y_{t+1:t+T} - Y_hat_{t+1:t+T}||^2`` (squared e
 over the n_y outputs, averaged over the T steps), averaged over the windows of a data set,
 in normalised units.
 
+Latent consistency (an addition to the paper's eq. (SSM), off by default): l_SSM scores the
+T-step outputs of the latent state the encoder gives at t and nothing ties the encoder's state
+at t+1 to eq. (z_next) from it; the one-step latent residual
+``rho_{t+1} = z_{t+1} - (A z_t + B u_{t+1})`` (both z from eq. (z)) is then free, and the
+offset-free MPC reads it as a disturbance (docs/mpc.md, "Why seed 4 failed"). With
+``consistency_weight`` w > 0 the training loss is ``l_SSM + w l_cons`` (:func:`training_loss`)
+with ``l_cons = 1/T sum_{k=1..T} ||C A^(k-1) rho_{t+1}||^2`` averaged over the windows: the
+disagreement, on the T outputs y_{t+1..t+T}, between the predictions from the encoder's state at
+t+1 and from the model's own step from t (the input terms cancel). In output space, not
+``||rho||^2``: the latent is defined only up to an invertible map z -> M z (A -> M A M^-1,
+B -> M B, C -> C M^-1, the same outputs), under which ||rho|| can be shrunk at will by shrinking
+z and growing C, while C A^k rho is invariant; and it is in the units of l_SSM (normalised
+outputs), so w weighs the two terms directly. One step (t -> t+1) per window suffices: training
+windows start anywhere in the data, so the step j -> j+1 inside a window is another window's
+first step; it costs one more encoder pass per window.
+
 Parameters are a ``Dict[str, Tensor]`` in the canonical order of :func:`param_shapes`
 (``encoder.<i>.weight``, ``encoder.<i>.bias``, ``A``, ``B``, ``C``), usable with
 ``torch.func.functional_call(Nssm(...), params, (u, y))``. The same model elsewhere, one idea
@@ -54,6 +70,8 @@ class NssmConfig:
         stable_latent: A of eq. (z_next) bounded to spectral norm < rho_max by the smooth map
             of ``latent_stability.py`` (False: A free, as in the paper).
         rho_max: the bound (> 0).
+        consistency_weight: w of the latent consistency term in the training loss (>= 0; 0:
+            l_SSM alone, the paper's loss; module docstring).
     """
 
     n_u: int = 1
@@ -65,11 +83,14 @@ class NssmConfig:
     stable_latent: bool = param(True, 'bound the spectral norm of A by rho_max (false: A free, '
                                       'as in the paper)')
     rho_max: float = param(1.0, 'bound of the spectral norm of A', gt=0)
+    consistency_weight: float = param(0.0, 'w of the latent consistency term of the training '
+                                           'loss (0: l_SSM alone, as in the paper)', ge=0)
 
     def __post_init__(self):
         self.hidden = tuple(int(w) for w in self.hidden)
         self.stable_latent = bool(self.stable_latent)
         self.rho_max = float(self.rho_max)
+        self.consistency_weight = float(self.consistency_weight)
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
@@ -157,6 +178,14 @@ class Nssm(nn.Module):
                 h = F.relu(h)
         return h
 
+    def c_powers(self, n: int) -> torch.Tensor:
+        """C A^k, k = 0..n, shape (n+1, n_y, n_z)."""
+        powers = torch.eye(self.config.n_z, dtype=self.A.dtype,
+                           device=self.A.device)[None]            # A^0 .. A^(n-1)
+        while powers.shape[0] < n + 1:
+            powers = torch.cat([powers, (powers[-1] @ self.A) @ powers], dim=0)
+        return self.C @ powers[:n + 1]
+
     def rollout(self, z: torch.Tensor, u_future: torch.Tensor) -> torch.Tensor:
         """Eqs. (z_next), (haty): z_t (N, n_z), u_{t+1..t+T} (N, T, n_u) -> y_hat (N, T, n_y).
 
@@ -165,11 +194,7 @@ class Nssm(nn.Module):
         step-by-step recursion but costs a few batched products instead of T small ones.
         """
         n_t = u_future.shape[-2]
-        powers = torch.eye(self.config.n_z, dtype=self.A.dtype,
-                           device=self.A.device)[None]            # A^0 .. A^(n-1)
-        while powers.shape[0] < n_t + 1:
-            powers = torch.cat([powers, (powers[-1] @ self.A) @ powers], dim=0)
-        c_powers = self.C @ powers[:n_t + 1]                      # C A^k, k = 0..T
+        c_powers = self.c_powers(n_t)                             # C A^k, k = 0..T
         free = torch.einsum('kyz,...z->...ky', c_powers[1:], z)
         markov = c_powers[:n_t] @ self.B                          # C A^k B, k = 0..T-1
         k = torch.arange(n_t, device=u_future.device)
@@ -177,8 +202,25 @@ class Nssm(nn.Module):
         toeplitz = markov[lag.clamp(min=0)] * (lag >= 0)[:, :, None, None].to(markov.dtype)
         return free + torch.einsum('kjyu,...ju->...ky', toeplitz, u_future)
 
-    def forward(self, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """Windows (N, H+T, n_u), (N, H+T, n_y) normalised -> y_hat_{t+1..t+T} (N, T, n_y)."""
+    def consistency(self, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Windows (N, H+T, ...) normalised -> C A^(k-1) rho_{t+1}, k = 1..T (N, T, n_y).
+
+        rho_{t+1} = z_{t+1} - (A z_t + B u_{t+1}), z_t and z_{t+1} from eq. (z) on the
+        histories ending at t and t+1 (module docstring, latent consistency).
+        """
+        n_h = self.config.history
+        z_t = self.encode(u[..., :n_h, :], y[..., :n_h, :])
+        z_next = self.encode(u[..., 1:n_h + 1, :], y[..., 1:n_h + 1, :])
+        rho = z_next - z_t @ self.A.T - u[..., n_h, :] @ self.B.T
+        n_t = u.shape[-2] - n_h
+        return torch.einsum('kyz,...z->...ky', self.c_powers(n_t - 1), rho)
+
+    def forward(self, u: torch.Tensor, y: torch.Tensor, consistency: bool = False
+                ) -> torch.Tensor:
+        """Windows (N, H+T, n_u), (N, H+T, n_y) normalised -> y_hat_{t+1..t+T} (N, T, n_y);
+        with `consistency`, :meth:`consistency` instead (so that functional_call reaches it)."""
+        if consistency:
+            return self.consistency(u, y)
         n_h = self.config.history
         return self.rollout(self.encode(u[..., :n_h, :], y[..., :n_h, :]), u[..., n_h:, :])
 
@@ -191,3 +233,19 @@ def prediction_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Te
     """
     y_hat = torch.func.functional_call(model, params, (u, y))
     return (y_hat - y[..., model.config.history:, :]).square().sum(dim=-1).mean()
+
+
+def consistency_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Tensor,
+                     y: torch.Tensor) -> torch.Tensor:
+    """l_cons of the module docstring averaged over N windows (scalar), shapes as l_SSM's."""
+    c = torch.func.functional_call(model, params, (u, y), {'consistency': True})
+    return c.square().sum(dim=-1).mean()
+
+
+def training_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Tensor,
+                  y: torch.Tensor) -> torch.Tensor:
+    """What training minimises: l_SSM + w l_cons, w = ``consistency_weight`` (w = 0: l_SSM,
+    the same computation as :func:`prediction_loss`)."""
+    loss = prediction_loss(model, params, u, y)
+    weight = model.config.consistency_weight
+    return loss + weight * consistency_loss(model, params, u, y) if weight else loss

@@ -5,7 +5,8 @@ Q^b = I + H / gamma (eq. Qb) is never formed; CG needs only products with the cu
 - 'hessian': the exact Hessian of l_SSM(D_tr; psi), forward-over-reverse
   (``jvp`` of ``grad``). Indefinite for this non-convex loss, so I + H/gamma can be too, and
   CG then stalls (measured, docs/architecture.md 'Calibration').
-- 'gauss_newton': G = J' (2 / (N T)) J with J the Jacobian of the N x T x n_y predictions:
+- 'gauss_newton': G = J' (2 / (N T)) J with J the Jacobian of the N x T x n_y predictions
+  (and of the consistency residuals with the NSSM's consistency weight: objective.predict):
   the Hessian without the residual-curvature term, positive semi-definite, so I + G/gamma is
   positive definite for any gamma > 0. One ``vjp`` closure is built at psi and reused; each
   product costs one ``jvp`` and one vector-Jacobian product.
@@ -32,7 +33,7 @@ def hessian_product(objective: FlatObjective, psi: torch.Tensor, u: torch.Tensor
 
 def gauss_newton_product(objective: FlatObjective, psi: torch.Tensor, u: torch.Tensor,
                          y: torch.Tensor) -> Product:
-    """v (P,) -> G v = (2 / (N T)) J'J v, J = d y_hat / d psi at psi."""
+    """v (P,) -> G v = (2 / (N T)) J'J v, J = d y_hat / d psi at psi (FlatObjective.predict)."""
     def predict(p):
         return objective.predict(p, u, y)
 

@@ -39,7 +39,8 @@ Backend (``backend``): 'fast' (default) computes the B meta-gradients of iMAML w
 Gauss-Newton curvature and of first-order MAML with batched_objective.py (hand-batched NSSM,
 about 3x less CPU time per outer step, docs/learning.md 'Speed of the meta-gradient');
 'eager' is the reference below (``vmap`` of imaml.py / maml.py, or a Python loop), which
-also runs the exact-Hessian curvature and unrolled MAML under either backend. The two agree
+also runs the exact-Hessian curvature, unrolled MAML and a loss with the NSSM's latent
+consistency term (the fast code has l_SSM alone) under either backend. The two agree
 to float32 rounding (test_batched_objective.py), so a run's numbers differ between backends
 at that level and, through the outer loop, beyond it. ``device``: 'cpu' or 'cuda' (refused by
 :meth:`MetaConfig.validate` when torch sees no CUDA device); the weights, the windows of each
@@ -228,11 +229,11 @@ def batch_gradient_fn(objective: FlatObjective, config: MetaConfig
                       ) -> Callable[..., TaskGradient]:
     """(omega (P,), tr_u, tr_y, te_u, te_y with a leading B) -> TaskGradient batched over B.
 
-    The fast backend (batched_objective.py) where it covers the configuration, its result on
-    ``config.device``; else the reference, vmapped (``vectorise``) or looped, on the device
-    of its arguments.
+    The fast backend (batched_objective.py) where it covers the configuration (l_SSM alone, not
+    the NSSM's latent consistency term), its result on ``config.device``; else the reference,
+    vmapped (``vectorise``) or looped, on the device of its arguments.
     """
-    if config.fast:
+    if config.fast and not objective.model.config.consistency_weight:
         return BatchedTaskGradient(BatchedNssm(objective.model, config.device), config.method,
                                    config.inner_steps, config.lr_inner, config.gamma,
                                    config.cg_steps, config.init_loss_weight)

@@ -2,7 +2,9 @@
 
 Shared by the inner loops of iMAML (eq. inner_imaml), MAML (eq. inner, gamma = 0) and
 meta-inference (eq. infer): each is M steps of gradient descent on
-``l_SSM(D; psi) + gamma/2 ||psi - anchor||^2`` from ``psi = anchor``. Written with
+``l_SSM(D; psi) + gamma/2 ||psi - anchor||^2`` from ``psi = anchor`` (l_SSM plus the
+latent consistency term where the NSSM's ``consistency_weight`` is set:
+``nssm.training_loss``). Written with
 ``torch.func.grad`` so that it runs under ``vmap`` over tasks and can be differentiated through
 (unrolled MAML) or not (iMAML, first-order MAML, adaptation: no graph is kept).
 """
@@ -12,7 +14,7 @@ import torch
 
 from torch.func import grad_and_value
 
-from metampc_controller.nssm import Nssm, prediction_loss
+from metampc_controller.nssm import Nssm, training_loss
 from metampc_learner.training_vector import TrainingVector
 
 ARMIJO_C = 1e-4        # sufficient decrease of the Armijo rule (Nocedal & Wright's choice)
@@ -35,15 +37,25 @@ class FlatObjective:
         return self.spec.size
 
     def predict(self, flat: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """y_hat_{t+1..t+T}, shape (N, T, n_y)."""
-        return torch.func.functional_call(self.model, self.spec.unflatten(flat), (u, y))
+        """The outputs whose squared distances to their targets, summed over everything and
+        divided by :meth:`n_terms`, are :meth:`loss` (Gauss-Newton's J is their Jacobian):
+        y_hat_{t+1..t+T} (N, T, n_y); with a consistency weight w, sqrt(w) times the
+        consistency residuals (targets 0) appended along the steps, (N, 2T, n_y)."""
+        params = self.spec.unflatten(flat)
+        y_hat = torch.func.functional_call(self.model, params, (u, y))
+        weight = self.model.config.consistency_weight
+        if not weight:
+            return y_hat
+        c = torch.func.functional_call(self.model, params, (u, y), {'consistency': True})
+        return torch.cat([y_hat, weight ** 0.5 * c], dim=-2)
 
     def loss(self, flat: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """l_SSM averaged over the N windows (scalar); see nssm.prediction_loss."""
-        return prediction_loss(self.model, self.spec.unflatten(flat), u, y)
+        """The training loss averaged over the N windows (scalar): l_SSM, plus w l_cons with a
+        consistency weight w; see nssm.training_loss."""
+        return training_loss(self.model, self.spec.unflatten(flat), u, y)
 
     def n_terms(self, u: torch.Tensor) -> int:
-        """N * T: the loss is the sum of squared residuals divided by this."""
+        """N * T: the loss is the sum of squared residuals divided by this (both terms)."""
         return u.shape[-3] * self.model.config.horizon
 
     def prox_objective(self, psi: torch.Tensor, anchor: torch.Tensor, u: torch.Tensor,

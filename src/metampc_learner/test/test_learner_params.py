@@ -74,6 +74,7 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     ({'hidden': [16, 0]}, 'hidden must be >= 1'),
     ({'rho_max': 0.0}, 'rho_max must be > 0'),
     ({'rho_max': -0.5}, 'rho_max must be > 0'),
+    ({'consistency_weight': -0.1}, 'consistency_weight must be >= 0'),
     ({'stable_latent': 1}, 'stable_latent must be true or false'),
     ({'hidden': 'wide'}, 'hidden must be a list of integers'),
     ({'hidden': [1.5]}, 'hidden must be an integer'),
