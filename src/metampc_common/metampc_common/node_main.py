@@ -32,6 +32,7 @@ SHUTDOWN_POLL_S = 0.5    # s: longest a node takes to notice a shutdown that wok
 # recorder stopped after a fast session hung for good in rclpy's destroy_publisher, deaf to
 # every later signal, its lifeline's included (an orphan).
 STOP_DEADLINE_S = 20
+CALLBACK_WAIT_S = 10.0   # s: longest the stop waits for callbacks running in other threads
 
 
 # Parameters a node takes besides its table: rclpy's own, and QoS overrides of its endpoints.
@@ -199,6 +200,25 @@ def error_line(name: str, message: str) -> None:
     print(f'[ERROR] [{time.time():.9f}] [{name}]: {message}', file=sys.stderr, flush=True)
 
 
+def _stop_executor(ex: Executor, node: Optional[Node]) -> None:
+    """Stop `ex` and wait (up to CALLBACK_WAIT_S) for its callbacks still running.
+
+    rclpy Jazzy's ``Executor.shutdown`` never waits for them (it tests ``_is_shutdown`` right
+    after setting it), and a MultiThreadedExecutor's callback that ends after
+    ``destroy_node`` fails on its destroyed service ("cannot use Destroyable because
+    destruction was requested", printed by rclpy as an exception never retrieved: seen in
+    the learner's test beside a second suite). A node's long work (the learner's job, run
+    inside a service callback) is stopped first: ``node.stop_work()`` where it has one.
+    """
+    ex.shutdown()
+    stop_work = getattr(node, 'stop_work', None)
+    if stop_work is not None:
+        stop_work()
+    tracker = getattr(ex, '_work_tracker', None)    # Executor's; the EventsExecutor has none
+    if tracker is not None:
+        tracker.wait(CALLBACK_WAIT_S)
+
+
 def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[str]] = None,
              executor: Optional[Callable[[], Executor]] = None) -> int:
     """Init rclpy, build the node, spin it until Ctrl-C or shutdown; return the exit code.
@@ -270,7 +290,7 @@ def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[s
         # keeps its /rosout writer alive past destroy_node, and a line logged after it (the
         # plant's and the controller's stop lines) would go to that writer.
         if ex is not None:
-            ex.shutdown()
+            _stop_executor(ex, node)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

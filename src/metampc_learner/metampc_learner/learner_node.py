@@ -411,11 +411,16 @@ class LearnerNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_refusal.publish(msg)
 
-    def destroy_node(self) -> None:
-        """Cancel a running job, wait for it to stop at its next step, destroy the node."""
+    def stop_work(self) -> None:
+        """Cancel a running job and wait for it to stop at its next step (run_node calls it
+        before it waits for the callbacks in flight; idempotent)."""
         self._loop_worker.shutdown(wait=False, cancel_futures=True)
         if not self._slot.cancel(CANCEL_TIMEOUT_S):
             self.get_logger().warning(f'the running job did not stop within {CANCEL_TIMEOUT_S} s')
+
+    def destroy_node(self) -> None:
+        """Stop the work (:meth:`stop_work`), destroy the node."""
+        self.stop_work()
         super().destroy_node()
 
 
