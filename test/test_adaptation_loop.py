@@ -198,18 +198,20 @@ class HeldRun:
         ns = {'__ns': name}
         self.controller = procs.start('metampc_controller', 'controller', remaps=ns, params={
             'active': False, 'adaptation': 'periodic', 'adapt_period': 2.0, 'time_limit': 30.0})
-        self.plant = procs.start('metampc_plant', 'plant', remaps=ns, params={
-            'theta': 0.5, 'x0': [0.3, 0.0], 'start_subscribers': 2})   # input_timeout 1.0
         client = node.create_client(SetActive, f'{name}/set_active')
         assert client.wait_for_service(timeout_sec=60.0)
-
-        def ready() -> bool:
-            held = probe.call(client, SetActive.Request(active=False), 10.0, resend_every=3.0)
-            return held.model_version == 1 and held.latest_step == 0
-        probe.wait_for(ready, 60.0, 'model 1 and y_0 in the controller')
-        answer = probe.call(client, SetActive.Request(active=True, until_step=self.steps - 1),
-                            10.0)
-        assert answer.answered_step == 0, answer
+        # Model 1 in use, then active (bounded) before the plant exists: the plant's default
+        # 1.0 s input_timeout would step on from an unanswered y_0 (beside two suites the
+        # probe once saw the controller holding y_1, never y_0).
+        probe.wait_for(lambda: probe.call(client, SetActive.Request(active=False), 10.0,
+                                          resend_every=3.0).model_version == 1, 60.0,
+                       'model 1 in the controller')
+        answer = probe.call(client, SetActive.Request(
+            active=True, until_step=self.steps - 1, request_id=f'{name}-activate'), 10.0,
+            resend_every=3.0)
+        assert answer.answered_step == -1, answer
+        self.plant = procs.start('metampc_plant', 'plant', remaps=ns, params={
+            'theta': 0.5, 'x0': [0.3, 0.0], 'start_subscribers': 2})   # input_timeout 1.0
         probe.wait_for(lambda: 29 in self.status, 60.0, 'the ticks up to the swap step')
         assert [k for k in sorted(self.status) if self.status[k].adapt_request] == [20]
         assert self.status[20].swap_step == 30
