@@ -12,6 +12,16 @@ from metampc_bringup.spun_node import SpunNode
 from rosbags.highlevel import AnyReader
 
 
+def own_lines(text: str) -> list:
+    """The non-empty lines of a process's output, without Fast DDS's shared-memory port
+    error: when many participants start at once its port mutex times out (after 2 s,
+    eProsima/Fast-DDS#6117) and it logs 'RTPS_TRANSPORT_SHM Error ... Failed init_port', then
+    goes on with another port. Seen with 14 plants started together on an idle CI machine;
+    not a line of ours."""
+    return [line for line in text.splitlines() if line.strip()
+            and not ('RTPS_TRANSPORT_SHM' in line and 'Failed init_port' in line)]
+
+
 class TestNode(SpunNode):
     """An rclpy node spun in a background thread, for probing the graph from a test."""
 

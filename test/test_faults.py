@@ -41,7 +41,7 @@ from metampc_controller.normalisation import Normalisation
 from metampc_controller.nssm import init_params, NssmConfig
 from metampc_controller.weights_codec import fields_from_weights
 from metampc_plant.simulator import Plant, PlantConfig
-from metampc_testing import session_pids
+from metampc_testing import own_lines, session_pids
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -628,7 +628,7 @@ def _each_refused_with_one_line(procs, cases) -> None:
                for name, (pkg, exe, params, _) in cases.items()}
     for name, proc in started.items():
         code = proc.wait(120.0)
-        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        lines = own_lines(procs.output(proc))
         assert code == 2, (name, code, lines)
         assert len(lines) == 1 and 'invalid parameter: ' in lines[0], (name, lines)
         assert cases[name][3] in lines[0], (name, lines)
@@ -685,6 +685,6 @@ def test_existing_output_path_is_never_overwritten(procs, tmp_path):
         'overwritten']
     assert (run / 'report.md').read_text() == 'an earlier report'
     assert recorder.wait(120) == 2
-    lines = [line for line in procs.output(recorder).splitlines() if line.strip()]
+    lines = own_lines(procs.output(recorder))
     assert len(lines) == 1 and 'exists' in lines[0] and str(taken) in lines[0], lines
     assert taken.read_bytes() == b'an earlier run'

@@ -25,7 +25,7 @@ from metampc_bringup.msg_schema import (DefinitionSource, MessageDefinition,
                                         package_share_directory)
 from metampc_bringup.rclpy_adapters import message_class
 from metampc_bringup.run_series import DEFAULT_TOPICS
-from metampc_testing import session_pids
+from metampc_testing import own_lines, session_pids
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -227,7 +227,7 @@ def test_bad_port_is_one_line_and_exit_2(procs):
                for port in (-1, 70000)}
     for port, proc in started.items():
         code = proc.wait(TIMEOUT)
-        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        lines = own_lines(procs.output(proc))
         assert code == 2, lines
         assert len(lines) == 1, lines
         assert f'invalid parameter: port must be in [0, 65535], got {port}' in lines[0]
@@ -240,7 +240,7 @@ def test_port_in_use_is_one_clear_line_and_exit_2(procs):
         port = holder.getsockname()[1]
         proc = procs.start('metampc_bringup', 'foxglove', params={'port': port})
         code = proc.wait(TIMEOUT)
-    lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+    lines = own_lines(procs.output(proc))
     assert code == 2, lines
     assert len(lines) == 1, lines
     assert (f'invalid parameter: port: cannot serve on 127.0.0.1:{port}: '

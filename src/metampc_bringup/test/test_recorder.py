@@ -16,6 +16,7 @@ from metampc_bringup.recording_reader import read_recording
 from metampc_common.held_publisher import HeldPublisher, HoldConfig
 from metampc_bringup.rosbag2_qos import profiles_from_yaml
 from metampc_msgs.msg import PlantOutput
+from metampc_testing import own_lines
 import numpy as np
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
@@ -129,7 +130,7 @@ def test_existing_output_is_an_error_and_left_alone(tmp_path, procs, recorders):
     path.write_bytes(b'an earlier run')
     recorder = recorders.start(path)
     assert recorder.wait(30) == 2
-    lines = [line for line in procs.output(recorder).splitlines() if line.strip()]
+    lines = own_lines(procs.output(recorder))
     assert len(lines) == 1 and 'exists' in lines[0] and str(path) in lines[0], lines
     assert path.read_bytes() == b'an earlier run'
 

@@ -35,7 +35,7 @@ from std_msgs.msg import Float64MultiArray
 
 from metampc_controller.manual_model import linearised_vdp_nssm
 from metampc_controller.weights_codec import fields_from_weights
-from metampc_testing import session_pids
+from metampc_testing import own_lines, session_pids
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -314,7 +314,7 @@ def test_bad_parameter_one_line_and_exit_2(procs):
     proc = procs.start('metampc_controller', 'controller',
                        params={'horizon': 0, 'reference': 'setpoint'})
     code = proc.wait(60.0)
-    lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+    lines = own_lines(procs.output(proc))
     assert code == 2, lines
     assert len(lines) == 1 and 'invalid parameter: horizon must be >= 1' in lines[0], lines
 
@@ -364,5 +364,5 @@ def test_send_model_publishes_the_hand_built_model_latched_and_stops_cleanly(pro
 
     bad = procs.start('metampc_controller', 'send_model', params={'dt': 0.0})
     assert bad.wait(60.0) == 2
-    lines = [line for line in procs.output(bad).splitlines() if line.strip()]
+    lines = own_lines(procs.output(bad))
     assert len(lines) == 1 and 'invalid parameter: dt must be > 0' in lines[0], lines

@@ -16,7 +16,7 @@ import torch
 
 from metampc_controller.weights_codec import fields_of, weights_from_fields
 from metampc_learner.checkpoint import load_checkpoint
-from metampc_testing import session_pids
+from metampc_testing import own_lines, session_pids
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -264,7 +264,7 @@ def test_bad_parameters_one_line_and_exit_2(procs):
                for case, (params, _) in BAD_PARAMS.items()}
     for case, proc in started.items():
         code = proc.wait(60.0)
-        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        lines = own_lines(procs.output(proc))
         assert code == 2, (case, lines)
         assert len(lines) == 1 and 'invalid parameter' in lines[0], (case, lines)
         assert BAD_PARAMS[case][1] in lines[0], (case, lines)
@@ -285,7 +285,7 @@ def test_an_unreadable_meta_model_is_one_line_and_exit_2(procs, tmp_path):
                for case, (path, _) in files.items()}
     for case, proc in started.items():
         code = proc.wait(60.0)
-        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        lines = own_lines(procs.output(proc))
         assert code == 2 and len(lines) == 1, (case, lines)
         assert 'invalid parameter: meta_model_path: cannot load meta-model' in lines[0]
         assert files[case][0] in lines[0] and files[case][1] in lines[0], (case, lines)

@@ -17,7 +17,7 @@ from rosgraph_msgs.msg import Clock
 from metampc_plant.plant_params import parse_params, ParameterError, PARAMETERS
 from metampc_plant.registry import get_family
 from metampc_plant.simulator import Plant, PlantConfig
-from metampc_testing import session_pids
+from metampc_testing import own_lines, session_pids
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -374,7 +374,7 @@ def test_bad_parameters_one_line_and_nonzero_exit(procs):
     started = {case: start_plant(procs, params) for case, (params, _) in BAD_PARAMS.items()}
     for case, proc in started.items():
         code = proc.wait(60.0)
-        lines = [line for line in procs.output(proc).splitlines() if line.strip()]
+        lines = own_lines(procs.output(proc))
         assert code != 0, case
         assert len(lines) == (2 if case == 'yaml' else 1), f'{case}: {lines}'
         assert BAD_PARAMS[case][1] in lines[-1], lines
