@@ -102,21 +102,25 @@ def refusal(reason: str) -> bytes:
             + body)
 
 
-def _pump(source: socket.socket, sink: socket.socket) -> None:
-    """Copy `source` to `sink` until either ends; then end both directions of both."""
+def _end(sock: socket.socket) -> None:
+    """Shut both directions of `sock`; one the peer or the other relay already ended raises
+    OSError (ENOTCONN), which is the state wanted."""
     try:
-        while True:
-            data = source.recv(_CHUNK)
-            if not data:
-                break
-            sink.sendall(data)
+        sock.shutdown(socket.SHUT_RDWR)
     except OSError:
+        return
+
+
+def _pump(source: socket.socket, sink: socket.socket) -> None:
+    """Copy `source` to `sink` until either ends (EOF, or a reset: OSError); then end both
+    directions of both."""
+    try:
+        while data := source.recv(_CHUNK):
+            sink.sendall(data)
+    except OSError:     # a peer reset or closed: the relay's end, like EOF
         pass
     for sock in (source, sink):
-        try:
-            sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
+        _end(sock)
 
 
 class SubprotocolFront:
@@ -211,17 +215,11 @@ class SubprotocolFront:
         with self._lock:
             self._closed = True
             threads = list(self._threads)
-        try:
-            self._listener.shutdown(socket.SHUT_RDWR)   # wakes accept() on Linux
-        except OSError:
-            pass
+        _end(self._listener)    # wakes accept() on Linux
         self._listener.close()
         deadline = time.monotonic() + timeout
         for thread in threads:
             thread.join(max(deadline - time.monotonic(), 0.0))
         with self._lock:
             for sock in self._open:
-                try:
-                    sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
+                _end(sock)
