@@ -3,6 +3,8 @@ SHELL := /bin/bash
 .DEFAULT_GOAL := help
 ENV := source scripts/env.sh
 PYTEST_ARGS ?=
+# pytest-xdist workers of `make test` (0: one process, no workers)
+TEST_JOBS ?= 2
 RUN_ARGS ?=
 
 .PHONY: help setup build test lint run clean
@@ -28,7 +30,7 @@ lint: setup
 	@$(ENV) && flake8 src scripts test examples
 
 test: build
-	@$(ENV) && python -m pytest $(PYTEST_ARGS)
+	@$(ENV) && python -m pytest -n $(TEST_JOBS) --dist loadgroup $(PYTEST_ARGS)
 
 run: build
 	@$(ENV) && python scripts/run_experiment.py $(RUN_ARGS)

@@ -6,6 +6,11 @@ machine never share a domain; every process a test starts inherits the environme
 METAMPC_TEST_SESSION=<this pytest's pid>. When the session ends, a process that still holds
 that variable (whatever started it, wherever it was re-parented) 5 s later is an orphan: it
 is named, killed, and the session fails.
+
+`make test` runs the suite on two pytest-xdist workers (`--dist loadgroup`): each worker is a
+session of its own (its own domain, its own orphan check). A test file is one group, so its
+module fixtures are built once; files that share a session fixture name one group with
+`pytestmark = pytest.mark.xdist_group(NAME)`.
 """
 import os
 import signal
@@ -21,6 +26,13 @@ def pytest_configure(config):
     from metampc_bringup.domain import isolate
     isolate('LOCALHOST')
     os.environ[SESSION_ENV] = str(os.getpid())
+
+
+@pytest.hookimpl(tryfirst=True)    # before xdist reads the groups
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.get_closest_marker('xdist_group') is None:
+            item.add_marker(pytest.mark.xdist_group(item.path.name))
 
 
 def _left_running() -> list:

@@ -63,13 +63,13 @@ def bench(args) -> dict:
                 latencies, steps = [], []
                 for _ in range(WARM_UP):
                     client.message(args.timeout)
-                t0, cpu0 = time.monotonic(), live_cpu_seconds(session_pids(live.pid))
+                t0, cpu0 = time.monotonic(), live_cpu_seconds(session_pids(live))
                 while len(steps) < args.messages:
                     msg = client.message(args.timeout)
                     y = deserialize_message(msg.data, PlantOutput)
                     latencies.append(msg.received_ns - stamp_ns(y))
                     steps.append(y.step)
-                t1, cpu1 = time.monotonic(), live_cpu_seconds(session_pids(live.pid))
+                t1, cpu1 = time.monotonic(), live_cpu_seconds(session_pids(live))
             probe.wait_for(lambda: steps[-1] in direct, args.timeout, 'the probe')
             rate = group.output(plant)
             for proc in (plant, live):

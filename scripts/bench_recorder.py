@@ -97,9 +97,9 @@ def bench(args) -> dict:
                 if publisher.stdout.readline().strip() != 'start':
                     raise RuntimeError('the publisher did not start; recorder log:\n'
                                        + group.output(recorder))
-                t0, cpu0 = time.monotonic(), live_cpu_seconds(session_pids(recorder.pid))
+                t0, cpu0 = time.monotonic(), live_cpu_seconds(session_pids(recorder))
                 out, _ = publisher.communicate(timeout=args.seconds + args.timeout)
-                t1, cpu1 = time.monotonic(), live_cpu_seconds(session_pids(recorder.pid))
+                t1, cpu1 = time.monotonic(), live_cpu_seconds(session_pids(recorder))
             sent = last_json_line(out)
             if group.interrupt(recorder) != 0:
                 raise RuntimeError('the recorder did not exit 0:\n' + group.output(recorder))

@@ -52,7 +52,7 @@ def test_learner_md_example_meta_trains_buffers_losslessly_and_adapts(tmp_path):
     assert lines[3].startswith('True imaml model v2 (stage adapted): 20 steps on '), out
     assert sorted(os.listdir(tmp_path / 'ckpt')) == ['adapted_imaml_v2.pt', 'meta_imaml_v1.pt']
     assert nodes.returncode == 0 and 'Traceback' not in log, log
-    assert session_pids(nodes.pid) == []
+    assert session_pids(nodes) == []
 
 
 def _start(command: str, log):
@@ -126,4 +126,4 @@ def test_adaptation_md_recipe_makes_its_meta_model_and_runs_the_loop_on_it(tmp_p
     out = '\n'.join(f'{name}: {path.read_text()}' for name, path in logs.items())
     assert codes == {'plant': 0, 'controller': 0, 'learner': 0}, out
     assert 'Traceback' not in out, out
-    assert all(session_pids(p.pid) == [] for p in [learner, call, *procs.values()])
+    assert all(session_pids(p) == [] for p in [learner, call, *procs.values()])

@@ -190,7 +190,7 @@ def _interrupt_after_collection(args, collections: int, timeout: float):
         rest, _ = proc.communicate(timeout=timeout)
     finally:
         if proc.poll() is None:
-            for pid in session_pids(proc.pid):
+            for pid in session_pids(proc):
                 os.kill(pid, signal.SIGKILL)
     return proc.returncode, ''.join(lines) + rest
 
@@ -226,11 +226,11 @@ def test_ctrl_c_while_the_script_imports_is_an_interruption(tmp_path):
         text = proc.communicate(timeout=60)[0]
     finally:
         if proc.poll() is None:
-            for pid in session_pids(proc.pid):
+            for pid in session_pids(proc):
                 os.kill(pid, signal.SIGKILL)
     assert proc.returncode == 130 and 'Traceback' not in text, text
     assert 'run_experiment: interrupted' in text, text
-    assert session_pids(proc.pid) == []
+    assert session_pids(proc) == []
 
 
 def test_ctrl_c_while_the_nodes_start_leaves_no_process(tmp_path):
@@ -257,7 +257,7 @@ def test_ctrl_c_while_the_nodes_start_leaves_no_process(tmp_path):
         ended = uptime_s()
     finally:
         if proc.poll() is None:
-            for pid in session_pids(proc.pid):
+            for pid in session_pids(proc):
                 os.kill(pid, signal.SIGKILL)
     assert proc.returncode == 130 and 'Traceback' not in text, text
     assert _pids_in_domain(domain, ended) == [], 'processes left behind'
@@ -300,7 +300,7 @@ def _kill_leftovers(proc: subprocess.Popen, domains, out: str, killed: float) ->
     children = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
                 if out in _cmdline(pid)]
     nodes = [p for d in domains for p in _pids_in_domain(d, killed)]
-    for pid in session_pids(proc.pid) + children + nodes:
+    for pid in session_pids(proc) + children + nodes:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
     proc.wait()

@@ -74,4 +74,4 @@ def test_an_external_plant_is_learned_and_controlled(procs, probe, tmp_path):
         plant.wait(10.0)
         log.close()
     assert plant.returncode == 0, open(tmp_path / 'external_plant.log').read()
-    assert session_pids(plant.pid) == []
+    assert session_pids(plant) == []

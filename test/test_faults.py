@@ -147,7 +147,7 @@ class Rig:
         proc = self.nodes[name]
         self.procs.kill(proc)
         self.killed.add(name)
-        self.probe.wait_for(lambda: session_pids(proc.pid) == [], 10.0,
+        self.probe.wait_for(lambda: session_pids(proc) == [], 10.0,
                             f'every process of the killed {name} gone')
 
     def wait_steps(self, n: int, timeout: float = 60.0) -> None:
@@ -170,7 +170,7 @@ class Rig:
         code = self.procs.interrupt(proc, timeout=30.0)
         out = self.procs.output(proc)
         assert code == 0 and 'Traceback' not in out, f'{name} exited with {code}:\n{out}'
-        assert session_pids(proc.pid) == [], f'a process of {name} outlived ros2 run'
+        assert session_pids(proc) == [], f'a process of {name} outlived ros2 run'
         self.killed.add(name)   # stopped: not to be stopped again by finish()
         return out
 
@@ -565,7 +565,7 @@ def test_ctrl_c_of_the_running_loop_prints_no_rcl_error(procs, probe, tmp_path):
         rig.killed.add(name)
         out = rig.output(name)
         assert code == 0 and 'Traceback' not in out, f'{name} exited with {code}:\n{out}'
-        assert session_pids(proc.pid) == [], f'a process of {name} outlived ros2 run'
+        assert session_pids(proc) == [], f'a process of {name} outlived ros2 run'
         assert re.search(r'\[' + name + r'\]: stopped at step \d+', out), out
         assert 'rosout' not in out and 'context is invalid' not in out, out
 

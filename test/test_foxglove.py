@@ -53,7 +53,7 @@ def stop_cleanly(procs, proc) -> None:
     out = procs.output(proc)
     assert code == 0, out
     assert 'Traceback' not in out, out
-    assert session_pids(proc.pid) == [], 'a process of the node outlived ros2 run'
+    assert session_pids(proc) == [], 'a process of the node outlived ros2 run'
 
 
 def test_client_gets_channels_with_schemas_and_the_plants_messages(procs, probe):

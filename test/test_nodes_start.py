@@ -21,7 +21,7 @@ def test_node_starts_and_stops_cleanly(procs, probe, tmp_path, pkg, exe):
     out = procs.output(proc)
     assert code == 0, out
     assert 'Traceback' not in out, out
-    assert session_pids(proc.pid) == [], 'a process of the node outlived ros2 run'
+    assert session_pids(proc) == [], 'a process of the node outlived ros2 run'
 
 
 def test_sigusr1_prints_every_thread_stack_and_the_node_goes_on(procs, probe):
@@ -29,7 +29,7 @@ def test_sigusr1_prints_every_thread_stack_and_the_node_goes_on(procs, probe):
     threads are printed, and it still stops cleanly afterwards."""
     proc = procs.start('metampc_plant', 'plant')
     probe.wait_for_node('plant', timeout=30.0)
-    (node,) = [pid for pid in session_pids(proc.pid) if pid != proc.pid]
+    (node,) = [pid for pid in session_pids(proc) if pid != proc.pid]
     os.kill(node, signal.SIGUSR1)
     probe.wait_for(lambda: 'most recent call first' in procs.output(proc), 30.0, 'a stack dump')
     assert 'plant_node.py' in procs.output(proc)      # the main thread's frames
@@ -68,7 +68,7 @@ def test_ctrl_c_while_the_node_module_imports_is_a_clean_exit(procs, pkg, exe):
     # inside the interpreter's start or the console script's own imports, is a plain
     # KeyboardInterrupt (a fixed 0.3 s landed there once under load).
     deadline = time.monotonic() + 60.0
-    while not any(_maps_torch(pid) for pid in session_pids(proc.pid) if pid != proc.pid):
+    while not any(_maps_torch(pid) for pid in session_pids(proc) if pid != proc.pid):
         assert proc.poll() is None and time.monotonic() < deadline, procs.output(proc)
         time.sleep(0.01)
     code = procs.interrupt(proc)

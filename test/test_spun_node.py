@@ -3,6 +3,7 @@
 A request sent while no server exists reaches nobody, as a response dropped by the middleware
 would: the first send of each call below is lost by construction, whatever the timing.
 """
+import sys
 import threading
 
 from metampc_msgs.srv import SetBuffering
@@ -51,3 +52,20 @@ def test_without_resend_the_lost_request_times_out(pair):
     with pytest.raises(AssertionError, match='timed out after 3.0 s'):
         caller.call(client, SetBuffering.Request(buffering=False), 3.0)
     assert calls == []
+
+
+def test_close_under_a_busy_spin_leaves_the_spin_thread_unharmed(monkeypatch):
+    """close() while the executor's thread spins on a 1-kHz timer: the thread ends without an
+    exception (rclpy's Executor.shutdown destroyed the guard condition under a spin)."""
+    errors = []
+    monkeypatch.setattr(threading, 'excepthook', lambda args: errors.append(args.exc_value))
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)    # the threads swap often: close() lands inside a spin
+    try:
+        for _ in range(50):
+            node = TestNode('spun_busy')
+            node.node.create_timer(0.001, lambda: None)
+            node.close()
+    finally:
+        sys.setswitchinterval(interval)
+    assert errors == []

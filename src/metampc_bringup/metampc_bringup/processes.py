@@ -13,7 +13,7 @@ import signal
 import subprocess
 import threading
 import time
-from typing import Dict, Iterable, Iterator, List, Optional
+from typing import Dict, Iterable, Iterator, List, Optional, Union
 
 from .domain import held_fds
 from .lifeline import child_env
@@ -45,8 +45,19 @@ def _yaml(value: object) -> str:
     return repr(value) if isinstance(value, float) else str(value)
 
 
-def session_pids(sid: int) -> List[int]:
-    """Pids of every live process in session `sid` (a `ros2 run` and the node it started)."""
+def session_pids(leader: Union[subprocess.Popen, int]) -> List[int]:
+    """Pids of every live process in the session that `leader` (a process we started with
+    start_new_session, or its pid) leads: a `ros2 run` and the node it started.
+
+    Once a Popen leader is reaped, its pid may belong to a new process (pid numbers wrap at
+    /proc/sys/kernel/pid_max, 32768 here, and a suite's threads use them up): the kernel keeps
+    a session's number while any member lives, so a live process with that pid means none of
+    ours is left, and the session of that number is somebody else's.
+    """
+    sid = leader if isinstance(leader, int) else leader.pid
+    if not isinstance(leader, int) and leader.returncode is not None \
+            and os.path.exists(f'/proc/{sid}'):
+        return []
     pids = []
     for entry in os.listdir('/proc'):
         if not entry.isdigit():
@@ -142,7 +153,7 @@ class ProcessGroup:
         except subprocess.TimeoutExpired:
             # proc itself is the `ros2 run` (no handler: SIGUSR1 would end it); its children
             # are the nodes.
-            for pid in session_pids(proc.pid):
+            for pid in session_pids(proc):
                 if pid != proc.pid:
                     with contextlib.suppress(ProcessLookupError):
                         os.kill(pid, signal.SIGUSR1)
@@ -158,7 +169,7 @@ class ProcessGroup:
 
         The nodes first: killed after their `ros2 run`, a node would get its lifeline's
         SIGTERM first and could still end cleanly (a recorder finishing its file)."""
-        pids = session_pids(proc.pid)
+        pids = session_pids(proc)
         for pid in sorted(pids, key=lambda p: p == proc.pid):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
@@ -171,5 +182,5 @@ class ProcessGroup:
                 with contextlib.suppress(ProcessLookupError, subprocess.TimeoutExpired):
                     self.interrupt(proc, timeout=timeout)
             # Also reaps a node left behind by a `ros2 run` that died first.
-            if proc.poll() is None or session_pids(proc.pid):
+            if proc.poll() is None or session_pids(proc):
                 self.kill(proc)

@@ -94,7 +94,7 @@ def model_message(cfg: SoakConfig) -> Optional[NssmWeights]:
 
 def node_pid(proc: subprocess.Popen) -> Optional[int]:
     """The node's pid inside the session of its `ros2 run` (which is proc.pid)."""
-    others = [p for p in session_pids(proc.pid) if p != proc.pid]
+    others = [p for p in session_pids(proc) if p != proc.pid]
     return others[0] if others else None
 
 

@@ -11,6 +11,8 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 
+SPIN_POLL_S = 0.5    # s: the longest a spin waits before it looks at the stop flag again
+
 
 class SpunNode:
     """`self.node` spun in a daemon thread until :meth:`close`, by a SingleThreadedExecutor
@@ -23,8 +25,13 @@ class SpunNode:
         self.executor = (SingleThreadedExecutor(context=self.context) if threads == 1 else
                          MultiThreadedExecutor(num_threads=threads, context=self.context))
         self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=SPIN_POLL_S)
 
     def wait_for(self, predicate: Callable[[], bool], timeout: float, what: str,
                  poll: float = 0.05) -> None:
@@ -66,10 +73,16 @@ class SpunNode:
         self.wait_for(lambda: name in self.node_names(), timeout, f'node {name!r}')
 
     def close(self) -> None:
-        """Stop spinning, then destroy the node: destroyed under a spinning executor, its
-        entities fail the executor's thread ('cannot use Destroyable because destruction was
-        requested', once printed at the Ctrl-C of an experiment)."""
-        self.executor.shutdown()
+        """Stop spinning, then shut the executor down, then destroy the node.
+
+        In that order because rclpy Jazzy's `Executor.shutdown` neither stops a spin in another
+        thread nor waits for it: it destroys the executor's guard condition under it (the spin
+        thread died in `_wait_for_ready_callbacks` on the None guard), and a node destroyed
+        under a spinning executor fails its thread ('cannot use Destroyable because
+        destruction was requested', once printed at the Ctrl-C of an experiment)."""
+        self._stop.set()
+        self.executor.wake()
         self._thread.join(timeout=5.0)
+        self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)

@@ -106,7 +106,7 @@ def test_a_node_dies_with_the_killed_process_that_started_it_and_frees_the_domai
         proc = group.start('metampc_plant', 'plant', params={{'mode': 'realtime',
                                                               'rate_hz': 20.0}})
         deadline = time.monotonic() + 60
-        while len(session_pids(proc.pid)) < 2:
+        while len(session_pids(proc)) < 2:
             assert time.monotonic() < deadline
             time.sleep(0.05)
         print(json.dumps({{'domain': domain, 'session': proc.pid}}), flush=True)

@@ -18,9 +18,14 @@ from metampc_bringup.rosbag2_qos import profiles_from_yaml
 from metampc_msgs.msg import PlantOutput
 from metampc_testing import own_lines
 import numpy as np
+import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
 import yaml
+
+# One xdist worker runs this file and test_replay.py: they share the session's recorded
+# closed-loop run (conftest.closed_loop), built once.
+pytestmark = pytest.mark.xdist_group('closed_loop')
 
 STREAM = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_TOPICS = ('/plant_info', '/nssm_weights')

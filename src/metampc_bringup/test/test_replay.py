@@ -16,6 +16,10 @@ import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+# One xdist worker runs this file and test_recorder.py: they share the session's recorded
+# closed-loop run (conftest.closed_loop), built once.
+pytestmark = pytest.mark.xdist_group('closed_loop')
+
 REPO = Path(__file__).resolve().parents[3]
 REPLAY = str(REPO / 'scripts' / 'replay.py')
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,

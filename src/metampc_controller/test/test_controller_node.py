@@ -187,7 +187,7 @@ def stop_cleanly(procs, proc) -> str:
     out = procs.output(proc)
     assert code == 0, out
     assert 'Traceback' not in out, out
-    assert session_pids(proc.pid) == [], 'a process outlived ros2 run'
+    assert session_pids(proc) == [], 'a process outlived ros2 run'
     return out
 
 

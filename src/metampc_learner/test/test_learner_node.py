@@ -169,7 +169,7 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     out = procs.output(learner)
     assert code == 0 and 'Traceback' not in out and 'exception' not in out, out
     assert 'did not stop within' not in out, out
-    assert session_pids(learner.pid) == []
+    assert session_pids(learner) == []
     assert sorted(os.listdir(ckpt)) == ['meta_imaml_v1.pt']
 
     # A new learner loads the saved meta-model and publishes it at start; versions go on.

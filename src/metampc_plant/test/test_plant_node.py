@@ -44,7 +44,7 @@ def stop_cleanly(procs, proc) -> str:
     out = procs.output(proc)
     assert code == 0, out
     assert 'Traceback' not in out, out
-    assert session_pids(proc.pid) == [], 'a process of the plant outlived ros2 run'
+    assert session_pids(proc) == [], 'a process of the plant outlived ros2 run'
     return out
 
 
