@@ -1,5 +1,6 @@
-"""Fixtures of the metampc_bringup tests: MCAP walking by hand, recorder processes, and one
-recorded closed-loop run of the real lockstep plant shared by the reader and replay tests."""
+"""Recording fixtures shared by the metampc_recording and metampc_bringup tests (a plugin of
+the root conftest): MCAP walking by hand, recorder processes, and one recorded closed-loop run of
+the real lockstep plant for the whole session, shared by the recorder and replay tests."""
 from dataclasses import dataclass
 import io
 import math
@@ -46,26 +47,6 @@ def _messages_in_complete_chunks(data: bytes) -> int:
     return count
 
 
-TINY_EXPERIMENT = """
-methods: [imaml, maml]
-target_samples: 60
-learner: {n_systems: 4, episodes_per_system: 1, episode_samples: 40, hidden: [8], n_z: 2,
-          history: 3, horizon: 3, windows_per_task: 4}
-meta_train:
-  imaml: {batch_size: 4, lr_outer: 0.005, cg_steps: 2}
-  maml: {batch_size: 4, lr_outer: 0.01}
-"""
-
-
-@pytest.fixture
-def tiny_config(tmp_path) -> Path:
-    """An experiment YAML small enough to meta-train in seconds (the offline scripts'
-    tests)."""
-    path = tmp_path / 'tiny.yaml'
-    path.write_text(TINY_EXPERIMENT)
-    return path
-
-
 @pytest.fixture
 def complete_chunk_messages():
     """f(data: bytes) -> number of messages in the complete chunks of an MCAP byte string."""
@@ -93,10 +74,10 @@ class RecorderHarness:
         self.probe = probe
 
     def start(self, output, **params):
-        """`ros2 run metampc_bringup recorder` writing `output`, with RecorderConfig params."""
-        from metampc_bringup.recorder_config import RecorderConfig
+        """`ros2 run metampc_recording recorder` writing `output`, with RecorderConfig params."""
+        from metampc_recording.recorder_config import RecorderConfig
         config = RecorderConfig(output=str(output), **params)
-        return self.procs.start('metampc_bringup', 'recorder', params=config.to_parameters(),
+        return self.procs.start('metampc_recording', 'recorder', params=config.to_parameters(),
                                 name='recorder')
 
     def wait_matched(self, publishers, timeout=30.0):
@@ -118,7 +99,7 @@ class RecorderHarness:
 
         The timeout is generous (a loaded 2-core machine once needed more than 20 s); what is
         asserted is the content. On a timeout the message gives what the file held."""
-        from metampc_bringup.recording_reader import read_recording
+        from metampc_recording.recording_reader import read_recording
         have = {}
 
         def done():
