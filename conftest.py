@@ -18,6 +18,10 @@ import time
 
 import pytest
 
+# The recorder fixtures and the session's one recorded closed-loop run, for the recording and the
+# bringup tests alike (test/ is on pythonpath).
+pytest_plugins = ['recording_fixtures']
+
 SESSION_ENV = 'METAMPC_TEST_SESSION'
 ORPHAN_GRACE_S = 5.0    # the bound: nothing of a stopped run left 5 s later
 

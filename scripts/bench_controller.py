@@ -133,7 +133,7 @@ def bench_core(ticks: int, setup: Setup) -> dict:
     from metampc_msgs.msg import ControlInput, MpcStatus
     from rclpy.executors import SingleThreadedExecutor
 
-    from metampc_bringup.processes import ros_args
+    from metampc_common.ros_args import ros_args
     from metampc_controller.controller_node import ControllerNode
     rclpy.init(args=['bench', *ros_args(setup.controller_params(), None, None)])
     rclpy.logging.set_logger_level('controller', rclpy.logging.LoggingSeverity.WARN)

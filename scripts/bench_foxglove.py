@@ -14,8 +14,8 @@ Prints ONE JSON line:
   loadavg              1, 5 and 15 min load average of the machine after the run
 
 Set-up: a realtime plant (`ros2 run metampc_plant plant`, mode realtime) and the live view
-(`ros2 run metampc_bringup foxglove`, port 0: a free one) in a ROS_DOMAIN_ID of their own with
-discovery on localhost only; the client (metampc_bringup.foxglove_client) subscribes to y. Both
+(`ros2 run metampc_recording foxglove`, port 0: a free one) in a ROS_DOMAIN_ID of their own with
+discovery on localhost only; the client (metampc_recording.foxglove_client) subscribes to y. Both
 processes are stopped before the script returns. Run after `source scripts/env.sh`.
 """
 import argparse
@@ -34,7 +34,7 @@ def stamp_ns(msg) -> int:
 
 
 def bench(args) -> dict:
-    from metampc_bringup.foxglove_client import FoxgloveClient
+    from metampc_recording.foxglove_client import FoxgloveClient
     from metampc_bringup.percentiles import percentiles
     from metampc_bringup.processes import ProcessGroup, session_pids
     from metampc_bringup.procfs import live_cpu_seconds
@@ -51,7 +51,7 @@ def bench(args) -> dict:
             PlantOutput, 'y', lambda m: direct.setdefault(m.step, time.time_ns() - stamp_ns(m)),
             BACKLOG)
         try:
-            live = group.start('metampc_bringup', 'foxglove', {'port': 0}, name='foxglove')
+            live = group.start('metampc_recording', 'foxglove', {'port': 0}, name='foxglove')
             plant = group.start('metampc_plant', 'plant', {
                 'mode': 'realtime', 'rate_hz': float(args.rate)}, name='plant')
             url = []

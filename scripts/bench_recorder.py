@@ -15,7 +15,7 @@ Prints ONE JSON line:
   file_mb, compression, chunk_size   the recording
   loadavg              1, 5 and 15 min load average of the machine after the run
 
-Set-up: `ros2 run metampc_bringup recorder` (topics: y, default chunking/compression) and a
+Set-up: `ros2 run metampc_recording recorder` (topics: y, default chunking/compression) and a
 publisher process (this script with --publish) with the plant's QoS for y (reliable, keep_last
 100: a recorder more than 100 messages behind would lose some), in a ROS_DOMAIN_ID of their
 own (claimed with a lock file, as the test sessions do) with discovery on localhost only. Both
@@ -74,7 +74,7 @@ def publish(rate_hz: float, seconds: float, timeout: float) -> None:
 def check_recording(path: str, published: int) -> dict:
     """Count and order of the recorded messages, from the finished file alone."""
     from mcap.reader import make_reader
-    from metampc_bringup.recording_reader import read_recording
+    from metampc_recording.recording_reader import read_recording
     with open(path, 'rb') as f:
         recorded = make_reader(f).get_summary().statistics.message_count
     steps = [m.step for _, _, m in read_recording(path).decoded(['/y'])]
@@ -84,12 +84,12 @@ def check_recording(path: str, published: int) -> dict:
 
 def bench(args) -> dict:
     from metampc_bringup.processes import ProcessGroup, session_pids
-    from metampc_bringup.recorder_config import RecorderConfig
+    from metampc_recording.recorder_config import RecorderConfig
     with tempfile.TemporaryDirectory(prefix='bench_recorder_') as folder:
         config = RecorderConfig(output=os.path.join(folder, 'bench.mcap'), topics=['y'])
         group = ProcessGroup(folder)
         try:
-            recorder = group.start('metampc_bringup', 'recorder', config.to_parameters(),
+            recorder = group.start('metampc_recording', 'recorder', config.to_parameters(),
                                    name='recorder')
             with script_child(__file__, ['--publish', '--rate', str(args.rate), '--seconds',
                                          str(args.seconds), '--timeout', str(args.timeout)]

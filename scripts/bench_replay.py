@@ -4,7 +4,7 @@
     python scripts/bench_replay.py [--messages 1000000] [--recording PATH] [--no-plots]
 
 Writes a synthetic closed-loop recording of about --messages messages
-(:mod:`metampc_bringup.synthetic_run`: y, u, mpc_status per tick with horizon 20, resets every
+(:mod:`metampc_recording.synthetic_run`: y, u, mpc_status per tick with horizon 20, resets every
 50000 steps, a live parameter change, one foreign u, two training jobs) unless --recording
 names an existing file, then runs `scripts/replay.py RECORDING --json` in a child process with
 its output in a temporary folder, and prints ONE JSON line:
@@ -40,7 +40,7 @@ def main(argv=None) -> int:
         path = args.recording or os.path.join(tmp, 'recording.mcap')
         write_s = None
         if not os.path.exists(path):
-            from metampc_bringup.synthetic_run import SyntheticRun, write_synthetic_run
+            from metampc_recording.synthetic_run import SyntheticRun, write_synthetic_run
             ticks = args.messages // 3
             start = time.monotonic()
             write_synthetic_run(path, SyntheticRun(ticks=ticks, episode_steps=50_000,

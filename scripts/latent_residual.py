@@ -24,7 +24,7 @@ import torch
 from metampc_bringup.experiment_config import from_mapping
 from metampc_bringup.experiment_report import _messages, PLANT_INFO
 from metampc_bringup.offline import learner_config
-from metampc_bringup.recording_reader import read_recording
+from metampc_recording.recording_reader import read_recording
 from metampc_bringup.retrack import adapted_models, seed_recordings
 from metampc_controller.nssm import consistency_loss, Nssm
 from metampc_controller.predictor import NssmPredictor

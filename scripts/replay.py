@@ -5,7 +5,7 @@
     python scripts/replay.py RUN_DIR_OR_MCAP --play [--rate 2] [--delay 1] [--wait-subscribers 10]
 
 The analysis needs only the recording (metampc_bringup.analysis); --play needs ROS
-(metampc_bringup.player) and the message packages of the recorded types.
+(metampc_recording.player) and the message packages of the recorded types.
 """
 import argparse
 import json
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         if args.play:
-            from metampc_bringup.player import PlayConfig, run_player
+            from metampc_recording.player import PlayConfig, run_player
             counts = run_player(args.path, PlayConfig(
                 rate=args.rate, delay=args.delay, topics=args.topics,
                 wait_for_subscribers=args.wait_subscribers))

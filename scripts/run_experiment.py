@@ -95,7 +95,7 @@ def main(argv=None) -> int:
         from metampc_bringup.experiment import rebuild_report, run_experiment
         from metampc_bringup.experiment_client import ExperimentError
         from metampc_bringup.experiment_config import ConfigError, load
-        from metampc_bringup.foxglove_params import DEFAULT_PORT, FoxgloveConfig
+        from metampc_recording.foxglove_params import DEFAULT_PORT, FoxgloveConfig
         from metampc_bringup.netns import NetnsError, parse_hosts
         from metampc_bringup.cpu_budget import check_jobs
     except KeyboardInterrupt:

@@ -81,7 +81,7 @@ def numbers(text: str):
 def meta_model_from(recording: str, out: str) -> str:
     """Write the last iMAML meta-model of a recording to out/meta.pt; its path."""
     from metampc_bringup.experiment_report import NSSM_WEIGHTS
-    from metampc_bringup.recording_reader import read_recording
+    from metampc_recording.recording_reader import read_recording
     from metampc_bringup.weights_messages import save_weights
     rec = read_recording(recording)
     topics = [t.name for t in rec.topics.values() if t.type_name == NSSM_WEIGHTS]

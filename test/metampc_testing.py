@@ -7,7 +7,7 @@ fixture (a metampc_bringup.processes.ProcessGroup).
 import json
 from pathlib import Path
 
-from metampc_bringup.processes import ProcessGroup, ros_args, session_pids  # noqa: F401
+from metampc_bringup.processes import ProcessGroup, session_pids  # noqa: F401
 from metampc_bringup.spun_node import SpunNode
 from rosbags.highlevel import AnyReader
 

@@ -14,19 +14,19 @@ import sys
 
 import pytest
 
-from metampc_bringup import foxglove_params, recorder_config
 from metampc_common.node_main import QOS_OVERRIDES, ROS_PARAMETERS
 from metampc_controller import controller_params, send_model_node
 from metampc_learner import learner_params
 from metampc_plant import plant_params
+from metampc_recording import foxglove_params, recorder_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NODES = {('metampc_plant', 'plant'): plant_params.PARAMETERS,
          ('metampc_controller', 'controller'): controller_params.PARAMETERS,
          ('metampc_controller', 'send_model'): send_model_node.PARAMETERS,
          ('metampc_learner', 'learner'): learner_params.PARAMETERS,
-         ('metampc_bringup', 'recorder'): recorder_config.PARAMETERS,
-         ('metampc_bringup', 'foxglove'): foxglove_params.PARAMETERS}
+         ('metampc_recording', 'recorder'): recorder_config.PARAMETERS,
+         ('metampc_recording', 'foxglove'): foxglove_params.PARAMETERS}
 # A usage template, not a command: `ros2 run PKG EXE`, `-p name:=value`.
 TEMPLATE = re.compile(r'ros2 run [A-Z_]+ |-p name:=value')
 PAGES = ['README.md'] + sorted(os.path.relpath(p, ROOT)

@@ -16,8 +16,8 @@ NODE_PAGES = {
     'metampc_controller.controller_params': 'controller.md#Parameters',
     'metampc_controller.send_model_node': 'controller.md#Sending a model by hand',
     'metampc_learner.learner_params': 'learner.md',
-    'metampc_bringup.recorder_config': 'recording.md',
-    'metampc_bringup.foxglove_params': 'foxglove.md',
+    'metampc_recording.recorder_config': 'recording.md',
+    'metampc_recording.foxglove_params': 'foxglove.md',
 }
 
 

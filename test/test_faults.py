@@ -34,8 +34,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from scipy.integrate import solve_ivp
 
 from metampc_bringup.experiment_client import ExperimentClient, ExperimentError, process_status
-from metampc_bringup.recorder_config import RecorderConfig
-from metampc_bringup.recording_reader import read_recording
+from metampc_recording.recorder_config import RecorderConfig
+from metampc_recording.recording_reader import read_recording
 from metampc_controller.manual_model import linearised_vdp_nssm
 from metampc_controller.normalisation import Normalisation
 from metampc_controller.nssm import init_params, NssmConfig
@@ -133,7 +133,7 @@ class Rig:
         self._announce = [node.create_publisher(TYPES[t], t, RELIABLE) for t in topics]
         config = RecorderConfig(output=self.recording, topics=list(topics), flush_period=0.1,
                                 **params)
-        proc = self.start('recorder', 'metampc_bringup', 'recorder', config.to_parameters())
+        proc = self.start('recorder', 'metampc_recording', 'recorder', config.to_parameters())
 
         def subscribed(topic):
             return any(i.node_name == 'recorder'
@@ -617,7 +617,7 @@ BAD_START = {  # node: (package, executable, one parameter out of range, what th
     'plant': ('metampc_plant', 'plant', {'dt': -0.1}, 'dt must be >= 0'),
     'controller': ('metampc_controller', 'controller', {'horizon': 0}, 'horizon must be >= 1'),
     'learner': ('metampc_learner', 'learner', {'iterations': 0}, 'iterations must be >= 1'),
-    'recorder': ('metampc_bringup', 'recorder', {'output': '/tmp/x.mcap', 'chunk_size': 0},
+    'recorder': ('metampc_recording', 'recorder', {'output': '/tmp/x.mcap', 'chunk_size': 0},
                  'chunk_size must be >= 1'),
 }
 
@@ -645,7 +645,7 @@ MISSPELT = {  # node: (package, executable, parameters with one misspelt, what t
                    'unknown parameter horizn; did you mean horizon?'),
     'learner': ('metampc_learner', 'learner', {'iteration': 5},
                 'unknown parameter iteration; did you mean iterations?'),
-    'recorder': ('metampc_bringup', 'recorder', {'output': '/tmp/never.mcap', 'topic': ['y']},
+    'recorder': ('metampc_recording', 'recorder', {'output': '/tmp/never.mcap', 'topic': ['y']},
                  'unknown parameter topic; did you mean topics?'),
 }
 
@@ -662,7 +662,7 @@ def test_existing_output_path_is_never_overwritten(procs, tmp_path):
     run_experiment refuses a non-empty run folder before starting anything (exit 2)."""
     taken = tmp_path / 'taken.mcap'
     taken.write_bytes(b'an earlier run')
-    recorder = procs.start('metampc_bringup', 'recorder', params={'output': str(taken)},
+    recorder = procs.start('metampc_recording', 'recorder', params={'output': str(taken)},
                            name='recorder')
     run = tmp_path / 'run'
     run.mkdir()

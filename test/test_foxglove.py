@@ -1,6 +1,6 @@
-"""The Foxglove live view (`ros2 run metampc_bringup foxglove`) as Foxglove sees it.
+"""The Foxglove live view (`ros2 run metampc_recording foxglove`) as Foxglove sees it.
 
-A WebSocket client speaking the Foxglove protocol (metampc_bringup.foxglove_client) connects to
+A WebSocket client speaking the Foxglove protocol (metampc_recording.foxglove_client) connects to
 the node, checks the advertised channels and their schemas, subscribes and decodes the CDR
 payloads with rclpy; the probe subscribes to the plant directly and is the reference.
 """
@@ -19,12 +19,12 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from websockets.exceptions import ConnectionClosed
 
-from metampc_bringup.foxglove_client import FoxgloveClient
-from metampc_bringup.foxglove_server import LiveServer
-from metampc_bringup.msg_schema import (DefinitionSource, MessageDefinition,
-                                        package_share_directory)
-from metampc_bringup.rclpy_adapters import message_class
 from metampc_bringup.run_series import DEFAULT_TOPICS
+from metampc_recording.foxglove_client import FoxgloveClient
+from metampc_recording.foxglove_server import LiveServer
+from metampc_recording.msg_schema import (DefinitionSource, MessageDefinition,
+                                          package_share_directory)
+from metampc_recording.rclpy_adapters import message_class
 from metampc_testing import own_lines, session_pids
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -37,7 +37,7 @@ WS_PROTOCOL = 'foxglove.websocket.v1'   # what @foxglove/ws-protocol's client of
 
 def start_live_view(procs, probe, **params) -> tuple:
     """The node on a free port (port 0); returns (process, ws:// URL from its start-up line)."""
-    proc = procs.start('metampc_bringup', 'foxglove', params={'port': 0, **params})
+    proc = procs.start('metampc_recording', 'foxglove', params={'port': 0, **params})
     url = []
 
     def served() -> bool:
@@ -223,7 +223,7 @@ def test_the_sdk_subprotocol_goes_through_unchanged(live_server):
 
 
 def test_bad_port_is_one_line_and_exit_2(procs):
-    started = {port: procs.start('metampc_bringup', 'foxglove', params={'port': port})
+    started = {port: procs.start('metampc_recording', 'foxglove', params={'port': port})
                for port in (-1, 70000)}
     for port, proc in started.items():
         code = proc.wait(TIMEOUT)
@@ -238,7 +238,7 @@ def test_port_in_use_is_one_clear_line_and_exit_2(procs):
         holder.bind(('127.0.0.1', 0))
         holder.listen()
         port = holder.getsockname()[1]
-        proc = procs.start('metampc_bringup', 'foxglove', params={'port': port})
+        proc = procs.start('metampc_recording', 'foxglove', params={'port': port})
         code = proc.wait(TIMEOUT)
     lines = own_lines(procs.output(proc))
     assert code == 2, lines
@@ -248,7 +248,7 @@ def test_port_in_use_is_one_clear_line_and_exit_2(procs):
 
 
 LAYOUT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'src',
-                      'metampc_bringup', 'foxglove', 'metampc_layout.json')
+                      'metampc_recording', 'foxglove', 'metampc_layout.json')
 
 
 def _panels(tree) -> list:

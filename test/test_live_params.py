@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from metampc_bringup.analysis import analyse
-from metampc_bringup.recorder_config import RecorderConfig
+from metampc_recording.recorder_config import RecorderConfig
 from test_faults import LATCHED, RELIABLE, weights
 
 DT = 0.1
@@ -157,7 +157,7 @@ def test_live_r_and_setpoint_change_at_a_known_tick_and_refusals(procs, probe, t
 
     # Run 2, recorded: r at step R_AT, the set-point at SETPOINT_AT, then refusals unheld.
     recording = str(tmp_path / 'live' / 'recording.mcap')
-    recorder = procs.start('metampc_bringup', 'recorder', params=RecorderConfig(
+    recorder = procs.start('metampc_recording', 'recorder', params=RecorderConfig(
         output=recording, topics=['y', 'u', 'mpc_status', '/parameter_events'],
         flush_period=0.1).to_parameters())
     probe.wait_for(lambda: any(i.node_name == 'recorder' for i in

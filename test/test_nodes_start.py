@@ -8,7 +8,7 @@ import pytest
 from metampc_testing import session_pids
 
 NODES = [('metampc_plant', 'plant'), ('metampc_controller', 'controller'),
-         ('metampc_learner', 'learner'), ('metampc_bringup', 'recorder')]
+         ('metampc_learner', 'learner'), ('metampc_recording', 'recorder')]
 
 
 @pytest.mark.parametrize('pkg,exe', NODES, ids=[exe for _, exe in NODES])

@@ -31,5 +31,5 @@ def test_ros2_on_path_lists_our_packages():
     out = subprocess.run([ros2, 'pkg', 'executables'], capture_output=True, text=True,
                          timeout=30, env=os.environ).stdout.splitlines()
     for line in ('metampc_plant plant', 'metampc_controller controller',
-                 'metampc_learner learner', 'metampc_bringup recorder'):
+                 'metampc_learner learner', 'metampc_recording recorder'):
         assert line in out

@@ -1,1 +1,1 @@
-"""Recorder, orchestration and MCAP analysis of metampc runs."""
+"""Orchestration and MCAP analysis of metampc runs."""

@@ -1,7 +1,7 @@
 """Analysis of a run from its recording alone: series, metrics, plots, report.json.
 
 ``analyse(path)`` reads an MCAP file or a run folder holding one
-(:mod:`~metampc_bringup.recording_reader`), picks the metampc topics by message type, rebuilds
+(:mod:`~metampc_recording.recording_reader`), picks the metampc topics by message type, rebuilds
 the series (:mod:`~metampc_bringup.run_series`; the file is streamed through, message by
 message, so memory does not hold the recording), computes the metrics
 (:mod:`~metampc_bringup.metrics`), and writes ``report.json`` and the PNG plots
@@ -20,7 +20,7 @@ from typing import Dict, List, Optional, Sequence
 
 from .metrics import Bounds, compute_metrics
 from .plots import write_plots
-from .recording_reader import read_recording, Recording, RecordedTopic
+from metampc_recording.recording_reader import read_recording, Recording, RecordedTopic
 from .run_series import DEFAULT_TOPICS, RunSeries, SeriesBuilder
 
 REPORT_NAME = 'report.json'

@@ -39,7 +39,7 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from .analysis import json_safe
 from .experiment_config import DriftConfig
 from .experiment_report import read_events, STAMP_TOL
-from .recording_reader import read_recording
+from metampc_recording.recording_reader import read_recording
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)

@@ -56,7 +56,7 @@ from .metrics import compute_metrics
 from .offline import learner_config
 from .paired_stats import claim_cells, paired_claim
 from .plots import signal_labels
-from .recording_reader import read_recording
+from metampc_recording.recording_reader import read_recording
 from .run_series import RunSeries, SeriesBuilder
 
 matplotlib.use('Agg')

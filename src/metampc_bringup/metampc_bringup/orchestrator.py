@@ -44,7 +44,7 @@ from .experiment_client import (EVENTS_TOPIC, ExperimentClient, ExperimentError,
                                 process_status, response_dict, time_seconds)
 from .experiment_config import ExperimentConfig
 from .processes import ProcessGroup, StopTimeout
-from .recorder_config import RecorderConfig
+from metampc_recording.recorder_config import RecorderConfig
 
 log = logging.getLogger('metampc.orchestrator')
 
@@ -135,9 +135,9 @@ class SeedRun:
                       'tracked_outputs': list(config.tracked_outputs)}
         recorder = RecorderConfig(output=self.recording, topics=list(RECORDED_TOPICS),
                                   metadata_json=json.dumps(run_config), **config.recorder)
-        self._start(group, 'recorder', 'metampc_bringup', 'recorder', recorder.to_parameters())
+        self._start(group, 'recorder', 'metampc_recording', 'recorder', recorder.to_parameters())
         if self.foxglove_port is not None:
-            self._start(group, 'foxglove', 'metampc_bringup', 'foxglove',
+            self._start(group, 'foxglove', 'metampc_recording', 'foxglove',
                         {'port': self.foxglove_port})
         self._start(group, 'learner', 'metampc_learner', 'learner',
                     config.node_parameters('learner', seed))

@@ -15,34 +15,13 @@ import threading
 import time
 from typing import Dict, Iterable, Iterator, List, Optional, Union
 
+from metampc_common.ros_args import ros_args
+
 from .domain import held_fds
 from .lifeline import child_env
 
 STACK_DUMP_S = 2.0    # s for a hung node to write its thread stacks (SIGUSR1) before SIGKILL
 LOG_TAIL = 6000       # characters of a hung node's output in the error
-
-
-def ros_args(params: Optional[Dict[str, object]] = None, remaps: Optional[Dict[str, str]] = None,
-             name: Optional[str] = None) -> List[str]:
-    """`--ros-args -p k:=v -r a:=b` arguments; lists become YAML lists, bools true/false."""
-    args = ['--ros-args']
-    for key, value in (params or {}).items():
-        args += ['-p', f'{key}:={_yaml(value)}']
-    for src, dst in (remaps or {}).items():
-        args += ['-r', f'{src}:={dst}']
-    if name:
-        args += ['-r', f'__node:={name}']
-    return args
-
-
-def _yaml(value: object) -> str:
-    if isinstance(value, bool):
-        return 'true' if value else 'false'
-    if isinstance(value, (list, tuple)):
-        return '[' + ','.join(_yaml(v) for v in value) + ']'
-    if isinstance(value, str):
-        return "'" + value.replace("'", "''") + "'" if value else "''"
-    return repr(value) if isinstance(value, float) else str(value)
 
 
 def session_pids(leader: Union[subprocess.Popen, int]) -> List[int]:

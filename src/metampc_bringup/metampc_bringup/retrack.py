@@ -33,7 +33,7 @@ from metampc_plant.simulator import Plant
 
 from .experiment_config import ExperimentConfig
 from .paired_stats import paired_claim
-from .recording_reader import read_recording
+from metampc_recording.recording_reader import read_recording
 
 NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
 

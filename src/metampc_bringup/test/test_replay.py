@@ -17,7 +17,7 @@ import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 # One xdist worker runs this file and test_recorder.py: they share the session's recorded
-# closed-loop run (conftest.closed_loop), built once.
+# closed-loop run (recording_fixtures.closed_loop), built once.
 pytestmark = pytest.mark.xdist_group('closed_loop')
 
 REPO = Path(__file__).resolve().parents[3]
@@ -225,9 +225,9 @@ def _by_hand_recording(path: Path, q):
     """A recording without run metadata: 20 samples on /y, /u and /mpc_status, whose
     controller weights the outputs with `q` (None: a status without weights)."""
     from mcap_ros2._dynamic import serialize_dynamic
-    from metampc_bringup.mcap_writer import McapWriterConfig, Rosbag2McapWriter
-    from metampc_bringup.msg_schema import DefinitionSource
-    from metampc_bringup.rosbag2_qos import QosProfile
+    from metampc_recording.mcap_writer import McapWriterConfig, Rosbag2McapWriter
+    from metampc_recording.msg_schema import DefinitionSource
+    from metampc_recording.rosbag2_qos import QosProfile
     qos = [QosProfile(history='unknown', depth=0, liveliness='automatic')]
     writer = Rosbag2McapWriter(McapWriterConfig(str(path), 4096, 'lz4', {}))
     encoders = {}

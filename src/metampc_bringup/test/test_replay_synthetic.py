@@ -1,5 +1,5 @@
 """Replay of synthetic recordings written as the recorder writes them
-(metampc_bringup.synthetic_run): bounded memory, foreign inputs on u, per-episode step ranges,
+(metampc_recording.synthetic_run): bounded memory, foreign inputs on u, per-episode step ranges,
 one row per training job's end."""
 import gc
 import re
@@ -12,7 +12,7 @@ from pathlib import Path
 from metampc_bringup.analysis import analyse
 from metampc_bringup.input_sources import controller_inputs
 from metampc_bringup.run_series import CONTROL_INPUT, MPC_STATUS, PLANT_OUTPUT, SeriesBuilder
-from metampc_bringup.synthetic_run import SyntheticRun, write_synthetic_run
+from metampc_recording.synthetic_run import SyntheticRun, write_synthetic_run
 import numpy as np
 import pytest
 
@@ -75,7 +75,7 @@ def test_replay_memory_does_not_grow_with_the_message_size(tmp_path):
 
 
 PLAY_PEAK = """import sys, tracemalloc
-from metampc_bringup.player import PlayConfig, run_player
+from metampc_recording.player import PlayConfig, run_player
 tracemalloc.start()
 counts = run_player(sys.argv[1], PlayConfig(rate=1e6))
 print(sum(counts.values()), tracemalloc.get_traced_memory()[1])"""

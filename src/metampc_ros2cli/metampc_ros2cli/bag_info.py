@@ -27,8 +27,8 @@ from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from metampc_bringup.mcap_writer import BAG_METADATA_FILE, BAG_METADATA_NAME
-from metampc_bringup.recording_reader import read_recording, resolve_recording
+from metampc_recording.mcap_writer import BAG_METADATA_FILE, BAG_METADATA_NAME
+from metampc_recording.recording_reader import read_recording, resolve_recording
 import yaml
 
 INDENT = 19                  # rosbag2: the longest field name ('Topic information:') plus one

@@ -15,7 +15,7 @@ import re
 import subprocess
 from typing import Dict, List
 
-from metampc_bringup.recording_reader import read_recording
+from metampc_recording.recording_reader import read_recording
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
@@ -289,8 +289,8 @@ def type_of(topic: str):
 def test_unfinished_file_is_counted_through_and_a_cut_one_refused(tmp_path):
     """A file without summary (a recorder killed after its last chunk) is read record by
     record, with a warning; one that ends inside a record is an error, as in rosbag2."""
-    from metampc_bringup.mcap_writer import McapWriterConfig, Rosbag2McapWriter
-    from metampc_bringup.rosbag2_qos import QosProfile
+    from metampc_recording.mcap_writer import McapWriterConfig, Rosbag2McapWriter
+    from metampc_recording.rosbag2_qos import QosProfile
     from metampc_msgs.msg import ControlInput, PlantOutput
     from rclpy.serialization import serialize_message
     whole = tmp_path / 'whole.mcap'

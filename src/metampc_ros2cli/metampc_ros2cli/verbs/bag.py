@@ -1,13 +1,13 @@
 """`ros2 bag info|play|record`, with ros2bag's (Jazzy) syntax, on this project's MCAP code.
 
-- ``record`` runs the project's recorder node in this process (``metampc_bringup.main.recorder``,
-  the code of ``ros2 run metampc_bringup recorder``) and makes a rosbag2 bag folder, as rosbag2
+- ``record`` runs the project's recorder node in this process (``metampc_recording.main.recorder``,
+  the code of ``ros2 run metampc_recording recorder``) and makes a rosbag2 bag folder, as rosbag2
   does: ``-o NAME`` (default ``rosbag2_YYYY_MM_DD-HH_MM_SS``) holds ``NAME_0.mcap`` and, once
   Ctrl-C has finished the file, ``metadata.yaml`` written from the bag metadata the recorder
   stored in it. What is recorded is what the recorder records.
 - ``info`` prints what rosbag2's prints (:mod:`metampc_ros2cli.bag_info`) for a bag folder or an
   MCAP file.
-- ``play`` republishes a bag folder or an MCAP file with :mod:`metampc_bringup.player`.
+- ``play`` republishes a bag folder or an MCAP file with :mod:`metampc_recording.player`.
 
 Errors are one line and a non-zero status, as ros2bag's: a bag path that does not exist is an
 argparse error (status 2); the others (not a bag, cut short, unknown topic, an output folder
@@ -148,7 +148,7 @@ def info(args: Any) -> int:
 
 
 def play(args: Any) -> int:
-    from metampc_bringup.player import PlayConfig, run_player
+    from metampc_recording.player import PlayConfig, run_player
     from metampc_ros2cli.bag_info import read_bag_info
     bag = read_bag_info(bag_path(args))
     if bag.storage_identifier != 'mcap':
@@ -168,10 +168,10 @@ def play(args: Any) -> int:
 
 
 def record(args: Any) -> Any:
-    from metampc_bringup.main import recorder
-    from metampc_bringup.mcap_writer import bag_folder_file, write_bag_metadata_file
-    from metampc_bringup.processes import ros_args
-    from metampc_bringup.recorder_config import RecorderConfig
+    from metampc_common.ros_args import ros_args
+    from metampc_recording.main import recorder
+    from metampc_recording.mcap_writer import bag_folder_file, write_bag_metadata_file
+    from metampc_recording.recorder_config import RecorderConfig
     from metampc_ros2cli.bag_info import stored_bag_metadata
     from rclpy.exceptions import InvalidNodeNameException
     from rclpy.validate_node_name import validate_node_name

@@ -115,7 +115,7 @@ def packages(args: Any) -> int:
 
 def _file(type_name: str) -> str:
     """The text of 'pkg/kind/Type' from its interface file."""
-    from metampc_bringup.msg_schema import DefinitionNotFoundError, package_share_directory
+    from metampc_recording.msg_schema import DefinitionNotFoundError, package_share_directory
     parts = type_name.split('/')
     if len(parts) != 3:
         raise RuntimeError(f"Invalid name '{type_name}'. Expected three parts separated by '/'")

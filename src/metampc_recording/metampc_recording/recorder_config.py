@@ -12,8 +12,7 @@ from typing import Dict, Mapping, Tuple
 
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
-
-from .mcap_writer import COMPRESSIONS, McapWriterConfig
+from metampc_recording.mcap_writer import COMPRESSIONS, McapWriterConfig
 
 MIB = 1024 * 1024
 
@@ -56,7 +55,7 @@ class RecorderConfig:
             raise ValueError(f'metadata_json must be a JSON object, got {self.metadata_json!r}')
 
     def to_parameters(self) -> Dict[str, object]:
-        """ROS parameters of the node, for :func:`metampc_bringup.processes.ros_args` (which
+        """ROS parameters of the node, for :func:`metampc_recording.processes.ros_args` (which
         quotes strings, so rcl reads ``metadata_json`` as a string, not a YAML map).
 
         Empty `topics` is left out: an empty list has no type on the command line.

@@ -1,16 +1,16 @@
 """Foxglove live view: serves the graph's topics over the Foxglove WebSocket protocol.
 
-``ros2 run metampc_bringup foxglove [--ros-args -p port:=8765 -p host:=127.0.0.1]``, then
+``ros2 run metampc_recording foxglove [--ros-args -p port:=8765 -p host:=127.0.0.1]``, then
 connect Foxglove to ``ws://HOST:PORT`` (docs/foxglove.md).
 
-Parameters (names, defaults, ranges: :data:`metampc_bringup.foxglove_params.PARAMETERS`):
+Parameters (names, defaults, ranges: :data:`metampc_recording.foxglove_params.PARAMETERS`):
 ``host``, ``port``, ``topics`` (unset or empty: every topic that appears under the node's
 namespace except ``/rosout``, ``/parameter_events``, hidden topics and ``/clock``, as the
 recorder takes them), ``discovery_period``, ``qos_depth``.
 
 A topic is subscribed (``raw=True``) once it has a publisher, with the recorder's QoS choice
 (reliable if every publisher is, transient_local if every publisher is), and its CDR bytes go
-to :class:`~metampc_bringup.foxglove_server.LiveServer` unchanged, stamped with their receive
+to :class:`~metampc_recording.foxglove_server.LiveServer` unchanged, stamped with their receive
 time on the node clock. A port in use is one error line and exit status 2.
 """
 import sys
@@ -19,15 +19,14 @@ from typing import Dict, Set
 
 from metampc_common.node_main import declare_parameters, run_node
 from metampc_common.params import ParameterError
+from metampc_recording.foxglove_params import parse_params, PARAMETERS
+from metampc_recording.foxglove_server import LiveServer
+from metampc_recording.graph_topics import default_topic, new_topics, resolve_topics
+from metampc_recording.msg_schema import DefinitionNotFoundError
+from metampc_recording.rclpy_adapters import message_class, qos_to_rclpy
+from metampc_recording.rosbag2_qos import request_for_offers
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-
-from .foxglove_params import parse_params, PARAMETERS
-from .foxglove_server import LiveServer
-from .graph_topics import default_topic, new_topics, resolve_topics
-from .msg_schema import DefinitionNotFoundError
-from .rclpy_adapters import message_class, qos_to_rclpy
-from .rosbag2_qos import request_for_offers
 
 
 class FoxgloveNode(Node):
@@ -90,7 +89,7 @@ class FoxgloveNode(Node):
 
 
 def main(args=None) -> int:
-    """`ros2 run metampc_bringup foxglove`; returns the exit code."""
+    """`ros2 run metampc_recording foxglove`; returns the exit code."""
     return run_node(FoxgloveNode, 'foxglove', args)
 
 

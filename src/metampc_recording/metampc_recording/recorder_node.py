@@ -1,8 +1,8 @@
 """Recorder node: subscribes with raw=True and writes the CDR bytes to MCAP as rosbag2 does.
 
-``ros2 run metampc_bringup recorder --ros-args -p output:=runs/x/recording.mcap``
+``ros2 run metampc_recording recorder --ros-args -p output:=runs/x/recording.mcap``
 
-Parameters (names, defaults, ranges: :data:`metampc_bringup.recorder_config.PARAMETERS`):
+Parameters (names, defaults, ranges: :data:`metampc_recording.recorder_config.PARAMETERS`):
 ``output`` (required; parent folders are created; an existing file is an error: one line, exit
 status 2, the file is left alone), ``topics`` (unset or empty: every topic that appears under
 the node's namespace except ``/rosout``, ``/parameter_events``, hidden topics and ``/clock``),
@@ -14,7 +14,7 @@ publisher is, transient_local if every publisher is (so latched messages are rec
 publishers' profiles go into the channel's ``offered_qos_profiles``. The log time of a message
 is its receive time on the node clock (wall time unless use_sim_time), the publish time the
 publisher's source timestamp. SIGINT/SIGTERM close the file (summary with statistics) and exit
-0. The writing is :class:`~metampc_bringup.mcap_writer.Rosbag2McapWriter`.
+0. The writing is :class:`~metampc_recording.mcap_writer.Rosbag2McapWriter`.
 """
 import os
 import sys
@@ -23,15 +23,14 @@ from typing import Dict, Set
 
 from metampc_common.node_main import declare_parameters, run_node
 from metampc_common.params import ParameterError
+from metampc_recording.graph_topics import default_topic, new_topics, resolve_topics
+from metampc_recording.mcap_writer import Rosbag2McapWriter
+from metampc_recording.msg_schema import DefinitionNotFoundError
+from metampc_recording.rclpy_adapters import message_class, qos_to_rclpy
+from metampc_recording.recorder_config import parse_params, PARAMETERS
+from metampc_recording.rosbag2_qos import request_for_offers
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-
-from .graph_topics import default_topic, new_topics, resolve_topics
-from .mcap_writer import Rosbag2McapWriter
-from .msg_schema import DefinitionNotFoundError
-from .rclpy_adapters import message_class, qos_to_rclpy
-from .recorder_config import parse_params, PARAMETERS
-from .rosbag2_qos import request_for_offers
 
 
 class RecorderNode(Node):
@@ -108,7 +107,7 @@ class RecorderNode(Node):
 
 
 def main(args=None) -> int:
-    """`ros2 run metampc_bringup recorder --ros-args -p output:=...`; returns the exit code."""
+    """`ros2 run metampc_recording recorder --ros-args -p output:=...`; returns the exit code."""
     return run_node(RecorderNode, 'recorder', args)
 
 

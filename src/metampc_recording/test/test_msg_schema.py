@@ -2,8 +2,8 @@
 import os
 
 from mcap_ros2._dynamic import generate_dynamic
-from metampc_bringup.msg_schema import (DefinitionNotFoundError, DefinitionSource, DELIMITER,
-                                        package_share_directory)
+from metampc_recording.msg_schema import (DefinitionNotFoundError, DefinitionSource, DELIMITER,
+                                          package_share_directory)
 import pytest
 from rosbags.typesys import get_types_from_msg
 

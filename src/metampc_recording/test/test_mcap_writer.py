@@ -6,10 +6,10 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 from mcap_ros2._dynamic import serialize_dynamic
-from metampc_bringup.mcap_writer import McapWriterConfig, Rosbag2McapWriter
-from metampc_bringup.msg_schema import DefinitionSource
-from metampc_bringup.recording_reader import read_recording
-from metampc_bringup.rosbag2_qos import profiles_from_yaml, QosProfile
+from metampc_recording.mcap_writer import McapWriterConfig, Rosbag2McapWriter
+from metampc_recording.msg_schema import DefinitionSource
+from metampc_recording.recording_reader import read_recording
+from metampc_recording.rosbag2_qos import profiles_from_yaml, QosProfile
 import pytest
 from rosbags.highlevel import AnyReader
 import yaml

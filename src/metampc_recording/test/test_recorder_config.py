@@ -1,5 +1,5 @@
 """Recorder parameters: defaults, the round trip of to_parameters, one clear error per value."""
-from metampc_bringup.recorder_config import parse_params, PARAMETERS, RecorderConfig
+from metampc_recording.recorder_config import parse_params, PARAMETERS, RecorderConfig
 from metampc_common.params import ParameterError
 import pytest
 

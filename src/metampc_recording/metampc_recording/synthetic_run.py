@@ -1,7 +1,7 @@
 """A synthetic closed-loop recording, written as the recorder writes one (replay benchmarks and
 tests).
 
-:func:`write_synthetic_run` writes, with :class:`~metampc_bringup.mcap_writer.Rosbag2McapWriter`
+:func:`write_synthetic_run` writes, with :class:`~metampc_recording.mcap_writer.Rosbag2McapWriter`
 and the installed message definitions, what a lockstep run of a controller against a plant
 publishes: per tick ``y`` (PlantOutput), then the controller's ``u`` (ControlInput) and its
 ``mpc_status`` (MpcStatus, horizon N: u_plan, y_pred and y_ref of N rows), on the real topics
@@ -17,10 +17,9 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Tuple
 
 from mcap_ros2._dynamic import serialize_dynamic
-
-from .mcap_writer import McapWriterConfig, Rosbag2McapWriter
-from .msg_schema import DefinitionSource
-from .rosbag2_qos import QosProfile
+from metampc_recording.mcap_writer import McapWriterConfig, Rosbag2McapWriter
+from metampc_recording.msg_schema import DefinitionSource
+from metampc_recording.rosbag2_qos import QosProfile
 
 TICK_NS = 10_000_000          # 100 Hz
 START_NS = 1_700_000_000 * 10 ** 9

@@ -2,15 +2,14 @@
 
 Shared by the recorder and the Foxglove live view (node side: it calls the node's graph
 queries). A topic is taken once it has a publisher, because the subscription's QoS follows the
-publishers' (:func:`metampc_bringup.rosbag2_qos.request_for_offers`).
+publishers' (:func:`metampc_recording.rosbag2_qos.request_for_offers`).
 """
 from typing import Callable, Collection, Iterable, Iterator, List, NamedTuple, Set
 
 from metampc_common.params import ParameterError
+from metampc_recording.rclpy_adapters import qos_from_rclpy
+from metampc_recording.rosbag2_qos import QosProfile
 from rclpy.node import Node
-
-from .rclpy_adapters import qos_from_rclpy
-from .rosbag2_qos import QosProfile
 
 SYSTEM_TOPICS = frozenset({'/rosout', '/parameter_events'})
 

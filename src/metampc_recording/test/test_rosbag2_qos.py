@@ -1,7 +1,7 @@
-"""rosbag2's QoS rules (metampc_bringup.rosbag2_qos) against an independent statement of them."""
+"""rosbag2's QoS rules (metampc_recording.rosbag2_qos) against an independent statement of them."""
 from itertools import product
 
-from metampc_bringup.rosbag2_qos import QosProfile, request_for_offers
+from metampc_recording.rosbag2_qos import QosProfile, request_for_offers
 import pytest
 
 

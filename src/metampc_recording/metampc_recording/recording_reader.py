@@ -15,13 +15,12 @@ import struct
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Tuple
 
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema, Statistics
-from mcap.data_stream import ReadDataStream
 from mcap.stream_reader import read_magic, StreamReader
 from mcap_ros2.decoder import DecoderFactory
-
-from .mcap_writer import RUN_METADATA_NAME
+from metampc_recording.mcap_writer import RUN_METADATA_NAME
 
 
 @dataclass

@@ -19,9 +19,8 @@ from typing import Callable, Dict, Optional
 import foxglove
 from foxglove import Channel, Schema
 from foxglove.websocket import ChannelView, Client, ServerListener
-
-from .msg_schema import DefinitionSource, MessageDefinition
-from .subprotocol_front import SubprotocolFront
+from metampc_recording.msg_schema import DefinitionSource, MessageDefinition
+from metampc_recording.subprotocol_front import SubprotocolFront
 
 MESSAGE_ENCODING = 'cdr'
 

@@ -5,12 +5,11 @@ Python message class of a type name.
 """
 import importlib
 
+from metampc_recording.msg_schema import split_type_name
+from metampc_recording.rosbag2_qos import QosProfile
 from rclpy.duration import Duration
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
-
-from .msg_schema import split_type_name
-from .rosbag2_qos import QosProfile
 
 
 def qos_from_rclpy(profile: QoSProfile) -> QosProfile:

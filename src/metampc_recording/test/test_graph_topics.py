@@ -1,7 +1,7 @@
 """Which topics the recorder and the live view take when given no list (graph_topics)."""
 import pytest
 
-from metampc_bringup.graph_topics import default_topic
+from metampc_recording.graph_topics import default_topic
 
 
 @pytest.mark.parametrize('topic, namespace, clock, taken', [

@@ -1,7 +1,7 @@
 """Playback of a recording onto ROS topics, as ``ros2 bag play`` does.
 
 Each recorded topic gets a publisher with the QoS rosbag2 would offer for it
-(:func:`~metampc_bringup.rosbag2_qos.offer_for_recorded`: the recorded reliability, durability,
+(:func:`~metampc_recording.rosbag2_qos.offer_for_recorded`: the recorded reliability, durability,
 deadline and liveliness, history keep_last 10), so a latched topic replays latched. The recorded
 CDR bytes are published unchanged (rclpy's ``Publisher.publish`` takes ``bytes`` as a serialized
 message) at the recorded log-time spacing divided by `rate`, from `start_offset` s into the
@@ -17,14 +17,13 @@ import time
 from dataclasses import dataclass, field
 from typing import Dict, List
 
+from metampc_recording.rclpy_adapters import message_class, qos_to_rclpy
+from metampc_recording.recording_reader import read_recording, Recording
+from metampc_recording.rosbag2_qos import offer_for_recorded, profiles_from_yaml, QosProfile
 import rclpy
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-
-from .rclpy_adapters import message_class, qos_to_rclpy
-from .recording_reader import read_recording, Recording
-from .rosbag2_qos import offer_for_recorded, profiles_from_yaml, QosProfile
 
 
 @dataclass

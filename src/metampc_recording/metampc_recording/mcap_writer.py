@@ -3,9 +3,9 @@
 What a file written here contains, in rosbag2's layout:
 
 - header profile ``ros2``; one Schema per message type (name ``pkg/msg/Type``, encoding
-  ``ros2msg`` with the complete definition of :mod:`metampc_bringup.msg_schema`); one Channel
+  ``ros2msg`` with the complete definition of :mod:`metampc_recording.msg_schema`); one Channel
   per topic (message encoding ``cdr``) with the metadata ``offered_qos_profiles`` (YAML of
-  :mod:`metampc_bringup.rosbag2_qos`) and ``topic_type_hash`` (``RIHS01_...``);
+  :mod:`metampc_recording.rosbag2_qos`) and ``topic_type_hash`` (``RIHS01_...``);
 - Message records with the CDR bytes unchanged, ``log_time`` = receive time and
   ``publish_time`` = the publisher's source time, both in ns;
 - a Metadata record ``rosbag2`` (key ``serialized_metadata``: the bag metadata YAML, version 9)
@@ -31,10 +31,9 @@ from typing import Callable, Dict, Optional, Sequence
 
 from mcap.exceptions import UnsupportedCompressionError
 from mcap.writer import CompressionType, LIBRARY_IDENTIFIER, Writer
+from metampc_recording.msg_schema import DefinitionSource, MessageDefinition
+from metampc_recording.rosbag2_qos import profiles_to_dicts, profiles_to_yaml, QosProfile
 import yaml
-
-from .msg_schema import DefinitionSource, MessageDefinition
-from .rosbag2_qos import profiles_to_dicts, profiles_to_yaml, QosProfile
 
 COMPRESSIONS = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
                 'none': CompressionType.NONE}

@@ -11,10 +11,10 @@ import signal
 import time
 
 from mcap.reader import make_reader
-from metampc_bringup.msg_schema import DefinitionSource
-from metampc_bringup.recording_reader import read_recording
+from metampc_recording.msg_schema import DefinitionSource
+from metampc_recording.recording_reader import read_recording
 from metampc_common.held_publisher import HeldPublisher, HoldConfig
-from metampc_bringup.rosbag2_qos import profiles_from_yaml
+from metampc_recording.rosbag2_qos import profiles_from_yaml
 from metampc_msgs.msg import PlantOutput
 from metampc_testing import own_lines
 import numpy as np
@@ -24,7 +24,7 @@ from rosbags.highlevel import AnyReader
 import yaml
 
 # One xdist worker runs this file and test_replay.py: they share the session's recorded
-# closed-loop run (conftest.closed_loop), built once.
+# closed-loop run (recording_fixtures.closed_loop), built once.
 pytestmark = pytest.mark.xdist_group('closed_loop')
 
 STREAM = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
