@@ -26,9 +26,9 @@ from metampc_bringup.experiment_report import _messages, PLANT_INFO
 from metampc_bringup.offline import learner_config
 from metampc_bringup.recording_reader import read_recording
 from metampc_bringup.retrack import adapted_models, seed_recordings
-from metampc_controller.nssm import consistency_loss, Nssm
-from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import fields_of, weights_from_fields
+from metampc_model.nssm import consistency_loss, Nssm
+from metampc_model.predictor import NssmPredictor
+from metampc_model.weights_codec import fields_of, weights_from_fields
 from metampc_learner.data import Windows
 from metampc_learner.heldout import plant_source, target_heldout
 

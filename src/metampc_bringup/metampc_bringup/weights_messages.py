@@ -1,11 +1,11 @@
 """NssmWeights messages to control with, for runs without a learner (soak, benchmarks): the
-hand-built model of :mod:`metampc_controller.manual_model` or a learner checkpoint.
+hand-built model of :mod:`metampc_model.manual_model` or a learner checkpoint.
 
 No rclpy here (message classes only).
 """
-from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.nssm import Nssm
-from metampc_controller.weights_codec import fields_from_weights, fields_of, weights_from_fields
+from metampc_model.manual_model import linearised_vdp_nssm
+from metampc_model.nssm import Nssm
+from metampc_model.weights_codec import fields_from_weights, fields_of, weights_from_fields
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_msgs.msg import NssmWeights
 

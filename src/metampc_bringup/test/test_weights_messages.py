@@ -1,9 +1,9 @@
 """The models to control with, decoded again as the controller decodes them."""
 import math
 
-from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.nssm import Nssm
-from metampc_controller.weights_codec import fields_of, weights_from_fields
+from metampc_model.manual_model import linearised_vdp_nssm
+from metampc_model.nssm import Nssm
+from metampc_model.weights_codec import fields_of, weights_from_fields
 from metampc_learner.checkpoint import save_checkpoint
 import numpy as np
 import torch

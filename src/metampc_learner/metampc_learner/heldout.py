@@ -25,8 +25,8 @@ from typing import List, Mapping, Sequence
 import numpy as np
 import torch
 
-from metampc_controller.nssm import Nssm, prediction_loss
-from metampc_controller.weights_codec import DecodedWeights
+from metampc_model.nssm import Nssm, prediction_loss
+from metampc_model.weights_codec import DecodedWeights
 from metampc_learner.data import simulate_target, SourceConfig, Trajectory, Windows
 
 HELDOUT_SAMPLES = 2000

@@ -2,8 +2,8 @@
 import pytest
 import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, Nssm, NssmConfig
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 
 

@@ -14,7 +14,7 @@ import numpy as np
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 import torch
 
-from metampc_controller.weights_codec import fields_of, weights_from_fields
+from metampc_model.weights_codec import fields_of, weights_from_fields
 from metampc_learner.checkpoint import load_checkpoint
 from metampc_testing import own_lines, session_pids
 

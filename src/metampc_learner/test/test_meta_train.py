@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import init_params, Nssm, NssmConfig, prediction_loss
+from metampc_model.nssm import init_params, Nssm, NssmConfig, prediction_loss
 from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
                                   SourceConfig, SourceData, SourceSet, Trajectory)
 from metampc_learner import meta_train as meta_module

@@ -5,10 +5,10 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, Nssm, NssmConfig, param_shapes, prediction_loss
-from metampc_controller.predictor import latent_model, NssmPredictor
-from metampc_controller.weights_codec import FlatWeights
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, Nssm, NssmConfig, param_shapes, prediction_loss
+from metampc_model.predictor import latent_model, NssmPredictor
+from metampc_model.weights_codec import FlatWeights
 
 torch.set_num_threads(1)
 

@@ -9,7 +9,7 @@ from typing import Dict, List, Tuple, TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:    # nssm.py imports this module
-    from metampc_controller.nssm import NssmConfig
+    from metampc_model.nssm import NssmConfig
 
 
 @dataclass

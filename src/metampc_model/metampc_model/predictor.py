@@ -9,9 +9,9 @@ from typing import Mapping
 import numpy as np
 import torch
 
-from metampc_controller.latent_model import LatentModel
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import NssmConfig
+from metampc_model.latent_model import LatentModel
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import NssmConfig
 
 
 def latent_model(params: Mapping[str, torch.Tensor], norm: Normalisation) -> LatentModel:

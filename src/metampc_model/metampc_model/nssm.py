@@ -50,8 +50,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from metampc_common.params import check_fields, param
-from metampc_controller.latent_stability import bounded_transition
-from metampc_controller.normalisation import Normalisation
+from metampc_model.latent_stability import bounded_transition
+from metampc_model.normalisation import Normalisation
 
 Params = Dict[str, torch.Tensor]
 

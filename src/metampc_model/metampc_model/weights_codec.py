@@ -24,8 +24,8 @@ from typing import Any, Dict, List, Mapping, Tuple
 import numpy as np
 import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import NssmConfig, param_shapes, Params
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import NssmConfig, param_shapes, Params
 
 MODEL_FIELDS = ('n_z', 'n_u', 'n_y', 'history', 'encoder_layers', 'names', 'shape_offsets',
                 'shapes', 'params', 'u_mean', 'u_std', 'y_mean', 'y_std')

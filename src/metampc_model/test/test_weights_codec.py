@@ -8,12 +8,12 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 import torch
 
-from metampc_controller.manual_model import linearised_vdp, linearised_vdp_nssm
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, NssmConfig
-from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
-                                              weights_from_fields, WeightsError)
+from metampc_model.manual_model import linearised_vdp, linearised_vdp_nssm
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, NssmConfig
+from metampc_model.predictor import NssmPredictor
+from metampc_model.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
+                                         weights_from_fields, WeightsError)
 from metampc_plant.integrate import rk4_sample
 from metampc_plant.registry import get_family
 from metampc_plant.simulator import Plant, PlantConfig
