@@ -91,7 +91,8 @@ class Setup:
         if fam.name == 'vanderpol':
             return manual_weights(self.theta[0], fam.dt, **NSSM)
         from metampc_model.normalisation import Normalisation
-        from metampc_model.nssm import init_params, NssmConfig
+        from metampc_model.nssm import init_params
+        from metampc_model.nssm_config import NssmConfig
         from metampc_model.weights_codec import fields_from_weights
         from metampc_msgs.msg import NssmWeights
         config = NssmConfig(n_u=fam.n_u, n_y=fam.n_y, **NSSM)

@@ -20,7 +20,8 @@ from metampc_controller.controller_core import History
 from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import Nssm, NssmConfig
+from metampc_model.nssm import Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_model.predictor import NssmPredictor
 from metampc_controller.references import make_reference
 

@@ -13,7 +13,8 @@ from metampc_controller.controller_params import ControllerConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import Nssm, NssmConfig
+from metampc_model.nssm import Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_controller.prediction_error import PredictionError
 from metampc_model.predictor import NssmPredictor
 from metampc_model.weights_codec import DecodedWeights

@@ -21,7 +21,7 @@ from typing import Dict, Mapping, Tuple
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 from metampc_common.excitation import ExcitationConfig
-from metampc_model.nssm import NssmConfig
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig
 from metampc_learner.loop_adaptation import LoopConfig

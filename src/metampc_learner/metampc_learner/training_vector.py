@@ -10,7 +10,8 @@ import numpy as np
 import torch
 
 from metampc_model.latent_stability import bounded_transition, transition_coordinates
-from metampc_model.nssm import NssmConfig, param_shapes, Params
+from metampc_model.nssm import Params
+from metampc_model.nssm_config import NssmConfig, param_shapes
 
 
 class TrainingVector:

@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import init_params, Nssm, NssmConfig
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 
 

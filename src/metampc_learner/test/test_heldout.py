@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import init_params, Nssm, NssmConfig
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_model.weights_codec import fields_from_weights, weights_from_fields
 from metampc_learner import data, oracle
 from metampc_learner.data import (simulate_source, simulate_target, SourceConfig, Trajectory,

@@ -11,7 +11,7 @@ import torch
 
 from metampc_model.latent_model import LatentModel
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import NssmConfig
+from metampc_model.nssm_config import NssmConfig
 
 
 def latent_model(params: Mapping[str, torch.Tensor], norm: Normalisation) -> LatentModel:

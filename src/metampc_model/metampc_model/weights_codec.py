@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import NssmConfig, param_shapes, Params
+from metampc_model.nssm import Params
+from metampc_model.nssm_config import NssmConfig, param_shapes
 
 MODEL_FIELDS = ('n_z', 'n_u', 'n_y', 'history', 'encoder_layers', 'names', 'shape_offsets',
                 'shapes', 'params', 'u_mean', 'u_std', 'y_mean', 'y_std')

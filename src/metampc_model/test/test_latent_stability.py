@@ -4,7 +4,7 @@ import torch
 from torch.func import jvp, vmap
 
 from metampc_model.latent_stability import bounded_transition, transition_coordinates
-from metampc_model.nssm import NssmConfig
+from metampc_model.nssm_config import NssmConfig
 
 F64 = torch.float64
 

@@ -6,7 +6,8 @@ import torch
 from torch.func import functional_call
 
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import init_params, Nssm, NssmConfig, param_shapes, prediction_loss
+from metampc_model.nssm import init_params, Nssm, prediction_loss
+from metampc_model.nssm_config import NssmConfig, param_shapes
 from metampc_model.predictor import latent_model, NssmPredictor
 from metampc_model.weights_codec import FlatWeights
 

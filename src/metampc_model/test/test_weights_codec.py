@@ -10,7 +10,8 @@ import torch
 
 from metampc_model.manual_model import linearised_vdp, linearised_vdp_nssm
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import init_params, NssmConfig
+from metampc_model.nssm import init_params
+from metampc_model.nssm_config import NssmConfig
 from metampc_model.predictor import NssmPredictor
 from metampc_model.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
                                          weights_from_fields, WeightsError)
