@@ -63,7 +63,7 @@ def check_weights_equal_checkpoint(msg, path):
     assert (decoded.config.n_z, decoded.config.history, decoded.config.hidden) == (
         ckpt.model.config.n_z, ckpt.model.config.history, ckpt.model.config.hidden)
     assert set(decoded.params) == set(ckpt.params)
-    assert all(torch.equal(decoded.params[k], ckpt.params[k]) for k in ckpt.params)
+    assert all(np.array_equal(decoded.params[k], ckpt.params[k].numpy()) for k in ckpt.params)
     for name in ('u_mean', 'u_std', 'y_mean', 'y_std'):
         assert np.array_equal(getattr(decoded.norm, name), getattr(ckpt.model.norm, name))
     return decoded

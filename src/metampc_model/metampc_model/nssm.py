@@ -55,6 +55,12 @@ from metampc_model.nssm_config import NssmConfig, param_shapes
 Params = Dict[str, torch.Tensor]
 
 
+def torch_params(arrays: Mapping[str, np.ndarray], dtype: torch.dtype = torch.float32) -> Params:
+    """Parameter arrays (e.g. ``weights_codec.DecodedWeights.params``) as tensors of `dtype`,
+    same names, order and shapes; new memory, so the arrays stay as they are."""
+    return {name: torch.from_numpy(np.array(value)).to(dtype) for name, value in arrays.items()}
+
+
 def init_params(config: NssmConfig, seed: int, dtype: torch.dtype = torch.float32) -> Params:
     """Random initial parameters, seeded (the global torch RNG is not touched).
 
