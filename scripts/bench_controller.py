@@ -2,7 +2,7 @@
 """Latency of the controller's tick, y in -> u out; prints ONE JSON line.
 
 Model: the default NSSM size (encoder 128-128, n_z = 5, H = 10) with, for van der Pol, the
-hand-built weights of metampc_controller.manual_model (the plant linearised at its theta), for
+hand-built weights of metampc_model.manual_model (the plant linearised at its theta), for
 another plant family (`--family`, docs/families.md) seeded random weights of its numbers of
 inputs and outputs (a dense matrix product costs the same whatever the values); latent MPC
 with N = 20, the family's input bounds and sample time, van der Pol: the paper's set-point
@@ -90,9 +90,10 @@ class Setup:
         fam = self.plant_family
         if fam.name == 'vanderpol':
             return manual_weights(self.theta[0], fam.dt, **NSSM)
-        from metampc_controller.normalisation import Normalisation
-        from metampc_controller.nssm import init_params, NssmConfig
-        from metampc_controller.weights_codec import fields_from_weights
+        from metampc_model.normalisation import Normalisation
+        from metampc_model.nssm import init_params
+        from metampc_model.nssm_config import NssmConfig
+        from metampc_model.weights_codec import fields_from_weights
         from metampc_msgs.msg import NssmWeights
         config = NssmConfig(n_u=fam.n_u, n_y=fam.n_y, **NSSM)
         lo, hi = np.asarray(fam.u_min), np.asarray(fam.u_max)

@@ -52,7 +52,8 @@ import numpy as np
 import torch
 
 from metampc_bringup.procfs import reset_peak_rss, status_kib
-from metampc_controller.nssm import Nssm, NssmConfig
+from metampc_model.nssm import Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet
 from metampc_learner.meta_train import batch_gradient_fn, meta_train, MetaConfig
 from metampc_learner.objective import FlatObjective

@@ -25,7 +25,7 @@ import numpy as np
 import osqp
 
 from metampc_bringup.percentiles import percentiles
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.references import make_reference
 

@@ -26,9 +26,9 @@ from metampc_bringup.experiment_report import _messages, PLANT_INFO
 from metampc_bringup.offline import learner_config
 from metampc_recording.recording_reader import read_recording
 from metampc_bringup.retrack import adapted_models, seed_recordings
-from metampc_controller.nssm import consistency_loss, Nssm
-from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import fields_of, weights_from_fields
+from metampc_model.nssm import consistency_loss, Nssm, torch_params
+from metampc_model.predictor import NssmPredictor
+from metampc_model.weights_codec import fields_of, weights_from_fields
 from metampc_learner.data import Windows
 from metampc_learner.heldout import plant_source, target_heldout
 
@@ -68,8 +68,8 @@ def heldout_consistency(msg, trajectories, horizon: int) -> float:
     config = replace(decoded.config, horizon=int(horizon))
     windows = Windows.from_trajectories(trajectories, decoded.norm, config)
     with torch.no_grad():
-        return float(consistency_loss(Nssm(config, decoded.norm), decoded.params, windows.u,
-                                      windows.y))
+        return float(consistency_loss(Nssm(config, decoded.norm), torch_params(decoded.params),
+                                      windows.u, windows.y))
 
 
 def main() -> None:

@@ -26,8 +26,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 import torch
 
 from metampc_bringup.weights_messages import manual_weights
-from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.nssm import Nssm
+from metampc_model.manual_model import linearised_vdp_nssm
+from metampc_model.nssm import Nssm
 from metampc_learner.checkpoint import save_checkpoint
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)

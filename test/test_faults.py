@@ -36,10 +36,11 @@ from scipy.integrate import solve_ivp
 from metampc_bringup.experiment_client import ExperimentClient, ExperimentError, process_status
 from metampc_recording.recorder_config import RecorderConfig
 from metampc_recording.recording_reader import read_recording
-from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, NssmConfig
-from metampc_controller.weights_codec import fields_from_weights
+from metampc_model.manual_model import linearised_vdp_nssm
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params
+from metampc_model.nssm_config import NssmConfig
+from metampc_model.weights_codec import fields_from_weights
 from metampc_plant.simulator import Plant, PlantConfig
 from metampc_testing import own_lines, session_pids
 

@@ -45,7 +45,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import matplotlib
 import numpy as np
 
-from metampc_controller.weights_codec import DecodedWeights, fields_of, weights_from_fields
+from metampc_model.weights_codec import DecodedWeights, fields_of, weights_from_fields
 from metampc_learner.heldout import (HELDOUT_STREAM, heldout_seed, model_heldout_loss,
                                      plant_source, target_heldout)
 

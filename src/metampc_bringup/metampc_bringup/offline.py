@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from metampc_controller.nssm import Nssm
-from metampc_controller.weights_codec import DecodedWeights, WeightsError
+from metampc_model.nssm import Nssm
+from metampc_model.weights_codec import DecodedWeights, WeightsError
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   SourceSet, Windows)

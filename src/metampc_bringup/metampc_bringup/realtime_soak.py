@@ -3,7 +3,7 @@
 The logic of ``scripts/soak.py`` (its command line; docs/faults.md has the measured soaks).
 The plant runs in ``realtime`` mode (a wall-clock timer at ``rate`` Hz, zero-order hold of the
 latest input) and the controller on its own wall-clock timer at ``controller_rate`` with a
-trained model: the hand-built NSSM of ``metampc_controller.manual_model`` (the plant
+trained model: the hand-built NSSM of ``metampc_model.manual_model`` (the plant
 linearised at the origin, discretised at the plant's dt) or a checkpoint (``weights``). It
 tracks a sine reference of x1; a little measurement noise keeps every input distinct. An
 observer in this process (:mod:`metampc_bringup.soak_observer`) records ``y``, ``u`` and

@@ -24,9 +24,9 @@ from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.controller_params import parse_params as parse_controller
 from metampc_controller.controller_params import PARAMETERS as CONTROLLER_PARAMETERS
 from metampc_controller.model_check import check
-from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import (DecodedWeights, fields_of, weights_from_fields,
-                                              WeightsError)
+from metampc_model.predictor import NssmPredictor
+from metampc_model.weights_codec import (DecodedWeights, fields_of, weights_from_fields,
+                                         WeightsError)
 from metampc_plant.plant_params import parse_params as parse_plant
 from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
 from metampc_plant.simulator import Plant

@@ -1,11 +1,11 @@
 """NssmWeights messages to control with, for runs without a learner (soak, benchmarks): the
-hand-built model of :mod:`metampc_controller.manual_model` or a learner checkpoint.
+hand-built model of :mod:`metampc_model.manual_model` or a learner checkpoint.
 
 No rclpy here (message classes only).
 """
-from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.nssm import Nssm
-from metampc_controller.weights_codec import fields_from_weights, fields_of, weights_from_fields
+from metampc_model.manual_model import linearised_vdp_nssm
+from metampc_model.nssm import Nssm, torch_params
+from metampc_model.weights_codec import fields_from_weights, fields_of, weights_from_fields
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_msgs.msg import NssmWeights
 
@@ -30,7 +30,7 @@ def save_weights(msg: NssmWeights, path: str) -> None:
     """Write the model of a weights message (e.g. read from a recording) as a checkpoint,
     with its method and stage: a learner loads it with ``meta_model_path``."""
     decoded = weights_from_fields(fields_of(msg))
-    save_checkpoint(path, Nssm(decoded.config, decoded.norm), decoded.params,
+    save_checkpoint(path, Nssm(decoded.config, decoded.norm), torch_params(decoded.params),
                     {'method': msg.method, 'stage': msg.stage, 'version': int(msg.version),
                      'train_loss': float(msg.train_loss), 'train_steps': int(msg.train_steps),
                      'train_samples': int(msg.train_samples), 'seed': int(msg.seed)})

@@ -1,1 +1,2 @@
-"""What every metampc node shares: main() and parameter declaration, typed parameters, QoS."""
+"""What every metampc node shares: main() and parameter declaration, typed parameters, QoS,
+excitation signals."""

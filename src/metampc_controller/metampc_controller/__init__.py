@@ -1,1 +1,1 @@
-"""Neural state-space model and latent linear MPC: cores and the controller node."""
+"""Latent linear MPC on the shared NSSM: cores and the controller node."""

@@ -25,7 +25,7 @@ import numpy as np
 
 from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
-from metampc_controller.excitation import excitation, ExcitationConfig
+from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
 from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import LatentMpc, MpcConfig
@@ -33,9 +33,9 @@ from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.planner import PlanResult
 from metampc_controller.prediction_error import PredictionError
-from metampc_controller.predictor import NssmPredictor
+from metampc_model.predictor import NssmPredictor
 from metampc_controller.references import make_reference
-from metampc_controller.weights_codec import DecodedWeights, WeightsError
+from metampc_model.weights_codec import DecodedWeights, WeightsError
 from metampc_plant.registry import get_family
 
 

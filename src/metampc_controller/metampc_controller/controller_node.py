@@ -92,7 +92,7 @@ from metampc_controller.adaptation_trigger import Request
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
                                                 PlantDescription, TickResult)
 from metampc_controller.controller_params import ControllerConfig, PARAMETERS, parse_params
-from metampc_controller.weights_codec import fields_of, weights_from_fields, WeightsError
+from metampc_model.weights_codec import fields_of, weights_from_fields, WeightsError
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
             'retunes', 'adapt_requests', 'adapt_timeouts', 'adapt_refusals', 'refused_models',

@@ -18,7 +18,7 @@ from metampc_common.params import (build, param, ParameterError, ParamSpec, Sect
                                    Value)
 
 from metampc_controller.adaptation_trigger import TriggerConfig
-from metampc_controller.excitation import ExcitationConfig
+from metampc_common.excitation import ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.references import make_reference, PaperConfig

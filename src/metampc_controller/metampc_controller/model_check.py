@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 
 from metampc_common.params import param
-from metampc_controller.predictor import NssmPredictor
+from metampc_model.predictor import NssmPredictor
 
 CHECKED = ('requested', 'all', 'off')
 

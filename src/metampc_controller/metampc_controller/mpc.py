@@ -57,7 +57,7 @@ import osqp
 import scipy.sparse as sp
 
 from metampc_common.params import check_fields, param
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 from metampc_controller.planner import PlanResult
 from metampc_controller.offset_free import (DisturbanceEstimator, disturbance_model, FORMS,
                                             SteadyStateTarget)

@@ -57,7 +57,7 @@ from typing import Optional
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 
 FORMS = ('none', 'state', 'input', 'output')
 # Singular values below this (relative to the largest) count as zero in the rank test; an

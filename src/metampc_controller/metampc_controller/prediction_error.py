@@ -16,7 +16,7 @@ from typing import Deque, List, Optional, Tuple
 
 import numpy as np
 
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 
 
 class PredictionError:

@@ -1,9 +1,9 @@
 """`ros2 run metampc_controller send_model`: publish the hand-built NSSM on the latched
 ``nssm_weights`` topic and stay, so that a controller started later still gets it.
 
-The model is :func:`metampc_controller.manual_model.linearised_vdp_nssm` (the van der Pol plant
+The model is :func:`metampc_model.manual_model.linearised_vdp_nssm` (the van der Pol plant
 linearised at the origin; method 'manual', stage 'adapted'), encoded with
-:func:`metampc_controller.weights_codec.fields_from_weights`. Parameters (declared once on
+:func:`metampc_model.weights_codec.fields_from_weights`. Parameters (declared once on
 :class:`SendModelConfig`): ``theta``, ``dt``, ``history``, ``version``. A bad value ends the
 node with one error line and exit status 2; Ctrl-C (also during start-up) exits 0.
 """
@@ -17,8 +17,8 @@ from metampc_common.qos import LATCHED
 from metampc_msgs.msg import NssmWeights
 from rclpy.node import Node
 
-from metampc_controller.manual_model import linearised_vdp_nssm
-from metampc_controller.weights_codec import fields_from_weights
+from metampc_model.manual_model import linearised_vdp_nssm
+from metampc_model.weights_codec import fields_from_weights
 
 
 @dataclass

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 
 # A stabilising DARE solution of a well-posed problem meets ~1e-12; 1e-6 only rejects garbage.
 DARE_RTOL = 1e-6

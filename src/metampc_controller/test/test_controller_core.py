@@ -11,10 +11,10 @@ from metampc_controller.controller_core import (AnswerRule, build_model, Control
                                                 History, PlantDescription, PreModelInput)
 from metampc_controller.closed_loop import run_episode
 from metampc_controller.controller_params import ControllerConfig
-from metampc_controller.excitation import ExcitationConfig
-from metampc_controller.manual_model import linearised_vdp_nssm
+from metampc_common.excitation import ExcitationConfig
+from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
-from metampc_controller.weights_codec import DecodedWeights, WeightsError
+from metampc_model.weights_codec import DecodedWeights, WeightsError
 from metampc_plant.simulator import Plant, PlantConfig
 
 

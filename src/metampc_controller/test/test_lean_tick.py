@@ -17,11 +17,12 @@ import torch
 
 from metampc_controller import mpc as mpc_module
 from metampc_controller.controller_core import History
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import Nssm, NssmConfig
-from metampc_controller.predictor import NssmPredictor
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import Nssm
+from metampc_model.nssm_config import NssmConfig
+from metampc_model.predictor import NssmPredictor
 from metampc_controller.references import make_reference
 
 torch.set_num_threads(1)

@@ -11,11 +11,11 @@ import pytest
 
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
-from metampc_controller.manual_model import linearised_vdp_nssm
+from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.model_check import applies, check, ModelCheckConfig, n_step_error
 from metampc_controller.mpc import MpcConfig
-from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import DecodedWeights
+from metampc_model.predictor import NssmPredictor
+from metampc_model.weights_codec import DecodedWeights
 from metampc_plant.simulator import Plant, PlantConfig
 
 MPC = MpcConfig(time_limit=30.0)

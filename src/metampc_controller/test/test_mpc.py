@@ -11,7 +11,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.optimize import lsq_linear
 
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.references import make_reference
 

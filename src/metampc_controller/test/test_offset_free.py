@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.offset_free import (detectability_rank, DisturbanceEstimator,
                                             disturbance_model, SteadyStateTarget)

@@ -10,13 +10,14 @@ from torch.func import functional_call
 
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
-from metampc_controller.manual_model import linearised_vdp_nssm
+from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import Nssm, NssmConfig
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_controller.prediction_error import PredictionError
-from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import DecodedWeights
+from metampc_model.predictor import NssmPredictor
+from metampc_model.weights_codec import DecodedWeights
 from metampc_plant.simulator import Plant, PlantConfig
 
 

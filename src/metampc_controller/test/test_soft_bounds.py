@@ -9,7 +9,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.optimize import Bounds, LinearConstraint, minimize
 
-from metampc_controller.latent_model import LatentModel
+from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 
 TIGHT = dict(eps_abs=1e-9, eps_rel=1e-9, max_iter=200000, time_limit=30.0, polish=True,

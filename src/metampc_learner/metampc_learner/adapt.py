@@ -18,7 +18,7 @@ from typing import List, Optional
 import torch
 
 from metampc_common.params import check_fields, param
-from metampc_controller.nssm import init_params, Nssm, Params
+from metampc_model.nssm import init_params, Nssm, Params
 from metampc_learner.data import Windows
 from metampc_learner.objective import FlatObjective
 from metampc_learner.progress import Progress, ProgressFn

@@ -39,8 +39,8 @@ from typing import Callable, List, NamedTuple, Tuple
 
 import torch
 
-from metampc_controller.latent_stability import SMALL
-from metampc_controller.nssm import Nssm
+from metampc_model.latent_stability import SMALL
+from metampc_model.nssm import Nssm
 from metampc_learner.task_gradient import TaskGradient
 from metampc_learner.training_vector import TrainingVector
 

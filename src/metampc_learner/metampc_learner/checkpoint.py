@@ -8,8 +8,9 @@ from typing import Any, Dict
 
 import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import Nssm, NssmConfig, param_shapes, Params
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import Nssm, Params
+from metampc_model.nssm_config import NssmConfig, param_shapes
 
 FORMAT = 'metampc.nssm/1'
 

@@ -23,9 +23,9 @@ import numpy as np
 import torch
 
 from metampc_common.params import check_fields, param
-from metampc_controller.excitation import excitation, ExcitationConfig
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import NssmConfig
+from metampc_common.excitation import excitation, ExcitationConfig
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm_config import NssmConfig
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
 from metampc_plant.simulator import PlantConfig, simulate

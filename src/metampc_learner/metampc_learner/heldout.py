@@ -25,8 +25,8 @@ from typing import List, Mapping, Sequence
 import numpy as np
 import torch
 
-from metampc_controller.nssm import Nssm, prediction_loss
-from metampc_controller.weights_codec import DecodedWeights
+from metampc_model.nssm import Nssm, prediction_loss, torch_params
+from metampc_model.weights_codec import DecodedWeights
 from metampc_learner.data import simulate_target, SourceConfig, Trajectory, Windows
 
 HELDOUT_SAMPLES = 2000
@@ -86,7 +86,7 @@ def model_heldout_loss(weights: DecodedWeights, trajectories: List[Trajectory],
     """
     config = replace(weights.config, horizon=int(horizon))
     windows = Windows.from_trajectories(trajectories, weights.norm, config)
-    return heldout_loss(Nssm(config, weights.norm), weights.params, windows)
+    return heldout_loss(Nssm(config, weights.norm), torch_params(weights.params), windows)
 
 
 __all__ = ['HELDOUT_SAMPLES', 'HELDOUT_STREAM', 'heldout_seed', 'plant_source', 'target_heldout',

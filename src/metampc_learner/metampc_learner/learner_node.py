@@ -24,7 +24,7 @@ Interfaces (relative names, so a namespace can wrap them):
   baselines; answers with the held-out loss curve; publishes the model (stage 'adapted').
 * ``nssm_weights`` (NssmWeights, published, reliable + transient_local, depth 1: latched): every
   model the learner makes (and the meta-model of ``meta_model_path`` at start-up), encoded by
-  ``metampc_controller.weights_codec.fields_from_weights``, versions increasing.
+  ``metampc_model.weights_codec.fields_from_weights``, versions increasing.
 * ``mpc_status`` (MpcStatus, subscribed with ``loop_adaptation``): adaptation in the loop. A
   status with ``adapt_request`` (the controller's detector or period asked) starts eq. (infer)
   on the latest ``loop_window`` samples up to its step, from the model in use
@@ -70,7 +70,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 import torch
 
-from metampc_controller.weights_codec import fields_from_weights
+from metampc_model.weights_codec import fields_from_weights
 from metampc_learner.job_slot import JobCancelled, JobSlot, JobStatus
 from metampc_learner.learner_params import (LearnerNodeConfig, parse_params, PARAMETERS,
                                             resolve_adapt_request, resolve_meta_request)

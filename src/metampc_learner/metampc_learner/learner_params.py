@@ -20,8 +20,8 @@ from typing import Dict, Mapping, Tuple
 
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
-from metampc_controller.excitation import ExcitationConfig
-from metampc_controller.nssm import NssmConfig
+from metampc_common.excitation import ExcitationConfig
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig
 from metampc_learner.loop_adaptation import LoopConfig

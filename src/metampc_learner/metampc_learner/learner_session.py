@@ -32,7 +32,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from metampc_controller.nssm import init_params, Nssm, Params
+from metampc_model.nssm import init_params, Nssm, Params
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (normalisation_from, simulate_source, SourceConfig,

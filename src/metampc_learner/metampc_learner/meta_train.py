@@ -61,7 +61,7 @@ import torch
 from torch.func import grad, vmap
 
 from metampc_common.params import check_fields, param, ParameterError
-from metampc_controller.nssm import init_params, Nssm, Params
+from metampc_model.nssm import init_params, Nssm, Params
 from metampc_learner.batched_objective import BatchedNssm, BatchedTaskGradient
 from metampc_learner.curvature import CURVATURES
 from metampc_learner.data import SourceSet, Trajectory

@@ -14,7 +14,7 @@ import torch
 
 from torch.func import grad_and_value
 
-from metampc_controller.nssm import Nssm, training_loss
+from metampc_model.nssm import Nssm, training_loss
 from metampc_learner.training_vector import TrainingVector
 
 ARMIJO_C = 1e-4        # sufficient decrease of the Armijo rule (Nocedal & Wright's choice)
@@ -24,7 +24,7 @@ MAX_HALVINGS = 30      # lr / 2^30: below any useful step
 class FlatObjective:
     """l_SSM of an NSSM over normalised windows, as a function of flat weights (P,).
 
-    Windows: u (N, H+T, n_u), y (N, H+T, n_y); see ``metampc_controller.nssm``.
+    Windows: u (N, H+T, n_u), y (N, H+T, n_y); see ``metampc_model.nssm``.
     """
 
     def __init__(self, model: Nssm):

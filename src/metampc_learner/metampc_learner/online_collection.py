@@ -12,7 +12,7 @@ exploration noise, eq. (ub)::
 
 and returns the trajectories (u^b, y^b) that the core adds to D_source (SourceSet.add, capped).
 
-Episode (index convention of ``metampc_controller.nssm``: u_k was held over (k-1, k] and
+Episode (index convention of ``metampc_model.nssm``: u_k was held over (k-1, k] and
 produced y_k): x_0 uniform in the family's initial-state box; samples 1..H are driven by the
 source excitation (the encoder needs H pairs before the MPC can run); from t = H on, every
 tick encodes z_t from (u, y)_{t-H+1..t}, solves eq. (mpc) for u_{t+1} with the applied u_t and
@@ -34,10 +34,10 @@ import numpy as np
 import torch
 
 from metampc_common.params import check_fields, param
-from metampc_controller.excitation import excitation
+from metampc_common.excitation import excitation
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.nssm import Nssm, Params
-from metampc_controller.predictor import NssmPredictor
+from metampc_model.nssm import Nssm, Params
+from metampc_model.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig, Trajectory
 from metampc_plant.simulator import Plant
 

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from metampc_common.params import check_fields, param
-from metampc_controller.nssm import Nssm, Params
+from metampc_model.nssm import Nssm, Params
 from metampc_learner.adapt import AdaptResult
 from metampc_learner.data import simulate_episodes, SourceConfig, Trajectory, Windows
 from metampc_learner.objective import FlatObjective

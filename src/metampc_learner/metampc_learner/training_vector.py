@@ -2,15 +2,16 @@
 
 Every training method (meta-training, inner loops, adaptation, supervised, oracle) steps one
 vector (P,); the model reads a parameter dict. With ``stable_latent`` the vector holds W where
-the dict holds A = bounded_transition(W) (``metampc_controller.latent_stability``).
+the dict holds A = bounded_transition(W) (``metampc_model.latent_stability``).
 """
 from typing import Mapping
 
 import numpy as np
 import torch
 
-from metampc_controller.latent_stability import bounded_transition, transition_coordinates
-from metampc_controller.nssm import NssmConfig, param_shapes, Params
+from metampc_model.latent_stability import bounded_transition, transition_coordinates
+from metampc_model.nssm import Params
+from metampc_model.nssm_config import NssmConfig, param_shapes
 
 
 class TrainingVector:

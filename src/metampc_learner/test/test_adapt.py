@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
 from metampc_learner.data import normalisation_from, simulate_target, SourceConfig, Windows
 from metampc_learner.objective import ARMIJO_C, FlatObjective

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from metampc_common.params import ParameterError
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.batched_objective import BatchedNssm, BatchedTaskGradient
 from metampc_learner.curvature import gauss_newton_product
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet

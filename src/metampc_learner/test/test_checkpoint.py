@@ -2,8 +2,9 @@
 import pytest
 import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 
 

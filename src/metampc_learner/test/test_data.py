@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import NssmConfig
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
                                   simulate_target, SourceConfig, SourceData, SourceSet,
                                   split_by_time, Trajectory, trajectories_from_samples,

@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
-from metampc_controller.weights_codec import fields_from_weights, weights_from_fields
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
+from metampc_model.weights_codec import fields_from_weights, weights_from_fields
 from metampc_learner import data, oracle
 from metampc_learner.data import (simulate_source, simulate_target, SourceConfig, Trajectory,
                                   Windows)

@@ -7,7 +7,8 @@ import pytest
 import torch
 from torch.autograd.functional import hessian, jacobian
 
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.cg import conjugate_gradient
 from metampc_learner.curvature import gauss_newton_product, hessian_product
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet

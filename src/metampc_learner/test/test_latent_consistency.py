@@ -3,8 +3,8 @@ import torch
 from torch.autograd.functional import jacobian
 from torch.func import functional_call
 
-from metampc_controller.nssm import (consistency_loss, Nssm, NssmConfig, prediction_loss,
-                                     training_loss)
+from metampc_model.nssm import consistency_loss, Nssm, prediction_loss, training_loss
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.batched_objective import BatchedTaskGradient
 from metampc_learner.curvature import gauss_newton_product
 from metampc_learner.meta_train import batch_gradient_fn, MetaConfig

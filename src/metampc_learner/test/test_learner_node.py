@@ -14,7 +14,7 @@ import numpy as np
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 import torch
 
-from metampc_controller.weights_codec import fields_of, weights_from_fields
+from metampc_model.weights_codec import fields_of, weights_from_fields
 from metampc_learner.checkpoint import load_checkpoint
 from metampc_testing import own_lines, session_pids
 
@@ -63,7 +63,7 @@ def check_weights_equal_checkpoint(msg, path):
     assert (decoded.config.n_z, decoded.config.history, decoded.config.hidden) == (
         ckpt.model.config.n_z, ckpt.model.config.history, ckpt.model.config.hidden)
     assert set(decoded.params) == set(ckpt.params)
-    assert all(torch.equal(decoded.params[k], ckpt.params[k]) for k in ckpt.params)
+    assert all(np.array_equal(decoded.params[k], ckpt.params[k].numpy()) for k in ckpt.params)
     for name in ('u_mean', 'u_std', 'y_mean', 'y_std'):
         assert np.array_equal(getattr(decoded.norm, name), getattr(ckpt.model.norm, name))
     return decoded
@@ -179,7 +179,8 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     probe.wait_for(lambda: fresh.msgs, 60.0, 'the loaded meta-model')
     assert (fresh.msgs[-1].version, fresh.msgs[-1].stage) == (2, 'meta')
     loaded = check_weights_equal_checkpoint(fresh.msgs[-1], ckpt / 'meta_imaml_v2.pt')
-    assert all(torch.equal(loaded.params[k], meta_weights.params[k]) for k in loaded.params)
+    assert all(np.array_equal(loaded.params[k], meta_weights.params[k])
+               for k in loaded.params)
 
     # Adaptation of the loaded meta-model to freshly buffered target samples.
     for client in (adapt, buffering):
@@ -199,7 +200,7 @@ def test_learner_trains_while_buffering_and_publishes_latched_weights(procs, pro
     assert (msg.stage, msg.method, msg.train_steps) == ('adapted', 'imaml', 5)
     assert msg.train_samples == CAPACITY - 10, 'the first 30 buffered samples train'
     adapted = check_weights_equal_checkpoint(msg, ckpt / 'adapted_imaml_v3.pt')
-    assert any(not torch.equal(adapted.params[k], meta_weights.params[k])
+    assert any(not np.array_equal(adapted.params[k], meta_weights.params[k])
                for k in adapted.params)
 
     # The oracle takes theta from the latched plant_info.

@@ -6,7 +6,7 @@ from metampc_msgs.srv import Adapt, MetaTrain
 import numpy as np
 import pytest
 
-from metampc_controller.nssm import NssmConfig
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig, windows
 from metampc_learner.learner_params import (AdaptJob, parse_params, ParameterError, PARAMETERS,

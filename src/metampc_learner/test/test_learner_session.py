@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import init_params, Nssm
+from metampc_model.nssm import init_params, Nssm
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,

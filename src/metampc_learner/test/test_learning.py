@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import Nssm, NssmConfig
+from metampc_model.nssm import Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   SourceConfig, SourceSet, Windows)

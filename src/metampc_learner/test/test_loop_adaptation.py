@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import adapt, AdaptConfig
 from metampc_learner.data import Windows
 from metampc_learner.learner_params import LearnerNodeConfig, parse_params, PARAMETERS

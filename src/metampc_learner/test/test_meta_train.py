@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_controller.nssm import init_params, Nssm, NssmConfig, prediction_loss
+from metampc_model.nssm import init_params, Nssm, prediction_loss
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
                                   SourceConfig, SourceData, SourceSet, Trajectory)
 from metampc_learner import meta_train as meta_module

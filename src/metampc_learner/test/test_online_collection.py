@@ -5,9 +5,10 @@ import numpy as np
 import torch
 
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, Nssm, NssmConfig
-from metampc_controller.predictor import NssmPredictor
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, Nssm
+from metampc_model.nssm_config import NssmConfig
+from metampc_model.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig
 from metampc_learner.online_collection import OnlineCollectionConfig, OnlineCollector
 from metampc_plant.integrate import rk4_components

@@ -1,7 +1,8 @@
 """The flat training vector: exact round trips, W in the vector and A in the published weights."""
 import torch
 
-from metampc_controller.nssm import init_params, NssmConfig
+from metampc_model.nssm import init_params
+from metampc_model.nssm_config import NssmConfig
 from metampc_learner.training_vector import TrainingVector
 
 F64 = torch.float64

@@ -16,16 +16,19 @@ Reading::
 
     decoded = weights_from_fields(fields_of(msg))   # WeightsError names what is wrong
     predictor = NssmPredictor(decoded.config, decoded.norm, decoded.params)
+
+No torch: the controller decodes into numpy arrays; torch code takes them with
+``metampc_model.nssm.torch_params``. Parameters to encode may be torch tensors or arrays.
 """
 from array import array
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Mapping, Tuple
 
 import numpy as np
-import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import NssmConfig, param_shapes, Params
+from metampc_model.arrays import as_numpy
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm_config import NssmConfig, param_shapes
 
 MODEL_FIELDS = ('n_z', 'n_u', 'n_y', 'history', 'encoder_layers', 'names', 'shape_offsets',
                 'shapes', 'params', 'u_mean', 'u_std', 'y_mean', 'y_std')
@@ -46,21 +49,23 @@ class FlatWeights:
     params: np.ndarray = field(repr=False)
 
     @classmethod
-    def from_params(cls, params: Mapping[str, torch.Tensor]) -> 'FlatWeights':
+    def from_params(cls, params: Mapping[str, Any]) -> 'FlatWeights':
+        """From a parameter dict (torch tensors or arrays, any float dtype), in its order."""
         names = list(params)
         offsets, shapes = [0], []
         for name in names:
             shapes.extend(int(s) for s in params[name].shape)
             offsets.append(len(shapes))
-        flat = np.concatenate([params[n].detach().cpu().reshape(-1).to(torch.float32).numpy()
+        flat = np.concatenate([as_numpy(params[n], np.float32).reshape(-1)
                                for n in names]) if names else np.zeros(0, np.float32)
         return cls(names, offsets, shapes, flat)
 
     def shape_of(self, i: int) -> Tuple[int, ...]:
         return tuple(self.shapes[self.shape_offsets[i]:self.shape_offsets[i + 1]])
 
-    def to_params(self, config: NssmConfig, dtype: torch.dtype = torch.float32) -> Params:
-        """Rebuild the parameter dict; ValueError if it does not fit the architecture."""
+    def to_params(self, config: NssmConfig) -> Dict[str, np.ndarray]:
+        """Rebuild the parameter dict (float32 arrays, canonical order); ValueError if it does
+        not fit the architecture."""
         expected = param_shapes(config)
         if len(self.shape_offsets) != len(self.names) + 1:
             raise ValueError('shape_offsets must have one entry more than names')
@@ -74,8 +79,7 @@ class FlatWeights:
         if not np.all(np.isfinite(flat)):
             raise ValueError('weights have non-finite entries')
         chunks = dict(zip(self.names, np.split(flat, np.cumsum(sizes)[:-1])))
-        return {n: torch.from_numpy(chunks[n].copy()).reshape(s).to(dtype)
-                for n, s in expected.items()}
+        return {n: chunks[n].reshape(s).copy() for n, s in expected.items()}
 
 
 class WeightsError(ValueError):
@@ -84,16 +88,18 @@ class WeightsError(ValueError):
 
 @dataclass
 class DecodedWeights:
-    """An NSSM rebuilt from model fields: architecture, normalisation, float32 parameters."""
+    """An NSSM rebuilt from model fields: architecture, normalisation, parameters (float32
+    numpy arrays, canonical order; torch code converts them with ``nssm.torch_params``)."""
 
     config: NssmConfig
     norm: Normalisation
-    params: Params
+    params: Dict[str, np.ndarray]
 
 
 def fields_from_weights(config: NssmConfig, norm: Normalisation,
-                        params: Mapping[str, torch.Tensor]) -> Dict[str, Any]:
-    """The model fields of an NssmWeights message for this NSSM.
+                        params: Mapping[str, Any]) -> Dict[str, Any]:
+    """The model fields of an NssmWeights message for this NSSM (parameters: torch tensors or
+    arrays).
 
     Returns a dict keyed by :data:`MODEL_FIELDS`: dimensions as int, ``encoder_layers``,
     ``shape_offsets`` and ``shapes`` as ``array('I')``, ``names`` as a list of str, ``params``

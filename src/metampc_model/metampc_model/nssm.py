@@ -36,86 +36,29 @@ first step; it costs one more encoder pass per window.
 Parameters are a ``Dict[str, Tensor]`` in the canonical order of :func:`param_shapes`
 (``encoder.<i>.weight``, ``encoder.<i>.bias``, ``A``, ``B``, ``C``), usable with
 ``torch.func.functional_call(Nssm(...), params, (u, y))``. The same model elsewhere, one idea
-a module: the units (``normalisation.py``), the numpy view the controller runs at every tick
-(``predictor.py``), the NssmWeights message's fields (``weights_codec.py``) and the flat
-vector that training steps (``metampc_learner.training_vector``).
+a module: the architecture (``nssm_config.py``), the units (``normalisation.py``), the numpy
+view the controller runs at every tick (``predictor.py``), the NssmWeights message's fields
+(``weights_codec.py``) and the flat vector that training steps
+(``metampc_learner.training_vector``).
 """
-from collections import OrderedDict
-from dataclasses import dataclass
-from typing import Dict, Mapping, Tuple
+from typing import Dict, Mapping
 
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from metampc_common.params import check_fields, param
-from metampc_controller.latent_stability import bounded_transition
-from metampc_controller.normalisation import Normalisation
+from metampc_model.latent_stability import bounded_transition
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm_config import NssmConfig, param_shapes
 
 Params = Dict[str, torch.Tensor]
 
 
-@dataclass
-class NssmConfig:
-    """Architecture of the NSSM.
-
-    Attributes:
-        n_u: inputs.
-        n_y: outputs.
-        n_z: latent dimension (paper: 5).
-        history: H, samples of (u, y) the encoder reads.
-        hidden: widths of the encoder's ReLU hidden layers (paper: 128, 128).
-        horizon: T, prediction steps of the training loss.
-        stable_latent: A of eq. (z_next) bounded to spectral norm < rho_max by the smooth map
-            of ``latent_stability.py`` (False: A free, as in the paper).
-        rho_max: the bound (> 0).
-        consistency_weight: w of the latent consistency term in the training loss (>= 0; 0:
-            l_SSM alone, the paper's loss; module docstring).
-    """
-
-    n_u: int = 1
-    n_y: int = 2
-    n_z: int = param(5, 'latent dimension', ge=1)
-    history: int = param(10, 'H, samples the encoder reads', ge=1)
-    hidden: Tuple[int, ...] = param((128, 128), 'widths of the encoder ReLU layers', ge=1)
-    horizon: int = param(10, 'T, prediction steps of the loss', ge=1)
-    stable_latent: bool = param(True, 'bound the spectral norm of A by rho_max (false: A free, '
-                                      'as in the paper)')
-    rho_max: float = param(1.0, 'bound of the spectral norm of A', gt=0)
-    consistency_weight: float = param(0.0, 'w of the latent consistency term of the training '
-                                           'loss (0: l_SSM alone, as in the paper)', ge=0)
-
-    def __post_init__(self):
-        self.hidden = tuple(int(w) for w in self.hidden)
-        self.stable_latent = bool(self.stable_latent)
-        self.rho_max = float(self.rho_max)
-        self.consistency_weight = float(self.consistency_weight)
-
-    def validate(self) -> None:
-        """Raise ValueError naming the first field that is out of range."""
-        check_fields(self)
-        for name in ('n_u', 'n_y'):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-
-    @property
-    def window(self) -> int:
-        """Samples in one training window, H + T."""
-        return self.history + self.horizon
-
-
-def param_shapes(config: NssmConfig) -> 'OrderedDict[str, Tuple[int, ...]]':
-    """Names and shapes of the parameters, in canonical order."""
-    widths = [config.history * (config.n_u + config.n_y), *config.hidden, config.n_z]
-    shapes = OrderedDict()
-    for i, (fan_in, fan_out) in enumerate(zip(widths[:-1], widths[1:])):
-        shapes[f'encoder.{i}.weight'] = (fan_out, fan_in)
-        shapes[f'encoder.{i}.bias'] = (fan_out,)
-    shapes['A'] = (config.n_z, config.n_z)
-    shapes['B'] = (config.n_z, config.n_u)
-    shapes['C'] = (config.n_y, config.n_z)
-    return shapes
+def torch_params(arrays: Mapping[str, np.ndarray], dtype: torch.dtype = torch.float32) -> Params:
+    """Parameter arrays (e.g. ``weights_codec.DecodedWeights.params``) as tensors of `dtype`,
+    same names, order and shapes; new memory, so the arrays stay as they are."""
+    return {name: torch.from_numpy(np.array(value)).to(dtype) for name, value in arrays.items()}
 
 
 def init_params(config: NssmConfig, seed: int, dtype: torch.dtype = torch.float32) -> Params:

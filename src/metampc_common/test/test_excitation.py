@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from metampc_controller.excitation import excitation, ExcitationConfig, KINDS
+from metampc_common.excitation import excitation, ExcitationConfig, KINDS
 
 # Bounds that are not symmetric and not exactly representable, to catch rounding past them.
 BOUNDS = [(-1.0, 1.0), (0.1, 0.7), (-0.3, -0.3)]

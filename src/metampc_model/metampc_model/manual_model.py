@@ -22,8 +22,9 @@ import numpy as np
 from scipy.linalg import expm
 import torch
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import NssmConfig, param_shapes, Params
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import Params
+from metampc_model.nssm_config import NssmConfig, param_shapes
 
 
 def linearised_vdp(theta: float, dt: float) -> Tuple[np.ndarray, np.ndarray]:

@@ -6,14 +6,14 @@ from metampc_msgs.msg import NssmWeights
 import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
-import torch
 
-from metampc_controller.manual_model import linearised_vdp, linearised_vdp_nssm
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, NssmConfig
-from metampc_controller.predictor import NssmPredictor
-from metampc_controller.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
-                                              weights_from_fields, WeightsError)
+from metampc_model.manual_model import linearised_vdp, linearised_vdp_nssm
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params
+from metampc_model.nssm_config import NssmConfig
+from metampc_model.predictor import NssmPredictor
+from metampc_model.weights_codec import (fields_from_weights, fields_of, MODEL_FIELDS,
+                                         weights_from_fields, WeightsError)
 from metampc_plant.integrate import rk4_sample
 from metampc_plant.registry import get_family
 from metampc_plant.simulator import Plant, PlantConfig
@@ -31,8 +31,8 @@ def test_message_round_trip_is_exact():
     assert decoded.config == CONFIG and decoded.norm.to_dict() == NORM.to_dict()
     assert list(decoded.params) == list(params)
     for name, value in params.items():
-        assert decoded.params[name].dtype == torch.float32
-        assert torch.equal(decoded.params[name], value), name
+        assert decoded.params[name].dtype == np.float32
+        assert np.array_equal(decoded.params[name], value.numpy()), name
     assert len(wire.params) == sum(v.numel() for v in params.values()) == 21_165
 
 
@@ -49,7 +49,7 @@ def test_parameters_may_come_in_any_order():
     fields.update(names=names, shape_offsets=offsets, shapes=shapes,
                   params=np.concatenate(flat))
     decoded = weights_from_fields(fields)
-    assert all(torch.equal(decoded.params[n], params[n]) for n in params)
+    assert all(np.array_equal(decoded.params[n], params[n].numpy()) for n in params)
 
 
 def _fields(**changes):

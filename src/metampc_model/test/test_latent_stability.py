@@ -3,8 +3,8 @@ import pytest
 import torch
 from torch.func import jvp, vmap
 
-from metampc_controller.latent_stability import bounded_transition, transition_coordinates
-from metampc_controller.nssm import NssmConfig
+from metampc_model.latent_stability import bounded_transition, transition_coordinates
+from metampc_model.nssm_config import NssmConfig
 
 F64 = torch.float64
 

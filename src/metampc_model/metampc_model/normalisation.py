@@ -4,12 +4,11 @@ The model of ``nssm.py`` works in normalised units; this scaling travels with it
 the NssmWeights message) so that the controller can work in physical units.
 """
 from dataclasses import dataclass
-from typing import Dict, List, Tuple, TYPE_CHECKING
+from typing import Dict, List, Tuple
 
 import numpy as np
 
-if TYPE_CHECKING:    # nssm.py imports this module
-    from metampc_controller.nssm import NssmConfig
+from metampc_model.nssm_config import NssmConfig
 
 
 @dataclass
@@ -30,11 +29,11 @@ class Normalisation:
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(-1))
 
     @classmethod
-    def identity(cls, config: 'NssmConfig') -> 'Normalisation':
+    def identity(cls, config: NssmConfig) -> 'Normalisation':
         return cls(np.zeros(config.n_u), np.ones(config.n_u), np.zeros(config.n_y),
                    np.ones(config.n_y))
 
-    def validate(self, config: 'NssmConfig') -> None:
+    def validate(self, config: NssmConfig) -> None:
         """Raise ValueError on wrong sizes, non-finite entries or scales <= 0."""
         for name, n in (('u_mean', config.n_u), ('u_std', config.n_u), ('y_mean', config.n_y),
                         ('y_std', config.n_y)):

@@ -5,10 +5,11 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import init_params, Nssm, NssmConfig, param_shapes, prediction_loss
-from metampc_controller.predictor import latent_model, NssmPredictor
-from metampc_controller.weights_codec import FlatWeights
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm import init_params, Nssm, prediction_loss, torch_params
+from metampc_model.nssm_config import NssmConfig, param_shapes
+from metampc_model.predictor import latent_model, NssmPredictor
+from metampc_model.weights_codec import FlatWeights
 
 torch.set_num_threads(1)
 
@@ -75,11 +76,12 @@ def test_flat_weights_round_trip_is_exact():
         assert flat.shape_of(i) == tuple(params[name].shape)
     back = flat.to_params(config)
     assert list(back) == list(params)
-    assert all(torch.equal(back[k], params[k]) for k in params)
+    assert all(back[k].dtype == np.float32 for k in back)
+    assert all(np.array_equal(back[k], params[k].numpy()) for k in params)
     # what a message carries: plain lists and a float32 array
     again = FlatWeights(list(flat.names), list(flat.shape_offsets), list(flat.shapes),
                         np.array(flat.params.tolist(), dtype=np.float32))
-    assert all(torch.equal(again.to_params(config)[k], params[k]) for k in params)
+    assert all(np.array_equal(again.to_params(config)[k], params[k].numpy()) for k in params)
 
 
 def test_flat_weights_rejects_mismatch():
@@ -150,3 +152,24 @@ def test_validation():
         Nssm(NssmConfig(), Normalisation([0.0], [0.0], [0, 0], [1, 1]))
     with pytest.raises(ValueError, match='y_mean'):
         Nssm(NssmConfig(), Normalisation([0.0], [1.0], [0.0], [1, 1]))
+
+
+def test_decoded_arrays_give_the_same_model_as_the_tensors():
+    """Decoding gives float32 arrays (no torch); torch_params turns them back into the very
+    tensors that were encoded, in new memory, and the numpy predictor built from either (or from
+    tensors that carry a gradient) is the same, bit for bit."""
+    config = NssmConfig(hidden=(16,), n_z=3, history=4)
+    params = init_params(config, 3)
+    arrays = FlatWeights.from_params(params).to_params(config)
+    back = torch_params(arrays)
+    assert list(back) == list(params)
+    assert all(back[k].dtype == torch.float32 and torch.equal(back[k], params[k])
+               for k in params)
+    back['A'][0, 0] = 7.0
+    assert arrays['A'][0, 0] != 7.0
+    rng = np.random.default_rng(1)
+    u, y, u_future = rng.normal(size=(4, 1)), rng.normal(size=(4, 2)), rng.normal(size=(6, 1))
+    grad = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    want = NssmPredictor(config, _norm(), arrays).predict(u, y, u_future)
+    for same in (params, grad):
+        assert np.array_equal(NssmPredictor(config, _norm(), same).predict(u, y, u_future), want)

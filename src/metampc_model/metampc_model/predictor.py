@@ -4,22 +4,22 @@
 the affine latent model in physical units; :class:`NssmPredictor` adds the encoder of eq. (z)
 on physical histories (same index convention as ``nssm.py``).
 """
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
-import torch
 
-from metampc_controller.latent_model import LatentModel
-from metampc_controller.normalisation import Normalisation
-from metampc_controller.nssm import NssmConfig
+from metampc_model.arrays import as_numpy
+from metampc_model.latent_model import LatentModel
+from metampc_model.normalisation import Normalisation
+from metampc_model.nssm_config import NssmConfig
 
 
-def latent_model(params: Mapping[str, torch.Tensor], norm: Normalisation) -> LatentModel:
+def latent_model(params: Mapping[str, Any], norm: Normalisation) -> LatentModel:
     """Eqs. (z_next), (haty) in physical units (see ``latent_model.py`` for the mapping).
 
     A = A_n, B = B_n / u_std, e = -B_n (u_mean / u_std), C = diag(y_std) C_n, d = y_mean.
     """
-    a_n, b_n, c_n = (params[k].detach().cpu().double().numpy() for k in ('A', 'B', 'C'))
+    a_n, b_n, c_n = (as_numpy(params[k], np.float64) for k in ('A', 'B', 'C'))
     return LatentModel(A=a_n.copy(), B=b_n / norm.u_std[None, :],
                        e=-b_n @ (norm.u_mean / norm.u_std), C=norm.y_std[:, None] * c_n,
                        d=norm.y_mean.copy())
@@ -30,16 +30,16 @@ class NssmPredictor:
 
     Args:
         config, norm: as the model's.
-        params: parameter dict (any float dtype); copied to float64 numpy arrays.
+        params: parameter dict, numpy arrays or torch tensors of any float dtype; copied to
+            float64 numpy arrays.
     """
 
-    def __init__(self, config: NssmConfig, norm: Normalisation,
-                 params: Mapping[str, torch.Tensor]):
+    def __init__(self, config: NssmConfig, norm: Normalisation, params: Mapping[str, Any]):
         self.config = config
         self.norm = norm
         n_layers = len(config.hidden) + 1
-        self._layers = [(params[f'encoder.{i}.weight'].detach().cpu().double().numpy().copy(),
-                         params[f'encoder.{i}.bias'].detach().cpu().double().numpy().copy())
+        self._layers = [(np.array(as_numpy(params[f'encoder.{i}.weight'], np.float64)),
+                         np.array(as_numpy(params[f'encoder.{i}.bias'], np.float64)))
                         for i in range(n_layers)]
         self._hidden, self._last = self._layers[:-1], self._layers[-1]
         # The scaling of one history row [u_k, y_k], copied like the weights.
