@@ -21,8 +21,8 @@ from typing import Callable, Optional
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from .hold_config import HoldConfig
-from .qos import BACKLOG
+from metampc_common.hold_config import HoldConfig
+from metampc_common.qos import BACKLOG
 
 # The writers of y, u and mpc_status: reliable, volatile, keep all (bounded by DDS's resource
 # limits: a full history blocks publish, it does not drop).

@@ -3,7 +3,7 @@
 No rclpy here: the params modules that use it stay free of it."""
 from dataclasses import dataclass
 
-from .params import param
+from metampc_common.params import param
 
 
 @dataclass
@@ -25,6 +25,6 @@ class HoldConfig:
 
     def profile(self):
         """The writers' QoS profile (rclpy's, imported here: the config itself needs none)."""
-        from .held_publisher import HELD
-        from .qos import BACKLOG
+        from metampc_common.held_publisher import HELD
+        from metampc_common.qos import BACKLOG
         return HELD if self.hold_for_readers else BACKLOG
