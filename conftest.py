@@ -18,16 +18,23 @@ import time
 
 import pytest
 
+from metampc_testing import SESSION_ENV
+
 # The recorder fixtures and the session's one recorded closed-loop run, for the recording and the
 # bringup tests alike (test/ is on pythonpath).
 pytest_plugins = ['recording_fixtures']
 
-SESSION_ENV = 'METAMPC_TEST_SESSION'
 ORPHAN_GRACE_S = 5.0    # the issue's bound: nothing of a stopped run left 5 s later
 
 
 def pytest_configure(config):
     from metampc_bringup.domain import isolate
+    if hasattr(config, 'workerinput'):
+        # An xdist worker dies with the pytest that started it (SIGKILL of that one left a
+        # worker running its test, and the test's nodes with it); the processes it starts die
+        # with it in turn (their lifelines). Its SESSION_ENV is still that pytest's pid here.
+        from metampc_bringup.lifeline import parent_death_signal
+        parent_death_signal(signal.SIGKILL, int(os.environ[SESSION_ENV]))
     isolate('LOCALHOST')
     os.environ[SESSION_ENV] = str(os.getpid())
 
@@ -45,7 +52,7 @@ def _left_running() -> list:
     from metampc_bringup.procfs import pids_with_env
     me = os.getpid()
     left = []
-    for pid in pids_with_env(SESSION_ENV, str(me)):
+    for pid in pids_with_env({SESSION_ENV: str(me)}):
         try:
             with open(f'/proc/{pid}/cmdline', 'rb') as f:
                 cmd = f.read().replace(b'\0', b' ').decode(errors='replace').strip()
@@ -62,7 +69,7 @@ def _stop_daemons() -> None:
     """The `ros2` daemons this session's verbs started (they outlive a verb by design, as
     ros2cli's): stopped as `ros2 daemon stop` does, before the orphan check."""
     from metampc_bringup.procfs import pids_with_env
-    for pid in pids_with_env(SESSION_ENV, str(os.getpid())):
+    for pid in pids_with_env({SESSION_ENV: str(os.getpid())}):
         try:
             with open(f'/proc/{pid}/cmdline', 'rb') as f:
                 if b'metampc_ros2cli.daemon' in f.read():

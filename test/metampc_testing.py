@@ -11,6 +11,11 @@ from metampc_bringup.processes import ProcessGroup, session_pids  # noqa: F401
 from metampc_bringup.spun_node import SpunNode
 from rosbags.highlevel import AnyReader
 
+# Set by conftest to the pid of the test session (an xdist worker, or pytest) and inherited by
+# every process the session starts: the session's orphan check, and tests that tell their own
+# processes from another session's, look for it.
+SESSION_ENV = 'METAMPC_TEST_SESSION'
+
 
 def own_lines(text: str) -> list:
     """The non-empty lines of a process's output, without Fast DDS's shared-memory port

@@ -26,7 +26,7 @@ from metampc_bringup.processes import session_pids
 from metampc_bringup.procfs import pids_with_env, uptime_s
 from metampc_bringup.retrack import retrack_seed
 from metampc_learner.heldout import target_heldout
-from metampc_testing import read_with_rosbags
+from metampc_testing import read_with_rosbags, SESSION_ENV
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CI_CONFIG = os.path.join(ROOT, 'config', 'ci.yaml')
@@ -166,11 +166,13 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
 
 
 def _pids_in_domain(domain: int, started_before: float = math.inf):
-    """Live processes whose environment has ROS_DOMAIN_ID=domain (claimed by one run) and
-    that started before `started_before` (s since boot). A run gives its domain back when it
-    ends, and another test session on the machine may claim it at once: its processes start
-    after the run ended and are not the run's leftovers."""
-    return pids_with_env('ROS_DOMAIN_ID', str(domain), started_before)
+    """Live processes of this test session whose environment has ROS_DOMAIN_ID=domain
+    (claimed by one run) and that started before `started_before` (s since boot). A run gives
+    its domain back as its processes end, and another test session on the machine (the other
+    xdist worker) may claim it at once, before the run's own end is noted: its processes are
+    not the run's leftovers."""
+    return pids_with_env({'ROS_DOMAIN_ID': str(domain), SESSION_ENV: os.environ[SESSION_ENV]},
+                         started_before)
 
 
 def _interrupt_after_collection(args, collections: int, timeout: float):

@@ -51,24 +51,28 @@ def test_a_learner_expecting_another_dt_than_the_plants_refuses_at_start_up(proc
     assert procs.interrupt(plant) == 0
 
 
-def _maps_torch(pid: int) -> bool:
+def _maps(pid: int, library: str) -> bool:
     try:
         with open(f'/proc/{pid}/maps') as maps:
-            return 'torch' in maps.read()
+            return library in maps.read()
     except OSError:       # gone, or not ours to read
         return False
 
 
-@pytest.mark.parametrize('pkg,exe', NODES[1:3], ids=[exe for _, exe in NODES[1:3]])
-def test_ctrl_c_while_the_node_module_imports_is_a_clean_exit(procs, pkg, exe):
-    """The controller and the learner import torch for 1.5-2 s before any node exists; Ctrl-C
-    then is exit 0 without a traceback too (metampc_common.entry), as the docs promise."""
+# A library each node's module imports (0.5-2 s) before any node exists.
+IMPORTING = [('metampc_controller', 'controller', 'osqp'), ('metampc_learner', 'learner', 'torch')]
+
+
+@pytest.mark.parametrize('pkg,exe,library', IMPORTING, ids=[exe for _, exe, _ in IMPORTING])
+def test_ctrl_c_while_the_node_module_imports_is_a_clean_exit(procs, pkg, exe, library):
+    """Ctrl-C while the controller or the learner imports its libraries, before any node
+    exists, is exit 0 without a traceback too (metampc_common.entry), as the docs promise."""
     proc = procs.start(pkg, exe)
-    # Once torch is mapped, metampc_common.entry's handler is in place: a SIGINT before it,
-    # inside the interpreter's start or the console script's own imports, is a plain
+    # Once the library is mapped, metampc_common.entry's handler is in place: a SIGINT before
+    # it, inside the interpreter's start or the console script's own imports, is a plain
     # KeyboardInterrupt (a fixed 0.3 s landed there once under load).
     deadline = time.monotonic() + 60.0
-    while not any(_maps_torch(pid) for pid in session_pids(proc) if pid != proc.pid):
+    while not any(_maps(pid, library) for pid in session_pids(proc) if pid != proc.pid):
         assert proc.poll() is None and time.monotonic() < deadline, procs.output(proc)
         time.sleep(0.01)
     code = procs.interrupt(proc)

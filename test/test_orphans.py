@@ -2,8 +2,12 @@
 process running, names it and kills it; a clean session passes. Run on a session of its own
 (a pytest in a subprocess, with this checkout's conftest as a plugin)."""
 import os
+import signal
 import subprocess
 import sys
+import time
+
+from metampc_testing import session_pids
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEAVES = '''
@@ -24,12 +28,42 @@ def test_stops_what_it_started():
 '''
 
 
-def session(tmp_path, body: str) -> subprocess.CompletedProcess:
+WAITS = '''
+import os
+import subprocess
+import sys
+import time
+
+from metampc_bringup.lifeline import child_env
+
+
+def test_starts_a_child_and_waits():
+    child = subprocess.Popen([sys.executable, '-c', 'from metampc_bringup.lifeline import hold; '
+                              'hold(); import time; time.sleep(60)'], env=child_env())
+    with open(os.environ['PIDS_FILE'] + '.tmp', 'w') as f:
+        f.write(f'{os.getpid()} {child.pid}')
+    os.rename(os.environ['PIDS_FILE'] + '.tmp', os.environ['PIDS_FILE'])
+    time.sleep(60)
+'''
+
+
+def _command(tmp_path, body: str, *args: str) -> list:
     path = tmp_path / 'test_inner.py'
     path.write_text(body)
-    return subprocess.run([sys.executable, '-m', 'pytest', '-q', '-s', '-p', 'conftest',
-                           '-p', 'no:cacheprovider', '--rootdir', str(tmp_path), str(path)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    return [sys.executable, '-m', 'pytest', '-q', '-p', 'conftest', '-p', 'no:cacheprovider',
+            '--rootdir', str(tmp_path), *args, str(path)]
+
+
+def _env(**extra: str) -> dict:
+    """test/ on the path, as pytest.ini's pythonpath puts it for the suite (the conftest's
+    plugins and helpers live there)."""
+    return {**os.environ, **extra, 'PYTHONPATH': os.pathsep.join(
+        [os.path.join(ROOT, 'test')] + os.environ.get('PYTHONPATH', '').split(os.pathsep))}
+
+
+def session(tmp_path, body: str) -> subprocess.CompletedProcess:
+    return subprocess.run(_command(tmp_path, body, '-s'), cwd=ROOT, capture_output=True,
+                          text=True, timeout=120, env=_env())
 
 
 def test_a_session_that_leaves_a_process_running_fails_and_the_process_is_killed(tmp_path):
@@ -44,3 +78,36 @@ def test_a_session_that_leaves_a_process_running_fails_and_the_process_is_killed
 def test_a_clean_session_passes(tmp_path):
     done = session(tmp_path, CLEAN)
     assert done.returncode == 0 and 'ORPHAN' not in done.stdout, done.stdout + done.stderr
+
+
+def test_a_killed_pytest_takes_its_xdist_worker_and_the_worker_s_children_with_it(tmp_path):
+    """SIGKILL of a `pytest -n 1` while its test runs: 5 s later neither the worker nor the
+    process its test started runs (a worker outlived its pytest, with a controller)."""
+    pids_file = tmp_path / 'pids'
+    proc = subprocess.Popen(_command(tmp_path, WAITS, '-n', '1'), cwd=ROOT,
+                            env=_env(PIDS_FILE=str(pids_file)), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60.0
+        while not pids_file.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, 'the test never ran'
+            time.sleep(0.05)
+        worker, child = map(int, pids_file.read_text().split())
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        time.sleep(5.0)
+        assert [pid for pid in (worker, child) if _running(pid)] == []
+    finally:
+        for pid in session_pids(proc):
+            os.kill(pid, signal.SIGKILL)
+        for pid in [int(p) for p in (pids_file.read_text().split()
+                                     if pids_file.exists() else []) if _running(int(p))]:
+            os.kill(pid, signal.SIGKILL)
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f'/proc/{pid}/stat') as f:
+            return f.read().rsplit(')', 1)[1].split()[0] != 'Z'
+    except OSError:
+        return False

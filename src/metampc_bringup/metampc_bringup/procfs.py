@@ -8,7 +8,7 @@ import math
 import os
 import threading
 import time
-from typing import Dict, Iterable, List, Tuple, Union
+from typing import Dict, Iterable, List, Mapping, Tuple, Union
 
 PAGE = os.sysconf('SC_PAGE_SIZE')     # bytes per page of /proc/PID/statm
 TICKS = os.sysconf('SC_CLK_TCK')      # clock ticks per s of /proc/PID/stat
@@ -59,18 +59,18 @@ def uptime_s() -> float:
         return float(f.read().split()[0])
 
 
-def pids_with_env(key: str, value: str, started_before: float = math.inf) -> List[int]:
-    """Running processes (zombies excluded) whose initial environment holds key=value and
-    that started before `started_before` (s since boot, :func:`uptime_s`).
+def pids_with_env(env: Mapping[str, str], started_before: float = math.inf) -> List[int]:
+    """Running processes (zombies excluded) whose initial environment holds every key=value
+    of `env` and that started before `started_before` (s since boot, :func:`uptime_s`).
 
     A process's own later changes to its environment are not seen (/proc/PID/environ is
     the one it was started with)."""
-    wanted = f'{key}={value}'.encode()
+    wanted = {f'{key}={value}'.encode() for key, value in env.items()}
     pids = []
     for entry in filter(str.isdigit, os.listdir('/proc')):
         try:
             with open(f'/proc/{entry}/environ', 'rb') as f:
-                if wanted not in f.read().split(b'\0'):
+                if not wanted <= set(f.read().split(b'\0')):
                     continue
             with open(f'/proc/{entry}/stat') as f:
                 fields = f.read().rsplit(')', 1)[1].split()
