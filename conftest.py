@@ -37,6 +37,12 @@ def pytest_configure(config):
         parent_death_signal(signal.SIGKILL, int(os.environ[SESSION_ENV]))
     isolate('LOCALHOST')
     os.environ[SESSION_ENV] = str(os.getpid())
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # Started in the background of a non-interactive shell (`make test &`), the session
+        # inherits SIGINT ignored, and so would every process it starts until a test installs
+        # a handler: a child that relies on Python's own Ctrl-C handling then outlives the
+        # SIGINT that stops it (test_script_child failed so, depending on the test order).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.hookimpl(tryfirst=True)    # before xdist reads the groups
