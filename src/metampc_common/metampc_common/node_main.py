@@ -7,6 +7,7 @@ traceback, and Ctrl-C is exit status 0 even when it lands while a callback is pu
 the node's own parse function, as at start-up.
 """
 from array import array
+import concurrent.futures
 import difflib
 import faulthandler
 import math
@@ -201,22 +202,30 @@ def error_line(name: str, message: str) -> None:
 
 
 def _stop_executor(ex: Executor, node: Optional[Node]) -> None:
-    """Stop `ex` and wait (up to CALLBACK_WAIT_S) for its callbacks still running.
+    """Stop `ex` once its callbacks still running have ended (up to CALLBACK_WAIT_S).
 
-    rclpy Jazzy's ``Executor.shutdown`` never waits for them (it tests ``_is_shutdown`` right
-    after setting it), and a MultiThreadedExecutor's callback that ends after
-    ``destroy_node`` fails on its destroyed service ("cannot use Destroyable because
-    destruction was requested", printed by rclpy as an exception never retrieved: seen in
-    the learner's test beside a second suite). A node's long work (the learner's job, run
-    inside a service callback) is stopped first: ``node.stop_work()`` where it has one.
+    Called after the spin has ended. A node's long work (the learner's job, run inside a
+    service callback) is stopped first: ``node.stop_work()`` where it has one. Then, in this
+    order, because rclpy Jazzy's ``Executor.shutdown`` neither waits for callbacks (it tests
+    ``_is_shutdown`` right after setting it) nor stops a MultiThreadedExecutor's pool, and
+    destroys the guard condition that every callback's task triggers:
+    - the callbacks in flight are waited for (one that ended after ``destroy_node`` failed on
+      its destroyed service, seen in the learner's test beside a second suite);
+    - the pool's queued callbacks are dropped and the ones its threads have taken waited for
+      (one that started after ``shutdown`` failed on the destroyed guard condition, "The
+      following exception was never retrieved: cannot use Destroyable because destruction
+      was requested", seen in the learner's test);
+    - then the executor is shut down.
     """
-    ex.shutdown()
     stop_work = getattr(node, 'stop_work', None)
     if stop_work is not None:
         stop_work()
     tracker = getattr(ex, '_work_tracker', None)    # Executor's; the EventsExecutor has none
-    if tracker is not None:
-        tracker.wait(CALLBACK_WAIT_S)
+    finished = tracker is None or tracker.wait(CALLBACK_WAIT_S)
+    pool = getattr(ex, '_executor', None)           # MultiThreadedExecutor's
+    if isinstance(pool, concurrent.futures.ThreadPoolExecutor):
+        pool.shutdown(wait=finished, cancel_futures=True)
+    ex.shutdown()
 
 
 def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[str]] = None,

@@ -19,6 +19,7 @@ import sys
 import time
 
 import rclpy
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import String
@@ -32,6 +33,8 @@ class Slow(Node):
         super().__init__('slow')
         self.pub = self.create_publisher(String, 'slow', 10)
         self.timer = self.create_timer(0.01, self.tick)
+        if sys.argv[2] == 'queues':     # callbacks queued behind tick in a one-thread pool
+            self.create_timer(0.05, lambda: None, callback_group=ReentrantCallbackGroup())
 
     def tick(self):
         self.timer.cancel()
@@ -54,7 +57,8 @@ class Slow(Node):
 
 
 node_main.STOP_DEADLINE_S = 2
-EXECUTORS = {'single': None, 'events': loop_executor, 'multi': MultiThreadedExecutor}
+EXECUTORS = {'single': None, 'events': loop_executor, 'multi': MultiThreadedExecutor,
+             'one_thread': lambda: MultiThreadedExecutor(num_threads=1)}
 sys.exit(run_node(Slow, 'slow', executor=EXECUTORS[sys.argv[1]]))
 '''
 
@@ -102,6 +106,17 @@ def test_a_callback_running_at_ctrl_c_finishes_and_publishes(tmp_path, executor)
     text = ended(proc, log)
     assert 'published after the signal' in text, text
     assert 'context is invalid' not in text, text
+
+
+def test_callbacks_queued_at_ctrl_c_never_run_on_the_destroyed_node(tmp_path):
+    """A one-thread MultiThreadedExecutor: while tick sleeps, a reentrant timer's callbacks
+    queue in its pool; started after destroy_node, they failed on the destroyed timer ('The
+    following exception was never retrieved: cannot use Destroyable ...', seen in the
+    learner's test)."""
+    proc, log = start(tmp_path, 'one_thread', 'queues')
+    proc.send_signal(signal.SIGINT)
+    text = ended(proc, log)
+    assert 'published after the signal' in text and 'exception' not in text, text
 
 
 def test_a_second_ctrl_c_shuts_the_context_down_at_once(tmp_path):
