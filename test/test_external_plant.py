@@ -55,8 +55,10 @@ def test_an_external_plant_is_learned_and_controlled(procs, probe, tmp_path):
 
         result = call(probe, meta, MetaTrain.Request(method='imaml', iterations=4))
         assert result.success, result.message
-        # D_target: 40 samples of the plant under the controller's pre-model excitation.
-        probe.wait_for(lambda: len(ys) > 60, 60.0, '60 samples of the plant')
+        # D_target: 40 samples of the plant under the controller's pre-model excitation, as the
+        # learner counts them (the probe's count ran ahead of a learner that matched y late).
+        probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 60.0,
+                       "the learner's 40 samples of the plant")
         result = call(probe, adapt, Adapt.Request(method='imaml', steps=3))
         assert result.success, result.message
         version = result.model_version
