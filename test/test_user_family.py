@@ -7,6 +7,7 @@ the shared environment changes.
 """
 import math
 import os
+import shutil
 import subprocess
 import sys
 
@@ -35,9 +36,14 @@ def user_site(tmp_path_factory):
     """The example installed by pip into a folder of its own (no index, no build isolation:
     the environment's setuptools builds it offline)."""
     target = str(tmp_path_factory.mktemp('user_site'))
-    subprocess.run([sys.executable, '-m', 'pip', 'install', '-q', '--no-deps', '--no-index',
-                    '--no-build-isolation', '--target', target, EXAMPLE], check=True,
-                   capture_output=True, timeout=300)
+    # Built from a copy: pip builds in the source tree, and the checkout keeps no build/ or
+    # egg-info of a test's.
+    source = shutil.copytree(EXAMPLE, tmp_path_factory.mktemp('example') / 'example')
+    done = subprocess.run([sys.executable, '-m', 'pip', 'install', '-q', '--no-deps',
+                           '--no-index', '--no-build-isolation', '--disable-pip-version-check',
+                           '--target', target, str(source)], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
     return target
 
 
