@@ -17,6 +17,15 @@ from rosbags.highlevel import AnyReader
 SESSION_ENV = 'METAMPC_TEST_SESSION'
 
 
+def alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie does not)."""
+    try:
+        with open(f'/proc/{pid}/stat') as f:
+            return f.read().rsplit(')', 1)[1].split()[0] != 'Z'
+    except OSError:
+        return False
+
+
 def own_lines(text: str) -> list:
     """The non-empty lines of a process's output, without Fast DDS's shared-memory port
     error: when many participants start at once its port mutex times out (after 2 s,

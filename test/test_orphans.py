@@ -7,7 +7,7 @@ import subprocess
 import sys
 import time
 
-from metampc_testing import session_pids
+from metampc_testing import alive, session_pids
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEAVES = '''
@@ -96,18 +96,10 @@ def test_a_killed_pytest_takes_its_xdist_worker_and_the_worker_s_children_with_i
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         time.sleep(5.0)
-        assert [pid for pid in (worker, child) if _running(pid)] == []
+        assert [pid for pid in (worker, child) if alive(pid)] == []
     finally:
         for pid in session_pids(proc):
             os.kill(pid, signal.SIGKILL)
         for pid in [int(p) for p in (pids_file.read_text().split()
-                                     if pids_file.exists() else []) if _running(int(p))]:
+                                     if pids_file.exists() else []) if alive(int(p))]:
             os.kill(pid, signal.SIGKILL)
-
-
-def _running(pid: int) -> bool:
-    try:
-        with open(f'/proc/{pid}/stat') as f:
-            return f.read().rsplit(')', 1)[1].split()[0] != 'Z'
-    except OSError:
-        return False

@@ -18,24 +18,17 @@ import pytest
 
 from metampc_bringup.lifeline import ENV
 from metampc_bringup.processes import session_pids
+from metampc_testing import alive
 
 GONE_S = 5.0    # the issue's bound: nothing of a killed run left 5 s later
-
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f'/proc/{pid}/stat') as f:
-            return f.read().rsplit(')', 1)[1].split()[0] != 'Z'
-    except OSError:
-        return False
 
 
 def _wait_gone(pids, timeout: float = GONE_S) -> list:
     """The pids still running after `timeout` s (empty as soon as none is)."""
     deadline = time.monotonic() + timeout
-    while any(map(_alive, pids)) and time.monotonic() < deadline:
+    while any(map(alive, pids)) and time.monotonic() < deadline:
         time.sleep(0.02)
-    return [p for p in pids if _alive(p)]
+    return [p for p in pids if alive(p)]
 
 
 def _middle(body: str, env=None) -> subprocess.Popen:
@@ -46,7 +39,7 @@ def _middle(body: str, env=None) -> subprocess.Popen:
 
 def _kill_all(pids) -> None:
     for pid in pids:
-        if _alive(pid):
+        if alive(pid):
             os.kill(pid, signal.SIGKILL)
 
 
@@ -130,7 +123,7 @@ def test_a_node_dies_with_the_killed_process_that_started_it_and_frees_the_domai
                     assert time.monotonic() < deadline, 'the domain is still claimed'
                     time.sleep(0.02)
             # Free means nothing of the killed run is left in it.
-            assert [p for p in pids if _alive(p)] == []
+            assert [p for p in pids if alive(p)] == []
     finally:
         _kill_all([middle.pid] + pids)
         middle.stdout.close()
