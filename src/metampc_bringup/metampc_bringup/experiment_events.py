@@ -161,6 +161,8 @@ def from_record(record: Dict[str, Any]) -> ExperimentEvent:
     cls = KINDS.get(kind)
     if cls is None:
         raise ValueError(f'unknown experiment event {kind!r} (known: {", ".join(KINDS)})')
+    if 'wall_time' not in values:    # a writer's default, never a reader's
+        raise ValueError(f'experiment event {kind!r} without wall_time')
     try:
         return cls(**values)
     except TypeError as err:

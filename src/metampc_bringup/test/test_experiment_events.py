@@ -97,6 +97,8 @@ def test_track_events_of_recordings_before_drift_runs_read_as_the_methods_run():
      "experiment event 'collect_end'.*escapes"),
     ({'event': 'done', 'wall_time': 1.0, 'timings': {}, 'episode_restarts': 0, 'extra': 1},
      "experiment event 'done'.*extra"),
+    ({'event': 'buffering_stopped', 'kept': 3, 'skipped': 0, 'lost': 0},
+     "experiment event 'buffering_stopped' without wall_time"),
 ])
 def test_an_event_that_does_not_fit_is_one_clear_error(record, says):
     with pytest.raises(ValueError, match=says):

@@ -6,9 +6,9 @@ the service results of meta_train and adapt, and the sim-time span [start, end] 
 tracking run) and the closed-loop messages. :func:`seed_report` cuts the messages of each
 tracking run out by their header stamps (the plant stamps its n-th sample n dt, the controller
 stamps an input and its status with the stamp of the sample they answer), computes each run's
-metrics with
-:func:`metampc_bringup.analysis.metrics.compute_metrics` and plots it. :func:`experiment_report`
-gathers the seeds into ``report.json``, ``report.md`` and the figures:
+metrics with :func:`metampc_bringup.analysis.metrics.compute_metrics` and plots it.
+:func:`experiment_report` gathers the seeds into ``report.json``, ``report.md`` and the
+figures:
 
 * Fig. 2 of the paper: meta-training loss (mean meta-test loss after each outer step, log
   scale) per meta method: median over seeds and the min-max band;
