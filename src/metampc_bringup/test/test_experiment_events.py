@@ -41,7 +41,7 @@ RECORDED = [
 ]
 
 
-@pytest.mark.parametrize('text', RECORDED)
+@pytest.mark.parametrize('text', RECORDED, ids=[json.loads(t)['event'] for t in RECORDED])
 def test_a_recorded_event_reads_back_to_the_same_text(text):
     event = decode(text)
     assert event.KIND == json.loads(text)['event']
