@@ -28,12 +28,12 @@ ORPHAN_GRACE_S = 5.0    # the issue's bound: nothing of a stopped run left 5 s l
 
 
 def pytest_configure(config):
-    from metampc_bringup.domain import isolate
+    from metampc_bringup.orchestration.domain import isolate
     if hasattr(config, 'workerinput'):
         # An xdist worker dies with the pytest that started it (SIGKILL of that one left a
         # worker running its test, and the test's nodes with it); the processes it starts die
         # with it in turn (their lifelines). Its SESSION_ENV is still that pytest's pid here.
-        from metampc_bringup.lifeline import parent_death_signal
+        from metampc_bringup.orchestration.lifeline import parent_death_signal
         parent_death_signal(signal.SIGKILL, int(os.environ[SESSION_ENV]))
     isolate('LOCALHOST')
     os.environ[SESSION_ENV] = str(os.getpid())
@@ -55,7 +55,7 @@ def pytest_collection_modifyitems(config, items):
 def _left_running() -> list:
     """Processes this session started, directly or not, that still run; not this one, nor
     the multiprocessing resource tracker a pool of this process started (it ends with it)."""
-    from metampc_bringup.procfs import pids_with_env
+    from metampc_bringup.orchestration.procfs import pids_with_env
     me = os.getpid()
     left = []
     for pid in pids_with_env({SESSION_ENV: str(me)}):
@@ -74,7 +74,7 @@ def _left_running() -> list:
 def _stop_daemons() -> None:
     """The `ros2` daemons this session's verbs started (they outlive a verb by design, as
     ros2cli's): stopped as `ros2 daemon stop` does, before the orphan check."""
-    from metampc_bringup.procfs import pids_with_env
+    from metampc_bringup.orchestration.procfs import pids_with_env
     for pid in pids_with_env({SESSION_ENV: str(os.getpid())}):
         try:
             with open(f'/proc/{pid}/cmdline', 'rb') as f:

@@ -4,7 +4,8 @@ listings are complete.
 
 Prints ONE JSON line. A realtime plant (y at 10 Hz) and an inactive controller run; for each
 discovery range (SUBNET: a user's default; LOCALHOST: what the tests use), in a ROS_DOMAIN_ID of
-its own (metampc_bringup.domain, as the tests), over --runs runs, process start included:
+its own (metampc_bringup.orchestration.domain, as the tests), over --runs runs, process start
+included:
   <range>_<verb>_s_p50 / _max       wall time of `ros2 node list`, `ros2 service list`,
                                     `ros2 topic list` answered by the daemon (the first run
                                     starts it: its warm-up is in that run's time)
@@ -24,8 +25,8 @@ import statistics
 import subprocess
 import time
 
-from metampc_bringup.domain import isolate
-from metampc_bringup.processes import ProcessGroup
+from metampc_bringup.orchestration.domain import isolate
+from metampc_bringup.orchestration.processes import ProcessGroup
 
 EXPECTED = {'node': {'/plant', '/controller'},
             'service': {'/reset', '/set_active', '/plant/get_parameters',

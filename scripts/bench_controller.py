@@ -22,8 +22,8 @@ with this script as the lockstep plant: y_k and /clock out, wait for u_k, step t
 next y. round_trip_*: publish of y_k to receipt of u_k (two DDS hops plus the tick);
 node_tick_*: the tick time the node reports in MpcStatus for the same steps.
 
-The processes run in a ROS domain of their own (metampc_bringup.domain) and are stopped
-before the script returns. Wall-clock times include preemption by other processes: see the
+The processes run in a ROS domain of their own (metampc_bringup.orchestration.domain) and are
+stopped before the script returns. Wall-clock times include preemption by other processes: see the
 load average. Goals: core tick p99 <= 2 ms (wall clock; the CPU time shows what preemption adds),
 and <= 400 us (issue 18, the lean tick: docs/mpc.md, "Speed of the tick").
 
@@ -46,8 +46,8 @@ from typing import List
 
 import numpy as np
 
-from metampc_bringup.percentiles import percentiles
-from metampc_bringup.weights_messages import manual_weights
+from metampc_bringup.analysis.percentiles import percentiles
+from metampc_bringup.soak.weights_messages import manual_weights
 
 EPISODE = 300       # samples per plant episode: the paper's 30 s task
 NSSM = {'history': 10, 'n_z': 5, 'hidden': (128, 128)}
@@ -204,7 +204,7 @@ def bench_ros(ticks: int, setup: Setup, timeout: float) -> dict:
     from rclpy.executors import SingleThreadedExecutor
     from rosgraph_msgs.msg import Clock
 
-    from metampc_bringup.processes import ProcessGroup
+    from metampc_bringup.orchestration.processes import ProcessGroup
     dt_ns = round(setup.dt * 1e9)
     with tempfile.TemporaryDirectory(prefix='bench_controller_') as log_dir:
         group = ProcessGroup(log_dir)
@@ -297,7 +297,7 @@ def main() -> int:
         print(f'bench_controller: {err}', file=sys.stderr)
         return 2
     setup = Setup(family.name, theta)
-    from metampc_bringup.domain import isolate
+    from metampc_bringup.orchestration.domain import isolate
     domain = isolate()
     out = {'family': family.name, 'n_u': family.n_u, 'n_y': family.n_y,
            'nssm': {'hidden': [128, 128], 'n_z': 5, 'history': 10}, 'horizon': 20,

@@ -35,10 +35,10 @@ def stamp_ns(msg) -> int:
 
 def bench(args) -> dict:
     from metampc_recording.foxglove_client import FoxgloveClient
-    from metampc_bringup.percentiles import percentiles
-    from metampc_bringup.processes import ProcessGroup, session_pids
-    from metampc_bringup.procfs import live_cpu_seconds
-    from metampc_bringup.spun_node import SpunNode
+    from metampc_bringup.analysis.percentiles import percentiles
+    from metampc_bringup.orchestration.processes import ProcessGroup, session_pids
+    from metampc_bringup.orchestration.procfs import live_cpu_seconds
+    from metampc_bringup.orchestration.spun_node import SpunNode
     from metampc_common.qos import BACKLOG
     from metampc_msgs.msg import PlantOutput
     from rclpy.serialization import deserialize_message
@@ -99,7 +99,7 @@ def main() -> int:
     if args.rate < 0 or args.messages < 2:
         print('bench_foxglove: --rate must be >= 0 and --messages >= 2', file=sys.stderr)
         return 2
-    from metampc_bringup.domain import isolate
+    from metampc_bringup.orchestration.domain import isolate
     isolate()
     try:
         result = bench(args)

@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     if args.steps < 100:
         print('bench_lockstep: --steps must be >= 100', file=sys.stderr)
         return 2
-    from metampc_bringup.domain import isolate
+    from metampc_bringup.orchestration.domain import isolate
     sys.path.insert(0, os.path.join(ROOT, 'scripts'))
     from bench_plant import bench_lockstep
 

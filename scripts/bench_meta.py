@@ -51,7 +51,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from metampc_bringup.procfs import reset_peak_rss, status_kib
+from metampc_bringup.orchestration.procfs import reset_peak_rss, status_kib
 from metampc_model.nssm import Nssm
 from metampc_model.nssm_config import NssmConfig
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet

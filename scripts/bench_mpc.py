@@ -24,7 +24,7 @@ import time
 import numpy as np
 import osqp
 
-from metampc_bringup.percentiles import percentiles
+from metampc_bringup.analysis.percentiles import percentiles
 from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.references import make_reference

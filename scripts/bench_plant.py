@@ -10,9 +10,9 @@ Prints ONE JSON line:
                               minimal echo controller process (this script with --echo)
   lockstep_steps            round trips timed (after a warm-up)
 
-The two processes run in a ROS_DOMAIN_ID of their own (metampc_bringup.domain: claimed with a
-lock file, as the test sessions do) with discovery on localhost only, and are stopped before
-the script returns.
+The two processes run in a ROS_DOMAIN_ID of their own (metampc_bringup.orchestration.domain:
+claimed with a lock file, as the test sessions do) with discovery on localhost only, and are
+stopped before the script returns.
 Run from the repository root after `source scripts/env.sh`.
 """
 import argparse
@@ -25,9 +25,9 @@ import time
 
 import numpy as np
 
-from metampc_bringup.domain import isolate
-from metampc_bringup.lifeline import hold
-from metampc_bringup.script_child import last_json_line, script_child
+from metampc_bringup.orchestration.domain import isolate
+from metampc_bringup.orchestration.lifeline import hold
+from metampc_bringup.orchestration.script_child import last_json_line, script_child
 
 WARMUP_STEPS = 200
 
@@ -85,7 +85,7 @@ def echo(steps: int) -> None:
 
 def bench_lockstep(steps: int, timeout: float) -> float:
     """Round trips/s between `ros2 run metampc_plant plant` and an echo process."""
-    from metampc_bringup.processes import ProcessGroup
+    from metampc_bringup.orchestration.processes import ProcessGroup
     with tempfile.TemporaryDirectory(prefix='bench_plant_') as log_dir:
         group = ProcessGroup(log_dir)
         try:

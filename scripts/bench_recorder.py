@@ -29,9 +29,9 @@ import sys
 import tempfile
 import time
 
-from metampc_bringup.procfs import live_cpu_seconds
-from metampc_bringup.lifeline import hold
-from metampc_bringup.script_child import last_json_line, script_child
+from metampc_bringup.orchestration.procfs import live_cpu_seconds
+from metampc_bringup.orchestration.lifeline import hold
+from metampc_bringup.orchestration.script_child import last_json_line, script_child
 
 
 def publish(rate_hz: float, seconds: float, timeout: float) -> None:
@@ -83,7 +83,7 @@ def check_recording(path: str, published: int) -> dict:
 
 
 def bench(args) -> dict:
-    from metampc_bringup.processes import ProcessGroup, session_pids
+    from metampc_bringup.orchestration.processes import ProcessGroup, session_pids
     from metampc_recording.recorder_config import RecorderConfig
     with tempfile.TemporaryDirectory(prefix='bench_recorder_') as folder:
         config = RecorderConfig(output=os.path.join(folder, 'bench.mcap'), topics=['y'])
@@ -128,7 +128,7 @@ def main() -> int:
         hold()     # the benchmark's helper: ends with the benchmark
         publish(args.rate, args.seconds, args.timeout)
         return 0
-    from metampc_bringup.domain import isolate
+    from metampc_bringup.orchestration.domain import isolate
     isolate()
     try:
         result = bench(args)

@@ -21,11 +21,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from metampc_bringup.experiment_config import from_mapping
-from metampc_bringup.experiment_report import _messages, PLANT_INFO
-from metampc_bringup.offline import learner_config
+from metampc_bringup.analysis.experiment_report import _messages, PLANT_INFO
+from metampc_bringup.analysis.retrack import adapted_models, seed_recordings
+from metampc_bringup.experiment_config import from_mapping, learner_config
 from metampc_recording.recording_reader import read_recording
-from metampc_bringup.retrack import adapted_models, seed_recordings
 from metampc_model.nssm import consistency_loss, Nssm, torch_params
 from metampc_model.predictor import NssmPredictor
 from metampc_model.weights_codec import fields_of, weights_from_fields

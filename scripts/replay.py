@@ -4,7 +4,7 @@
     python scripts/replay.py RUN_DIR_OR_MCAP            # summary table, report.json, PNG plots
     python scripts/replay.py RUN_DIR_OR_MCAP --play [--rate 2] [--delay 1] [--wait-subscribers 10]
 
-The analysis needs only the recording (metampc_bringup.analysis); --play needs ROS
+The analysis needs only the recording (metampc_bringup.analysis.run_report); --play needs ROS
 (metampc_recording.player) and the message packages of the recorded types.
 """
 import argparse
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
                 wait_for_subscribers=args.wait_subscribers))
             print(json.dumps({'published': counts}, sort_keys=True))
             return 0
-        from metampc_bringup.analysis import analyse, summary_table
+        from metampc_bringup.analysis.run_report import analyse, summary_table
         report = analyse(args.path, out_dir=args.out, tracked=args.tracked,
                          plots=not args.no_plots)
     except (OSError, ValueError) as err:     # a missing file, a bad option: one line

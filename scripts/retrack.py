@@ -46,7 +46,7 @@ def _job(run_dir: str, seed: int, recording: str, overrides: Dict[str, Any],
          nmpc: bool) -> Dict[str, Any]:
     """The recorded models of one seed under `overrides`, or (`nmpc`) the NMPC alone."""
     from metampc_bringup.experiment_config import load
-    from metampc_bringup.retrack import retrack_seed
+    from metampc_bringup.analysis.retrack import retrack_seed
     import torch
     torch.set_num_threads(1)
     experiment = load(os.path.join(run_dir, 'config.yaml'))
@@ -98,12 +98,12 @@ def main(argv=None) -> int:
     except ValueError as err:
         parser.error(str(err))
     from metampc_bringup.experiment_config import ConfigError, load
-    from metampc_bringup.analysis import json_safe
-    from metampc_bringup.lifeline import hold_in_worker
-    from metampc_bringup.paired_stats import format_claim
-    from metampc_bringup.plots import plot_episodes, plot_variants
-    from metampc_bringup.retrack import (check_verdicts, controller_config, retrack_seed,
-                                         seed_recordings, summarise)
+    from metampc_bringup.analysis.run_report import json_safe
+    from metampc_bringup.orchestration.lifeline import hold_in_worker
+    from metampc_bringup.analysis.paired_stats import format_claim
+    from metampc_bringup.analysis.plots import plot_episodes, plot_variants
+    from metampc_bringup.analysis.retrack import (check_verdicts, controller_config, retrack_seed,
+                                                  seed_recordings, summarise)
     from metampc_common.params import ParameterError
     try:
         experiment = load(os.path.join(args.run_dir, 'config.yaml'))

@@ -16,9 +16,9 @@ back. The child runs in a process group of its own and the shim forwards SIGINT 
 it, so Ctrl-C (or a signal to the shim's process group) reaches the node exactly once; rclpy
 nodes treat a second SIGINT during shutdown as an error. A SIGINT or SIGTERM that comes before
 the child started ends the shim without starting it (exit status 0, as a node stopped by Ctrl-C).
-Lifetime (metampc_bringup.lifeline): the node gets SIGTERM when the shim dies, and a shim
-started by a metampc spawner gets SIGTERM when that spawner dies, SIGKILL included; it passes
-it on to the node and SIGKILLs the node ORPHAN_GRACE_S later if it still runs.
+Lifetime (metampc_bringup.orchestration.lifeline): the node gets SIGTERM when the shim dies,
+and a shim started by a metampc spawner gets SIGTERM when that spawner dies, SIGKILL included;
+it passes it on to the node and SIGKILLs the node ORPHAN_GRACE_S later if it still runs.
 """
 import signal
 
@@ -62,7 +62,7 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 
 try:
-    from metampc_bringup import lifeline  # noqa: E402
+    from metampc_bringup.orchestration import lifeline  # noqa: E402
 except ImportError:     # the workspace is not built: no package to run either
     lifeline = None
 
@@ -121,8 +121,8 @@ def run(pkg, exe, args):
     shim = os.getpid()
     # The node dies with this shim (and gets the parent-death signal's pid in its
     # environment); the shim's other open files, a ROS domain's lock among them
-    # (metampc_bringup.domain), go on to the node, so the domain stays claimed until the node
-    # has ended.
+    # (metampc_bringup.orchestration.domain), go on to the node, so the domain stays claimed
+    # until the node has ended.
     proc = subprocess.Popen(
         [matches[0]] + args, process_group=0, close_fds=False,
         env=lifeline.child_env() if lifeline else None,

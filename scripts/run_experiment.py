@@ -93,11 +93,11 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:    # torch, rclpy, matplotlib: 1-2 s, in which Ctrl-C is an interruption like later
         from metampc_bringup.experiment import rebuild_report, run_experiment
-        from metampc_bringup.experiment_client import ExperimentError
+        from metampc_bringup.orchestration.experiment_client import ExperimentError
         from metampc_bringup.experiment_config import ConfigError, load
         from metampc_recording.foxglove_params import DEFAULT_PORT, FoxgloveConfig
-        from metampc_bringup.netns import NetnsError, parse_hosts
-        from metampc_bringup.cpu_budget import check_jobs
+        from metampc_bringup.orchestration.netns import NetnsError, parse_hosts
+        from metampc_bringup.orchestration.cpu_budget import check_jobs
     except KeyboardInterrupt:
         print('run_experiment: interrupted before it started; nothing written', file=sys.stderr)
         return 130

@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Real-time soak: a realtime plant and the latent-MPC controller for a long run; one JSON line.
 
-The set-up is :mod:`metampc_bringup.realtime_soak` (its docstring), the measures those of
-:mod:`metampc_bringup.soak_metrics`, the measured soaks in docs/faults.md. Reported (after a
+The set-up is :mod:`metampc_bringup.soak.realtime_soak` (its docstring), the measures those of
+:mod:`metampc_bringup.soak.soak_metrics`, the measured soaks in docs/faults.md. Reported (after a
 warm-up that is left out): deadline misses, controller tick and solve time and the response
 time seen by the observer (ms percentiles), dropped messages, the nodes' own stop-line
 counters, RSS and CPU share of the plant and the controller, the load average at start and
@@ -27,7 +27,7 @@ import os
 import sys
 import tempfile
 
-from metampc_bringup.realtime_soak import soak, SoakConfig
+from metampc_bringup.soak.realtime_soak import soak, SoakConfig
 
 
 def parse_args(argv=None) -> SoakConfig:
@@ -80,9 +80,9 @@ def numbers(text: str):
 
 def meta_model_from(recording: str, out: str) -> str:
     """Write the last iMAML meta-model of a recording to out/meta.pt; its path."""
-    from metampc_bringup.experiment_report import NSSM_WEIGHTS
+    from metampc_bringup.analysis.experiment_report import NSSM_WEIGHTS
     from metampc_recording.recording_reader import read_recording
-    from metampc_bringup.weights_messages import save_weights
+    from metampc_bringup.soak.weights_messages import save_weights
     rec = read_recording(recording)
     topics = [t.name for t in rec.topics.values() if t.type_name == NSSM_WEIGHTS]
     metas = [m for _, _, m in rec.decoded(topics) if m.stage == 'meta' and m.method == 'imaml']

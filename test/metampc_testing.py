@@ -2,13 +2,13 @@
 
 Every process is started through `ros2 run` (the shim or a real ros2) in the test session's
 isolated domain (see conftest.py) and is stopped by the test that started it: use the ``procs``
-fixture (a metampc_bringup.processes.ProcessGroup).
+fixture (a metampc_bringup.orchestration.processes.ProcessGroup).
 """
 import json
 from pathlib import Path
 
-from metampc_bringup.processes import ProcessGroup, session_pids  # noqa: F401
-from metampc_bringup.spun_node import SpunNode
+from metampc_bringup.orchestration.processes import ProcessGroup, session_pids  # noqa: F401
+from metampc_bringup.orchestration.spun_node import SpunNode
 from rosbags.highlevel import AnyReader
 
 # Set by conftest to the pid of the test session (an xdist worker, or pytest) and inherited by

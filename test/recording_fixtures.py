@@ -156,9 +156,9 @@ class ProbeController:
 
     def __init__(self, node, seed: int = 7):
         import numpy as np
-        from metampc_bringup.run_series import (CONTROL_INPUT, MPC_STATUS, NSSM_WEIGHTS,
-                                                PLANT_INFO, PLANT_OUTPUT, SeriesBuilder,
-                                                TRAINING_PROGRESS)
+        from metampc_bringup.analysis.run_series import (CONTROL_INPUT, MPC_STATUS, NSSM_WEIGHTS,
+                                                         PLANT_INFO, PLANT_OUTPUT, SeriesBuilder,
+                                                         TRAINING_PROGRESS)
         from metampc_msgs.msg import (ControlInput, MpcStatus, NssmWeights, PlantInfo,
                                       PlantOutput, StepHold, TrainingProgress)
         from metampc_msgs.srv import ResetPlant
@@ -252,7 +252,7 @@ def run_closed_loop(procs, probe, path: Path) -> ClosedLoopRun:
     once everything the probe saw is in the file, SIGINT to the recorder.
     """
     import json
-    from metampc_bringup.metrics import compute_metrics
+    from metampc_bringup.analysis.metrics import compute_metrics
     recorders = RecorderHarness(procs, probe)
     ctl = ProbeController(probe.node)
     ctl.send('/nssm_weights', version=1, method='imaml', stage='meta', params=[1.0, -2.0],

@@ -25,7 +25,7 @@ import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 import torch
 
-from metampc_bringup.weights_messages import manual_weights
+from metampc_bringup.soak.weights_messages import manual_weights
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_model.nssm import Nssm
 from metampc_learner.checkpoint import save_checkpoint

@@ -19,12 +19,11 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
+from metampc_bringup.analysis.retrack import retrack_seed
 from metampc_bringup.experiment import rebuild_report, run_experiment
-from metampc_bringup.experiment_config import ConfigError, load
-from metampc_bringup.offline import learner_config
-from metampc_bringup.processes import session_pids
-from metampc_bringup.procfs import pids_with_env, uptime_s
-from metampc_bringup.retrack import retrack_seed
+from metampc_bringup.experiment_config import ConfigError, learner_config, load
+from metampc_bringup.orchestration.processes import session_pids
+from metampc_bringup.orchestration.procfs import pids_with_env, uptime_s
 from metampc_learner.heldout import target_heldout
 from metampc_testing import read_with_rosbags, SESSION_ENV
 
@@ -310,7 +309,8 @@ def _kill_leftovers(proc: subprocess.Popen, domains, out: str, killed: float) ->
 
 def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
     """run_experiment.py killed by SIGKILL while the learner meta-trains (no handler of its
-    runs): its `ros2 run` wrappers and nodes end within 5 s (metampc_bringup.lifeline)."""
+    runs): its `ros2 run` wrappers and nodes end within 5 s
+    (metampc_bringup.orchestration.lifeline)."""
     out = str(tmp_path / 'run')
     proc = _start_run(['--out', out, '--methods', 'imaml'])
     lines, domains, killed = [], [], None
@@ -339,7 +339,7 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
             domains[int(found.group(1))] = int(found.group(2))
         _read_until(proc, r'seed 0: collect done', lines)
         child = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
-                 if _cmdline(pid)[-3:] == ['metampc_bringup.seed_jobs', out, '0']]
+                 if _cmdline(pid)[-3:] == ['metampc_bringup.orchestration.seed_jobs', out, '0']]
         assert len(child) == 1, child
         os.kill(child[0], signal.SIGKILL)
         killed = uptime_s()

@@ -33,7 +33,8 @@ import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from scipy.integrate import solve_ivp
 
-from metampc_bringup.experiment_client import ExperimentClient, ExperimentError, process_status
+from metampc_bringup.orchestration.experiment_client import (ExperimentClient, ExperimentError,
+                                                             process_status)
 from metampc_recording.recorder_config import RecorderConfig
 from metampc_recording.recording_reader import read_recording
 from metampc_model.manual_model import linearised_vdp_nssm

@@ -19,7 +19,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from websockets.exceptions import ConnectionClosed
 
-from metampc_bringup.run_series import DEFAULT_TOPICS
+from metampc_bringup.analysis.run_series import DEFAULT_TOPICS
 from metampc_recording.foxglove_client import FoxgloveClient
 from metampc_recording.foxglove_server import LiveServer
 from metampc_recording.msg_schema import (DefinitionSource, MessageDefinition,

@@ -8,7 +8,7 @@ matched the client within 100 ms. The request itself ran. The client must send a
 the same id, and the server must answer from the first run, not run it twice: the next call's
 count (model version, reset number) shows how many runs there were.
 """
-from metampc_bringup.experiment_client import ExperimentClient
+from metampc_bringup.orchestration.experiment_client import ExperimentClient
 from metampc_msgs.srv import MetaTrain, ResetPlant
 import pytest
 

@@ -18,7 +18,7 @@ from metampc_msgs.srv import SetActive
 import numpy as np
 import pytest
 
-from metampc_bringup.analysis import analyse
+from metampc_bringup.analysis.run_report import analyse
 from metampc_recording.recorder_config import RecorderConfig
 from test_faults import LATCHED, RELIABLE, weights
 

@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from metampc_bringup import netns
+from metampc_bringup.orchestration import netns
 from metampc_bringup.experiment import run_experiment
 from metampc_bringup.experiment_config import load
 

@@ -34,11 +34,12 @@ import subprocess
 import sys
 import time
 
-from metampc_bringup.lifeline import child_env
+from metampc_bringup.orchestration.lifeline import child_env
 
 
 def test_starts_a_child_and_waits():
-    child = subprocess.Popen([sys.executable, '-c', 'from metampc_bringup.lifeline import hold; '
+    child = subprocess.Popen([sys.executable, '-c',
+                              'from metampc_bringup.orchestration.lifeline import hold; '
                               'hold(); import time; time.sleep(60)'], env=child_env())
     with open(os.environ['PIDS_FILE'] + '.tmp', 'w') as f:
         f.write(f'{os.getpid()} {child.pid}')

@@ -8,7 +8,8 @@ The house in layers, lowest first (each package imports only packages of lower l
 live view) needs nothing of the model, the nodes or the orchestration; the controller reaches
 the plant for the true-model NMPC only, the learner reaches the controller for the MPC of online
 collection; ros2cli reaches recording and common, never bringup. Every import counts: top
-level, inside functions, and `from . import` (a relative import, counted as '.').
+level, inside functions, and `from . import` (a relative import, counted as '.', allowed to
+no package: every import names its package).
 """
 import ast
 import glob
@@ -30,8 +31,7 @@ MAY_IMPORT = {
     CONTROLLER: {COMMON, MSGS, PLANT, MODEL},
     LEARNER: {COMMON, MSGS, PLANT, MODEL, CONTROLLER},
     ROS2CLI: {COMMON, MSGS, RECORDING},
-    # '.': bringup's own relative imports, until it is split by role (issue 32, item 3).
-    BRINGUP: {COMMON, MSGS, PLANT, MODEL, RECORDING, CONTROLLER, LEARNER, '.'},
+    BRINGUP: {COMMON, MSGS, PLANT, MODEL, RECORDING, CONTROLLER, LEARNER},
 }
 
 
@@ -66,7 +66,7 @@ def layers(may_import: dict) -> list:
     out, placed = [], set()
     while len(placed) < len(may_import):
         layer = sorted(p for p, deps in may_import.items()
-                       if p not in placed and deps - {'.'} <= placed)
+                       if p not in placed and deps <= placed)
         assert layer, f'import cycle among {sorted(set(may_import) - placed)}'
         out.append(layer)
         placed.update(layer)

@@ -12,8 +12,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from metampc_bringup.experiment_config import load
-from metampc_bringup.offline import learner_config
+from metampc_bringup.experiment_config import learner_config, load
 from metampc_model.nssm import Nssm
 from metampc_learner.data import normalisation_from, simulate_source, SourceSet
 from metampc_learner.meta_train import meta_train

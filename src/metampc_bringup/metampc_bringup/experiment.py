@@ -1,6 +1,6 @@
 """An experiment from nothing to a report: every seed's run (:class:`SeedRun`), then the
-analysis of the recordings (:mod:`.experiment_report`). ``scripts/run_experiment.py`` is its
-command line; ``make run`` runs it with the defaults.
+analysis of the recordings (:mod:`.analysis.experiment_report`). ``scripts/run_experiment.py``
+is its command line; ``make run`` runs it with the defaults.
 
 Run folder layout::
 
@@ -9,7 +9,7 @@ Run folder layout::
     OUT/fig2_meta_training.png, fig3_adaptation.png, tracking_all_methods.png
     OUT/seed_<s>/recording.mcap    everything published in that seed's run
     OUT/seed_<s>/report.json       that seed's report; tracking_<method>.png (scenario drift:
-                                   drift_<method>.png, :mod:`.drift_report`)
+                                   drift_<method>.png, :mod:`.analysis.drift_report`)
     OUT/seed_<s>/logs/*.log        each node's output
 """
 import contextlib
@@ -21,13 +21,13 @@ from typing import Any, Dict, List, Optional
 
 import yaml
 
-from .domain import isolated
-from .experiment_config import ExperimentConfig
-from .drift_report import drift_experiment_report, seed_drift_report
-from .experiment_report import experiment_report, seed_report
-from .netns import call_in_namespace, split_hosts
-from .orchestrator import SeedRun, terminate_as_interrupt
-from .seed_jobs import run_seeds, seed_dir
+from metampc_bringup.analysis.drift_report import drift_experiment_report, seed_drift_report
+from metampc_bringup.analysis.experiment_report import experiment_report, seed_report
+from metampc_bringup.experiment_config import ExperimentConfig
+from metampc_bringup.orchestration.domain import isolated
+from metampc_bringup.orchestration.netns import call_in_namespace, split_hosts
+from metampc_bringup.orchestration.orchestrator import SeedRun, terminate_as_interrupt
+from metampc_bringup.orchestration.seed_jobs import run_seeds, seed_dir
 
 log = logging.getLogger('metampc.experiment')
 
@@ -47,14 +47,14 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
 
     The process joins a ROS domain of its own first (``ROS_DOMAIN_ID``, localhost discovery)
     unless ``prefix`` places nodes on other hosts (then the environment's settings stand).
-    ``hosts`` (node names per host, :func:`.netns.parse_hosts`) runs each group in a network
-    namespace of its own instead, and the orchestration in one more (root only:
-    :class:`.netns.NetnsError` otherwise), all of them removed on return. Ctrl-C or SIGTERM
-    stops the nodes of the running seed, leaves its recording readable and re-raises
+    ``hosts`` (node names per host, :func:`.orchestration.netns.parse_hosts`) runs each group in
+    a network namespace of its own instead, and the orchestration in one more (root only:
+    :class:`.orchestration.netns.NetnsError` otherwise), all of them removed on return. Ctrl-C
+    or SIGTERM stops the nodes of the running seed, leaves its recording readable and re-raises
     KeyboardInterrupt. ``foxglove_port``: each seed's graph also runs the Foxglove live view
     on that port (not with ``hosts``: it would serve inside the orchestrator's namespace).
     ``jobs`` > 1 runs up to that many seeds at once, each in a child process with a ROS
-    domain of its own (:mod:`.seed_jobs`; not with ``hosts``, ``prefix`` or
+    domain of its own (:mod:`.orchestration.seed_jobs`; not with ``hosts``, ``prefix`` or
     ``foxglove_port``); the per-seed results are those of ``jobs`` = 1.
     """
     if jobs > 1 and (hosts or prefix or foxglove_port is not None):

@@ -428,6 +428,13 @@ def from_mapping(data: Dict[str, Any]) -> ExperimentConfig:
     return config
 
 
+def learner_config(experiment: ExperimentConfig, seed: int) -> learner_params.LearnerNodeConfig:
+    """The learner node's configuration in the experiment's run `seed` (checked)."""
+    values = {name: spec.default for name, spec in learner_params.PARAMETERS.items()}
+    values.update(experiment.node_parameters('learner', seed))
+    return learner_params.parse_params(values)
+
+
 def load(path: Optional[str], overrides: Optional[Dict[str, Any]] = None) -> ExperimentConfig:
     """Read the YAML file `path` (None: defaults), apply `overrides`, validate."""
     data: Dict[str, Any] = {}

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from metampc_bringup.drift_report import (MOVING_WINDOW_S, moving_cost, RECOVERY_FACTOR,
-                                          recovery_time, run_metrics, RunSignals,
-                                          squared_errors)
+from metampc_bringup.analysis.drift_report import (MOVING_WINDOW_S, moving_cost, RECOVERY_FACTOR,
+                                                   recovery_time, run_metrics, RunSignals,
+                                                   squared_errors)
 
 
 def test_moving_cost_is_the_trailing_mean():

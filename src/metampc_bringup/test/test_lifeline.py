@@ -1,5 +1,6 @@
-"""A process dies with whoever started it (metampc_bringup.lifeline), SIGKILL included; a node
-keeps its domain claimed until it has ended; a process nobody of ours started is left alone.
+"""A process dies with whoever started it (metampc_bringup.orchestration.lifeline), SIGKILL
+included; a node keeps its domain claimed until it has ended; a process nobody of ours started
+is left alone.
 
 Each test starts a middle process that starts a child, SIGKILLs the middle one and watches the
 child through /proc (a zombie counts as ended: it runs nothing and holds no file).
@@ -16,8 +17,8 @@ import time
 
 import pytest
 
-from metampc_bringup.lifeline import ENV
-from metampc_bringup.processes import session_pids
+from metampc_bringup.orchestration.lifeline import ENV
+from metampc_bringup.orchestration.processes import session_pids
 from metampc_testing import alive
 
 GONE_S = 5.0    # the issue's bound: nothing of a killed run left 5 s later
@@ -43,7 +44,7 @@ def _kill_all(pids) -> None:
             os.kill(pid, signal.SIGKILL)
 
 
-SLEEPER = ('import sys, time; from metampc_bringup.lifeline import hold; '
+SLEEPER = ('import sys, time; from metampc_bringup.orchestration.lifeline import hold; '
            'print(hold(), flush=True); time.sleep(60)')
 
 
@@ -53,7 +54,7 @@ def test_a_child_dies_with_its_killed_parent_only_when_a_spawner_of_ours_asked(s
     it (a user's `nohup ros2 run ... &`): no lifeline, the child lives on."""
     middle = _middle(f'''
         import json, subprocess, sys, time
-        from metampc_bringup.lifeline import child_env
+        from metampc_bringup.orchestration.lifeline import child_env
         child = subprocess.Popen([sys.executable, '-c', {SLEEPER!r}], stdout=subprocess.PIPE,
                                  text=True, env=child_env() if {spawned} else None)
         held = child.stdout.readline().strip()
@@ -92,8 +93,8 @@ def test_a_node_dies_with_the_killed_process_that_started_it_and_frees_the_domai
     the process that started it; the domain that process claimed stays locked until then."""
     middle = _middle(f'''
         import json, time
-        from metampc_bringup.domain import isolate
-        from metampc_bringup.processes import ProcessGroup, session_pids
+        from metampc_bringup.orchestration.domain import isolate
+        from metampc_bringup.orchestration.processes import ProcessGroup, session_pids
         domain = isolate()
         group = ProcessGroup({str(tmp_path)!r})
         proc = group.start('metampc_plant', 'plant', params={{'mode': 'realtime',

@@ -2,11 +2,11 @@
 import math
 from types import SimpleNamespace as Msg
 
-from metampc_bringup.metrics import (bound_violations, compute_metrics, episodes,
-                                     percentile_summary, reference_pairs, tick_accounting,
-                                     tracking_metrics, version_segments)
-from metampc_bringup.run_series import (CONTROL_INPUT, MPC_STATUS, PARAMETER_EVENT,
-                                        PLANT_OUTPUT, SeriesBuilder)
+from metampc_bringup.analysis.metrics import (bound_violations, compute_metrics, episodes,
+                                              percentile_summary, reference_pairs, tick_accounting,
+                                              tracking_metrics, version_segments)
+from metampc_bringup.analysis.run_series import (CONTROL_INPUT, MPC_STATUS, PARAMETER_EVENT,
+                                                 PLANT_OUTPUT, SeriesBuilder)
 import numpy as np
 import pytest
 

@@ -1,5 +1,5 @@
-"""Paired claims over seeds (metampc_bringup.paired_stats) and their place in the experiment
-report's claims table, checked against answers computed independently here."""
+"""Paired claims over seeds (metampc_bringup.analysis.paired_stats) and their place in the
+experiment report's claims table, checked against answers computed independently here."""
 import itertools
 import json
 import math
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.stats import binom, wilcoxon
 
-from metampc_bringup.analysis import json_safe
-from metampc_bringup.experiment_report import _restore, claims, markdown
-from metampc_bringup.paired_stats import format_claim, median_ci, paired_claim
+from metampc_bringup.analysis.run_report import json_safe
+from metampc_bringup.analysis.experiment_report import _restore, claims, markdown
+from metampc_bringup.analysis.paired_stats import format_claim, median_ci, paired_claim
 
 
 def _exact_wilcoxon_p(d: List[float]) -> float:

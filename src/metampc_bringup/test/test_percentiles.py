@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from metampc_bringup.percentiles import percentiles
+from metampc_bringup.analysis.percentiles import percentiles
 
 
 def test_default_points_against_numpy():

@@ -3,7 +3,7 @@ reaped, its pid may be handed to a new process (pid numbers wrap), and that proc
 is not ours to count or kill."""
 import subprocess
 
-from metampc_bringup.processes import ProcessGroup, session_pids
+from metampc_bringup.orchestration.processes import ProcessGroup, session_pids
 
 
 def _session_leader() -> subprocess.Popen:

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from metampc_bringup import procfs
+from metampc_bringup.orchestration import procfs
 
 NO_PID = 2**22      # above any pid_max: no such process
 

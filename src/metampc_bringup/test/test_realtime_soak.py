@@ -6,7 +6,7 @@ import subprocess
 
 import pytest
 
-from metampc_bringup.realtime_soak import model_message, node_pid, SoakConfig
+from metampc_bringup.soak.realtime_soak import model_message, node_pid, SoakConfig
 
 
 def test_defaults_follow_the_plant_rate():
@@ -52,7 +52,8 @@ def test_adaptation_needs_a_meta_model_and_a_known_mode():
 
 
 def test_a_recorded_model_written_as_a_checkpoint_loads_as_the_same_weights(tmp_path):
-    from metampc_bringup.weights_messages import checkpoint_weights, manual_weights, save_weights
+    from metampc_bringup.soak.weights_messages import (checkpoint_weights, manual_weights,
+                                                       save_weights)
     msg = manual_weights(0.5, 0.1, version=3)
     msg.method, msg.stage = 'imaml', 'meta'
     save_weights(msg, str(tmp_path / 'meta.pt'))

@@ -10,7 +10,7 @@ import sys
 import time
 
 from matplotlib import image
-from metampc_bringup.analysis import analyse
+from metampc_bringup.analysis.run_report import analyse
 from metampc_msgs.msg import NssmWeights, PlantOutput
 import numpy as np
 import pytest

@@ -9,9 +9,10 @@ import tracemalloc
 import weakref
 from pathlib import Path
 
-from metampc_bringup.analysis import analyse
-from metampc_bringup.input_sources import controller_inputs
-from metampc_bringup.run_series import CONTROL_INPUT, MPC_STATUS, PLANT_OUTPUT, SeriesBuilder
+from metampc_bringup.analysis.run_report import analyse
+from metampc_bringup.analysis.input_sources import controller_inputs
+from metampc_bringup.analysis.run_series import (CONTROL_INPUT, MPC_STATUS, PLANT_OUTPUT,
+                                                 SeriesBuilder)
 from metampc_recording.synthetic_run import SyntheticRun, write_synthetic_run
 import numpy as np
 import pytest

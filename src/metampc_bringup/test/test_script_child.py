@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from metampc_bringup.script_child import last_json_line, script_child
+from metampc_bringup.orchestration.script_child import last_json_line, script_child
 
 
 def _script(tmp_path, body: str) -> str:

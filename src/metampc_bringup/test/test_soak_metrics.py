@@ -6,8 +6,8 @@ from metampc_controller.controller_node import COUNTERS as CONTROLLER_COUNTERS
 from metampc_plant.plant_node import COUNTERS as PLANT_COUNTERS
 import pytest
 
-from metampc_bringup.soak_metrics import (deadlines, dropped, goals_met, observed_rate,
-                                          process_usage, responses, stop_counts)
+from metampc_bringup.soak.soak_metrics import (deadlines, dropped, goals_met, observed_rate,
+                                               process_usage, responses, stop_counts)
 
 MIB = 2**20
 

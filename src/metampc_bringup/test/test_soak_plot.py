@@ -1,6 +1,6 @@
 """The soak's figure on a timeline built by hand: it is written, as a PNG."""
-from metampc_bringup.soak_metrics import deadlines
-from metampc_bringup.soak_plot import plot_soak
+from metampc_bringup.soak.soak_metrics import deadlines
+from metampc_bringup.soak.soak_plot import plot_soak
 
 
 def test_figure_of_a_short_timeline(tmp_path):

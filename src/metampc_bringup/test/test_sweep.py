@@ -1,6 +1,6 @@
-"""The inner-steps sweep (metampc_bringup.sweep, scripts/sweep_inner_steps.py): the same budget
-for every (method, M), resuming from the cache without running anything again, the summary
-statistics against hand computations, and exit status 2 on bad arguments."""
+"""The inner-steps sweep (metampc_bringup.studies.sweep, scripts/sweep_inner_steps.py): the
+same budget for every (method, M), resuming from the cache without running anything again, the
+summary statistics against hand computations, and exit status 2 on bad arguments."""
 import concurrent.futures as futures
 from dataclasses import asdict, replace
 import hashlib
@@ -13,11 +13,11 @@ from pathlib import Path
 import pytest
 
 from metampc_bringup.experiment_config import load
-from metampc_bringup.offline import init_worker, Job, settings_from, TEST_HELDOUT_SAMPLES
-from metampc_bringup.paired_stats import median_ci
-from metampc_bringup.sweep import (ADAPT_LRS, estimate_cpu_s, evaluation_jobs, GRIDS,
-                                   paired, Plan, summarise, sweep, SweepError, tune_jobs,
-                                   UNROLLED_MAX_M, winners)
+from metampc_bringup.studies.offline import init_worker, Job, settings_from, TEST_HELDOUT_SAMPLES
+from metampc_bringup.analysis.paired_stats import median_ci
+from metampc_bringup.studies.sweep import (ADAPT_LRS, estimate_cpu_s, evaluation_jobs, GRIDS,
+                                           paired, Plan, summarise, sweep, SweepError, tune_jobs,
+                                           UNROLLED_MAX_M, winners)
 
 ROOT = Path(__file__).resolve().parents[3]
 

@@ -1,4 +1,4 @@
-"""The search's bookkeeping (metampc_bringup.tuning): draws, neighbours, stages, scores.
+"""The search's bookkeeping (metampc_bringup.studies.tuning): draws, neighbours, stages, scores.
 
 Pure functions on job lists and hand-made results; no training runs here (scripts/tune.py
 runs them, docs/tuning.md has the measured search).
@@ -12,10 +12,10 @@ import pytest
 
 from metampc_bringup.experiment_config import load
 
-from metampc_bringup import tuning
-from metampc_bringup.tuning import (best_of, CALIBRATION, CG_STEPS, draw_jobs, GAMMA_GRID,
-                                    neighbours, refine_jobs, request_fields, robust_jobs,
-                                    robust_scores, SHARED_GRID, TuneConfig)
+from metampc_bringup.studies import tuning
+from metampc_bringup.studies.tuning import (best_of, CALIBRATION, CG_STEPS, draw_jobs, GAMMA_GRID,
+                                            neighbours, refine_jobs, request_fields, robust_jobs,
+                                            robust_scores, SHARED_GRID, TuneConfig)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__)))))
@@ -181,7 +181,7 @@ def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models(monkeyp
     closed loop run again (deterministic). That the in-process loop is the experiment's is
     test_experiment's check (retrack reproduces every recorded tracking cost)."""
     import numpy as np
-    from metampc_bringup import offline
+    from metampc_bringup.studies import offline
     config = os.path.join(ROOT, 'config', 'ci.yaml')
     settings = offline.settings_from(config, 2, 2, {'batch_size': 4}, control=True)
     scoring = settings.control

@@ -7,7 +7,7 @@ from metampc_model.weights_codec import fields_of, weights_from_fields
 from metampc_learner.checkpoint import save_checkpoint
 import numpy as np
 
-from metampc_bringup.weights_messages import checkpoint_weights, manual_weights
+from metampc_bringup.soak.weights_messages import checkpoint_weights, manual_weights
 
 
 def test_manual_model_is_the_zoh_oscillator_at_theta_0():

@@ -21,12 +21,13 @@ For each seed (:class:`SeedRun`), in a ROS domain of its own:
    run the controller for ``track_duration`` s of plant time (``nmpc``: the second
    controller, no learning);
 5. stop the nodes (recorder last, so it records everything and finishes its file) and analyse
-   the recording (:mod:`metampc_bringup.experiment_report`).
+   the recording (:mod:`metampc_bringup.analysis.experiment_report`).
 
-Every phase publishes an event on ``experiment_events`` (:mod:`.experiment_client`): the
-service results and the sim-time span of each tracking run are in the recording, and the
-report is computed from the recording alone. Ctrl-C (SIGINT) or SIGTERM stops the nodes in
-the same order, so the recording stays readable and no process is left behind.
+Every phase publishes an event (:mod:`metampc_bringup.experiment_events`) on
+``experiment_events``: the service results and the sim-time span of each tracking run are in
+the recording, and the report is computed from the recording alone. Ctrl-C (SIGINT) or
+SIGTERM stops the nodes in the same order, so the recording stays readable and no process is
+left behind.
 """
 import contextlib
 import json
@@ -37,19 +38,20 @@ import signal
 import time
 from typing import Any, Callable, Dict, Iterator, List, Optional
 
+from metampc_bringup import experiment_events as events
+from metampc_bringup.experiment_config import ExperimentConfig
+from metampc_bringup.orchestration.experiment_client import (ExperimentClient, ExperimentError,
+                                                             process_status, response_dict,
+                                                             time_seconds)
+from metampc_bringup.orchestration.processes import ProcessGroup, StopTimeout
 from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant
-from tqdm import tqdm
-
-from .experiment_client import (EVENTS_TOPIC, ExperimentClient, ExperimentError,
-                                process_status, response_dict, time_seconds)
-from .experiment_config import ExperimentConfig
-from .processes import ProcessGroup, StopTimeout
 from metampc_recording.recorder_config import RecorderConfig
+from tqdm import tqdm
 
 log = logging.getLogger('metampc.orchestrator')
 
 RECORDED_TOPICS = ('y', 'u', 'mpc_status', 'nssm_weights', 'progress', 'plant_info',
-                   EVENTS_TOPIC)
+                   events.EVENTS_TOPIC)
 RECORDING = 'recording.mcap'
 CONTROLLERS = {'controller': 'set_active', 'controller_nmpc': 'set_active_nmpc'}
 MAX_COLLECT_ESCAPES = 20
@@ -162,8 +164,8 @@ class SeedRun:
                                        len(subscribers.get('mpc_status', ())),
                                        t0 + config.timeouts.startup)
         self.timings['startup'] = time.monotonic() - t0
-        self.client.event('start', seed=seed, theta=self.theta, methods=config.methods,
-                          nodes=sorted(self.procs))
+        self.client.event(events.Start(seed=seed, theta=self.theta, methods=config.methods,
+                                       nodes=sorted(self.procs)))
         log.info('seed %d: graph ready in %.1f s (theta* = %s)', seed,
                  self.timings['startup'], ', '.join(f'{v:.4f}' for v in self.theta))
 
@@ -182,8 +184,8 @@ class SeedRun:
         # collection, and its buffer (capacity target_samples) holds the first ones, whatever
         # the timing (stopped at once, it kept however many it had processed by then).
         kept = self.client.set_buffering(False, 'collect: stop buffering')
-        self.client.event('buffering_stopped', kept=kept.kept, skipped=kept.skipped,
-                          lost=kept.lost)
+        self.client.event(events.BufferingStopped(kept=kept.kept, skipped=kept.skipped,
+                                                  lost=kept.lost))
         if kept.lost:
             log.warning('seed %d: %d target samples never reached the learner', self.seed,
                         kept.lost)
@@ -201,7 +203,7 @@ class SeedRun:
         # The nodes are stopped next, controllers first: their answers must have reached the
         # recorder by then.
         self.client.deliver_and_deactivate('controller', f'seed {self.seed}')
-        self.client.event('done', timings=self.timings, episode_restarts=self.restarts)
+        self.client.event(events.Done(timings=self.timings, episode_restarts=self.restarts))
 
     def _schedule(self) -> List[float]:
         """The plant's theta_schedule of a drift run for this seed's theta* (paper: none)."""
@@ -336,7 +338,7 @@ class SeedRun:
                 need = config.target_samples - valid
                 start = self._start_episode(config.collect_x0, 'controller', 'collect', need)
                 if not valid:
-                    client.event('collect_start', stamp=start, theta=self.theta)
+                    client.event(events.CollectStart(stamp=start, theta=self.theta))
                 client.wait_until(lambda: client.last.step >= need or client.last.diverged,
                                   config.timeouts.phase, 'collect: target samples',
                                   tick=lambda: bar.show(valid + client.last.step))
@@ -351,7 +353,8 @@ class SeedRun:
                                               'controller.excitation_amplitude')
                     log.warning('seed %d: the plant escaped while collecting; reset',
                                 self.seed)
-        client.event('collect_end', stamp=client.last.stamp, samples=valid, escapes=escapes)
+        client.event(events.CollectEnd(stamp=client.last.stamp, samples=valid,
+                                       escapes=escapes))
 
     def _track_nmpc(self) -> None:
         """The NMPC's tracking run, then its controller is stopped: left running it would take
@@ -393,16 +396,16 @@ class SeedRun:
                 call, max(config.timeouts.meta_train - (time.monotonic() - started), 0.0),
                 f'meta_train {method}',
                 tick=lambda: _show_progress(bar, client.progress, 'meta_train'))
-        client.event('meta_train', method=method, request=fields,
-                     **response_dict(response, _META_RESULT))
+        client.event(events.MetaTrained(method=method, request=fields,
+                                        **response_dict(response, _META_RESULT)))
 
     def _adapt(self, method: str) -> int:
         client, config = self.client, self.config
         fields = config.adapt_request(method)
         response = client.call('adapt', Adapt.Request(method=method, **fields),
                                config.timeouts.adapt, f'adapt {method}')
-        client.event('adapt', method=method, request=fields,
-                     **response_dict(response, _ADAPT_RESULT))
+        client.event(events.Adapted(method=method, request=fields,
+                                    **response_dict(response, _ADAPT_RESULT)))
         client.wait_model('controller', response.model_version, 30.0)
         return response.model_version
 
@@ -416,8 +419,9 @@ class SeedRun:
                     else config.track_duration)
         n = int(round(duration / config.dt))
         start = self._start_episode(config.track_x0, controller, f'track {run}', n, schedule)
-        client.event('track_start', method=method, run=run, controller=controller,
-                     model_version=version, stamp=start, steps=n, theta_schedule=schedule)
+        client.event(events.TrackStart(method=method, run=run, controller=controller,
+                                       model_version=version, stamp=start, steps=n,
+                                       theta_schedule=schedule))
         with self._bar(n, f'track {run}') as bar:
             client.wait_until(lambda: client.last.step >= n or client.last.diverged,
                               config.timeouts.phase, f'track {run}',
@@ -427,8 +431,8 @@ class SeedRun:
         # sample, since the plant waits there), however late this loop saw it.
         last = client.last
         steps, diverged = min(last.step, n), last.diverged
-        client.event('track_end', method=method, run=run, stamp=start + steps * config.dt,
-                     steps=steps, diverged=diverged)
+        client.event(events.TrackEnd(method=method, run=run, stamp=start + steps * config.dt,
+                                     steps=steps, diverged=diverged))
         if diverged:
             log.warning('seed %d: %s let the plant escape at step %d', self.seed, run, steps)
 

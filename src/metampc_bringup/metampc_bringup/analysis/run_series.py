@@ -2,8 +2,9 @@
 
 :class:`SeriesBuilder` takes messages one at a time, with their ROS type name, and works the
 same on messages decoded from a recording (mcap_ros2) and on live rclpy messages: it only reads
-attributes. So the metrics of a run (:mod:`metampc_bringup.metrics`) can be computed from a
-recording after the fact or by the orchestrator while the run goes on, from the same messages.
+attributes. So the metrics of a run (:mod:`metampc_bringup.analysis.metrics`) can be computed
+from a recording after the fact or by the orchestrator while the run goes on, from the same
+messages.
 
 Shapes: ``n`` samples, ``n_y`` outputs, ``n_u`` inputs; times in s (header stamps) and ns (log
 times). No rclpy here.
@@ -15,7 +16,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .input_sources import controller_inputs
+from metampc_bringup.analysis.input_sources import controller_inputs
 
 PLANT_OUTPUT = 'metampc_msgs/msg/PlantOutput'
 CONTROL_INPUT = 'metampc_msgs/msg/ControlInput'
@@ -115,7 +116,7 @@ class RunSeries:
     """All series of one run; `weights`, `plant_info` and the parameter changes (each
     /parameter_events message that changed a value: log_time, stamp s, node, {name: value})
     as plain dicts. `inputs` are the controller's answers, `foreign_inputs` the ControlInputs
-    of other publishers (:mod:`~metampc_bringup.input_sources`)."""
+    of other publishers (:mod:`~metampc_bringup.analysis.input_sources`)."""
 
     outputs: OutputSeries
     inputs: InputSeries

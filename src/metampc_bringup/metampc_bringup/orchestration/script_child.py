@@ -11,7 +11,7 @@ import subprocess
 import sys
 from typing import Iterator, Sequence
 
-from .lifeline import child_env
+from metampc_bringup.orchestration.lifeline import child_env
 
 STOP_S = 5.0    # s for the child to end after SIGINT before SIGKILL
 

@@ -15,10 +15,9 @@ import threading
 import time
 from typing import Dict, Iterable, Iterator, List, Optional, Union
 
+from metampc_bringup.orchestration.domain import held_fds
+from metampc_bringup.orchestration.lifeline import child_env
 from metampc_common.ros_args import ros_args
-
-from .domain import held_fds
-from .lifeline import child_env
 
 STACK_DUMP_S = 2.0    # s for a hung node to write its thread stacks (SIGUSR1) before SIGKILL
 LOG_TAIL = 6000       # characters of a hung node's output in the error

@@ -10,7 +10,7 @@ Conventions:
 - Tracking cost: sum over paired samples and tracked outputs of the squared error (eq. mpc's
   stage cost with Q = I on the tracked outputs); RMSE per tracked output and over all of them.
 - Controller's inputs: a ControlInput counts as the controller's answer when the MpcStatus
-  of its step is recorded next to it (:mod:`~metampc_bringup.input_sources`); the others
+  of its step is recorded next to it (:mod:`~metampc_bringup.analysis.input_sources`); the others
   (``ros2 topic pub /u ...``) are counted as ``foreign_inputs`` and left out of every other
   metric, so an injected step neither starts an episode of ``u`` nor hides answers.
 - Missed tick: a plant step with no ControlInput answering it (same episode and step), counted
@@ -32,7 +32,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .run_series import RunSeries
+from metampc_bringup.analysis.run_series import RunSeries
 
 # Input bounds (u_min, u_max), one value per input each.
 Bounds = Tuple[Sequence[float], Sequence[float]]

@@ -35,8 +35,8 @@ import tempfile
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Iterator, List, Sequence
 
-from .domain import isolated
-from .lifeline import child_env, hold
+from metampc_bringup.orchestration.domain import isolated
+from metampc_bringup.orchestration.lifeline import child_env, hold
 
 log = logging.getLogger('metampc.netns')
 

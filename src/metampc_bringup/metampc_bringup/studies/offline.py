@@ -30,18 +30,17 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from metampc_model.nssm import Nssm
-from metampc_model.weights_codec import DecodedWeights, WeightsError
+from metampc_bringup.analysis.retrack import fly
+from metampc_bringup.experiment_config import ExperimentConfig, learner_config, load
+from metampc_bringup.orchestration.lifeline import hold_in_worker
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   SourceSet, Windows)
-from metampc_learner.learner_params import LearnerNodeConfig, PARAMETERS, parse_params
+from metampc_learner.learner_params import LearnerNodeConfig
 from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
+from metampc_model.nssm import Nssm
+from metampc_model.weights_codec import DecodedWeights, WeightsError
 from metampc_plant.family import PlantFamily
-
-from .experiment_config import ExperimentConfig, load
-from .lifeline import hold_in_worker
-from .retrack import fly
 
 VALIDATION_SEED = 1000       # validation source set, meta seed and supervised init seed
 THETA_STREAM = 0x5a1         # validation thetas: rng([VALIDATION_SEED + i, THETA_STREAM])
@@ -49,13 +48,6 @@ HELDOUT_SAMPLES = 600
 TEST_HELDOUT_SAMPLES = 2000
 TEST_DATA_STREAM = 0x7e57    # test target data: SeedSequence([source_seed, TEST_DATA_STREAM])
 CURVE_STEPS = (0, 1, 5, 20)  # held-out loss reported after these adaptation steps
-
-
-def learner_config(experiment: ExperimentConfig, seed: int) -> LearnerNodeConfig:
-    """The learner node's configuration in the experiment's run `seed` (checked)."""
-    values = {name: spec.default for name, spec in PARAMETERS.items()}
-    values.update(experiment.node_parameters('learner', seed))
-    return parse_params(values)
 
 
 def request_meta_config(experiment: ExperimentConfig, method: str) -> Dict[str, Any]:
@@ -291,14 +283,6 @@ def returned_loss(result) -> float:
     return float(np.mean(result.losses[-10:]))
 
 
-def _diverged(runs: Sequence[dict], values: Sequence[float]) -> Tuple[float, List[int]]:
-    """(median of the finite values, source seeds non-finite or above DIVERGED_FACTOR x it)."""
-    finite = [v for v in values if math.isfinite(v)]
-    median = float(np.median(finite)) if finite else math.inf
-    return median, [r['source_seed'] for r, v in zip(runs, values)
-                    if not math.isfinite(v) or v > DIVERGED_FACTOR * median]
-
-
 def _spectrum(params) -> Dict[str, float]:
     a = params['A'].detach().double()
     return {'a_radius': float(torch.linalg.eigvals(a).abs().max()),
@@ -419,61 +403,7 @@ def run_jobs(pool: futures.Executor, jobs: Sequence[Job], what: str,
 
 
 __all__ = ['VALIDATION_SEED', 'THETA_STREAM', 'HELDOUT_SAMPLES', 'TEST_HELDOUT_SAMPLES',
-           'TEST_DATA_STREAM', 'CURVE_STEPS', 'Settings', 'Validation', 'Job', 'learner_config',
+           'TEST_DATA_STREAM', 'CURVE_STEPS', 'Settings', 'Validation', 'Job',
            'request_meta_config', 'target_data_seeds', 'validation_thetas', 'settings_from',
            'build_validation', 'init_worker', 'validation', 'meta_config',
-           'run_job', 'run_jobs', 'robustness_jobs', 'robustness_summary']
-
-
-# --- robustness: meta-training on many source sets ------------------------------------------
-
-DIVERGED_FACTOR = 10.0   # a run whose final loss exceeds 10x its method's median diverged
-
-
-def robustness_jobs(experiment: ExperimentConfig, methods: Sequence[str], seeds: Sequence[int],
-                    nssm: Dict[str, Any], overrides: Optional[Dict[str, Any]] = None,
-                    adapt: bool = False) -> List[Job]:
-    """Meta-training at the experiment's request fields (with `overrides`, MetaConfig fields,
-    on top) on the source sets of `seeds` (the experiment's own: source seed = meta seed = the
-    run's seed); with `adapt`, each meta-model is also scored at the experiment's adaptation
-    step size of its method (on the settings' validation targets)."""
-    jobs = []
-    for method in methods:
-        hyper = {**request_meta_config(experiment, method), **(overrides or {})}
-        iterations = int(hyper.pop('iterations', 0) or MetaConfig().iterations)
-        lrs = (float(experiment.adapt[method]['lr']),) if adapt else ()
-        jobs.extend(Job(method, seed, hyper, iterations, lrs, 'robust', seed, dict(nssm))
-                    for seed in seeds)
-    return jobs
-
-
-def robustness_summary(results: Sequence[dict]) -> Dict[str, Any]:
-    """Per method: final losses per seed, median, the runs that diverged (non-finite, failed,
-    or a final loss above DIVERGED_FACTOR x the median); the same for the loss of the weights
-    returned (`returned_loss`: the best checkpoint's validation loss under the divergence
-    guard) and the guard's rollbacks per run; A's largest spectral radius, and when every run
-    was adapted, their scores (held-out loss after adaptation) and mean."""
-    out: Dict[str, Any] = {}
-    for method in dict.fromkeys(r['method'] for r in results):
-        runs = [r for r in results if r['method'] == method]
-        final = [float(r.get('meta_final_loss', math.inf)) for r in runs]
-        returned = [float(r.get('meta_returned_loss', math.inf)) for r in runs]
-        median, diverged = _diverged(runs, final)
-        median_returned, diverged_returned = _diverged(runs, returned)
-        out[method] = {
-            'seeds': [r['source_seed'] for r in runs], 'final_loss': final,
-            'median_final_loss': median, 'worst_final_loss': max(final),
-            'max_loss': [r.get('meta_max_loss', math.inf) for r in runs],
-            'diverged': diverged, 'n_diverged': len(diverged),
-            'returned_loss': returned, 'median_returned_loss': median_returned,
-            'worst_returned_loss': max(returned),
-            'diverged_returned': diverged_returned,
-            'n_diverged_returned': len(diverged_returned),
-            'rollbacks': [len(r.get('meta_rollbacks', ())) for r in runs],
-            'a_radius': [r.get('a_radius', math.nan) for r in runs],
-            'max_a_radius': max(r.get('a_radius', math.nan) for r in runs),
-            'meta_seconds': [r.get('meta_seconds') for r in runs]}
-        if all(r.get('adapt') for r in runs):
-            scores = [r['score'] for r in runs]
-            out[method].update(score=scores, mean_score=float(np.mean(scores)))
-    return out
+           'run_job', 'run_jobs']

@@ -1,18 +1,17 @@
 """The soak's third process on the graph: it publishes the model to control with and records
 the receive time of every ``y``, ``u`` and ``mpc_status`` (the rclpy side of
-:mod:`metampc_bringup.realtime_soak`)."""
+:mod:`metampc_bringup.soak.realtime_soak`)."""
 import time
 from typing import List, Optional
 
+from metampc_bringup.orchestration.spun_node import SpunNode
 from metampc_common.qos import BACKLOG, LATCHED
 from metampc_msgs.msg import ControlInput, MpcStatus, NssmWeights, PlantOutput
-
-from .spun_node import SpunNode
 
 
 class Observer:
     """Receive times (monotonic ns) and the fields the measures need, per topic, in the
-    tuple layouts of :mod:`metampc_bringup.soak_metrics`."""
+    tuple layouts of :mod:`metampc_bringup.soak.soak_metrics`."""
 
     def __init__(self, weights: Optional[NssmWeights]):
         self.spun = SpunNode('metampc_soak', threads=1)

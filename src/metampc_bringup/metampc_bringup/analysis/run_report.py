@@ -2,12 +2,13 @@
 
 ``analyse(path)`` reads an MCAP file or a run folder holding one
 (:mod:`~metampc_recording.recording_reader`), picks the metampc topics by message type, rebuilds
-the series (:mod:`~metampc_bringup.run_series`; the file is streamed through, message by
+the series (:mod:`~metampc_bringup.analysis.run_series`; the file is streamed through, message by
 message, so memory does not hold the recording), computes the metrics
-(:mod:`~metampc_bringup.metrics`), and writes ``report.json`` and the PNG plots
-(:mod:`~metampc_bringup.plots`) next to the recording. The recorder's run configuration (the
-``metampc`` metadata record) is copied into the report; its key ``tracked_outputs`` (a list of
-output indices), when present, says which outputs tracking metrics cover.
+(:mod:`~metampc_bringup.analysis.metrics`), and writes ``report.json`` and the PNG plots
+(:mod:`~metampc_bringup.analysis.plots`) next to the recording. The recorder's run
+configuration (the ``metampc`` metadata record) is copied into the report; its key
+``tracked_outputs`` (a list of output indices), when present, says which outputs tracking
+metrics cover.
 
 A ``report.json`` that this module did not write (its ``generator`` is not :data:`GENERATOR`,
 e.g. an experiment's per-seed report in the same folder) is never overwritten:
@@ -18,10 +19,10 @@ import math
 import os
 from typing import Dict, List, Optional, Sequence
 
-from .metrics import Bounds, compute_metrics
-from .plots import write_plots
+from metampc_bringup.analysis.metrics import Bounds, compute_metrics
+from metampc_bringup.analysis.plots import write_plots
+from metampc_bringup.analysis.run_series import DEFAULT_TOPICS, RunSeries, SeriesBuilder
 from metampc_recording.recording_reader import read_recording, Recording, RecordedTopic
-from .run_series import DEFAULT_TOPICS, RunSeries, SeriesBuilder
 
 REPORT_NAME = 'report.json'
 GENERATOR = 'metampc_bringup.analysis'    # the report's 'generator' field

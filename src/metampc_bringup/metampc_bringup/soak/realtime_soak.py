@@ -6,9 +6,9 @@ latest input) and the controller on its own wall-clock timer at ``controller_rat
 trained model: the hand-built NSSM of ``metampc_model.manual_model`` (the plant
 linearised at the origin, discretised at the plant's dt) or a checkpoint (``weights``). It
 tracks a sine reference of x1; a little measurement noise keeps every input distinct. An
-observer in this process (:mod:`metampc_bringup.soak_observer`) records ``y``, ``u`` and
+observer in this process (:mod:`metampc_bringup.soak.soak_observer`) records ``y``, ``u`` and
 ``mpc_status``, and each node's RSS and CPU time are sampled once a second. The measures,
-after a warm-up that is left out, are those of :mod:`metampc_bringup.soak_metrics`; the
+after a warm-up that is left out, are those of :mod:`metampc_bringup.soak.soak_metrics`; the
 report also has the load average at start and end (the machine may be shared).
 
 The controller's tick answers the newest unanswered sample, or the next sample on arrival
@@ -27,19 +27,17 @@ import subprocess
 import time
 from typing import Dict, Optional, Tuple
 
-from metampc_msgs.msg import NssmWeights
-
+from metampc_bringup.analysis.percentiles import percentiles
+from metampc_bringup.orchestration.domain import isolate
+from metampc_bringup.orchestration.processes import ProcessGroup, session_pids
+from metampc_bringup.orchestration.procfs import UsageSampler
+from metampc_bringup.soak.soak_metrics import (deadlines, dropped, GOALS, goals_met, observed_rate,
+                                               process_usage, responses, stop_counts)
+from metampc_bringup.soak.soak_observer import Observer
+from metampc_bringup.soak.soak_plot import plot_soak
+from metampc_bringup.soak.weights_messages import checkpoint_weights, manual_weights
 from metampc_controller.adaptation_trigger import MODES
-
-from .domain import isolate
-from .percentiles import percentiles
-from .processes import ProcessGroup, session_pids
-from .procfs import UsageSampler
-from .soak_metrics import (deadlines, dropped, GOALS, goals_met, observed_rate, process_usage,
-                           responses, stop_counts)
-from .soak_observer import Observer
-from .soak_plot import plot_soak
-from .weights_messages import checkpoint_weights, manual_weights
+from metampc_msgs.msg import NssmWeights
 
 START_TIMEOUT = 120.0   # s for both nodes to come up
 STOP_TIMEOUT = 20.0     # s for each node to stop after SIGINT

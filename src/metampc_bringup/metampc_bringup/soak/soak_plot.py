@@ -1,5 +1,5 @@
 """The soak's figure (matplotlib, Agg backend): controller tick and solve times, response time,
-RSS growth and deadline misses over the run. Inputs as in :mod:`metampc_bringup.soak_metrics`.
+RSS growth and deadline misses over the run. Inputs as in :mod:`metampc_bringup.soak.soak_metrics`.
 No rclpy here.
 """
 from typing import Dict, Sequence
@@ -9,7 +9,7 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
 import numpy as np  # noqa: E402
 
-from .soak_metrics import GOALS, observed_rate, responses  # noqa: E402
+from metampc_bringup.soak.soak_metrics import GOALS, observed_rate, responses  # noqa: E402
 
 
 def plot_soak(path: str, ys: Sequence[tuple], us: Sequence[tuple], statuses: Sequence[tuple],

@@ -62,13 +62,12 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from metampc_bringup.analysis.run_report import json_safe
+from metampc_bringup.experiment_config import load
+from metampc_bringup.orchestration.cpu_budget import check_jobs
+from metampc_bringup.studies.offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs,
+                                             settings_from, THETA_STREAM, VALIDATION_SEED)
 from metampc_learner.meta_train import MetaConfig
-
-from .analysis import json_safe
-from .cpu_budget import check_jobs
-from .experiment_config import load
-from .offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs, settings_from, THETA_STREAM,
-                      VALIDATION_SEED)
 
 DRAW_STREAM = 0xd7a          # configuration draws: rng([--seed, DRAW_STREAM])
 CURVATURE = 'gauss_newton'

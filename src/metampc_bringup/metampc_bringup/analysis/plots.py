@@ -10,8 +10,8 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
 import numpy as np  # noqa: E402
 
-from .metrics import Bounds, episodes, keys, reference_pairs  # noqa: E402
-from .run_series import RunSeries  # noqa: E402
+from metampc_bringup.analysis.metrics import Bounds, episodes, keys, reference_pairs  # noqa: E402
+from metampc_bringup.analysis.run_series import RunSeries  # noqa: E402
 
 
 def signal_labels(series: RunSeries, kind: str, n: int) -> List[str]:

@@ -1,9 +1,10 @@
 """Seeds in parallel: ``run_experiment.py --jobs N`` runs up to N seeds at once.
 
-Each seed runs in a child process of its own (``python -m metampc_bringup.seed_jobs OUT SEED``)
-that claims a ROS domain of its own (:mod:`.domain`) and runs :class:`.orchestrator.SeedRun`
-exactly as the one-process experiment does, in a session of its own, so that its nodes and
-their DDS traffic never meet another seed's. The parent starts no node and no rclpy: it keeps
+Each seed runs in a child process of its own
+(``python -m metampc_bringup.orchestration.seed_jobs OUT SEED``) that claims a ROS domain of its
+own (:mod:`.domain`) and runs :class:`.orchestrator.SeedRun` exactly as the one-process
+experiment does, in a session of its own, so that its nodes and their DDS traffic never meet
+another seed's. The parent starts no node and no rclpy: it keeps
 N children running, and merges their recordings' reports as the one-process run does.
 
 Determinism: a lockstep seed's result does not depend on what runs beside it, so the per-seed
@@ -27,9 +28,9 @@ import sys
 import time
 from typing import Dict, List, Sequence
 
-from .experiment_client import ExperimentError
-from .lifeline import child_env, hold
-from .processes import signals_held
+from metampc_bringup.orchestration.experiment_client import ExperimentError
+from metampc_bringup.orchestration.lifeline import child_env, hold
+from metampc_bringup.orchestration.processes import signals_held
 
 log = logging.getLogger('metampc.seed_jobs')
 
@@ -84,7 +85,7 @@ def _start(out_dir: str, seed: int, running: Dict[int, subprocess.Popen]) -> Non
     # not stop: it is held until the child is in `running`.
     with signals_held():
         running[seed] = subprocess.Popen(
-            [sys.executable, '-m', 'metampc_bringup.seed_jobs', out_dir, str(seed)],
+            [sys.executable, '-m', 'metampc_bringup.orchestration.seed_jobs', out_dir, str(seed)],
             stdin=subprocess.DEVNULL, start_new_session=True, env=child_env())
 
 
@@ -111,9 +112,9 @@ def child_main(argv: Sequence[str]) -> int:
                         datefmt='%H:%M:%S')
     try:
         hold(signal.SIGINT)    # the parent killed: stop the nodes as on Ctrl-C
-        from .domain import isolated
-        from .experiment_config import load
-        from .orchestrator import SeedRun, terminate_as_interrupt
+        from metampc_bringup.orchestration.domain import isolated
+        from metampc_bringup.experiment_config import load
+        from metampc_bringup.orchestration.orchestrator import SeedRun, terminate_as_interrupt
         config = load(os.path.join(out_dir, 'config.yaml'))
         with terminate_as_interrupt(), isolated() as domain:
             log.info('seed %d: ROS_DOMAIN_ID=%d (localhost discovery)', seed, domain)

@@ -4,8 +4,8 @@ The paper's argument: iMAML can afford many inner steps at flat memory, while fi
 approximation degrades with M. The sweep meta-trains iMAML (Gauss-Newton curvature) and
 first-order MAML at M in {1, 5, 10, 25, 50} and unrolled (second-order) MAML at the M <= 10 of
 those (:data:`UNROLLED_MAX_M`: its memory grows ~23 MB per inner step, and its time with it), on
-the learning cores without ROS (:mod:`metampc_bringup.offline`), each (method, M) tuned with the
-same budget, then tested on the experiment's own seeds.
+the learning cores without ROS (:mod:`metampc_bringup.studies.offline`), each (method, M) tuned
+with the same budget, then tested on the experiment's own seeds.
 
 Protocol:
 
@@ -27,7 +27,7 @@ Protocol:
   data, meta-training and adaptation) and its RSS before meta-training.
 - Report: median over the seeds with a percentile-bootstrap 95 % interval (seeds resampled),
   iMAML against first-order MAML (and first-order against unrolled MAML) paired by seed with
-  :func:`metampc_bringup.paired_stats.paired_claim` on the log losses.
+  :func:`metampc_bringup.analysis.paired_stats.paired_claim` on the log losses.
 
 Budget (the defaults; CPU s per outer step at B = 16, the default NSSM, 1 torch thread, measured
 as process CPU time of 3 steps after a warm-up on the 2-core machine at load 3-4, bench_meta.py's
@@ -69,13 +69,13 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .analysis import json_safe
-from .cpu_budget import check_jobs
-from .experiment_config import ExperimentConfig, load
-from .offline import (CURVE_STEPS, init_worker, Job, request_meta_config, run_job, run_jobs,
-                      Settings, settings_from, TEST_HELDOUT_SAMPLES, validation,
-                      VALIDATION_SEED)
-from .paired_stats import claim_cells, median_ci, paired_claim
+from metampc_bringup.analysis.paired_stats import claim_cells, median_ci, paired_claim
+from metampc_bringup.analysis.run_report import json_safe
+from metampc_bringup.experiment_config import ExperimentConfig, load
+from metampc_bringup.orchestration.cpu_budget import check_jobs
+from metampc_bringup.studies.offline import (CURVE_STEPS, init_worker, Job, request_meta_config,
+                                             run_job, run_jobs, Settings, settings_from,
+                                             TEST_HELDOUT_SAMPLES, validation, VALIDATION_SEED)
 
 METHODS = ('imaml', 'maml', 'maml_unrolled')
 NAMES = {'imaml': 'iMAML', 'maml': 'first-order MAML', 'maml_unrolled': 'unrolled MAML'}

@@ -8,12 +8,11 @@ An :class:`ExperimentClient` is an rclpy node (spun in a thread, :class:`SpunNod
   :class:`ExperimentError` that says what failed;
 * follows ``y`` (the plant's samples: step, diverged flag, stamp), ``plant_info`` (latched) and
   ``progress`` (the learner's training progress) so the orchestrator can wait on events;
-* publishes experiment events (std_msgs/String holding one JSON object each) on
+* publishes the experiment events (:mod:`metampc_bringup.experiment_events`) on
   ``experiment_events``, reliable + transient_local: the recorder stores them with the run,
-  and the analysis (:mod:`metampc_bringup.experiment_report`) reads phases, service results
-  and the sim-time span of every tracking run from them.
+  and the reports read phases, service results and the sim-time span of every tracking run
+  from them.
 """
-import json
 import logging
 import os
 import subprocess
@@ -22,6 +21,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
+from metampc_bringup.experiment_events import EVENTS_TOPIC, ExperimentEvent
+from metampc_bringup.orchestration.spun_node import SpunNode
 from metampc_common.qos import EVENTS, LATCHED, SPARSE, STREAM
 from metampc_msgs.msg import PlantInfo, PlantOutput, TrainingProgress
 from metampc_msgs.srv import Adapt, MetaTrain, ResetPlant, SetActive, SetBuffering
@@ -30,9 +31,6 @@ from rclpy.duration import Duration
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
-from .spun_node import SpunNode
-
-EVENTS_TOPIC = 'experiment_events'
 RESEND_S = 1.0          # first resend of an unanswered request that carries an id, s
 RESEND_MAX_S = 30.0     # longest gap between two sends of it, s
 
@@ -323,11 +321,9 @@ class ExperimentClient(SpunNode):
 
     # --- events ----------------------------------------------------------------------------
 
-    def event(self, kind: str, **fields: Any) -> Dict[str, Any]:
-        """Publish one experiment event (JSON) for the recording; return it."""
-        record = {'event': kind, 'wall_time': time.time(), **fields}
-        self._events.publish(String(data=json.dumps(record, allow_nan=True)))
-        return record
+    def event(self, event: ExperimentEvent) -> None:
+        """Publish one experiment event for the recording."""
+        self._events.publish(String(data=event.encode()))
 
     def close(self, ack_timeout: float = 5.0) -> None:
         """Close once every subscriber (the recorder) has acknowledged the events, or after

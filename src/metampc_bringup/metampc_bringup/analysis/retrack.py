@@ -18,6 +18,8 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 import numpy as np
 
+from metampc_bringup.analysis.paired_stats import paired_claim
+from metampc_bringup.experiment_config import ExperimentConfig
 from metampc_controller.closed_loop import Episode, run_episode
 from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
 from metampc_controller.controller_params import ControllerConfig
@@ -30,9 +32,6 @@ from metampc_model.weights_codec import (DecodedWeights, fields_of, weights_from
 from metampc_plant.plant_params import parse_params as parse_plant
 from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
 from metampc_plant.simulator import Plant
-
-from .experiment_config import ExperimentConfig
-from .paired_stats import paired_claim
 from metampc_recording.recording_reader import read_recording
 
 NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'

@@ -1,12 +1,13 @@
-"""The measures of a real-time soak (:mod:`metampc_bringup.realtime_soak`), on what an observer
-received and on process samples.
+"""The measures of a real-time soak (:mod:`metampc_bringup.soak.realtime_soak`), on what an
+observer received and on process samples.
 
 Inputs, each in the order received, times in monotonic ns at the observer:
 
 - ys: [(t, step, u_applied)] of the plant's ``y``;
 - us: [(t, step, u, model_version)] of the controller's ``u``;
 - statuses: [(t, step, tick_time s, solve_time s, fallback)] of ``mpc_status``;
-- samples: name -> [(t, RSS bytes, CPU s)] (:class:`metampc_bringup.procfs.UsageSampler`).
+- samples: name -> [(t, RSS bytes, CPU s)]
+  (:class:`metampc_bringup.orchestration.procfs.UsageSampler`).
 
 Only what arrived from ``start_ns`` on (the end of the warm-up) is measured:
 

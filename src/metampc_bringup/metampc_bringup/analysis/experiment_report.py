@@ -1,13 +1,14 @@
 """The experiment's results from its recordings alone: per-seed reports, the paper's figures
 and the table of its claims.
 
-A seed's recording holds the orchestrator's events (``experiment_events``, JSON: the service
-results of meta_train and adapt, and the sim-time span [start, end] of every tracking run) and
-the closed-loop messages. :func:`seed_report` cuts the messages of each tracking run out by
-their header stamps (the plant stamps its n-th sample n dt, the controller stamps an input and
-its status with the stamp of the sample they answer), computes each run's metrics with
-:func:`metampc_bringup.metrics.compute_metrics` and plots it. :func:`experiment_report`
-gathers the seeds into ``report.json``, ``report.md`` and the figures:
+A seed's recording holds the orchestrator's events (:mod:`metampc_bringup.experiment_events`:
+the service results of meta_train and adapt, and the sim-time span [start, end] of every
+tracking run) and the closed-loop messages. :func:`seed_report` cuts the messages of each
+tracking run out by their header stamps (the plant stamps its n-th sample n dt, the controller
+stamps an input and its status with the stamp of the sample they answer), computes each run's
+metrics with :func:`metampc_bringup.analysis.metrics.compute_metrics` and plots it.
+:func:`experiment_report` gathers the seeds into ``report.json``, ``report.md`` and the
+figures:
 
 * Fig. 2 of the paper: meta-training loss (mean meta-test loss after each outer step, log
   scale) per meta method: median over seeds and the min-max band;
@@ -30,9 +31,9 @@ Claims (each counted over seeds, reported whichever way it falls):
 (c) tracking cost of each method relative to the oracle's and to the true-model NMPC's.
 
 Each pairwise claim 'a < b' comes with its statistics over seeds (:func:`pairwise`, by
-:mod:`metampc_bringup.paired_stats` on log ratios): the seeds where it holds, the median ratio
-a/b with a bootstrap 95 % interval, a Wilcoxon p-value, and the verdict (supported only when
-the interval lies below 1).
+:mod:`metampc_bringup.analysis.paired_stats` on log ratios): the seeds where it holds, the
+median ratio a/b with a bootstrap 95 % interval, a Wilcoxon p-value, and the verdict (supported
+only when the interval lies below 1).
 
 No rclpy here.
 """
@@ -45,19 +46,19 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import matplotlib
 import numpy as np
 
-from metampc_model.weights_codec import DecodedWeights, fields_of, weights_from_fields
+from metampc_bringup.analysis.metrics import compute_metrics
+from metampc_bringup.analysis.paired_stats import claim_cells, paired_claim
+from metampc_bringup.analysis.plots import signal_labels
+from metampc_bringup.analysis.run_report import json_safe
+from metampc_bringup.analysis.run_series import RunSeries, SeriesBuilder
+from metampc_bringup.experiment_config import from_mapping, learner_config
+from metampc_bringup.experiment_events import (Adapted, BufferingStopped, CollectEnd, Done,
+                                               ExperimentEvent, MetaTrained, read_events, Start,
+                                               TrackEnd, TrackStart)
 from metampc_learner.heldout import (HELDOUT_STREAM, heldout_seed, model_heldout_loss,
                                      plant_source, target_heldout)
-
-from .analysis import json_safe
-from .experiment_client import EVENTS_TOPIC
-from .experiment_config import from_mapping
-from .metrics import compute_metrics
-from .offline import learner_config
-from .paired_stats import claim_cells, paired_claim
-from .plots import signal_labels
+from metampc_model.weights_codec import DecodedWeights, fields_of, weights_from_fields
 from metampc_recording.recording_reader import read_recording
-from .run_series import RunSeries, SeriesBuilder
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
@@ -71,20 +72,12 @@ NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
 PLANT_INFO = 'metampc_msgs/msg/PlantInfo'
 
 
-def read_events(recording) -> List[Dict[str, Any]]:
-    """The experiment events of a recording, in recorded order."""
-    topics = [t.name for t in recording.topics.values()
-              if t.name.rsplit('/', 1)[-1] == EVENTS_TOPIC]
-    return [json.loads(msg.data) for _, _, msg in recording.decoded(topics)]
-
-
-def tracking_spans(events: List[Dict[str, Any]]) -> Dict[str, Tuple[float, float, int]]:
+def tracking_spans(events: List[ExperimentEvent]) -> Dict[str, Tuple[float, float, int]]:
     """Per method: the sim-time span [start, end] (s) of its finished tracking run and the
     model version its controller ran (0 for nmpc)."""
-    starts = {e['method']: e for e in events if e['event'] == 'track_start'}
-    return {e['method']: (starts[e['method']]['stamp'], e['stamp'],
-                          int(starts[e['method']]['model_version']))
-            for e in events if e['event'] == 'track_end' and e['method'] in starts}
+    starts = {e.method: e for e in events if isinstance(e, TrackStart)}
+    return {e.method: (starts[e.method].stamp, e.stamp, int(starts[e.method].model_version))
+            for e in events if isinstance(e, TrackEnd) and e.method in starts}
 
 
 def tracking_series(recording, spans: Dict[str, Tuple[float, float, int]]
@@ -127,7 +120,7 @@ def published_models(recording) -> Dict[int, DecodedWeights]:
             for msg in _messages(recording, NSSM_WEIGHTS)}
 
 
-def heldout_losses(recording, events: List[Dict[str, Any]], config: Dict[str, Any]
+def heldout_losses(recording, events: List[ExperimentEvent], config: Dict[str, Any]
                    ) -> Tuple[Dict[str, Any], Dict[str, Dict[str, Any]]]:
     """The seed's held-out target set and the l_SSM of each published model on it.
 
@@ -144,25 +137,25 @@ def heldout_losses(recording, events: List[Dict[str, Any]], config: Dict[str, An
         without one, e.g. the meta stage of supervised and oracle).
     """
     t0 = time.monotonic()
-    start = next(e for e in events if e['event'] == 'start')
-    seed = int(start['seed'])
+    start = next(e for e in events if isinstance(e, Start))
+    seed = int(start.seed)
     learner = learner_config(from_mapping(config['experiment']), seed)
     source = learner.source
     plants = _messages(recording, PLANT_INFO)
     if plants:
         p = plants[-1]
         source = plant_source(source, p.dt, p.substeps, p.u_min, p.u_max, p.state_bound)
-    trajectories = target_heldout(np.atleast_1d(start['theta']), source, seed)
+    trajectories = target_heldout(np.atleast_1d(start.theta), source, seed)
     samples = sum(len(t) for t in trajectories)
     models = published_models(recording)
     losses: Dict[str, Dict[str, Any]] = {}
     for e in events:
-        if e['event'] not in ('meta_train', 'adapt'):
+        if not isinstance(e, (MetaTrained, Adapted)):
             continue
-        weights = models.get(int(e['model_version']))
-        entry = losses.setdefault(e['method'], {'samples': samples, 'meta': None,
-                                                'adapted': None})
-        entry['meta' if e['event'] == 'meta_train' else 'adapted'] = (
+        weights = models.get(int(e.model_version))
+        entry = losses.setdefault(e.method, {'samples': samples, 'meta': None,
+                                             'adapted': None})
+        entry['meta' if isinstance(e, MetaTrained) else 'adapted'] = (
             None if weights is None
             else model_heldout_loss(weights, trajectories, learner.nssm.horizon))
     about = {'samples': samples, 'episodes': len(trajectories), 'seed': heldout_seed(seed),
@@ -178,37 +171,37 @@ def seed_report(path: str, out_dir: Optional[str] = None, plots: bool = True) ->
     recording = read_recording(path)
     out_dir = out_dir or os.path.dirname(os.path.abspath(recording.path))
     events = read_events(recording)
-    start = next((e for e in events if e['event'] == 'start'), None)
+    start = next((e for e in events if isinstance(e, Start)), None)
     if start is None:
         raise ValueError(f'{recording.path} holds no experiment events (not an experiment '
                          'recording?); use scripts/replay.py for a plain run')
     config = recording.run_config()
     tracked = [int(i) for i in config.get('tracked_outputs', [0])]
-    ends = {e['method']: e for e in events if e['event'] == 'track_end'}
+    ends = {e.method: e for e in events if isinstance(e, TrackEnd)}
     methods: Dict[str, Dict[str, Any]] = {}
     for method, series in tracking_series(recording, tracking_spans(events)).items():
         metrics = compute_metrics(series, tracked)
-        metrics['escaped'] = bool(ends[method]['diverged'])
-        metrics['steps'] = int(ends[method]['steps'])
+        metrics['escaped'] = bool(ends[method].diverged)
+        metrics['steps'] = int(ends[method].steps)
         if plots:
             metrics['plot'] = plot_tracking({method: series}, tracked,
                                             os.path.join(out_dir, f'tracking_{method}.png'))
         methods[method] = {'tracking': metrics}
     for e in events:
-        if e['event'] in ('meta_train', 'adapt'):
-            methods.setdefault(e['method'], {})[e['event']] = {
-                k: v for k, v in e.items() if k not in ('event', 'method')}
+        if isinstance(e, (MetaTrained, Adapted)):
+            methods.setdefault(e.method, {})[e.KIND] = {
+                k: v for k, v in e.record().items() if k not in ('event', 'method')}
     heldout, losses = heldout_losses(recording, events, config)
     for method, entry in losses.items():
         methods[method]['heldout'] = entry
-    done = next((e for e in events if e['event'] == 'done'), None)
+    done = next((e for e in events if isinstance(e, Done)), None)
     report = json_safe({
         'recording': os.path.abspath(recording.path),
         'complete': recording.complete and done is not None,
-        'seed': start['seed'], 'theta': start['theta'], 'methods_compared': start['methods'],
-        'collect': next((e for e in events if e['event'] == 'collect_end'), None),
-        'buffering': next((e for e in events if e['event'] == 'buffering_stopped'), None),
-        'timings': done['timings'] if done else None,
+        'seed': start.seed, 'theta': start.theta, 'methods_compared': start.methods,
+        'collect': _record(events, CollectEnd),
+        'buffering': _record(events, BufferingStopped),
+        'timings': done.timings if done else None,
         'heldout': heldout,
         'methods': methods,
         'config': config.get('experiment', {}),
@@ -216,6 +209,11 @@ def seed_report(path: str, out_dir: Optional[str] = None, plots: bool = True) ->
     with open(os.path.join(out_dir, 'report.json'), 'w') as f:
         json.dump(report, f, indent=2, sort_keys=True)
     return report
+
+
+def _record(events: List[ExperimentEvent], kind: type) -> Optional[Dict[str, Any]]:
+    """The first event of `kind` as recorded (its JSON object), None without one."""
+    return next((e.record() for e in events if isinstance(e, kind)), None)
 
 
 # --- figures ---------------------------------------------------------------------------------

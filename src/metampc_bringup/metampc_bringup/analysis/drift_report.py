@@ -34,11 +34,12 @@ from typing import Any, Dict, List, Optional, Sequence
 import matplotlib
 import numpy as np
 
+from metampc_bringup.analysis.experiment_report import STAMP_TOL
+from metampc_bringup.analysis.run_report import json_safe
+from metampc_bringup.experiment_config import DriftConfig
+from metampc_bringup.experiment_events import (Done, ExperimentEvent, read_events, Start, TrackEnd,
+                                               TrackStart)
 from metampc_controller.adaptation_trigger import TriggerConfig
-
-from .analysis import json_safe
-from .experiment_config import DriftConfig
-from .experiment_report import read_events, STAMP_TOL
 from metampc_recording.recording_reader import read_recording
 
 matplotlib.use('Agg')
@@ -73,17 +74,16 @@ class RunSignals:
     compute: List[float]
 
 
-def drift_runs(events: List[Dict[str, Any]]) -> Dict[str, Dict[str, Any]]:
+def drift_runs(events: List[ExperimentEvent]) -> Dict[str, Dict[str, Any]]:
     """Per run name: its start and end stamps (s), steps, method, escape and schedule."""
-    starts = {e.get('run', e['method']): e for e in events if e['event'] == 'track_start'}
+    starts = {e.run_name: e for e in events if isinstance(e, TrackStart)}
     runs = {}
     for e in events:
-        name = e.get('run', e.get('method'))
-        if e['event'] == 'track_end' and name in starts:
-            start = starts[name]
-            runs[name] = {'method': e['method'], 'start': start['stamp'], 'end': e['stamp'],
-                          'steps': int(e['steps']), 'diverged': bool(e['diverged']),
-                          'schedule': list(start.get('theta_schedule') or [])}
+        if isinstance(e, TrackEnd) and e.run_name in starts:
+            start = starts[e.run_name]
+            runs[e.run_name] = {'method': e.method, 'start': start.stamp, 'end': e.stamp,
+                                'steps': int(e.steps), 'diverged': bool(e.diverged),
+                                'schedule': list(start.theta_schedule or [])}
     return runs
 
 
@@ -236,7 +236,7 @@ def seed_drift_report(path: str, out_dir: Optional[str] = None, plots: bool = Tr
     recording = read_recording(path)
     out_dir = out_dir or os.path.dirname(os.path.abspath(recording.path))
     events = read_events(recording)
-    start = next((e for e in events if e['event'] == 'start'), None)
+    start = next((e for e in events if isinstance(e, Start)), None)
     if start is None:
         raise ValueError(f'{recording.path} holds no experiment events')
     config = recording.run_config()
@@ -245,7 +245,7 @@ def seed_drift_report(path: str, out_dir: Optional[str] = None, plots: bool = Tr
     tracked = [int(i) for i in config.get('tracked_outputs', [0])]
     runs = drift_runs(events)
     signals = run_signals(recording, runs)
-    n_theta = len(start['theta'])
+    n_theta = len(start.theta)
     t_change = min(drift.change_times(n_theta)) if drift.schedule else None
     nmpc = signals.get('nmpc')
     metrics = {}
@@ -262,12 +262,12 @@ def seed_drift_report(path: str, out_dir: Optional[str] = None, plots: bool = Tr
         for method in drift.methods:
             figures.append(os.path.basename(plot_run(
                 signals, method, dt, floor, os.path.join(out_dir, f'drift_{method}.png'))))
-    done = next((e for e in events if e['event'] == 'done'), None)
+    done = next((e for e in events if isinstance(e, Done)), None)
     report = json_safe({
-        'recording': os.path.abspath(recording.path), 'seed': start['seed'],
-        'theta': start['theta'], 'complete': recording.complete and done is not None,
+        'recording': os.path.abspath(recording.path), 'seed': start.seed,
+        'theta': start.theta, 'complete': recording.complete and done is not None,
         't_change': t_change, 'runs': metrics, 'figures': figures,
-        'timings': done['timings'] if done else None})
+        'timings': done.timings if done else None})
     with open(os.path.join(out_dir, 'report.json'), 'w') as f:
         json.dump(report, f, indent=2, sort_keys=True)
     return report

@@ -1,0 +1,1 @@
+"""The real-time soak: the controller at its rate for a long time, observed and measured."""

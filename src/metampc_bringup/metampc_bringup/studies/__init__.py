@@ -1,0 +1,2 @@
+"""Learning studies without ROS: the job runner (offline), the hyperparameter search (tuning),
+the inner-steps sweep and the robustness runs."""
