@@ -45,7 +45,7 @@ GRIDS: Dict[str, Tuple[Dict[str, float], ...]] = {
     'maml': _MAML_GRID, 'maml_unrolled': _MAML_GRID}
 SWEPT = ('iterations', 'inner_steps', 'lr_inner', 'gamma')
 ADAPT_LRS = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
-# CPU s per outer step = a + b M (B = 16, default NSSM, 1 thread; module docstring).
+# CPU s per outer step = a + b M (B = 16, default NSSM, 1 thread; docs/sweep.md).
 COST_PER_STEP = {'imaml': (0.145, 0.0225), 'maml': (0.02, 0.024),
                  'maml_unrolled': (0.02, 0.048)}
 JOB_START_S = 6.0    # CPU s: spawn a worker, import torch, simulate the data
@@ -149,7 +149,7 @@ def evaluation_jobs(experiment: ExperimentConfig, plan: Plan,
 
 
 def estimate_cpu_s(plan: Plan) -> Dict[str, float]:
-    """CPU seconds of the plan at the default NSSM and B = 16 (module docstring)."""
+    """CPU seconds of the plan at the default NSSM and B = 16 (docs/sweep.md, Budget)."""
     tune = test = 0.0
     for method, m in plan.cells():
         a, b = COST_PER_STEP[method]
