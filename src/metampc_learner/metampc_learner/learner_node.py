@@ -8,9 +8,8 @@ serves ``meta_train`` (Algorithm 1, eq. (outer)) and ``adapt`` (eq. (infer), or 
 (:mod:`metampc_learner.loop_adaptation`). One training job at a time (:class:`JobSlot`); a
 second is answered 'busy' at once. Refuses: a bad parameter, an unreadable
 ``meta_model_path`` or a plant whose dt is not ``dt`` (one error line, exit 2); a request it
-cannot carry out (success=false with what is missing). Parameters:
-:data:`metampc_learner.learner_params.PARAMETERS`; interfaces, threads and live request
-defaults: docs/learner.md.
+cannot carry out (success=false, what is missing). Parameters: :data:`.learner_params.PARAMETERS`;
+interfaces, threads and live request defaults: docs/learner.md.
 """
 from concurrent.futures import ThreadPoolExecutor
 import sys

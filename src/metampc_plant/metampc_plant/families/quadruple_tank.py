@@ -1,13 +1,12 @@
 """Johansson's quadruple-tank process: 4 states, 2 inputs, 2 outputs, uncertain valve splits.
 
-K. H. Johansson, IEEE Trans. Control Syst. Technol. 8(3), 2000. Levels h (cm), pump voltages
-v (V), 0 <= v <= 10 V::
+K. H. Johansson, IEEE Trans. Control Syst. Technol. 8(3), 2000. Levels h (cm), pumps v (V)::
 
     h1' = -a1/A1 s(h1) + a3/A1 s(h3) + g1 k1/A1 v1
     h2' = -a2/A2 s(h2) + a4/A2 s(h4) + g2 k2/A2 v2
     h3' = -a3/A3 s(h3) + (1 - g2) k2/A3 v2
     h4' = -a4/A4 s(h4) + (1 - g1) k1/A4 v1,      s(h) = sqrt(2 * 981 * max(h, 0)) cm/s,
-    y = 0.5 (h1, h2) V (level sensors, 0.5 V/cm),
+    y = 0.5 (h1, h2) V (level sensors, 0.5 V/cm),  0 <= v1, v2 <= 10 V,
 
 theta = (g1, g2) ~ U(0.3, 0.8) each (g1 + g2 < 1: a right-half-plane zero); dt 5 s; state box
 |h|_inf <= 100 cm (no overflow model). Constants, operating point and why: docs/families.md.
