@@ -1,14 +1,14 @@
 """The `controller` node: a thin ROS 2 adapter over controller_core.
 
-Answers each plant sample ``y`` (PlantOutput, step k) exactly once with ``u`` (ControlInput,
-step k, held over (k, k+1]) and then ``mpc_status`` (MpcStatus), planning with eq. (mpc) on
-the latest accepted NSSM (``nssm_weights``, latched; checked and built on a worker thread) or
-with the family's true-model NMPC (theta from every y). Also takes ``plant_info``, an optional
-``reference`` override and ``set_active``; publishes ``u_hold`` when a lockstep answer waits
-for a requested model (adaptation in the loop: :mod:`metampc_controller.adaptation_trigger`,
+While active, answers each plant sample ``y`` (PlantOutput, step k) once with ``u`` (ControlInput,
+step k, held over (k, k+1]) and then ``mpc_status`` (MpcStatus), planning with eq. (mpc) on the
+latest accepted NSSM (``nssm_weights``, latched; checked and built on a worker thread) or with the
+family's true-model NMPC (theta from every y). Also takes ``plant_info``, an optional ``reference``
+override and ``set_active``; publishes ``u_hold`` when a lockstep answer waits for a requested
+model (adaptation in the loop: :mod:`metampc_controller.adaptation_trigger`,
 :mod:`metampc_controller.model_swap`). Refuses: a bad parameter (one error line, exit 2), a bad
-live change (refused with the reason), invalid weights (``model_status = 'rejected: ...'``,
-the previous model stays). Parameters: :data:`metampc_controller.controller_params.PARAMETERS`;
+live change (refused with the reason), invalid weights (``model_status = 'rejected: ...'``, the
+previous model stays). Parameters: :data:`metampc_controller.controller_params.PARAMETERS`;
 interfaces, ticks, live changes and faults: docs/controller.md.
 """
 from array import array

@@ -1,13 +1,13 @@
 """Terminal cost of the latent MPC: the DARE weight P of eq. (mpc), made consistent.
 
-The state is augmented with the previous input, s_k = [z_k; u_k] (n_s = n_z + n_u), so that
-du_k = u_{k+1} - u_k is the input of a linear system (Abar = [[A, B], [0, I]], Bbar = [[B], [I]],
-Cbar = [C, 0]); P is the stabilising solution of the DARE of eq. (compact)'s system for (Abar,
-Bbar, Qbar = Cbar' Q Cbar + eps I, R), and the terminal cost (s_N - s_ss)' P (s_N - s_ss) is
-centred on the steady state s_ss that best meets r_N (affine in r_N, from the KKT matrix).
+The state is augmented with the previous input, s_k = [z_k; u_k] (n_s = n_z + n_u), so that du_k =
+u_{k+1} - u_k is the input of a linear system (Abar = [[A, B], [0, I]], Bbar = [[B], [I]], Cbar =
+[C, 0]); P is the stabilising solution of the paper's DARE posed for (Abar, Bbar, Qbar = Cbar' Q
+Cbar + eps I, R) rather than eq. (compact)'s state, and the terminal cost (s_N - s_ss)' P (s_N -
+s_ss) is centred on the steady state s_ss that best meets r_N (affine in r_N, from the KKT matrix).
 When the DARE fails (exception, non-finite or non-definite P, residual above ``DARE_RTOL``,
-unstable closed loop) it falls back to the stage output term (P = Cbar' Q Cbar) and says why.
-Both are stored as least-squares rows (P = T'T). Derivation and checks:
+unstable closed loop) it falls back to the stage output term (P = Cbar' Q Cbar) and says why. Both
+are stored as least-squares rows (P = T'T). Derivation and checks:
 docs/mpc.md#terminal-cost-a-consistent-dare.
 """
 from dataclasses import dataclass

@@ -1,14 +1,14 @@
 """Algorithm 1's online collection: closed-loop source data from the latent MPC, eq. (ub).
 
-After the inner loop of task b (eq. (inner_imaml)) the meta-training core calls the collector
-with (task, theta_b, omega_b); it turns omega_b into the latent model of eq. (SSM), runs the
-latent MPC of eq. (mpc) on the source system theta_b (the plant core) for bounded episodes with
-exploration noise, u^b = clip(u^b_* + u^b_0, u_min, u_max), u^b_0 ~ N(0, noise_std^2 I), and
-returns the trajectories (u^b, y^b) (arrays (samples, n_u), (samples, n_y), index convention of
-:mod:`metampc_model.nssm`) that the core adds to D_source. An episode ends at the first sample
-that leaves the state box (only the finite samples before it are returned); a model the MPC
-cannot use gives no data. Seeded per (seed, task, call, episode). Pure numpy/torch/osqp, no
-rclpy. Episodes in full: docs/learner.md.
+After the inner loop of task b (eq. (inner_imaml)) the meta-training core calls the collector with
+(task, theta_b, omega_b); it turns omega_b into the latent model of eq. (SSM), runs the latent MPC
+of eq. (mpc) on the source system theta_b (the plant core) for bounded episodes with exploration
+noise, u^b = clip(u^b_* + u^b_0, u_min, u_max), u^b_0 ~ N(0, noise_std^2 I), and returns the
+trajectories (u^b, y^b) (:class:`~metampc_learner.data.Trajectory`, index convention of
+:mod:`metampc_model.nssm`) that the core adds to D_source. An episode ends at the first sample that
+leaves the state box (only the finite samples before it are returned); a model the MPC cannot use
+gives no data. Seeded per (seed, task, call, episode). Pure numpy/torch/osqp, no rclpy. Episodes in
+full: docs/learner.md.
 """
 import dataclasses
 from dataclasses import dataclass, field

@@ -1,12 +1,12 @@
 """Stable latent dynamics by construction: ||A||_2 <= rho_max for every weight vector.
 
 The transition A of eq. (z_next) is trained in coordinates W (the entries of the flat training
-vector) and used as A = W h(s) / s, s = ||W||_2, h(s) = rho_max tanh(s / rho_max): every
-singular value of W is scaled alike, so ||A||_2 < rho_max (= rho_max once tanh rounds to 1)
-and the spectral radius with it; the map is smooth where the largest singular value is simple
-and nearly the identity for small W, and every method's gradients see it. In: W (n_z, n_z);
-out: A (n_z, n_z). Published weights carry A itself; :func:`transition_coordinates` is the
-inverse, for training that starts from published weights. Why:
+vector) and used as A = W h(s) / s, s = ||W||_2, h(s) = rho_max tanh(s / rho_max): every singular
+value of W is scaled alike, so ||A||_2 < rho_max (= rho_max once tanh rounds to 1) and the spectral
+radius with it; the map is smooth where the largest singular value is simple and nearly the
+identity for small W, and every method's gradients see it (:func:`bounded_transition`: W (..., n_z,
+n_z) -> A of the same shape). Published weights carry A itself; :func:`transition_coordinates` is
+the inverse, for training that starts from published weights. Why:
 docs/learning.md#stable-latent-dynamics.
 """
 import torch
