@@ -54,6 +54,8 @@ TESTED_ELSEWHERE: Dict[str, Tuple[str, str]] = {
         _SYSTEM, 'the report of a real experiment against the recording read by rosbags'),
     'metampc_bringup.analysis.retrack': (
         _SYSTEM, 'the recorded tracking costs reproduced from a real run\'s models'),
+    'metampc_bringup.orchestration.cpu_budget': (
+        _SYSTEM, '--jobs beyond the usable cores refused, as a user runs it'),
     'metampc_bringup.orchestration.experiment_client': (
         'test/test_idempotent_calls.py', 'its calls against live nodes, a first answer dropped'),
     'metampc_bringup.orchestration.domain': (
