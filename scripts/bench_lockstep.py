@@ -7,8 +7,8 @@ CI-sized learning set-up of config/ci.yaml but with ``--steps`` tracking steps p
 (default 1000; the experiment's runs are 300), once per variant (``--variants``): ``held``,
 the defaults (the plant's y and the controller's u and mpc_status keep all and wait while the
 recorder, which keeps all, is full: metampc_common.held_publisher), and ``unheld``, as before
-that (writers and recorder keep the last 1000, which lost a quarter of a 5000-step run at
-full speed). Per variant, from the seed report:
+that (writers and recorder keep the last 1000: a recorder that falls behind loses messages,
+docs/speed.md). Per variant, from the seed report:
 
 - steps_per_s.<method>: tracking steps of that method's run / the wall time of its tracking
   phase (episode start handshake included), for the latent-MPC methods;

@@ -29,7 +29,7 @@ the run leaves the second core of a shared 2-core machine to others).
 Load average and the time are in the line: wall-clock numbers depend on other processes.
 
 Usage: python scripts/bench_meta.py [--threads 1] [--steps 5] [--rounds 3] [--speed-only]
-(--speed-only: only the fast vs eager comparison, about 40 s on an idle core).
+(--speed-only: only the fast vs eager comparison; its time: docs/learning.md).
 
 CUDA check: python scripts/bench_meta.py --device cuda [--steps 5] [--rounds 3] prints one
 JSON line with the fast backend on cuda vs on the cpu (s and CPU s per outer step, the ratio)

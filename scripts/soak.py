@@ -1,12 +1,12 @@
 #!/usr/bin/env python3
 """Real-time soak: a realtime plant and the latent-MPC controller for a long run; one JSON line.
 
-The set-up is :mod:`metampc_bringup.soak.realtime_soak` (its docstring), the measures those of
-:mod:`metampc_bringup.soak.soak_metrics`, the measured soaks in docs/faults.md. Reported (after a
-warm-up that is left out): deadline misses, controller tick and solve time and the response
-time seen by the observer (ms percentiles), dropped messages, the nodes' own stop-line
-counters, RSS and CPU share of the plant and the controller, the load average at start and
-end. soak.png and the node logs go to --out.
+The set-up is :mod:`metampc_bringup.soak.realtime_soak`, the measures those of
+:mod:`metampc_bringup.soak.soak_metrics`; both, and the measured soaks, in docs/faults.md.
+Reported (after a warm-up that is left out): deadline misses, controller tick and solve time
+and the response time seen by the observer (ms percentiles), dropped messages, the nodes' own
+stop-line counters, RSS and CPU share of the plant and the controller, the load average at
+start and end. soak.png and the node logs go to --out.
 
 Goals (issue 10): deadline misses <= 0.1 % and memory growth <= 5 % at 100 Hz for 10 minutes.
 

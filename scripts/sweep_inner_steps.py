@@ -4,9 +4,8 @@
 Each (method, M) is tuned with the same small budget on validation data, then its winner is
 meta-trained on the experiment's source set of every test seed and adapted to that seed's
 target: held-out loss after K in {0, 1, 5, 20} steps, meta-training wall time per outer step
-and peak RSS per run. Protocol, budget arithmetic and resuming: the docstring of
-``metampc_bringup.studies.sweep``; docs/sweep.md. Defaults: about 1.75 h wall with 2 jobs x 1
-thread.
+and peak RSS per run (the logic: ``metampc_bringup.studies.sweep``). Protocol, budget, its
+measured cost and resuming: docs/sweep.md.
 
 Usage: python scripts/sweep_inner_steps.py --out runs/sweep [--ms 1,5,10,25,50]
        [--methods imaml,maml,maml_unrolled] [--seeds 5] [--iterations 300]

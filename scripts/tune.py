@@ -1,11 +1,10 @@
 #!/usr/bin/env python3
 """A fair hyperparameter search for iMAML, first-order MAML and supervised training.
 
-The protocol is :mod:`metampc_bringup.studies.tuning` (its docstring) and docs/tuning.md.
+The logic is :mod:`metampc_bringup.studies.tuning`, the protocol and results docs/tuning.md.
 Progress goes to stderr (tqdm); stdout gets ONE JSON line (configurations with scores,
 robustness runs, winners, wall time, CPU time of the jobs, load average), also written to
-``--out``. Bad
-arguments: one line on stderr, exit status 2.
+``--out``. Bad arguments: one line on stderr, exit status 2.
 
 Usage: python scripts/tune.py [--k 8] [--refine 4] [--finalists 3] [--robust-seeds 3]
        [--jobs 2] --out runs/tuning.json

@@ -1,16 +1,11 @@
 """An experiment from nothing to a report: every seed's run (:class:`SeedRun`), then the
-analysis of the recordings (:mod:`.analysis.experiment_report`). ``scripts/run_experiment.py``
-is its command line; ``make run`` runs it with the defaults.
+analysis of the recordings (:mod:`.analysis.experiment_report`).
 
-Run folder layout::
-
-    OUT/config.yaml                the resolved configuration
-    OUT/report.json, report.md     the experiment's report (claims table, figures)
-    OUT/fig2_meta_training.png, fig3_adaptation.png, tracking_all_methods.png
-    OUT/seed_<s>/recording.mcap    everything published in that seed's run
-    OUT/seed_<s>/report.json       that seed's report; tracking_<method>.png (scenario drift:
-                                   drift_<method>.png, :mod:`.analysis.drift_report`)
-    OUT/seed_<s>/logs/*.log        each node's output
+``scripts/run_experiment.py`` is its command line; ``make run`` runs it with the defaults. In:
+an :class:`~metampc_bringup.experiment_config.ExperimentConfig` and an output folder; out, in
+it: config.yaml (resolved), report.json and report.md, the figures, and per seed
+``seed_<s>/`` its recording.mcap, report.json, plots and node logs; :func:`rebuild_report`
+recomputes the reports from the recordings alone. The run folder: docs/experiments.md.
 """
 import contextlib
 import json

@@ -1,29 +1,14 @@
 """Configuration of an experiment (``scripts/run_experiment.py --config FILE``), without rclpy.
 
-A YAML file holds a mapping with the keys of :class:`ExperimentConfig`; the missing ones keep
-their defaults and an unknown key is an error, so a typo never passes silently. The node
-sections (``plant``, ``learner``, ``controller``, ``recorder``) are ROS parameters handed to
-the nodes as they are: the nodes check them and the orchestrator reports a node's one-line
-error if one is refused. The keys shared by several nodes (``family``, ``dt``, ``u_min``,
-``u_max``) are set once at the top and copied into every node that takes them; the per-seed
-values (seeds, target theta) are set by :meth:`ExperimentConfig.node_parameters`.
-
-The plant family (``family``, docs/families.md) fills in what the file leaves out (null): dt,
-input bounds, initial states, tracked outputs, the controller's output weights q (1 for a
-tracked output, 0 otherwise), and the prior theta* is drawn from.
-
-Requests: ``meta_train.<method>`` are the fields of a ``MetaTrain`` request for each meta
-method, ``adapt.<method>`` those of an ``Adapt`` request for each method that adapts (a
-field left out keeps the learner's parameter).
-
-Protocols (``protocol``), applied to those requests by :meth:`ExperimentConfig.meta_request`
-and :meth:`ExperimentConfig.adapt_request`:
-
-- ``tuned`` (the default, ``make run``): the requests as written; the tuned set-up adapts
-  every method by plain steps (gamma = 0) and meta-trains on the simulated source set alone.
-- ``paper``: the paper as written: Algorithm 1 collects closed-loop source data during
-  meta-training (eq. ub, ``online_collection``), iMAML adapts by eq. (infer) with the gamma it
-  was meta-trained with, first-order MAML and supervised training by plain steps (eq. inner).
+A YAML mapping with the keys of :class:`ExperimentConfig`: a missing key keeps its default, an
+unknown key is an error. The node sections (``plant``, ``learner``, ``controller``,
+``recorder``) are ROS parameters handed to the nodes as they are (the nodes check them);
+``family``, ``dt``, ``u_min``, ``u_max`` are set once and copied into every node that takes
+them; the family fills in what the file leaves null. ``meta_train.<method>`` and
+``adapt.<method>`` are the request fields per method, applied by the ``protocol``: 'tuned'
+(as written, plain adaptation steps) or 'paper' (Algorithm 1 with online collection, eq. (ub);
+iMAML adapts by eq. (infer) with its meta-training gamma). Refuses a bad file with
+:class:`ConfigError`. Keys and protocols: docs/experiments.md.
 """
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Dict, List, Optional, Union

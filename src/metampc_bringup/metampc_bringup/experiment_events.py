@@ -1,16 +1,11 @@
 """The experiment's events: one dataclass per event, the topic they go on, their encoding.
 
 The orchestrator publishes one event per phase (:meth:`ExperimentClient.event
-<metampc_bringup.orchestration.experiment_client.ExperimentClient.event>`), the recorder
-stores them with the run, and the reports (:mod:`metampc_bringup.analysis.experiment_report`,
-:mod:`metampc_bringup.analysis.drift_report`) read them back with :func:`read_events`. No
-rclpy here: a report imports this module.
-
-On the wire, a std_msgs/String per event holding one JSON object (NaN and inf as Python's
-json writes them): ``{"event": KIND, "wall_time": s since the epoch, the fields in the order
-declared}``, the format of every recording so far. Those made before drift runs lack ``run``
-and ``theta_schedule`` of the track events: they read as '' (the run is the method's) and []
-(constant theta*).
+<metampc_bringup.orchestration.experiment_client.ExperimentClient.event>`), the recorder stores
+them with the run, and the reports read them back with :func:`read_events`. On the wire a
+std_msgs/String per event holding one JSON object ``{"event": KIND, "wall_time": s, the fields
+in the order declared}``; older recordings without ``run`` and ``theta_schedule`` read as '' and
+[]. No rclpy here: a report imports this module. The events: docs/experiments.md.
 """
 import json
 import time

@@ -64,7 +64,7 @@ def test_every_method_and_m_gets_the_same_budget():
 
 def test_default_budget_fits_two_hours_on_two_cores():
     estimate = estimate_cpu_s(Plan())
-    assert estimate['total'] == pytest.approx(12570, rel=0.01)     # the module docstring's
+    assert estimate['total'] == pytest.approx(12570, rel=0.01)     # docs/sweep.md's
     assert estimate['total'] / 2 < 2 * 3600
 
 

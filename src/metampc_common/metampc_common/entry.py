@@ -1,8 +1,8 @@
 """Console-script entry points: the node module is imported after Ctrl-C is handled.
 
-A node module imports torch, rclpy and numpy (1.5-2 s for the controller and the learner);
-Ctrl-C in that time used to end in a KeyboardInterrupt traceback and exit status 130, where
-:func:`metampc_common.node_main.run_node` promises exit status 0.
+A node module imports torch, rclpy and numpy, which takes seconds; Ctrl-C in that time ends the
+command with exit status 0, as :func:`metampc_common.node_main.run_node` promises, not with a
+KeyboardInterrupt traceback (docs/nodes.md).
 """
 import importlib
 import signal

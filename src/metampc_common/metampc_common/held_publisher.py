@@ -1,20 +1,13 @@
 """A publisher held back by a reader that keeps all: the recorder loses no message, however
 fast the lockstep loop runs.
 
-Why: the lockstep loop publishes y, u and mpc_status at 300-1400 Hz (3 messages a step) and
-waits only for the controller. With writers that keep the last 1000 (qos.BACKLOG) a recorder
-that takes 2000-2500 messages/s fell behind and lost a quarter of a 5000-step run
-(docs/speed.md). These writers keep all (:data:`HELD`) and the recorder's readers keep all:
-DDS then holds a sample until every reliable reader has acknowledged it, a reader that keeps
-all acknowledges no more once its history is full, and the writer's ``publish`` blocks (for up
-to its max_blocking_time, 100 ms, then fails) until there is room. Readers that keep the last
-N acknowledge on receipt, so only a keep-all reader that is behind holds the loop back
-(measured with a keep-last reader stalled for 5 s: no wait). rcl's wait_for_all_acked was
-tried first: each wait took one heartbeat period (~2.8 s here).
-
-``publish`` retries a publish that failed that way until ``hold_timeout`` has passed; then the
-message is dropped for every reader, counted and reported through ``on_timeout`` (a reader
-that stopped taking messages must not stop the loop for good).
+These writers keep all (:data:`HELD`): DDS holds a sample until every reliable reader has
+acknowledged it, a keep-all reader whose history is full acknowledges no more, and the
+writer's publish then fails after its max_blocking_time (100 ms); :class:`HeldPublisher`
+retries it until ``hold_timeout`` has passed, then drops the message for every reader, counts it
+and reports it through ``on_timeout`` (a reader that stopped must not stop the loop for good).
+Readers that keep the last N never hold the loop back. Why and what was measured:
+docs/nodes.md#a-recording-that-is-complete-at-any-speed, docs/speed.md.
 """
 import time
 from typing import Callable, Optional

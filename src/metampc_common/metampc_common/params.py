@@ -1,22 +1,13 @@
 """Parameters declared once: on the fields of the typed config dataclasses. No rclpy.
 
 A config field that is a node parameter is declared with :func:`param` (default, one-line
-description, range or choices), the way nav2 declares each parameter in one line. From those
-fields come:
-
-- the node's declaration table (:func:`table`: name -> :class:`ParamSpec`, the description with
-  its range, e.g. ``'beta_out, initial Adam step size (> 0)'``, and whether it is live), which
-  ``node_main`` declares: a live parameter (``param(..., live=True)``) can be changed while
-  the node runs (``ros2 param set``), checked by the same parse as at start-up; the others are
-  read-only;
-- parsing and range checks (:func:`build`: raw ROS values -> the typed config, a
-  :class:`ParameterError` naming the first bad parameter; then the config's own ``validate()``
-  for rules across fields);
-- the checks of a config built in code (:func:`check_fields`, what ``validate()`` calls);
-- the docs' parameter rows (test/test_docs.py compares them with :func:`table`).
-
-A node parameter is named after its field, with the section's prefix (``adapt_`` + ``lr``)
-or an explicit rename (the source set's ``seed`` is the node's ``source_seed``).
+description, range or choices, ``live``). From those fields come the node's declaration table
+(:func:`table`: name -> :class:`ParamSpec`, which ``node_main`` declares; live ones may change
+while the node runs, the others are read-only), the parse and range checks of raw ROS values
+(:func:`build` -> the typed config, or a :class:`ParameterError` naming the first bad
+parameter; then the config's own ``validate()``), the checks of a config built in code
+(:func:`check_fields`) and the docs' parameter rows (test/test_docs.py). A parameter is named
+after its field with the section's prefix, or an explicit rename. See docs/architecture.md.
 """
 import dataclasses
 import math

@@ -1,16 +1,11 @@
 """Calls that are safe to repeat: a state-changing request carries an id, and a repeated id is
 answered with the first answer, never run twice.
 
-Why: rmw_fastrtps drops a service response whose writer has not matched the client's reader
-within 100 ms of the send, so a first call right after discovery can lose its answer on a
-loaded machine however long the client waits; the caller must then send again. A reset, a
-meta-training or an adaptation run twice would change the run (a second model version, a
-plant reset mid-episode). So the caller (the orchestrator's client) gives each logical call an
-id and resends it with that id while unanswered; the server keeps the answers of the last
-``keep`` ids. A repeat that comes while the first call still runs (meta-training: minutes)
-waits for the first's answer. An empty id is run every time (a `ros2 service call` by hand).
-
-Pure Python: the future type is the node's (rclpy.task.Future, awaitable in its coroutines).
+rmw_fastrtps can drop the answer of a first call right after discovery, so the caller resends
+with the same id while unanswered; the server keeps the answers of the last ``keep`` ids, a
+repeat that comes while the first call still runs waits for its answer, and an empty id runs
+every time (a `ros2 service call` by hand). Pure Python: the future type is the node's
+(rclpy.task.Future, awaitable in its coroutines). See docs/nodes.md#calls-that-are-safe-to-repeat.
 """
 from collections import OrderedDict
 from typing import Any, Awaitable, Callable, Tuple

@@ -1,19 +1,12 @@
 """Ctrl-C and SIGTERM for :func:`metampc_common.node_main.run_node`: the spin ends between two
 callbacks, and the node is gone before its context is shut down.
 
-Why not rclpy's handler (what ``rclpy.init`` installs by default): its thread shuts the context
-down the moment the signal arrives, whatever the executor is doing. A callback publishing then
-fails ("Failed to publish: publisher's context is invalid"; the EventsExecutor of the plant and
-the controller logs it as FATAL with the callback's stack: 2 of 4 runs of test_faults' Ctrl-C
-test), and every line logged from then on fails its /rosout copy ("Failed to publish log
-message to rosout: publisher's context is invalid").
-
-Here the first signal is only noted, by Python's handler (in the main thread, between two
-bytecodes, so never inside a half-built object), and the executor is woken: Python writes the
-signal's number to a pipe (``signal.set_wakeup_fd``) that a thread reads to call the executor's
-``wake()``, so a node waiting in its executor notices at once. run_node's loop then ends after
-the callback in progress. A second signal shuts the context down at once, rclpy's way: the way
-out of a callback that waits (a HeldPublisher, up to its hold_timeout).
+rclpy's own handler shuts the context down the moment the signal arrives, so a callback
+publishing then fails. Here the first signal is only noted (Python's handler, main thread) and
+the executor woken (``signal.set_wakeup_fd``, a thread that calls its ``wake()``); run_node's
+loop ends after the callback in progress. A second signal shuts the context down at once,
+rclpy's way: the way out of a callback that waits. Why and what failed before:
+docs/nodes.md.
 """
 import os
 import signal

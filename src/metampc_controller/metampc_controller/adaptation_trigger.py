@@ -1,38 +1,14 @@
 """When to ask the learner for a model adapted to the latest samples (adaptation in the loop).
 
-Pure Python (no rclpy). The controller measures how well its model predicts the plant
-(:mod:`~metampc_controller.prediction_error`) and asks the learner to adapt, on the samples up
-to the step of the request, by one of two rules:
-
-* ``periodic``: at every ``adapt_period`` s of the episode's plant time (t = k dt).
-* ``triggered``: a CUSUM on the model's relative T-step prediction error
-  ``e_k = E_k / (D_k + error_floor)``, E_k the T-step error and D_k how far the outputs moved
-  over those T steps (both in the model's normalised units,
-  :mod:`~metampc_controller.prediction_error`), against the same measure right after the
-  model came into use. The raw error follows the task, not the model: it is ~100 times larger
-  at a set-point step than at rest (measured), and a detector on it asked for adaptation at
-  every set-point step of a constant plant; relative to the motion it stays level while the
-  model fits. Once a model is in use, the median of e_k over its first ``baseline_s`` s is its
-  baseline b; then ``s_k = max(0, s_{k-1} + log(e_k / b) - cusum_drift)`` and a request goes
-  out when ``s_k > cusum_threshold``. The log makes it scale-free; the drift is the allowance
-  (1.5: errors below 4.5 times the baseline never accumulate); the threshold how much excess
-  evidence a request needs (10: e.g. 4 steps at 55 times the baseline, or 20 steps at 7.4).
-  The defaults (baseline 7.5 s, one set-point segment of the paper's task; drift 1.5;
-  threshold 10) were chosen on validation seeds 100 and 101 of the drift scenario, among
-  baselines 3 / 7.5 s, drifts 1 / 1.5 / 2 and thresholds 5 / 10 / 20: the least sensitive
-  setting with no request at constant theta in their 6 runs (docs/adaptation.md).
-
-Hysteresis, so that the requests do not chatter: one request at a time; after it, nothing is
-asked until the answering model is in use and its own baseline is measured (``baseline_s``),
-and a request the learner never answers is given up after ``adapt_timeout`` s of wall time
-(the node's timer) with the model in use kept.
-
-Swap: under a lockstep plant the answer to step ``request + swap_delay`` waits for the
-requested model (the plant waits with it), so a seeded run swaps at the same step whatever the
-machine; in real time the model is used from the tick after it was built, and nothing waits.
-A reset of the plant (a new episode) forgets the baseline, the statistic and the request.
-The settings are live parameters of the controller (an experiment switches the mode between
-its runs); a change applies from the next tick, the periods from the next episode.
+Pure Python (no rclpy). Two rules, fed once per tick: ``periodic`` (every ``adapt_period`` s
+of the episode's plant time) and ``triggered``, a CUSUM on the relative T-step prediction
+error e_k = E_k / (D_k + error_floor) (:mod:`~metampc_controller.prediction_error`) against
+its median b over the model's first ``baseline_s`` s: s_k = max(0, s_{k-1} + log(e_k / b) -
+cusum_drift), a request when s_k > cusum_threshold. Hysteresis: one request at a time, then
+nothing until the answering model is in use and its baseline measured; a request never
+answered is given up after ``adapt_timeout`` s of wall time. A plant reset forgets the
+baseline, the statistic and the request. The settings are live controller parameters.
+Why these rules and defaults (measured): docs/adaptation.md.
 """
 from dataclasses import dataclass
 import math

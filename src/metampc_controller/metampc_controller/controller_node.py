@@ -1,69 +1,15 @@
 """The `controller` node: a thin ROS 2 adapter over controller_core.
 
-Interfaces (relative names, so a namespace can wrap them):
-
-* ``y`` (PlantOutput, subscribed, reliable): plant samples; y_k with the input u_k held over
-  (k-1, k] that produced it.
-* ``nssm_weights`` (NssmWeights, subscribed, reliable + transient_local, depth 1: latched;
-  planner 'latent_mpc' only): each message is checked and its predictor + QP built on a
-  worker thread, in arrival order, then used from the next tick on; invalid weights are rejected
-  with one log line and ``model_status = 'rejected: <reason>'``, the previous model stays.
-* ``plant_info`` (PlantInfo, subscribed, latched): sample time dt (reference times, the
-  excitation), family (planner 'nmpc'), bounds and clock mode (checked, warnings only). Its
-  theta is not used: theta comes with every y (below).
-* ``reference`` (std_msgs/Float64MultiArray, subscribed, optional): one set-point per output
-  that replaces the configured reference from the next tick on, until the next message; an
-  empty array returns to the configured reference.
-* ``u`` (ControlInput, published, reliable): the input computed from y_k, with ``step = k``,
-  held over (k, k+1], stamped with y_k's stamp, and the NSSM version that produced it.
-* ``u_hold`` (StepHold, published, reliable): under a lockstep plant, the step whose answer
-  waits for a requested model and the longest it may wait (``adapt_timeout``), so that the
-  plant waits with it instead of timing out.
-* ``mpc_status`` (MpcStatus, published, reliable): one per published input, after it;
-  ``config_version`` names the tuning the tick used (0 as started, +1 per live change).
-* ``set_active`` (metampc_msgs/SetActive): inactive, nothing is published (a lockstep plant
-  waits); activation answers the newest unanswered y at once. The response carries the step
-  answered at once (``answered_step``, -1: none), the step and stamp of the newest y
-  (``latest_step``, ``latest_stamp``), ``matched_subscribers`` (subscriptions of ``u`` matched
-  from this side), ``matched_status_subscribers`` (the same for ``mpc_status``) and
-  ``model_version``, the model of the next tick (0: none). A deactivation with
-  ``wait_delivered`` answers once every u and mpc_status sent is acknowledged by every reader
-  (``delivered``; at most 10 s): before the node is stopped, its answers still on their way
-  to a recorder would die with it. An activation may bound the run: with ``until_step`` > 0
-  the node goes inactive by itself after answering that step, with ``stop_at_escape`` at the
-  first diverged y (unanswered), so a lockstep run stops exactly there however late its
-  caller looks.
-
-Adaptation in the loop (parameter ``adaptation``: periodic or triggered; rules and
-hysteresis in :mod:`metampc_controller.adaptation_trigger`): every MpcStatus carries the
-model's one-step and T-step prediction errors and the detector's state; a tick that asks for
-adaptation sets ``adapt_request`` (the learner adapts on the samples up to that step and
-answers with weights whose ``request_step`` names it). When a model is used is
-:class:`~metampc_controller.model_swap.ModelSwap`'s to say: under a lockstep plant the answer
-of the request's ``swap_step`` waits for that model (a 2-ms timer resumes it; ``u_hold``
-tells the plant, which waits as long, however long its ``input_timeout``), so a seeded run
-swaps at the same step on any machine; in real time the model is used from the tick after
-it was built and nothing waits. A request no model answers within ``adapt_timeout`` s of
-wall time is given up in either mode (the model in use is kept; the next may follow).
-The NMPC yardstick takes theta from every y, its one channel (``PlantOutput.theta``: theta(k
-dt), under a theta_schedule too); a y without theta keeps the last told.
-
-Ticks: a timer at ``rate_hz`` on the node clock (``use_sim_time:=true`` under a lockstep
-plant, rate_hz = 1/dt). Each y is answered exactly once (controller_core.AnswerRule): a tick
-answers the newest unanswered y; without one the tick waits for the next y and runs in its
-callback (rclpy takes /clock best effort with depth 1, on another topic than y, so y_k need
-not be there when the tick of time k dt fires). Reference time is ``step * dt``: each plant
-episode replays the reference from its start.
-
-Parameters, defaults and ranges: :data:`metampc_controller.controller_params.PARAMETERS`.
-A bad value ends the node with one error line and exit status 2. The counts of the run are
-logged when the node stops. Live parameters (the MPC's horizon, weights and bounds, the
-reference): ``ros2 param set`` is checked as at start-up (and the bounds against the
-plant's) and refused with the reason, or accepted; the QP is then rebuilt on the builder
-thread while the ticks go on with the tuning before, and swapped in between two ticks.
-Under a lockstep plant the next tick waits for it, so a change accepted between the ticks
-of steps k and k+1 applies from step k+1 on; otherwise the first tick after the build uses
-it. ``MpcStatus.config_version`` names the tuning of every tick.
+While active, answers each plant sample ``y`` (PlantOutput, step k) once with ``u`` (ControlInput,
+step k, held over (k, k+1]) and then ``mpc_status`` (MpcStatus), planning with eq. (mpc) on the
+latest accepted NSSM (``nssm_weights``, latched; checked and built on a worker thread) or with the
+family's true-model NMPC (theta from every y). Also takes ``plant_info``, an optional ``reference``
+override and ``set_active``; publishes ``u_hold`` when a lockstep answer waits for a requested
+model (adaptation in the loop: :mod:`metampc_controller.adaptation_trigger`,
+:mod:`metampc_controller.model_swap`). Refuses: a bad parameter (one error line, exit 2), a bad
+live change (refused with the reason), invalid weights (``model_status = 'rejected: ...'``, the
+previous model stays). Parameters: :data:`metampc_controller.controller_params.PARAMETERS`;
+interfaces, ticks, live changes and faults: docs/controller.md.
 """
 from array import array
 from concurrent.futures import Future, ThreadPoolExecutor

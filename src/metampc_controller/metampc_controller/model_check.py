@@ -1,29 +1,14 @@
 """The check a new model must pass before the controller flies it.
 
-A model is judged by how it predicts what the controller will use it for: the N-step
-prediction of the plant under the inputs that were really applied (the MPC's own plans, as
-the plant held them), on the latest samples of the current episode. From every `stride`-th
-start t among those samples, with H samples up to t (eq. (z)) and N after it::
-
-    E = mean_{t, k = 1..N, i} ((y_{t+k,i} - yhat_{t+k|t,i}) / s_i)^2
-
-with yhat rolled by eqs. (z_next), (haty) from z_t under u_{t+1..t+N}, and s_i the std of
-output i over the samples scored (the same yardstick for every model, whatever its own
-normalisation). The candidate passes when
-
-    E_candidate <= (1 + margin) E_reference,
-
-E_reference the model in use's E on the same starts when the candidate updates it (the same
-method: an adaptation of it), else that of persistence (yhat_{t+k} = y_t: a model that
-predicts the plant worse than "nothing moves" is not fit to control it). Too few samples in
-the episode to score (H + N + 1) pass unchecked, and say so.
-
-Which models are checked (``model_check``): ``requested`` (default) those that answer the
-controller's own adaptation requests, which arrive while it controls and would otherwise be
-swapped in unchecked; ``all`` every model (a model sent on purpose, e.g. by an experiment
-that compares methods, is then judged too); ``off`` none.
-
-Pure numpy (no rclpy). The controller core calls it on its builder thread, outside the tick.
+Scores the N-step prediction of the plant under the inputs really applied, on the latest
+samples of the episode (u (K, n_u), y (K, n_y)): from every ``stride``-th start t, z_t by
+eq. (z) from H samples, y_hat rolled by eqs. (z_next), (haty) under u_{t+1..t+N}, and
+E = mean ((y - y_hat) / s_i)^2 with s_i the std of output i over the samples scored. The
+candidate passes when E_candidate <= (1 + margin) E_reference, the reference being the model in
+use when the candidate updates it, else persistence (y_hat = y_t). Fewer than H + N + 1
+samples pass unchecked and say so. Which models are checked (``model_check``: requested /
+all / off) is the controller's. Pure numpy (no rclpy); run on the builder thread, outside the
+tick. Why and what it refused: docs/mpc.md#the-check-before-a-model-flies.
 """
 from dataclasses import dataclass
 import math

@@ -1,32 +1,14 @@
 """When a new model applies in the controller: the swap rules, without rclpy or threads.
 
-A model reaches the controller as weights (``nssm_weights``); the node's builder thread checks
-and builds it (:func:`~metampc_controller.controller_core.build_model`), then these rules say
-from which tick on it is used. Steps are plant steps k: the tick of step k answers y_k.
-
-* A model that answers no pending adaptation request (a model sent on purpose, the learner's
-  meta-model, an answer to a request given up or forgotten) is used from the next tick.
-* The answer to the pending request (its ``request_step`` is the request's step r,
-  :mod:`~metampc_controller.adaptation_trigger`) is used:
-
-  - under a lockstep plant from the tick of step r + swap_delay exactly: an answer offered
-    before that is queued until then, and the tick of that step waits until it is offered
-    (:meth:`ModelSwap.waits`; the plant waits with it, told so by the node's hold notice), so
-    a seeded run swaps at the same step on any machine;
-  - in real time from the next tick, before or after r + swap_delay: nothing waits.
-
-* The check (:mod:`~metampc_controller.model_check`, ``model_check``) judges the answers to the
-  controller's own requests (``requested``; late ones too, whose request was given up), every
-  model (``all``) or none (``off``); a model it refuses is never used and the model in use
-  stays. A refused answer ends the request, so the tick waiting for it goes on with the model
-  in use at once; so does a request given up after ``adapt_timeout`` s of wall time (the
-  node's timer).
-* A live change of the tuning rebuilds a queued answer's QP for it, as the model in use's.
-* A new episode (a plant reset) forgets the queued answer with the request.
-
-Threading: :meth:`offer`, :meth:`answers`, :meth:`refused` and :meth:`retune` run on the
-node's builder thread, :meth:`due` and :meth:`waits` on its executor thread; the queued answer
-is handed over as one reference under a lock.
+A model built on the node's builder thread is used from the next tick, except the answer to
+the pending adaptation request (``request_step`` r): under a lockstep plant it applies from
+the tick of step r + swap_delay exactly (queued until then; that tick waits for it,
+:meth:`ModelSwap.waits`), in real time from the next tick. A model the check refuses
+(:mod:`~metampc_controller.model_check`, ``model_check``: requested / all / off) is never used;
+a refused answer or a request given up after ``adapt_timeout`` ends the wait at once. A live
+change rebuilds a queued answer's QP; a plant reset forgets it. Threads: :meth:`offer`,
+:meth:`answers`, :meth:`refused`, :meth:`retune` on the builder thread, :meth:`due` and
+:meth:`waits` on the executor thread; the queued answer is handed over under a lock.
 """
 import threading
 from typing import Callable, Generic, Optional, Protocol, Tuple, TypeVar

@@ -1,54 +1,14 @@
 """Offset-free tracking for the latent MPC: integrating disturbances and the steady-state target.
 
-The MPC of eq. (mpc) plans with the affine latent model (latent_model)::
-
-    z_{k+1} = A z_k + B u_{k+1} + e,    y_k = C z_k + d
-
-Any model error at a set-point then becomes a steady offset. The remedy of Pannocchia &
-Rawlings (2003) and Maeder & Morari (2007): a constant disturbance p (n_d,) augments the model,
-
-    z_{k+1} = A z_k + B u_{k+1} + e + B_d p,    y_k = C z_k + d + C_d p,
-
-is estimated each tick from what was measured against what the model predicted, and the MPC
-plans with the corrected constants e + B_d p and d + C_d p, centring its terminal cost on the
-steady state (z_s, u_s) of the corrected model that best meets the reference within the input
-bounds. The forms (``MpcConfig.offset_free``; 'none' is eq. (mpc) as the paper writes it):
-
-* ``state``: p = [w; v], B_d = [I, 0], C_d = [0, I] (n_d = n_z + n_y). The encoder measures
-  the latent state (z_t = f_enc of the last H samples), so a disturbance on every latent
-  coordinate is observable from the latent one-step residual; v takes what C z_t + d misses of
-  y_t. At a closed-loop steady state (z*, u*, y*) the estimate makes (z*, u*) an equilibrium
-  of the corrected model with output y*, so a plan that stays there leaves r - y* as cost and
-  the MPC moves on unless y* = r on the tracked outputs (or an input bound holds it).
-* ``input``: p = p_u (n_u,), B_d = B, C_d = 0: the latent residual projected onto range(B).
-* ``output``: p = p_y (n_y,), B_d = 0, C_d = I, from the output prediction error only (the
-  classical form with y the only measurement).
-
-Estimator (each tick t of an episode, after tick t-1): the one-step residuals against the
-nominal model,
-
-    rho_t = [z_t - (A z_{t-1} + B u_t + e);  y_t - (C (A z_{t-1} + B u_t + e) + d)],
-
-and the disturbance that explains them best, p_t^inst = H^+ rho_t with H = [B_d; C B_d + C_d]
-(only the y rows for a form that measures y alone), filtered p_t = (1 - g) p_{t-1} + g
-p_t^inst (g = ``disturbance_gain``). p is absolute, not an increment: at a steady state it is
-exactly the model's mismatch there, whatever g, and it integrates model error, never tracking
-error, so a saturated input cannot wind it up. The first tick of an episode keeps the episode's
-p = 0 (no previous z).
-
-Detectability (Pannocchia & Rawlings 2003, Lemma 1; Pannocchia & Bemporad 2007): the augmented
-system is detectable iff (A, C_m) is and
-
-    rank [[A - I, B_d], [C_m, C_dm]] = n_z + n_d,
-
-C_m the measured channels ([I; C] when z is measured, C otherwise) and C_dm their disturbance
-maps. :func:`disturbance_model` refuses a model that fails it, naming the rank and the reason
-(for ``output``: A has an eigenvalue at 1, whose mode and an output disturbance look alike).
-
-Steady-state target: s_s = [z_s; u_s] minimises ||Q^{1/2} (C z + d' - r_N)|| subject to
-(A - I) z + B u + e' = 0 (terminal_cost's affine map); when u_s leaves the bounds, u_s solves
-the same least squares over the box instead (z_s = (I - A)^{-1} (B u + e')), so the terminal
-cost never pulls towards an input the plant cannot get.
+The MPC of eq. (mpc) plans with the affine latent model z_{k+1} = A z_k + B u_{k+1} + e,
+y_k = C z_k + d; a constant disturbance p (n_d,) augments it (+ B_d p, + C_d p; Pannocchia &
+Rawlings 2003) in one of the forms 'state' (p = [w; v], n_d = n_z + n_y), 'input' (B_d = B)
+or 'output' (C_d = I) of ``MpcConfig.offset_free`` ('none': eq. (mpc) as the paper writes it).
+Each tick p is estimated from the one-step residuals (p <- (1 - g) p + g H^+ rho_t,
+g = ``disturbance_gain``) and the terminal cost is centred on the steady state of the
+corrected model that best meets the reference within the input bounds. Refuses
+(:func:`disturbance_model`, ValueError naming the rank and the reason) a model whose augmented
+system is not detectable. Derivation, tests and measurements: docs/mpc.md#offset-free-tracking.
 """
 from dataclasses import dataclass
 import math

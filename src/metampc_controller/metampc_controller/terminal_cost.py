@@ -1,39 +1,14 @@
 """Terminal cost of the latent MPC: the DARE weight P of eq. (mpc), made consistent.
 
-The paper sizes P for the compact state of eq. (compact) but applies it to the output error, and
-its DARE weighs the input u while the stage cost weighs Delta u. Here the state is augmented with
-the previous input, so that Delta u is the input of a linear system::
-
-    s_k = [z_k; u_k]                           (n_s = n_z + n_u)
-    s_{k+1} = Abar s_k + Bbar du_k + ebar,     du_k = u_{k+1} - u_k
-    Abar = [[A, B], [0, I]],  Bbar = [[B], [I]],  ebar = [e; 0],  Cbar = [C, 0]
-
-(the paper's second block row, y_hat = C z, carries no information of its own). The stage cost
-ytilde' Q ytilde + du' R du is then s' Cbar'Q Cbar s + du' R du around the steady state, and P is
-the stabilising solution of the DARE of the paper for (Abar, Bbar, Qbar, R)::
-
-    P = Abar' P Abar - Abar' P Bbar (R + Bbar' P Bbar)^{-1} Bbar' P Abar + Qbar,
-    Qbar = Cbar' Q Cbar + eps I,   eps = reg * max(||Cbar' Q Cbar||_2, 1e-12)
-
-Cbar' Q Cbar is only positive semi-definite (Q tracks some outputs, and u never appears in y), so
-the eps I term makes (Abar, Qbar^{1/2}) detectable and the DARE well posed; (Abar, Bbar) is
-stabilisable exactly when (A, B) is (PBH test: the extra eigenvalue 1 is always reachable
-through du once rank [A - I, B] = n_z, which stabilisability of (A, B) already demands).
-
-The terminal cost is the DARE value on the deviation from the steady state s_ss that matches the
-terminal reference r_N (the infinite-horizon cost-to-go of the stage cost)::
-
-    (s_N - s_ss)' P (s_N - s_ss),
-    s_ss = argmin ||Q^{1/2} (Cbar s + d - r_N)||^2  s.t.  (A - I) z + B u + e = 0
-
-solved once per model through the pseudo-inverse of its KKT matrix, so s_ss is affine in r_N.
-Fallback, when the DARE fails (exception, non-finite or non-definite P, residual above
-``DARE_RTOL``, closed loop not stable; e.g. a learned pair that is not stabilisable): the
-terminal term is the stage output term ytilde_N' Q ytilde_N, P = Cbar' Q Cbar.
-
-Both cases are stored as least-squares rows whose squared norm is the terminal cost (P = T'T):
-``T (s_N - s_ss)`` with the DARE, ``T s_N - M (r_N - d)`` in the fallback. s_ss is data of the
-tick (the MPC gets it from ``ss_r``, ``ss_e``, or from offset_free's bounded target).
+The state is augmented with the previous input, s_k = [z_k; u_k] (n_s = n_z + n_u), so that du_k =
+u_{k+1} - u_k is the input of a linear system (Abar = [[A, B], [0, I]], Bbar = [[B], [I]], Cbar =
+[C, 0]); P is the stabilising solution of the paper's DARE posed for (Abar, Bbar, Qbar = Cbar' Q
+Cbar + eps I, R) rather than eq. (compact)'s state, and the terminal cost (s_N - s_ss)' P (s_N -
+s_ss) is centred on the steady state s_ss that best meets r_N (affine in r_N, from the KKT matrix).
+When the DARE fails (exception, non-finite or non-definite P, residual above ``DARE_RTOL``,
+unstable closed loop) it falls back to the stage output term (P = Cbar' Q Cbar) and says why. Both
+are stored as least-squares rows (P = T'T). Derivation and checks:
+docs/mpc.md#terminal-cost-a-consistent-dare.
 """
 from dataclasses import dataclass
 
@@ -134,7 +109,8 @@ def terminal_cost(model: LatentModel, q: np.ndarray, r: np.ndarray, reg: float) 
 
 def _steady_state_map(model: LatentModel, q: np.ndarray, c_bar: np.ndarray) -> tuple:
     """(S_r (n_s, n_y), S_e (n_s, n_z)) with s_ss = S_r (r - d) + S_e e, the steady state that
-    best matches the reference r under weights q (KKT of the problem in the module docstring)."""
+    best matches the reference r under weights q: the KKT solution of
+    argmin ||Q^{1/2} (Cbar s + d - r)||^2 s.t. (A - I) z + B u + e = 0."""
     n_z, n_s = model.n_z, c_bar.shape[1]
     eq = np.hstack([model.A - np.eye(n_z), model.B])
     kkt = np.block([[c_bar.T @ (q[:, None] * c_bar), eq.T], [eq, np.zeros((n_z, n_z))]])

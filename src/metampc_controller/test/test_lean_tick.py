@@ -1,31 +1,23 @@
-"""The lean control tick (issue 18, item 3) against answers computed without it.
+"""The lean control tick against answers computed without it (docs/mpc.md, Speed of the tick).
 
-- the numpy encoder against the torch NSSM's forward pass (float64) and against the plain
-  formula ``w @ h + b`` layer by layer, bit for bit;
 - LatentMpc.solve(), which calls OSQP's compiled solver directly, against a second
   osqp.OSQP driven through its public API with the same data, bit for bit; its q against
   -2 M'v of a least-squares form built by simulating the model (not from mpc.py's matrices);
-- the references' constant-horizon path against the signal at the sample times, bit for bit;
 - the history's one-assignment write against a plain list of the samples.
+(The numpy encoder's test is the model's test_predictor.py; the references' constant-horizon
+path is in test_references.py.)
 """
 from dataclasses import replace
 
 import numpy as np
 import osqp
 import pytest
-import torch
 
 from metampc_controller import mpc as mpc_module
 from metampc_controller.controller_core import History
 from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import Nssm
-from metampc_model.nssm_config import NssmConfig
-from metampc_model.predictor import NssmPredictor
 from metampc_controller.references import make_reference
-
-torch.set_num_threads(1)
 
 
 def random_model(seed: int, radius: float = 0.95, n_z: int = 5) -> LatentModel:
@@ -34,46 +26,6 @@ def random_model(seed: int, radius: float = 0.95, n_z: int = 5) -> LatentModel:
     a *= radius / max(abs(np.linalg.eigvals(a)))
     return LatentModel(A=a, B=rng.normal(size=(n_z, 1)), C=rng.normal(size=(2, n_z)),
                        e=0.1 * rng.normal(size=n_z), d=0.1 * rng.normal(size=2))
-
-
-# --- encoder -------------------------------------------------------------------------------
-
-@pytest.mark.parametrize('n_u,n_y,hidden,history', [
-    (1, 2, (128, 128), 10),      # the default NSSM, as the controller runs it
-    (2, 3, (64, 32, 16), 7),
-    (1, 1, (8,), 1)])
-def test_encoder_is_the_torch_forward_and_the_plain_formula(n_u, n_y, hidden, history):
-    config = NssmConfig(n_u=n_u, n_y=n_y, hidden=hidden, history=history, n_z=4)
-    rng = np.random.default_rng(history)
-    norm = Normalisation(rng.normal(size=n_u), rng.uniform(0.3, 3.0, n_u),
-                         rng.normal(size=n_y), rng.uniform(0.3, 3.0, n_y))
-    model = Nssm(config, norm, seed=history, dtype=torch.float64)
-    params = model.params()
-    predictor = NssmPredictor(config, norm, params)
-    layers = [(params[f'encoder.{i}.weight'].numpy(), params[f'encoder.{i}.bias'].numpy())
-              for i in range(len(hidden) + 1)]
-    for _ in range(50):
-        u = rng.uniform(-2.0, 2.0, size=(history, n_u))
-        y = rng.normal(0.0, 3.0, size=(history, n_y))
-        z = predictor.encode(u, y)
-        assert z.shape == (config.n_z,) and z.dtype == np.float64
-        # The torch NSSM's encoder on the normalised history (eq. z).
-        u_n, y_n = norm.normalise(u, y)
-        with torch.no_grad():
-            z_torch = model.encode(torch.as_tensor(u_n[None]), torch.as_tensor(y_n[None]))[0]
-        assert np.abs(z - z_torch.numpy()).max() <= 1e-10 * max(1.0, np.abs(z).max())
-        # The plain formula, written out: the same float64 operations, so the same bits.
-        h = np.concatenate([u_n, y_n], axis=1).reshape(-1)
-        for i, (w, b) in enumerate(layers):
-            h = w @ h + b
-            if i < len(layers) - 1:
-                h = np.maximum(h, 0.0)
-        np.testing.assert_array_equal(z, h)
-        # Flat or float32 histories are read as before (reshaped, converted to float64).
-        np.testing.assert_array_equal(predictor.encode(u.ravel(), y), z)
-        np.testing.assert_array_equal(
-            predictor.encode(u.astype(np.float32), y),
-            predictor.encode(u.astype(np.float32).astype(np.float64), y))
 
 
 # --- the QP solve --------------------------------------------------------------------------
@@ -197,27 +149,7 @@ def test_the_compiled_path_and_the_wrapper_path_give_the_same_bits(monkeypatch):
             z = model.step(z, u)
 
 
-# --- references and history ----------------------------------------------------------------
-
-@pytest.mark.parametrize('kind,params', [
-    ('paper', {}),
-    ('paper', dict(start=1.05, segment=2.5, outputs=(0, 1))),
-    ('steps', dict(steps=[(0.0, 0.5), (7.4, -0.5), (7.5, 0.1), (12.0, 0.2)], initial=-0.3)),
-    ('setpoint', dict(value=0.3, n_y=3, outputs=(2,))),
-    ('sine', dict(amplitude=0.4, period=3.3, outputs=(0, 1)))])
-def test_references_equal_the_signal_at_the_sample_times(kind, params):
-    ref = make_reference(kind, **params)
-    outputs = list(ref.config.outputs)
-    for dt in (0.1, 0.05, 0.01, 0.3):
-        for n in (1, 20, 7, 20, 50):
-            for k in range(0, 1200, 3):
-                t0 = k * dt
-                expected = np.zeros((n, ref.config.n_y))
-                expected[:, outputs] = ref.signal(t0 + dt * np.arange(1, n + 1))[:, None]
-                got = ref.evaluate(t0, dt, n)
-                assert got.dtype == np.float64
-                np.testing.assert_array_equal(got, expected)
-
+# --- history --------------------------------------------------------------------------------
 
 def test_history_rows_are_the_samples_of_the_episode():
     rng = np.random.default_rng(0)

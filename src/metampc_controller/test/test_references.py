@@ -56,3 +56,23 @@ def test_chosen_outputs_and_sizes():
 def test_invalid_references_are_rejected(kind, params):
     with pytest.raises(ValueError):
         make_reference(kind, **params)
+
+
+@pytest.mark.parametrize('kind,params', [
+    ('paper', {}),
+    ('paper', dict(start=1.05, segment=2.5, outputs=(0, 1))),
+    ('steps', dict(steps=[(0.0, 0.5), (7.4, -0.5), (7.5, 0.1), (12.0, 0.2)], initial=-0.3)),
+    ('setpoint', dict(value=0.3, n_y=3, outputs=(2,))),
+    ('sine', dict(amplitude=0.4, period=3.3, outputs=(0, 1)))])
+def test_references_equal_the_signal_at_the_sample_times(kind, params):
+    ref = make_reference(kind, **params)
+    outputs = list(ref.config.outputs)
+    for dt in (0.1, 0.05, 0.01, 0.3):
+        for n in (1, 20, 7, 20, 50):
+            for k in range(0, 1200, 3):
+                t0 = k * dt
+                expected = np.zeros((n, ref.config.n_y))
+                expected[:, outputs] = ref.signal(t0 + dt * np.arange(1, n + 1))[:, None]
+                got = ref.evaluate(t0, dt, n)
+                assert got.dtype == np.float64
+                np.testing.assert_array_equal(got, expected)

@@ -1,38 +1,15 @@
 """The batched meta-gradients of iMAML-GN and first-order MAML, written on (B, ...) tensors.
 
-The fast backend of meta-training (``MetaConfig.backend = 'fast'``). It computes what
-``vmap(ImamlTaskGradient)`` (curvature 'gauss_newton') and ``vmap(FirstOrderMamlTaskGradient)``
-compute (imaml.py, maml.py, objective.py, curvature.py, cg.py: the reference, tested equal to
-float32 rounding in test_batched_objective.py), for the B tasks of an outer step at once:
-
-- The NSSM of eq. (SSM) for B weight vectors (B, P) on B data sets with batched products
-  (``torch.baddbmm`` / ``torch.bmm``) instead of ``vmap(functional_call)``. The encoder of
-  eq. (z) keeps its activations; the linear part of eqs. (z_next), (haty) is one matrix per
-  task, y_hat = z F' + u_future K' with F the stacked C A^k (k = 1..T) and K the block
-  Toeplitz matrix of the Markov parameters C A^(k-j) B (:class:`Head`, with A =
-  latent_stability.bounded_transition(W)).
-- The loss gradient (eq. meta_gradient's P_b and every inner step) and the Gauss-Newton
-  products G v = (2 / (N T)) J'J v of eq. (Qb) (one forward-mode and one reverse-mode pass,
-  as curvature.gauss_newton_product) are written out by hand from the kept activations:
-  bmm's, ReLU masks and the derivatives of the head (d||W||_2 = u_1' dW v_1 for the bound
-  on A). No autograd graph, no torch.func transform, no per-op vmap overhead; gradients are
-  written into preallocated (B, P) buffers (no unflatten/flatten copies), and the inner
-  loop and CG update their vectors in place (on the CPU a fresh (B, P) tensor per
-  operation cost more than the arithmetic: page faults).
-- The safeguarded inner loop of eq. (inner_imaml) / eq. (inner) (FlatObjective.prox_step)
-  evaluates the objective once per step instead of twice: the objective and gradient at the
-  candidate psi - rate g are computed together; an accepted candidate's gradient is the next
-  step's, a refused one leaves psi and its gradient as they were (the reference recomputes
-  the same gradient at the same psi). M steps cost M + 1 forward and M backward passes
-  instead of 2M and M.
-- CG of eq. (cg) on the B systems (I + G_b / gamma) x_b = P_b at once (row-wise dot products,
-  the same guarded recursion as cg.conjugate_gradient).
-- The anchor of eq. (outer) with init_loss_weight w: w grad_omega l_SSM(D_test; omega) per
-  task, one more batched gradient (meta_train.AnchoredTaskGradient).
-
-Everything runs on ``device`` ('cpu' or 'cuda'); the weights and windows are moved there
-and the TaskGradient comes back on it. Deterministic on the CPU for a fixed thread count
-(only dense products, element-wise ops and sums; no scatter or atomic accumulation).
+The fast backend of meta-training (``MetaConfig.backend = 'fast'``): for the B tasks of an
+outer step at once it computes what ``vmap(ImamlTaskGradient)`` (Gauss-Newton curvature) and
+``vmap(FirstOrderMamlTaskGradient)`` compute (the reference: imaml.py, maml.py, equal to
+float32 rounding, test_batched_objective.py): the NSSM of eq. (SSM) for (B, P) weight vectors,
+the inner loop of eq. (inner_imaml) / eq. (inner), the Gauss-Newton products of eq. (Qb), CG of
+eq. (cg), P_b of eq. (meta_gradient) and the anchor of eq. (outer), with gradients written out
+by hand (no autograd graph) into preallocated (B, P) buffers. Runs on ``device`` ('cpu' or
+'cuda'); the TaskGradient comes back on it. Deterministic on the CPU for a fixed thread count
+(dense products, element-wise ops and sums only). How and why: docs/learning.md, Speed of the
+meta-gradient.
 """
 from dataclasses import dataclass
 from typing import Callable, List, NamedTuple, Tuple

@@ -1,18 +1,13 @@
 """Data sets of the NSSM: trajectories, (H + T)-sample windows, source and target sets.
 
 A :class:`Trajectory` is a run of consecutive samples ``(step k, u_k, y_k)`` in physical units,
-all finite, with step indices without gaps (index convention of ``metampc_plant.simulator``:
-``u_k`` produced ``y_k``). Windows (paper, sec. NSSM, step 1) are cut from one trajectory only,
-so a window never spans an invalid sample, a divergence or a gap in step indices.
-
-Non-finite data never enters a data set: simulated episodes that leave the state box (e.g. the
-escaping theta < 0 van der Pol systems of docs/architecture.md, 'Calibration') are dropped whole
-and counted, and buffered samples are split at gaps, non-finite values and out-of-box outputs.
-
-Source set (sec. Meta-learning framework): N_s simulated systems of the plant family (the
-paper's: van der Pol, theta ~ N(0, 1)), theta drawn from the family's Theta, excitation inputs,
-bounded episodes; each task's episodes are cut in time into D_tr (first part) and D_test
-(rest), so the two never share a sample. Target set: ~300 samples of one theta.
+all finite, without gaps (u_k produced y_k); windows of H + T samples are cut from one
+trajectory only, so none spans an invalid sample or a gap. Non-finite data never enters: a
+simulated episode that leaves the state box is dropped whole and counted. The source set: N_s
+simulated systems with theta drawn from the family's Theta, excitation inputs, bounded
+episodes, each task's episodes cut in time into D_tr and D_test (no shared sample); the target
+set: ~300 samples of one theta. Windows as arrays u (N, H + T, n_u), y (N, H + T, n_y).
+Pipeline: docs/learning.md#data-pipeline-datapy.
 """
 from collections import deque
 import dataclasses

@@ -1,22 +1,13 @@
 """An independent held-out set of the target system, and l_SSM of a published model on it.
 
-The learner's own held-out figure (the adapt loss curve) comes from the last
-``heldout_fraction`` of the ~300 buffered target samples, 60 by default: what the node saw,
-too few to rank methods on. The experiment report ranks them on this set instead: at least
-:data:`HELDOUT_SAMPLES` samples of the target plant theta*, bounded excitation episodes
-simulated with the plant core (``data.simulate_target``) at the learner's source excitation
-settings and the plant's dt, substeps, input bounds and state box, i.e. the distribution of the
-learner's target data, in fresh episodes.
-
-Seed stream: the run's seed s seeds the plant noise, the controller's exploration, the source
-set, meta-training and the oracle's episodes (s, s + 1), and ``rng([s, 0x7e7a])`` draws theta*.
-The held-out set uses :func:`heldout_seed`, the first 64-bit word of
-``numpy.random.SeedSequence([s, HELDOUT_STREAM])`` as one int: another entropy pool, so its
-initial states and inputs share nothing with the collection's.
-
-Every model is scored in its own normalisation and architecture (the decoded NssmWeights), on
-windows of H + T samples as the learner cuts them, with ``nssm.prediction_loss`` (l_SSM of eq.
-SSM, normalised units): the number the learner's loss curves report. No rclpy here.
+The experiment report ranks the methods on this set, not on the learner's own held-out 60 of
+~300 buffered samples: at least :data:`HELDOUT_SAMPLES` samples of theta* in fresh bounded
+excitation episodes simulated with the plant core (``data.simulate_target``) at the learner's
+source excitation settings and the plant's dt, substeps, bounds and state box, seeded by
+:func:`heldout_seed` (``SeedSequence([s, HELDOUT_STREAM])``: shares nothing with the run's
+collection). Each model is scored in its own normalisation and architecture (the decoded
+NssmWeights) on windows of H + T samples with ``nssm.prediction_loss`` (l_SSM of eq. (SSM),
+normalised units). How it enters the report: docs/experiments.md. No rclpy here.
 """
 import math
 from dataclasses import replace

@@ -1,54 +1,15 @@
 """The `learner` node: a thin ROS 2 adapter over LearnerSession.
 
-Interfaces (relative names, so a namespace can wrap them):
-
-* ``y`` (PlantOutput, subscribed, reliable, depth 1000): target samples (step k, u_applied =
-  u_k, y_k) go to D_target (:class:`TargetBuffer`): the first ``target_buffer_size`` valid
-  samples after buffering (re)starts (at start-up if ``buffer_on_start``). Subscribed from
-  start-up and whenever buffering (re)starts, unsubscribed when it stops or D_target is full:
-  a buffer that takes nothing more costs nothing, whereas the subscription cost the node
-  about 0.8 ms of CPU per plant step (measured in lockstep tracking, where it held the loop
-  back on a 2-core machine; a full buffer left subscribed kept the learner of a by-hand
-  session at 37 % of a core, docs/nodes.md).
-* ``plant_info`` (PlantInfo, subscribed, latched): theta, dt and bounds of the target plant,
-  for the ``oracle`` adaptation. The plant's dt is the one source of truth: a plant that
-  samples at another dt than the ``dt`` parameter (the source systems') ends the node with
-  one error line and exit status 2.
-* ``set_buffering`` (metampc_msgs/SetBuffering): true clears D_target and (re)starts
-  buffering, false stops it and keeps the samples; the response counts the samples cleared,
-  kept, skipped and lost, and the publishers of ``y`` matched when it was sent.
-* ``meta_train`` (MetaTrain): Algorithm 1 on simulated source systems (``learner_session``);
-  answers when done with the version, the loss curve and the final loss; publishes the
-  meta-model on ``nssm_weights`` (stage 'meta').
-* ``adapt`` (Adapt): eq. (infer) from a meta-model on D_target, or the 'supervised' / 'oracle'
-  baselines; answers with the held-out loss curve; publishes the model (stage 'adapted').
-* ``nssm_weights`` (NssmWeights, published, reliable + transient_local, depth 1: latched): every
-  model the learner makes (and the meta-model of ``meta_model_path`` at start-up), encoded by
-  ``metampc_model.weights_codec.fields_from_weights``, versions increasing.
-* ``mpc_status`` (MpcStatus, subscribed with ``loop_adaptation``): adaptation in the loop. A
-  status with ``adapt_request`` (the controller's detector or period asked) starts eq. (infer)
-  on the latest ``loop_window`` samples up to its step, from the model in use
-  (``model_version``) anchored to its meta-model (``loop_gamma``), on a worker thread of its
-  own; the model is published with ``request_step`` (stage 'online'). The y subscription
-  then stays on whether buffering or not (:mod:`metampc_learner.loop_adaptation`).
-* ``progress`` (TrainingProgress, published, reliable, depth 10): once when a job starts, every
-  ``progress_period`` s of wall time while it runs (the latest step), and once when it ends
-  (phase 'done' or 'failed').
-
-Threads: a MultiThreadedExecutor. The two training services share a reentrant callback group
-and train inside their callback; a second request is served by another thread and answered
-'busy' at once (:class:`JobSlot`). ``y``, ``plant_info`` and ``set_buffering`` have a group of
-their own and the progress heartbeat (steady clock) another, so buffering and answers go on
-while a job trains (a request waits for a running adaptation in the loop, which takes seconds,
-instead of being refused). Requests that cannot be carried out (busy, bad arguments, no meta-model,
-too few samples) get success=false and a message saying what is missing; they are logged.
-
-Parameters, defaults and ranges: :data:`metampc_learner.learner_params.PARAMETERS`. A bad value
-(or an unreadable ``meta_model_path``) ends the node with one error line and exit status 2.
-The request defaults (what a ``meta_train`` or ``adapt`` request takes for a field left at 0 or
-empty) are live: ``ros2 param set`` changes them for the next request, checked as at start-up
-(refused with the reason); a running job keeps the values it started with.
-On shutdown a running job is cancelled at its next step.
+Buffers target samples from ``y`` into D_target (:class:`TargetBuffer`, ``set_buffering``),
+serves ``meta_train`` (Algorithm 1, eq. (outer)) and ``adapt`` (eq. (infer), or the
+'supervised' / 'oracle' baselines) and publishes every model it makes on the latched
+``nssm_weights`` (:mod:`metampc_model.weights_codec`) and job heartbeats on ``progress``; with
+``loop_adaptation`` it answers the controller's ``adapt_request`` on ``mpc_status``
+(:mod:`metampc_learner.loop_adaptation`). One training job at a time (:class:`JobSlot`); a
+second is answered 'busy' at once. Refuses: a bad parameter, an unreadable
+``meta_model_path`` or a plant whose dt is not ``dt`` (one error line, exit 2); a request it
+cannot carry out (success=false, what is missing). Parameters: :data:`.learner_params.PARAMETERS`;
+interfaces, threads and live request defaults: docs/learner.md.
 """
 from concurrent.futures import ThreadPoolExecutor
 import sys

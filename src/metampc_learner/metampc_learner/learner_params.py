@@ -1,18 +1,13 @@
 """Parameters of the `learner` node and its service requests.
 
-Pure Python (no rclpy). Every parameter is declared once, on a field of a typed config (field
-metadata: default, description, range; see :mod:`metampc_common.params`): the core configs
-(meta-training, NSSM, source set, excitation, online collection, adaptation, oracle,
-adaptation in the loop) and
-:class:`LearnerNodeConfig` for the node's own. :data:`SECTIONS` names them with their prefixes;
-:data:`PARAMETERS` (what the node declares), :func:`parse_params` (raw values -> checked config,
-:class:`ParameterError` naming the first bad parameter; the node exits with status 2) and the
-docs' rows come from there. Requests of ``meta_train`` and ``adapt`` are resolved against the
-parameters by :func:`resolve_meta_request` and :func:`resolve_adapt_request` (0 / empty fields
-mean 'use the node parameter'); they raise ``ValueError`` with the reason for a bad request.
-
-Defaults are the calibration of docs/architecture.md and the paper's NSSM (n_z = 5, 128-wide
-ReLU layers); the experiment's tuned values are in config/default.yaml.
+Pure Python (no rclpy). Every parameter is declared once, on a field of a typed config
+(:mod:`metampc_common.params`): the core configs (meta-training, NSSM, source set, excitation,
+online collection, adaptation, oracle, adaptation in the loop) and :class:`LearnerNodeConfig`.
+:data:`SECTIONS` names them with their prefixes; :data:`PARAMETERS`, :func:`parse_params` (raw
+values -> checked config, or :class:`ParameterError` naming the first bad one) and the docs'
+rows come from there. :func:`resolve_meta_request` and :func:`resolve_adapt_request` fill a
+request's 0 / empty fields from the parameters, raising ``ValueError`` for a bad request.
+Defaults and the tuned values: docs/learner.md, config/default.yaml.
 """
 import math
 from dataclasses import dataclass, field, replace

@@ -1,28 +1,13 @@
 """What the learner node does, without ROS: meta-train, adapt, keep and save the models.
 
-A :class:`LearnerSession` holds the meta-model of every method it has trained or loaded
-(omega_inf of Algorithm 1, per method), numbers every model it produces with an increasing
-version, and saves each one to ``checkpoint_dir`` (``<stage>_<method>_v<version>.pt``,
-see ``checkpoint.py``) when that is set. Versions continue after the highest one already in
-``checkpoint_dir``, so a restarted learner neither overwrites the checkpoints of an earlier run
-nor publishes a version lower than the models it made before. The node calls it from its
-training thread, one job at a time; requests it cannot carry out raise :class:`LearnerError`
-with the reason.
-
-- :meth:`LearnerSession.meta_train`: Algorithm 1 on the simulated source set
-  (``data.simulate_source`` with the node's source settings, simulated once and reused; the
-  NSSM's normalisation comes from it), optionally with the closed-loop collector of
-  ``online_collection`` (eq. ub) wired into the core's collector hook.
-- :meth:`LearnerSession.loop_adapt`: adaptation in the loop, at a controller's request
-  (``loop_adaptation``), from the model in use on the latest samples.
-- :meth:`LearnerSession.adapt`: D_target is the node's buffer, split by
-  ``target_buffer.split_target`` (the last ``heldout_fraction`` of the samples held out for
-  the loss curve). Methods: a meta method ('' = the latest meta-model) -> eq. (infer) from its
-  omega_inf; 'supervised' -> the same steps from ``init_params(seed)`` (gamma = 0); 'oracle'
-  -> ``oracle.fit_oracle`` on simulated episodes of the target plant (theta, dt, bounds from
-  plant_info), held out on the buffer's held-out part (or, with no buffered samples, on
-  further simulated episodes). supervised and oracle use the NSSM of the node parameters with
-  the source normalisation, so that every method predicts in the same units.
+A :class:`LearnerSession` holds the meta-model omega_inf of every method it has trained or
+loaded, numbers each model it makes with an increasing version (continuing after the highest
+in ``checkpoint_dir``, where each is saved) and serves the node's jobs, one at a time:
+:meth:`LearnerSession.meta_train` (Algorithm 1 on the simulated source set, optionally with
+online collection, eq. (ub)), :meth:`LearnerSession.adapt` (eq. (infer) from a meta-model on
+D_target, or the 'supervised' / 'oracle' baselines, with a held-out loss curve) and
+:meth:`LearnerSession.loop_adapt` (adaptation in the loop). Requests it cannot carry out raise
+:class:`LearnerError` with the reason. The node's services and versions: docs/learner.md.
 """
 import math
 import os

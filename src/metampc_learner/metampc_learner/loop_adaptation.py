@@ -1,23 +1,13 @@
 """Adaptation in the loop, the learner's side: the latest target samples, and what one
 request of the controller adapts on.
 
-Pure Python (no rclpy). While tracking, the controller asks for adaptation
-(``MpcStatus.adapt_request``; when, by :mod:`metampc_controller.adaptation_trigger`). The
-learner keeps the latest samples of the running episode in a :class:`RecentSamples` and
-answers each request with eq. (infer) on the ``loop_window`` latest of them up to the request
-step, from the model in use (the version the controller reported with the request), anchored
-to its method's meta-model by the proximal term ``gamma/2 ||psi - omega_inf||^2``
-(``loop_gamma``), so that repeated adaptation on short windows does not drift away from what
-meta-training learnt (a model without a meta-model, supervised or the oracle, is anchored to
-itself). :meth:`LearnerSession.loop_adapt` runs it; the node publishes the result with
-``request_step``.
-
-A request whose window the plant no longer feeds is refused (:meth:`RecentSamples.refusal`,
-the reason in the learner's log line): samples in its span that were diverged or non-finite (a
-plant that escaped holds its last finite state and flags every y diverged: the window would be
-the samples before the escape, the same at every request, and each adaptation refit them:
-window loss 0.1419 -> 0.1419 every 10 s in a by-hand session), or outputs that did not change
-over the whole window (nothing left to learn from).
+Pure Python (no rclpy). :class:`RecentSamples` keeps the latest samples of the running
+episode; a request (``MpcStatus.adapt_request``, step r) is answered with eq. (infer) on the
+``loop_window`` latest samples up to r, from the model in use, anchored to its method's
+meta-model by ``loop_gamma/2 ||psi - omega_inf||^2`` (a model without one, to itself), run by
+:meth:`LearnerSession.loop_adapt`. Refuses (:meth:`RecentSamples.refusal`, the reason in the
+log) a window with diverged or non-finite samples or outputs that never changed: nothing left
+to learn from. Why: docs/adaptation.md.
 """
 from collections import deque
 from dataclasses import dataclass

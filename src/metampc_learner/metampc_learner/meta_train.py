@@ -1,54 +1,15 @@
 """Meta-training (Algorithm 1): the outer loop of iMAML, first-order MAML or unrolled MAML.
 
-Each outer step samples B tasks from the source set (with replacement when B exceeds it),
-``windows_per_task`` windows of each task's D_tr and D_test, computes the B per-task
-meta-gradients (imaml.py, maml.py) vectorised with ``torch.func.vmap`` (or a Python loop), and
-applies their mean with Adam (lr beta_out): eq. (outer) for iMAML, eq. (outer_maml) for
-first-order MAML. With ``lr_schedule='cosine'`` beta_out is annealed from ``lr_outer`` to 0 over
-the outer steps (``torch.optim.lr_scheduler.CosineAnnealingLR``, as MAML++ does); the default
-stays constant: on the validation source sets cosine annealing left both methods worse after
-adaptation (docs/tuning.md).
-
-Anchor of the meta-model (``init_loss_weight`` w > 0, off by default): each task's
-contribution becomes its meta-gradient plus w grad_omega l_SSM(D_test; omega), i.e. the outer
-objective gains w times the loss of the meta-model before adaptation (MAML++'s multi-step loss,
-kept at step 0 only). Without it eq. (outer) scores omega only after the inner loop, and omega
-can drift to where the inner loop does all the work (docs/experiments.md, robustness).
-
-Non-finite tasks: a task whose test loss or meta-gradient is non-finite is skipped (left out
-of the mean) and counted; if more than ``max_skip_fraction`` of a batch is skipped for
-``max_bad_steps`` consecutive steps, :class:`MetaTrainingError` names the tasks.
-
-Divergence guard (``validation_tasks`` > 0, on by default): that many source tasks (at most a
-fifth of them), drawn once from the seed, are held out of the task sampling. Every
-``validation_every`` outer steps the method's meta-test loss (the loss after the inner loop,
-the quantity eq. (outer) descends) on fixed windows of those tasks is the validation loss;
-the weights and Adam's state at the best one are kept. A validation loss that is non-finite
-or above ``spike_factor`` times the best rolls back to that checkpoint and multiplies beta_out
-by ``rollback_lr_factor`` (a smaller step from a good point); each rollback is counted in the
-progress reports and the result. The result's weights are the best checkpoint's, so a run
-that diverged after a good start returns the good start, never the divergence. Measured
-before this guard: the quadruple tank's tuned iMAML (gamma 0.01) ended at meta-test losses of
-1.1-48.7 on 5 of 7 source sets.
-
-Algorithm 1's online collection: an optional ``collector(task, theta, params_b)`` runs after
-each task's inner loop with its adapted weights omega_b and returns new trajectories of that
-system; they join the task's D_tr / D_test (capped in the source set, oldest dropped).
-
-Backend (``backend``): 'fast' (default) computes the B meta-gradients of iMAML with
-Gauss-Newton curvature and of first-order MAML with batched_objective.py (hand-batched NSSM,
-about 3x less CPU time per outer step, docs/learning.md 'Speed of the meta-gradient');
-'eager' is the reference below (``vmap`` of imaml.py / maml.py, or a Python loop), which
-also runs the exact-Hessian curvature, unrolled MAML and a loss with the NSSM's latent
-consistency term (the fast code has l_SSM alone) under either backend. The two agree
-to float32 rounding (test_batched_objective.py), so a run's numbers differ between backends
-at that level and, through the outer loop, beyond it. ``device``: 'cpu' or 'cuda' (refused by
-:meth:`MetaConfig.validate` when torch sees no CUDA device); the weights, the windows of each
-outer step and Adam live there, the results come back to the CPU.
-
-Determinism: task and window sampling use ``numpy.random.default_rng(seed)``, the initial
-weights ``init_params(config, seed)``; the same seed, backend, device and thread count give
-the same weights.
+Each outer step samples B tasks of the source set, computes their meta-gradients (imaml.py,
+maml.py; vmap, a loop, or batched_objective.py on the 'fast' backend) and applies the mean
+with Adam: eq. (outer) for iMAML, eq. (outer_maml) for MAML, plus the optional anchor of the
+meta-model (``init_loss_weight``), the divergence guard (held-out validation tasks, rollback
+to the best checkpoint) and Algorithm 1's online collection (``collector``). In: a
+:class:`MetaConfig`, a source set and an NSSM; out: the best checkpoint's weights and the
+curves (:class:`MetaResult`). Refuses a bad config (:meth:`MetaConfig.validate`, e.g. 'cuda'
+without a CUDA device); skips non-finite tasks, and raises :class:`MetaTrainingError` when too
+many are skipped in a row. The same seed, backend, device and thread count give the same
+weights. Details and measurements: docs/learning.md.
 """
 import copy
 import math

@@ -1,30 +1,14 @@
 """Algorithm 1's online collection: closed-loop source data from the latent MPC, eq. (ub).
 
-After the inner loop of task b (adapted weights omega_b, eq. inner_imaml), the meta-training
-core calls the collector with (task, theta_b, omega_b). The collector turns omega_b into the
-latent model of eq. (SSM) (``Nssm.predictor``: encoder + affine latent model in physical
-units), sets up the latent MPC of eq. (mpc) (``metampc_controller.mpc.LatentMpc``) and runs it
-on the source system theta_b (the plant core, ``metampc_plant.simulator.Plant``) for bounded
-episodes with
-exploration noise, eq. (ub)::
-
-    u^b = clip(u^b_* + u^b_0, u_min, u_max),     u^b_0 ~ N(0, Sigma),  Sigma = noise_std^2 I
-
-and returns the trajectories (u^b, y^b) that the core adds to D_source (SourceSet.add, capped).
-
-Episode (index convention of ``metampc_model.nssm``: u_k was held over (k-1, k] and
-produced y_k): x_0 uniform in the family's initial-state box; samples 1..H are driven by the
-source excitation (the encoder needs H pairs before the MPC can run); from t = H on, every
-tick encodes z_t from (u, y)_{t-H+1..t}, solves eq. (mpc) for u_{t+1} with the applied u_t and
-the reference r_{t+1..t+N} (set-points of the family's tracked outputs uniform within
-+-ref_bound of the family's reference, each held ref_hold_s), adds the noise and steps the
-plant. An episode ends after ``warmup +
-episode_samples`` samples or at the first sample that leaves the state box (the plant core
-flags it); only the finite samples before it are returned, so no window spans an escape.
-A model the MPC cannot use (non-finite weights, bad shapes) gives no data for that call.
-
-Pure numpy/torch/osqp, no rclpy. Determinism: episode k of call n for task b draws from
-``numpy.random.default_rng((seed, b, n, k))``.
+After the inner loop of task b (eq. (inner_imaml)) the meta-training core calls the collector with
+(task, theta_b, omega_b); it turns omega_b into the latent model of eq. (SSM), runs the latent MPC
+of eq. (mpc) on the source system theta_b (the plant core) for bounded episodes with exploration
+noise, u^b = clip(u^b_* + u^b_0, u_min, u_max), u^b_0 ~ N(0, noise_std^2 I), and returns the
+trajectories (u^b, y^b) (:class:`~metampc_learner.data.Trajectory`, index convention of
+:mod:`metampc_model.nssm`) that the core adds to D_source. An episode ends at the first sample that
+leaves the state box (only the finite samples before it are returned); a model the MPC cannot use
+gives no data. Seeded per (seed, task, call, episode). Pure numpy/torch/osqp, no rclpy. Episodes in
+full: docs/learner.md.
 """
 import dataclasses
 from dataclasses import dataclass, field

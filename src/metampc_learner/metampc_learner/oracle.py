@@ -1,16 +1,11 @@
 """The oracle: an NSSM fit from a random initialisation on plentiful data of the target itself.
 
-The yardstick of the comparison (an NSSM fit on 100 episodes of the target): ``episodes``
-bounded excitation episodes of the target plant, simulated with the plant core at the plant's
-own theta, dt, substeps, input bounds and state box (escaped episodes dropped), then ``steps``
-Adam steps on minibatches of ``batch_windows`` windows of l_SSM (eq. SSM) from
-``init_params(seed)``. Plain full-batch gradient steps, as adaptation takes them, were measured
-too slow for this: 30 steps on 16 000 windows took 22 s and left a held-out loss of 0.04; 500
-Adam steps reached 5e-5 (theta = -0.32, default NSSM).
-
-Loss curves (normalised units) have ``steps + 1`` entries, before the first step and after
-every step: held-out loss on the given windows, training loss on a fixed subset of at most
-``eval_windows`` training windows.
+The yardstick of the comparison: ``episodes`` bounded excitation episodes of the target plant,
+simulated with the plant core at the plant's own theta, dt, substeps, input bounds and state
+box (escaped episodes dropped), then ``steps`` Adam steps on minibatches of ``batch_windows``
+windows of l_SSM (eq. (SSM)) from ``init_params(seed)``. Loss curves (normalised units) have
+``steps + 1`` entries, before the first step and after every step: held-out loss on the given
+windows, training loss on at most ``eval_windows`` training windows. Why Adam: docs/learner.md.
 """
 import time
 from dataclasses import dataclass

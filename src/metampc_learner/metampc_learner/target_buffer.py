@@ -1,19 +1,13 @@
 """D_target: a bounded buffer of target samples (step k, u_k, y_k), and its train/held-out split.
 
-Index convention of the plant's ``y`` topic: u_k (``u_applied``) was held over (k-1, k] and
-produced y_k. The buffer keeps the first ``capacity`` valid samples after :meth:`start` and
-then ignores the rest, so D_target is fixed once collected; :meth:`freeze` stops it early.
-It skips (and counts) samples that are flagged diverged, non-finite, of the wrong size, or
-have step 0 (y_0 of an episode: no input produced it, its u_applied is a placeholder). It also
-counts the samples that never arrived: where the step index of an episode jumps ahead between
-two offered samples (the transport or a full subscription queue dropped them); a step index
-that does not grow starts a new episode, whose y_0 is not a training sample.
-Thread-safe: the node adds from its subscription while training reads a snapshot.
-
-:func:`split_target` turns a snapshot into trajectories for the data core: the first
-``n_samples`` samples, cut in arrival order into a training part and the held-out rest (the
-last ``heldout_fraction`` of the collection time), each cut again wherever the step index does
-not advance by exactly one (a lost sample, a plant reset), so no window spans a gap.
+u_k (``u_applied``) was held over (k-1, k] and produced y_k. The buffer keeps the first
+``capacity`` valid samples after :meth:`start` and ignores the rest (:meth:`freeze` stops it
+early); it skips and counts samples flagged diverged, non-finite, of the wrong size or of step
+0, and counts those that never arrived (a step index that jumps ahead). Thread-safe: the node
+adds from its subscription while training reads a snapshot. :func:`split_target` turns a
+snapshot into trajectories: the first ``n_samples`` in arrival order, cut into a training part
+and the held-out last ``heldout_fraction``, each cut again wherever the step does not advance by
+one, so no window spans a gap. See docs/learner.md.
 """
 import threading
 from dataclasses import dataclass

@@ -1,4 +1,6 @@
-"""Meta-gradients against independent dense / autograd / finite-difference computations.
+"""Meta-gradients of eq. (meta_gradient) against independent dense / autograd / finite-difference
+computations: iMAML's (imaml.py, with cg.py and both curvatures of curvature.py) and MAML's
+(maml.py), all on one small problem, whose dense reference is the point of this file.
 
 Small NSSM in float64 so that dense Hessians and Jacobians are cheap and exact.
 """
@@ -9,7 +11,6 @@ from torch.autograd.functional import hessian, jacobian
 
 from metampc_model.nssm import init_params, Nssm
 from metampc_model.nssm_config import NssmConfig
-from metampc_learner.cg import conjugate_gradient
 from metampc_learner.curvature import gauss_newton_product, hessian_product
 from metampc_learner.data import normalisation_from, simulate_source, SourceConfig, SourceSet
 from metampc_learner.imaml import ImamlTaskGradient
@@ -150,17 +151,3 @@ def test_vmap_over_tasks_equals_the_python_loop(problem, method):
     for a, b in zip(batched, looped):
         assert a.shape[0] == 3
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-12, equal_nan=True)
-
-
-def test_conjugate_gradient_on_an_explicit_matrix():
-    gen = torch.Generator().manual_seed(0)
-    m = torch.randn(6, 6, generator=gen, dtype=F64)
-    q = m @ m.T + torch.eye(6, dtype=F64)
-    b = torch.randn(6, generator=gen, dtype=F64)
-    x, res = conjugate_gradient(lambda v: q @ v, b, 6)
-    assert torch.allclose(x, torch.linalg.solve(q, b), atol=1e-9)
-    assert float(res) < 1e-8
-    x2, res2 = conjugate_gradient(lambda v: q @ v, b, 2)
-    assert abs(float(res2) - float((b - q @ x2).norm() / b.norm())) < 1e-10
-    x0, res0 = conjugate_gradient(lambda v: q @ v, torch.zeros(6, dtype=F64), 3)
-    assert torch.equal(x0, torch.zeros(6, dtype=F64)) and float(res0) == 0.0

@@ -1,25 +1,13 @@
 """Stable latent dynamics by construction: ||A||_2 <= rho_max for every weight vector.
 
-The transition A of eq. (z_next) is trained in coordinates W (the entries of the flat weight
-vector that meta-training, the inner loops, adaptation, supervised and oracle training update)
-and used as
-
-    A = W h(s) / s,    s = ||W||_2 (largest singular value),    h(s) = rho_max tanh(s / rho_max)
-
-so every singular value of W is scaled by the same factor and the largest one becomes
-h(s) < rho_max (= rho_max once tanh rounds to 1, s > ~9 rho_max in float32); the spectral
-radius, which never exceeds the spectral norm, stays within rho_max too. The map is smooth
-where the largest singular value is simple (always, for weights drawn at random),
-h(s) = s (1 - O(s^2 / rho_max^2)) leaves small matrices nearly as they are, and the
-gradients of every method see it, unlike a projection after each step.
-
-Bounding the norm rather than the radius costs no expressiveness worth having: any A with
-spectral radius below rho_max is similar to one with spectral norm below rho_max, and the
-encoder's last layer and C absorb the change of latent basis.
-
-Published weights (messages, checkpoints, ``Params`` dicts) carry A itself; W exists only in
-the flat training vector (``metampc_learner.training_vector``). :func:`transition_coordinates`
-is the inverse, for training that starts from published weights (adaptation from omega_inf).
+The transition A of eq. (z_next) is trained in coordinates W (the entries of the flat training
+vector) and used as A = W h(s) / s, s = ||W||_2, h(s) = rho_max tanh(s / rho_max): every singular
+value of W is scaled alike, so ||A||_2 < rho_max (= rho_max once tanh rounds to 1) and the spectral
+radius with it; the map is smooth where the largest singular value is simple and nearly the
+identity for small W, and every method's gradients see it (:func:`bounded_transition`: W (..., n_z,
+n_z) -> A of the same shape). Published weights carry A itself; :func:`transition_coordinates` is
+the inverse, for training that starts from published weights. Why:
+docs/learning.md#stable-latent-dynamics.
 """
 import torch
 

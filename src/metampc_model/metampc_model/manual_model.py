@@ -1,20 +1,12 @@
 """A hand-built NSSM: the van der Pol plant linearised at the origin (method 'manual').
 
-Not learned: a known-good model for tests, benchmarks and sanity runs of the controller. With
-``y = x`` (the plant measures its state) the latent state is the last output::
-
-    z_t = [y_t; 0]                  encoder: reads y_t from the last (u, y) pair of the history
-    z_{t+1} = A z_t + B u_{t+1}     A, B: x' = [[0, 1], [-1, theta]] x + [0; 1] u, zero-order
-                                    hold over dt (exact for inputs held over (t, t+1])
-    y_hat_t = C z_t                 C = [I, 0]
-
-Latent states beyond the first n_y are neither driven nor observed and decay with factor
-``extra_decay``. The encoder passes y_t through its ReLU layers as ``relu(y) - relu(-y)``: the
-first hidden layer holds ``[y_1, -y_1, y_2, -y_2, ...]`` in its first 2 n_y units (the other
-units and weights are 0), later hidden layers copy them, the output layer takes the
-differences. The model is exact for a linear plant (theta = 0) and, since the nonlinear term
-``theta x2 (1 - x1^2)`` vanishes at every equilibrium (x2 = 0), it has the plant's steady
-states for any theta. Normalisation: identity.
+Not learned: a known-good model of eq. (SSM) for tests, benchmarks and sanity runs of the
+controller. With y = x the latent state is the last output: z_t = [y_t; 0] (the encoder passes
+y_t through its ReLU layers as relu(y) - relu(-y)), z_{t+1} = A z_t + B u_{t+1} with (A, B) the
+zero-order hold over dt of x' = [[0, 1], [-1, theta]] x + [0; 1] u, y_hat = [I, 0] z; latent
+states beyond the first n_y decay with ``extra_decay``. Exact for theta = 0, and it has the
+plant's steady states for any theta (the nonlinear term vanishes at x2 = 0). Normalisation:
+identity. In: theta, dt and the NSSM sizes; out: (config, normalisation, params).
 """
 from typing import Sequence, Tuple
 

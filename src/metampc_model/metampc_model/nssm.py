@@ -1,45 +1,14 @@
 """Neural state-space model (NSSM) of the paper, eq. (SSM): the MPC's predictive model.
 
-Model, in normalised units (``u_n = (u - u_mean) / u_std``, ``y_n = (y - y_mean) / y_std``)::
-
-    z_t     = f_enc(u_{t-H+1..t}, y_{t-H+1..t})       eq. (z): MLP, ReLU hidden layers
-    z_{t+1} = A z_t + B u_{t+1}                         eq. (z_next)
-    y_hat_t = C z_t                                     eq. (haty)
-
-Index convention (the plant's, see ``metampc_plant.vanderpol``, and the same in training and
-in the MPC): ``u_k`` is the input held over ``((k-1) dt, k dt]`` that produced ``y_k``. The
-encoder reads the last H pairs ``(u_k, y_k)``, k = t-H+1..t, ordered oldest first and flattened
-pair by pair as ``[u_{t-H+1}, y_{t-H+1}, ..., u_t, y_t]``; the rollout predicts
-``y_hat_{t+1..t+T}`` from ``u_{t+1..t+T}``. A training window therefore holds H + T samples
-``(u, y)[t-H+1 .. t+T]``: the first H feed the encoder, the last T are the targets.
-
-Loss (the paper's l_SSM): ``1/T ||Y_{t+1:t+T} - Y_hat_{t+1:t+T}||^2`` (squared error summed
-over the n_y outputs, averaged over the T steps), averaged over the windows of a data set,
-in normalised units.
-
-Latent consistency (an addition to the paper's eq. (SSM), off by default): l_SSM scores the
-T-step outputs of the latent state the encoder gives at t and nothing ties the encoder's state
-at t+1 to eq. (z_next) from it; the one-step latent residual
-``rho_{t+1} = z_{t+1} - (A z_t + B u_{t+1})`` (both z from eq. (z)) is then free, and the
-offset-free MPC reads it as a disturbance (docs/mpc.md, "Why seed 4 failed"). With
-``consistency_weight`` w > 0 the training loss is ``l_SSM + w l_cons`` (:func:`training_loss`)
-with ``l_cons = 1/T sum_{k=1..T} ||C A^(k-1) rho_{t+1}||^2`` averaged over the windows: the
-disagreement, on the T outputs y_{t+1..t+T}, between the predictions from the encoder's state at
-t+1 and from the model's own step from t (the input terms cancel). In output space, not
-``||rho||^2``: the latent is defined only up to an invertible map z -> M z (A -> M A M^-1,
-B -> M B, C -> C M^-1, the same outputs), under which ||rho|| can be shrunk at will by shrinking
-z and growing C, while C A^k rho is invariant; and it is in the units of l_SSM (normalised
-outputs), so w weighs the two terms directly. One step (t -> t+1) per window suffices: training
-windows start anywhere in the data, so the step j -> j+1 inside a window is another window's
-first step; it costs one more encoder pass per window.
-
-Parameters are a ``Dict[str, Tensor]`` in the canonical order of :func:`param_shapes`
-(``encoder.<i>.weight``, ``encoder.<i>.bias``, ``A``, ``B``, ``C``), usable with
-``torch.func.functional_call(Nssm(...), params, (u, y))``. The same model elsewhere, one idea
-a module: the architecture (``nssm_config.py``), the units (``normalisation.py``), the numpy
-view the controller runs at every tick (``predictor.py``), the NssmWeights message's fields
-(``weights_codec.py``) and the flat vector that training steps
-(``metampc_learner.training_vector``).
+In normalised units (:mod:`metampc_model.normalisation`): z_t = f_enc(u, y over t-H+1..t)
+(eq. (z), an MLP with ReLU hidden layers), z_{t+1} = A z_t + B u_{t+1} (eq. (z_next)),
+y_hat_t = C z_t (eq. (haty)); the loss l_SSM = 1/T ||Y_{t+1:t+T} - Y_hat_{t+1:t+T}||^2 (summed
+over the n_y outputs, averaged over T and the windows), plus the optional latent consistency
+term (``consistency_weight``, :func:`training_loss`). A window holds H + T samples
+``(u, y)[t-H+1 .. t+T]``, u_k the input held over ((k-1) dt, k dt] that produced y_k: u of
+shape (batch, H + T, n_u), y (batch, H + T, n_y). Parameters are a ``Dict[str, Tensor]`` in
+the order of :func:`param_shapes` (encoder.<i>.weight/bias, A, B, C), usable with
+``torch.func.functional_call``. Conventions and the consistency term: docs/learning.md.
 """
 from typing import Dict, Mapping
 
@@ -180,7 +149,8 @@ def prediction_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Te
 
 def consistency_loss(model: Nssm, params: Mapping[str, torch.Tensor], u: torch.Tensor,
                      y: torch.Tensor) -> torch.Tensor:
-    """l_cons of the module docstring averaged over N windows (scalar), shapes as l_SSM's."""
+    """l_cons = 1/T sum_{k=1..T} ||C A^(k-1) rho_{t+1}||^2, rho_{t+1} = z_{t+1} - (A z_t +
+    B u_{t+1}) (both z from eq. (z)), averaged over N windows (scalar); shapes as l_SSM's."""
     c = torch.func.functional_call(model, params, (u, y), {'consistency': True})
     return c.square().sum(dim=-1).mean()
 

@@ -1,24 +1,13 @@
 """NSSM <-> the model fields of an NssmWeights message, as plain arrays (no rclpy, no message).
 
-The learner publishes with :func:`fields_from_weights` and the controller reads with
-:func:`weights_from_fields`; both sides agree on :data:`MODEL_FIELDS`, the fields of
-``metampc_msgs/msg/NssmWeights`` that describe the model (eq. SSM): its dimensions, the
-encoder's hidden widths, the flat float32 parameters (:class:`FlatWeights`) and the
-normalisation. The run information (version, method, stage, losses, seed) is the caller's.
-
-Publishing (the values are typed as the message wants them, so the constructor takes them
-without a per-element conversion of the ~35k parameters)::
-
-    msg = NssmWeights(version=v, method='imaml', stage='adapted',
-                      **fields_from_weights(model.config, model.norm, params))
-
-Reading::
-
-    decoded = weights_from_fields(fields_of(msg))   # WeightsError names what is wrong
-    predictor = NssmPredictor(decoded.config, decoded.norm, decoded.params)
-
-No torch: the controller decodes into numpy arrays; torch code takes them with
-``metampc_model.nssm.torch_params``. Parameters to encode may be torch tensors or arrays.
+The learner publishes with :func:`fields_from_weights` (config, normalisation and parameters,
+torch tensors or arrays -> the fields typed as the message wants them) and the controller
+reads with :func:`weights_from_fields` (fields -> numpy config, normalisation and parameters;
+:class:`WeightsError` names what is wrong); both agree on :data:`MODEL_FIELDS`, the fields of
+``metampc_msgs/msg/NssmWeights`` that describe the model of eq. (SSM) (dimensions, encoder
+widths, the flat float32 parameters of :class:`FlatWeights`, the normalisation). The run
+information (version, method, stage, losses, seed) is the caller's. No torch: torch code takes
+the arrays with ``metampc_model.nssm.torch_params``.
 """
 from array import array
 from dataclasses import dataclass, field

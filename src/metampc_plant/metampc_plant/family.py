@@ -1,25 +1,13 @@
 """The plant-family interface: parameterised plants x' = f(x, u, theta), y = g(x, u, theta).
 
-Pure Python (no rclpy). A family is what the paper calls "a family of parameterised nonlinear
-systems": its dimensions, its equations, the distribution Theta its parameter vector is drawn
-from, its input bounds, a state box beyond which a system counts as diverged, a default sample
-time, initial state and reference, and the name and unit of every component (for plots and
-messages). Every consumer (the plant node, the learner's source data, the true-model NMPC, the
-analysis) asks the family instead of assuming van der Pol.
-
-The equations are written on components, with plain arithmetic and numpy functions only::
-
-    rhs(x, u, theta) -> dx      # x: n_x components, u: n_u, theta: n_theta; returns n_x
-    output(x, u, theta) -> y    # returns n_y components
-
-where every component is a Python float (one system: the plant node) or a numpy array of shape
-(B,) (B systems at once: source data, NMPC rollouts). The RK4 core of
-:mod:`metampc_plant.integrate` runs either way, with the same floating-point operations, so a
-batch reproduces single systems bit for bit.
-
-A family is a frozen dataclass: ``dataclasses.replace(family, theta=...)`` gives a variant
-(e.g. another Theta) without a new class. Families are found by name through the entry-point
-group ``metampc.plant_families`` (:mod:`metampc_plant.registry`).
+Pure Python (no rclpy). A family is eq. (sys)'s "family of parameterised nonlinear systems":
+its dimensions, equations, the distribution Theta of theta, input bounds, a state box beyond
+which a system counts as diverged, a default dt, x0 and reference, and the name and unit of
+every component. The equations are written on components (``rhs(x, u, theta)`` -> n_x
+components, ``output(x, u, theta)`` -> n_y), each a Python float (one system) or a numpy array
+of shape (B,) (B systems), so the RK4 core of :mod:`metampc_plant.integrate` gives a batch the
+single systems' bits. A frozen dataclass (``dataclasses.replace`` makes a variant); found by
+name through :mod:`metampc_plant.registry`. How to write one: docs/families.md.
 """
 from abc import ABC, abstractmethod
 from dataclasses import dataclass

@@ -1,72 +1,15 @@
 """The `plant` node: a thin ROS 2 adapter over the simulator core of any plant family.
 
-Interfaces (relative names, so a namespace can wrap them):
-
-* ``y`` (PlantOutput, published, reliable, depth 1000): y_k, the input u_k held over
-  (k-1, k] that produced it (after saturation), the step k and the saturated/diverged flags.
-* ``plant_info`` (PlantInfo, published, reliable + transient_local, depth 1: latched): the
-  configuration, the divergence flag and the number of resets; re-sent when those change.
-* ``/clock`` (rosgraph_msgs/Clock, lockstep with ``publish_clock``): the sim time of the last
-  y, so nodes started with ``use_sim_time:=true`` run on the plant's time.
-* ``u`` (ControlInput, subscribed, reliable): the input computed from y_k, held over (k, k+1].
-* ``u_hold`` (StepHold, subscribed, reliable; lockstep): the controller holds its answer to
-  step k for at most ``hold_s`` s (it waits for a model it asked for); that step then waits
-  ``hold_s`` + ``input_timeout`` s from the notice instead of ``input_timeout`` from y_k.
-* ``reset`` (ResetPlant service): new theta, x0 and/or theta_schedule; the step restarts at
-  0 and y_0 is sent.
-
-A ``theta_schedule`` (parameter, or a reset's field; :mod:`metampc_plant.theta_schedule`)
-moves theta over the plant time of each episode, in steps and ramps, at exact steps in both
-clock modes; every y_k carries theta(k dt), the value the sample from k on is integrated with
-(what a true-model yardstick must be told), and plant_info is re-sent as a segment starts and
-ends.
-
-The family (``-p family:=duffing``, see docs/families.md) fixes the dimensions, the equations
-and the defaults of theta, x0, the bounds and dt; a parameter that does not fit it (a theta of
-the wrong length, an input bound outside the family's) ends the node with one error line.
-
-Clock modes:
-
-* lockstep: the plant publishes y_k, then /clock = t_k, and waits for the input whose
-  ``step`` is k. That input is integrated over one sample and y_{k+1} published inside the
-  subscription callback, so a round trip costs the DDS latency plus one RK4 sample, with no
-  polling. Inputs for another step are ignored and counted (stale). Without an answer within
-  ``input_timeout`` s of wall time the plant holds the last input and steps anyway (throttled
-  warning), so a plant alone still moves; a step the controller announced it holds
-  (``u_hold``) waits for as long as it said, then ``input_timeout``, so an adaptation in the
-  loop that takes longer than the timeout still swaps at its exact step. y_0 is published
-  once ``y`` has had a subscriber and ``u`` a publisher for ``lockstep.GATE_SETTLE_S`` (or
-  after ``start_timeout``), so a controller started together with the plant answers every
-  step and a seeded run is reproducible. These rules are
-  :class:`metampc_plant.lockstep.Lockstep`'s; the node wires them.
-  ``real_time_factor`` > 0 paces the loop: an answer that comes sooner than dt /
-  real_time_factor of wall time after y_k is held until then (a steady one-shot timer started
-  with each y), so a session by hand runs at its sample rate instead of as fast as the
-  controller answers (300-1400 Hz here). The steps, inputs and stamps are the same at any pace.
-* realtime: a steady wall-clock timer at ``rate_hz`` steps the plant with the latest input.
-
-The other nodes of a lockstep run take ``use_sim_time:=true``: their clock is then the plant's
-/clock and only moves when the plant steps. rclpy reads /clock best effort with depth 1, so a
-slow node sees the latest tick, not every tick; a controller that must answer every step is
-best driven by the arrival of y_k (or must check that the y it holds is the newest).
-
-Sim time (lockstep): the n-th y published since start is stamped n * dt, a reset's y_0
-included, so /clock and the stamps advance by exactly dt per message and never go back (a
-backward jump would re-base every sim-time timer of the graph and make the episodes of a
-recording overlap); the step index restarts at 0 with each reset. In realtime the stamps are
-the node clock's time.
-
-Bad inputs (NaN/inf, wrong length) are rejected and counted; the plant holds the previous
-input (in lockstep it still steps, since the input did answer the step). Out-of-bound inputs
-are saturated and flagged on y. A state that leaves the box ``|x|_inf <= state_bound`` or
-turns non-finite is never published: the plant freezes at its last finite state, flags
-``diverged`` on y and plant_info, logs one error and stays so until ``reset``.
-
-Parameters, defaults and ranges: :data:`metampc_plant.plant_params.PARAMETERS`. A bad value
-ends the node with one error line and exit status 2. The noise levels are live: ``ros2 param
-set`` changes them from the next step on (checked as at start-up, refused with the reason)
-and plant_info is re-sent with them. Stale/rejected/timed-out inputs are
-counted and the counts logged when the node stops.
+Integrates eq. (sys) (x' = f(x, u, theta), y = g(x, u, theta); :mod:`metampc_plant.simulator`)
+and wires it to ROS: publishes ``y`` (PlantOutput: y_k, the input u_k held over (k-1, k] after
+saturation, step k, theta(k dt), saturated/diverged flags), the latched ``plant_info`` and, in
+lockstep, ``/clock``; takes ``u`` (ControlInput answering step k), ``u_hold`` (StepHold) and
+the ``reset`` service. The lockstep rules are :class:`metampc_plant.lockstep.Lockstep`'s, a
+theta schedule :mod:`metampc_plant.theta_schedule`'s. Refuses: a bad parameter (one error line,
+exit 2), a NaN/inf or wrong-length input (counted, the previous one held); saturates an
+out-of-bound input; never publishes a diverged state (freezes, flags it, waits for ``reset``).
+Parameters: :data:`metampc_plant.plant_params.PARAMETERS`; interfaces, clock modes and faults:
+docs/plant.md.
 """
 import math
 import sys

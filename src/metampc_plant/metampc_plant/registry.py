@@ -1,18 +1,11 @@
 """Plant families by name, found through the entry-point group ``metampc.plant_families``.
 
-A package (this one, or a user's, installed with pip into the same environment) registers a
-family with one line in its setup.cfg::
-
-    [options.entry_points]
-    metampc.plant_families =
-        mass_spring = my_package.mass_spring:FAMILY
-
-where ``FAMILY`` is a :class:`~metampc_plant.family.PlantFamily` whose ``name`` is the entry
-point's name. Nothing in this project needs to change for it to be listed and used.
-
-Within one Python process (a notebook, a test, the offline scripts), :func:`register` adds a
-family defined in code, e.g. a variant ``dataclasses.replace(get_family('vanderpol'),
-name='vdp_narrow', ...)``; other processes (the nodes) only see installed entry points.
+A package (this one, or a user's installed with pip into the same environment) registers a
+:class:`~metampc_plant.family.PlantFamily` under its ``name`` with one entry point in its
+setup.cfg; nothing in this project changes for it to be listed and used. Within one process,
+:func:`register` adds a family defined in code (other processes, the nodes, only see installed
+entry points). :func:`get_family` refuses an unknown name (:class:`UnknownFamily`, naming the
+known ones). How to add one: docs/families.md.
 """
 from importlib.metadata import entry_points
 from typing import Dict, Tuple

@@ -1,17 +1,13 @@
 """Simulated plants of any family: sampled, saturated, noisy, with a divergence box.
 
-Sampling: the input is held constant (zero-order hold) over each sample of length ``dt`` s and
-the state is integrated with ``substeps`` classical RK4 steps (:mod:`metampc_plant.integrate`).
-:class:`BatchPlant` steps B systems of one family with numpy; :class:`Plant` is its
-single-system twin on Python floats (the plant node's), equal to a batch of one bit for bit.
-
-Index convention (shared with the NSSM and the MPC): ``y_k`` is measured at time ``k*dt``;
-``u_k`` is the input held over ``((k-1)*dt, k*dt]`` that produced it, so a recorded
-trajectory pairs ``(u_k, y_k)``. ``step(u)`` applies ``u`` as ``u_{k+1}`` and returns ``y_{k+1}``.
-
-Divergence: a state that is non-finite or leaves the box ``|x|_inf <= state_bound`` (e.g. the
-escaping van der Pol systems with theta < 0) flags the system diverged; it is then frozen at
-its last finite state until reset.
+Eq. (sys) under a zero-order hold of the input over each sample of ``dt`` s, integrated with
+``substeps`` RK4 steps (:mod:`metampc_plant.integrate`). :class:`BatchPlant` steps B systems of
+one family with numpy (states (B, n_x)); :class:`Plant` is its single-system twin on Python
+floats (the plant node's), equal to a batch of one bit for bit. y_k is measured at k dt and u_k
+is the input held over ((k-1) dt, k dt] that produced it; ``step(u)`` applies u as u_{k+1}
+(saturated to the bounds) and returns y_{k+1}. A non-finite state or one outside
+``|x|_inf <= state_bound`` flags the system diverged and freezes it at its last finite state
+until reset.
 """
 import dataclasses
 import math

@@ -1,21 +1,14 @@
 """A plant whose parameters change while it runs: theta as steps and ramps over plant time.
 
 Pure Python (no rclpy). A schedule is a list of segments ``(t_start, t_end, theta_end)`` over
-the plant time t = k dt of an episode (k: the step index, which restarts at 0 with every
-reset). Before the first segment theta is the episode's theta; over a segment it goes
-linearly from the theta it had at ``t_start`` to ``theta_end`` at ``t_end`` (``t_end ==
-t_start``: a step at ``t_start``) and keeps that value until the next segment. The sample
-from step k to k + 1 is integrated with ``theta_at(k dt)``, so a change lands at an exact step
-in lockstep and in real time alike: both step the simulation by dt per sample.
-
-As a ROS parameter (``theta_schedule``) or a reset request's field the schedule is one flat
-list of floats, a row of ``2 + n_theta`` values per segment: ``[t_start, t_end, theta_end...]``.
-Van der Pol's theta 0.5 -> -0.5 at 30 s is ``[30, 30, -0.5]``; a ramp 0 -> 1.5 over 60 s from
-t = 10 s is ``[10, 70, 1.5]``.
-
-Every scheduled theta lies within the family's parameter range
-(:meth:`~metampc_plant.family.ThetaComponent.support`): the plant moves where the meta-model
-has seen source systems.
+the plant time t = k dt of an episode (k restarts at 0 with every reset): before the first
+segment theta is the episode's; over a segment it goes linearly to ``theta_end`` (``t_end ==
+t_start``: a step) and stays until the next. The sample from step k to k + 1 is integrated with
+``theta_at(k dt)``, so a change lands at an exact step in either clock mode. As a ROS parameter
+or a reset's field it is one flat list, a row ``[t_start, t_end, theta_end...]`` of
+2 + n_theta values per segment (van der Pol 0.5 -> -0.5 at 30 s: ``[30, 30, -0.5]``). Refuses
+rows of the wrong length, segments out of order or overlapping, and a theta outside the
+family's range (:meth:`~metampc_plant.family.ThetaComponent.support`). See docs/plant.md.
 """
 from dataclasses import dataclass
 import math

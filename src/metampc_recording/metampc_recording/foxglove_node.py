@@ -1,17 +1,11 @@
 """Foxglove live view: serves the graph's topics over the Foxglove WebSocket protocol.
 
 ``ros2 run metampc_recording foxglove [--ros-args -p port:=8765 -p host:=127.0.0.1]``, then
-connect Foxglove to ``ws://HOST:PORT`` (docs/foxglove.md).
-
-Parameters (names, defaults, ranges: :data:`metampc_recording.foxglove_params.PARAMETERS`):
-``host``, ``port``, ``topics`` (unset or empty: every topic that appears under the node's
-namespace except ``/rosout``, ``/parameter_events``, hidden topics and ``/clock``, as the
-recorder takes them), ``discovery_period``, ``qos_depth``.
-
-A topic is subscribed (``raw=True``) once it has a publisher, with the recorder's QoS choice
-(reliable if every publisher is, transient_local if every publisher is), and its CDR bytes go
-to :class:`~metampc_recording.foxglove_server.LiveServer` unchanged, stamped with their receive
-time on the node clock. A port in use is one error line and exit status 2.
+connect Foxglove to ``ws://HOST:PORT``. Subscribes (``raw=True``) each topic the recorder would
+take, once it has a publisher, with the recorder's QoS choice, and passes its CDR bytes to
+:class:`~metampc_recording.foxglove_server.LiveServer` unchanged, stamped with their receive
+time on the node clock. Refuses a bad parameter or a port in use (one error line, exit 2).
+Parameters: :data:`metampc_recording.foxglove_params.PARAMETERS`; docs/foxglove.md.
 """
 import sys
 from functools import partial

@@ -1,17 +1,12 @@
 """The live view's server: ROS 2 topics as Foxglove channels whose messages are the CDR bytes.
 
-No rclpy. :class:`LiveServer` runs the Foxglove SDK's WebSocket server (``foxglove-sdk``,
-subprotocol ``foxglove.sdk.v1``: the messages of the Foxglove WebSocket protocol v1) on a free
-loopback port behind a :class:`.subprotocol_front.SubprotocolFront` on host:port, which also
-admits clients that offer only ``foxglove.websocket.v1`` (the protocol's older name). Each
-topic becomes a channel of message encoding ``cdr`` whose schema is the type's complete
-definition (:mod:`.msg_schema`, the same text a recording carries: encoding ``ros2msg``, or
-``ros2idl`` for a type without a ``.msg`` file), so Foxglove decodes the bytes as received
-from DDS, unchanged.
-
-The server keeps no history: a client sees what arrives after it subscribed. A latched topic's
-newest message is therefore sent again whenever a client subscribes to it (to every client of
-that channel: the others see it twice), as a transient_local subscription would get it.
+No rclpy. :class:`LiveServer` runs the Foxglove SDK's WebSocket server (subprotocol
+``foxglove.sdk.v1``) on a free loopback port behind a
+:class:`.subprotocol_front.SubprotocolFront` on host:port. Each topic becomes a channel of
+message encoding ``cdr`` whose schema is the type's complete definition (:mod:`.msg_schema`,
+``ros2msg`` or ``ros2idl``), so Foxglove decodes the bytes as received from DDS. The server
+keeps no history: a latched topic's newest message is sent again whenever a client subscribes
+to it (every client of that channel gets it). See docs/foxglove.md.
 """
 import time
 from typing import Callable, Dict, Optional

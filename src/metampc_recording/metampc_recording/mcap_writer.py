@@ -1,28 +1,13 @@
 """Writing serialized ROS 2 messages to MCAP the way rosbag2 (Jazzy, mcap storage) does.
 
-What a file written here contains, in rosbag2's layout:
-
-- header profile ``ros2``; one Schema per message type (name ``pkg/msg/Type``, encoding
-  ``ros2msg`` with the complete definition of :mod:`metampc_recording.msg_schema`); one Channel
-  per topic (message encoding ``cdr``) with the metadata ``offered_qos_profiles`` (YAML of
-  :mod:`metampc_recording.rosbag2_qos`) and ``topic_type_hash`` (``RIHS01_...``);
-- Message records with the CDR bytes unchanged, ``log_time`` = receive time and
-  ``publish_time`` = the publisher's source time, both in ns;
-- a Metadata record ``rosbag2`` (key ``serialized_metadata``: the bag metadata YAML, version 9)
-  right after the header and again at the end, as rosbag2 writes it (``ros2 bag info`` reads the
-  version from it to parse the QoS strings), and a Metadata record ``metampc`` (key ``config``:
-  the run's configuration as JSON text);
-- chunks compressed with zstd or lz4, message indexes, and on :meth:`close` the summary:
-  repeated schemas and channels, Statistics (per-channel counts), chunk and metadata indexes.
-
-A rosbag2 bag folder (what ``ros2 bag record -o NAME`` makes) is the file
-:func:`bag_folder_file` names plus the same bag metadata in ``metadata.yaml``
-(:func:`write_bag_metadata_file`).
-
-Crash safety: the file is written without a user-space buffer, so every chunk is in the
-operating system's hands as soon as it closes; a process killed with SIGKILL leaves a file that
-a streaming reader reads up to its last complete chunk (:meth:`flush` closes a chunk early,
-e.g. once a second). An existing file is never overwritten. No rclpy here.
+In: CDR bytes per topic with their type, QoS offers (:mod:`metampc_recording.rosbag2_qos`) and
+receive / source times (ns); out: an MCAP file in rosbag2's layout (profile ``ros2``, one
+``ros2msg`` Schema per type from :mod:`metampc_recording.msg_schema`, one ``cdr`` Channel per
+topic, the ``rosbag2`` and ``metampc`` Metadata records, zstd or lz4 chunks and the summary on
+:meth:`close`), and for a bag folder its ``metadata.yaml`` (:func:`write_bag_metadata_file`).
+Written without a user-space buffer, so a SIGKILL leaves a file readable up to its last
+complete chunk (:meth:`flush` closes one early). Refuses to overwrite an existing file. The
+file layout in full: docs/recording.md. No rclpy here.
 """
 import json
 import os

@@ -1,22 +1,13 @@
 """Complete message definitions (MCAP schema `ros2msg` / `ros2idl`), as rosbag2 writes them.
 
-A recording must carry, for every message type, the *complete* definition: the type's own
-interface file followed by the files of every type it uses, recursively, so that a reader with
-no ROS installation (mcap_ros2, rosbags, Foxglove) can decode the CDR payloads. rosbag2
-(`rosbag2_cpp::LocalMessageDefinitionSource`, Jazzy) builds that text as follows, and this
-module reproduces it byte for byte:
-
-- the top-level ``.msg`` file text comes first, unchanged (comments included);
-- its dependencies are the non-primitive field types found by a regular expression on that text
-  (a type without a package is in the same package), visited in sorted order, depth first, each
-  type once;
-- each dependency is appended as ``"\\n"``, a line of 80 ``=``, a line ``MSG: pkg/Type`` (the
-  name as written in the field), then that file's text.
-
-Files are looked up through the ament index (``AMENT_PREFIX_PATH``):
-``<prefix>/share/<pkg>/msg/<Type>.msg``. When a type has no ``.msg`` file, rosbag2 falls back to
-``.idl`` files with ``IDL: pkg/msg/Type`` delimiters (encoding ``ros2idl``); so does this module.
-Nothing here imports rclpy.
+A recording carries, for every message type, the type's own interface file followed by the
+files of every type it uses, recursively, so that a reader with no ROS installation can decode
+the CDR payloads. This module builds that text byte for byte as rosbag2's
+``LocalMessageDefinitionSource`` (Jazzy) does: dependencies found by a regular expression on
+the text, sorted, depth first, each once, each after ``"\\n"``, 80 ``=`` and ``MSG: pkg/Type``;
+files looked up through the ament index (``<prefix>/share/<pkg>/msg/<Type>.msg``), falling back
+to ``.idl`` files (``IDL: pkg/msg/Type``, encoding ``ros2idl``). Nothing here imports rclpy.
+The layout: docs/recording.md.
 """
 import os
 import re

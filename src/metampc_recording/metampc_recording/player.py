@@ -1,17 +1,13 @@
 """Playback of a recording onto ROS topics, as ``ros2 bag play`` does.
 
 Each recorded topic gets a publisher with the QoS rosbag2 would offer for it
-(:func:`~metampc_recording.rosbag2_qos.offer_for_recorded`: the recorded reliability, durability,
-deadline and liveliness, history keep_last 10), so a latched topic replays latched. The recorded
-CDR bytes are published unchanged (rclpy's ``Publisher.publish`` takes ``bytes`` as a serialized
-message) at the recorded log-time spacing divided by `rate`, from `start_offset` s into the
-recording, once or (`loop`) until interrupted. :func:`run_player` streams the file (in the
-order it was recorded) rather than holding it. Used by ``scripts/replay.py --play`` and
-``ros2 bag play``.
-
-As with ``ros2 bag play``, a volatile sample published before a subscriber has been discovered
-is lost for it; ``delay`` gives discovery a fixed time (``--delay``), ``wait_for_subscribers``
-(an addition of this player) waits until every volatile topic played has a subscriber.
+(:func:`~metampc_recording.rosbag2_qos.offer_for_recorded`), so a latched topic replays
+latched; the recorded CDR bytes are published unchanged at the recorded log-time spacing
+divided by ``rate``, from ``start_offset`` s, once or (``loop``) until interrupted.
+:func:`run_player` streams the file in recorded order rather than holding it. ``delay`` gives
+discovery a fixed time and ``wait_for_subscribers`` (not in ``ros2 bag play``) waits until
+every volatile topic has a subscriber. Used by ``scripts/replay.py --play`` and ``ros2 bag
+play``; see docs/recording.md.
 """
 import time
 from dataclasses import dataclass, field

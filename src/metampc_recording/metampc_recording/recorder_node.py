@@ -1,20 +1,14 @@
 """Recorder node: subscribes with raw=True and writes the CDR bytes to MCAP as rosbag2 does.
 
-``ros2 run metampc_recording recorder --ros-args -p output:=runs/x/recording.mcap``
-
-Parameters (names, defaults, ranges: :data:`metampc_recording.recorder_config.PARAMETERS`):
-``output`` (required; parent folders are created; an existing file is an error: one line, exit
-status 2, the file is left alone), ``topics`` (unset or empty: every topic that appears under
-the node's namespace except ``/rosout``, ``/parameter_events``, hidden topics and ``/clock``),
-``record_clock``, ``chunk_size``, ``compression``, ``metadata_json``, ``discovery_period``,
-``flush_period``, ``qos_depth``.
-
-A topic is subscribed once it has a publisher, with rosbag2's QoS choice: reliable if every
-publisher is, transient_local if every publisher is (so latched messages are recorded); the
-publishers' profiles go into the channel's ``offered_qos_profiles``. The log time of a message
-is its receive time on the node clock (wall time unless use_sim_time), the publish time the
-publisher's source timestamp. SIGINT/SIGTERM close the file (summary with statistics) and exit
-0. The writing is :class:`~metampc_recording.mcap_writer.Rosbag2McapWriter`.
+``ros2 run metampc_recording recorder --ros-args -p output:=runs/x/recording.mcap``. Subscribes
+each topic (``topics``, or every one under its namespace but ``/rosout``,
+``/parameter_events``, hidden topics and ``/clock``) once it has a publisher, with rosbag2's
+QoS choice (:mod:`metampc_recording.rosbag2_qos`); log time = receive time on the node clock,
+publish time = the publisher's source time; the writing is
+:class:`~metampc_recording.mcap_writer.Rosbag2McapWriter`. SIGINT/SIGTERM close the file
+(summary with statistics), exit 0. Refuses a bad parameter or an existing ``output`` (one
+line, exit 2, the file left alone). Parameters:
+:data:`metampc_recording.recorder_config.PARAMETERS`; docs/recording.md.
 """
 import os
 import sys

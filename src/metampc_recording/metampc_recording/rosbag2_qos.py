@@ -1,29 +1,12 @@
 """QoS profiles in rosbag2's YAML form, and rosbag2's rules for choosing QoS from them.
 
-rosbag2 (Jazzy, metadata version 9) stores the QoS offered by a topic's publishers in the MCAP
-channel metadata ``offered_qos_profiles``: a YAML sequence with one map per publisher, policies
-as lower-case strings (``keep_last``, ``reliable``, ``transient_local``, ``automatic``;
-``unknown`` when the middleware does not report one) and durations as ``{sec, nsec}``
-(``RMW_DURATION_INFINITE`` = 9223372036 s 854775807 ns). Example::
-
-    - history: unknown
-      depth: 0
-      reliability: reliable
-      durability: transient_local
-      deadline:
-        sec: 9223372036
-        nsec: 854775807
-      ...
-
-The same rules as rosbag2 then pick QoS:
-
-- recording (`request_for_offers`): subscribe reliable only if every publisher is reliable, and
-  transient_local only if every publisher is (so latched data is recorded), else volatile;
-- playback (`offer_for_recorded`): offer the recorded profile when all recorded publishers agree
-  on the policies that matter for compatibility, with the history reset to keep_last 10
-  (rosbag2's ``default_history``); else the default profile.
-
-Plain data only: the recorder and player nodes convert to and from rclpy's QoSProfile.
+Reads and writes the ``offered_qos_profiles`` channel metadata of rosbag2 (Jazzy, metadata
+version 9: one map per publisher, policies as lower-case strings, durations as ``{sec, nsec}``)
+and picks QoS as rosbag2 does: recording (:func:`request_for_offers`) subscribes reliable /
+transient_local only if every publisher is; playback (:func:`offer_for_recorded`) offers the
+recorded profile when the recorded publishers agree, history keep_last 10, else the default.
+Plain data only: the recorder and player nodes convert to and from rclpy's QoSProfile. The
+format with an example: docs/recording.md.
 """
 from dataclasses import dataclass, replace
 from typing import List, Sequence

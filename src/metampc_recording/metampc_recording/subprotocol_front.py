@@ -1,20 +1,13 @@
 """A front for the SDK's WebSocket server that also admits clients of ``foxglove.websocket.v1``.
 
-No rclpy. The Foxglove SDK's server (foxglove-sdk 0.30.3, ``websocket/handshake.rs``) accepts
-only the subprotocol ``foxglove.sdk.v1``, with no option to change it, and answers any other
-offer with HTTP 400 "Missing expected sec-websocket-protocol header". ``foxglove.sdk.v1`` is the
-Foxglove WebSocket protocol v1 under a new name (Foxglove's statement: the two are identical for
-now), and what the live view sends (serverInfo, advertise, unadvertise, status, MessageData; no
-capability that adds an opcode) is that spec's v1, so a client of the ws-protocol
-(``@foxglove/ws-protocol``, which offers only ``foxglove.websocket.v1``) can read it unchanged.
-
-:class:`SubprotocolFront` listens on the public address and relays each connection to the SDK's
-server on a loopback port. It reads the client's upgrade request first: an offer that names
-``foxglove.sdk.v1`` goes through untouched; one that names only ``foxglove.websocket.v1`` is
-passed on as ``foxglove.sdk.v1`` and the server's answer is passed back as
-``foxglove.websocket.v1`` (the Sec-WebSocket-Accept key depends on the key alone, so it stays
-valid); anything else is refused with HTTP 400 and a body naming both subprotocols. After the
-handshake the bytes are relayed unchanged both ways.
+No rclpy. The Foxglove SDK's server (foxglove-sdk 0.30.3) accepts only the subprotocol
+``foxglove.sdk.v1``, the Foxglove WebSocket protocol v1 under a new name.
+:class:`SubprotocolFront` listens on the public address and relays each connection to the
+SDK's server on a loopback port: an upgrade request that offers ``foxglove.sdk.v1`` goes through
+untouched; one that offers only ``foxglove.websocket.v1`` is passed on as ``foxglove.sdk.v1``
+and the answer passed back as ``foxglove.websocket.v1`` (the Sec-WebSocket-Accept key stays
+valid); anything else is refused with HTTP 400 and a body naming both. After the handshake
+the bytes are relayed unchanged. Why: docs/foxglove.md.
 """
 import socket
 import threading

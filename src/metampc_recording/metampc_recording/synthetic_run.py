@@ -1,17 +1,13 @@
 """A synthetic closed-loop recording, written as the recorder writes one (replay benchmarks and
 tests).
 
-:func:`write_synthetic_run` writes, with :class:`~metampc_recording.mcap_writer.Rosbag2McapWriter`
-and the installed message definitions, what a lockstep run of a controller against a plant
-publishes: per tick ``y`` (PlantOutput), then the controller's ``u`` (ControlInput) and its
-``mpc_status`` (MpcStatus, horizon N: u_plan, y_pred and y_ref of N rows), on the real topics
-and types, plus ``plant_info`` and ``nssm_weights`` once and ``progress`` of a meta-training and
-an adaptation job (each ending with its ``done`` message). The plant resets every
-``episode_steps`` steps (the step restarts at 0), the controller skips the steps of
-``missed_every``, takes a live parameter change (``config_version`` + 1) at tick
-``retune_tick``, and ``foreign_inputs`` are extra ``u`` messages of another publisher (what
-``ros2 topic pub --once /u ...`` records), each after the tick it names. Everything is
-deterministic: the expected metrics follow from the configuration. No rclpy here.
+:func:`write_synthetic_run` writes, with :class:`~metampc_recording.mcap_writer.Rosbag2McapWriter`,
+what a lockstep run publishes on the real topics and types: per tick ``y``, ``u`` and
+``mpc_status`` (horizon N), plus ``plant_info``, ``nssm_weights`` and the ``progress`` of a
+meta-training and an adaptation job. :class:`SyntheticRun` sets the episodes (a reset every
+``episode_steps``), the skipped steps (``missed_every``), a live change at ``retune_tick`` and
+``foreign_inputs`` (extra ``u`` of another publisher). Deterministic: the expected metrics
+follow from the configuration. No rclpy here.
 """
 from dataclasses import dataclass, field
 from typing import Dict, List, Tuple

@@ -1,23 +1,13 @@
 """What `ros2 bag info` reads of a bag and how it prints it, as rosbag2 (Jazzy) does.
 
-A bag is a rosbag2 bag folder (``metadata.yaml`` and the files it lists) or one MCAP file, read
-by rosbag2's rules (``rosbag2_cpp::Info::read_metadata``, the mcap storage plugin's
-``read_metadata``):
-
-- a folder with metadata.yaml: everything from that file; the size is the sum of the folder's
-  files (rcutils_calculate_directory_size);
-- an MCAP file: message count, start and end from its summary's Statistics record, topics from
-  its channels (here in channel id order; rosbag2's is that of a hash map) with the Statistics'
-  per-channel counts, the ROS distro from its ``rosbag2`` metadata records, the size of the
-  file. A file without a summary (an unfinished recording: a recorder killed) is read through
-  instead, as mcap's fallback scan does, and :attr:`BagInfo.scanned` says so; a file whose last
-  record runs past its end (cut short) is an error, as in rosbag2.
-
-A folder without metadata.yaml that holds one MCAP file (this project's run folders, or a
-`ros2 bag record` killed before it wrote metadata.yaml) is read as that file; rosbag2 refuses it.
-:func:`format_bag_metadata` and :func:`format_service_info` print as rosbag2_py's functions of
-the same names, to the character. Errors are RuntimeError with a one-line message. No rclpy,
-but for the service events of ``-v`` (:func:`count_service_requests`).
+A bag is a rosbag2 bag folder (``metadata.yaml`` and its files) or one MCAP file (its summary's
+Statistics, channels and ``rosbag2`` metadata; without a summary, an unfinished recording, it
+is scanned through and :attr:`BagInfo.scanned` says so); a folder without metadata.yaml that
+holds one MCAP file is read as that file (rosbag2 refuses it). :func:`format_bag_metadata` and
+:func:`format_service_info` print as rosbag2_py's functions of the same names, to the
+character. Errors (a file cut short, no bag) are RuntimeError with a one-line message. No
+rclpy, but for the service events of ``-v`` (:func:`count_service_requests`). The rules in
+full: docs/recording.md.
 """
 import os
 import struct

@@ -1,20 +1,14 @@
 """ros2cli's daemon: one process per ROS domain that keeps the graph, so that the list verbs
 answer at once, complete.
 
-Why: a verb's own node (:class:`.direct.DirectNode`) discovers the graph afresh in its
-``--spin-time``; under ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST a new participant often sees the
-others only at their next announcement, some 3 s later: `ros2 node list` printed 1, 2, 2 and 0
-of 4 nodes. As in ros2cli, `ros2 node list`, `ros2 topic list|find` and `ros2 service
-list|find` ask a daemon whose node has been in the graph since it started (started on first
-use, ``--no-daemon`` to bypass it; ``ros2 daemon start|stop|status``).
-
-One daemon per (user, ROS_DOMAIN_ID, discovery range, static peers), reached on a UNIX socket
-in the temporary folder: a request is one JSON line ``{"call": NAME}`` with NAME a graph query
-of :data:`GRAPH_CALLS` (or ``ping`` / ``stop``), the answer one JSON line ``{"result": ...}``.
-A daemon younger than :data:`WARMUP_S` answers once it is that old, so its first answer too is
-the whole graph. It ends on ``stop``, SIGINT/SIGTERM, or after :data:`IDLE_S` without a request
-(ros2cli's two hours). It is started in a session of its own, with no lifeline: it outlives
-the verb that started it, as ros2cli's does.
+A verb's own node discovers the graph afresh and under LOCALHOST discovery often misses nodes,
+so `ros2 node list`, `ros2 topic list|find` and `ros2 service list|find` ask a daemon whose node
+has been in the graph since it started (``--no-daemon`` bypasses it). One daemon per (user,
+ROS_DOMAIN_ID, discovery range, static peers) on a UNIX socket: a request is one JSON line
+``{"call": NAME}`` (a query of :data:`GRAPH_CALLS`, ``ping`` or ``stop``), the answer one JSON
+line ``{"result": ...}``; a daemon younger than :data:`WARMUP_S` waits until it is that old
+before it answers. It ends on ``stop``, SIGINT/SIGTERM or after :data:`IDLE_S` without a
+request, and outlives the verb that started it (no lifeline). See docs/nodes.md.
 """
 import contextlib
 import fcntl

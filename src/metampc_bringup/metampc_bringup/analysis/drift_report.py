@@ -1,29 +1,13 @@
 """Scenario drift's results from its recordings alone (docs/adaptation.md).
 
-Each tracking run of a drift seed is named ``<method>/<mode>`` in the orchestrator's events
-(modes 'none', 'periodic', 'triggered', and 'constant': triggered at a constant theta*), the
-true-model NMPC's run ``nmpc``, all with the same reference and, but for 'constant', the same
-theta schedule. Per run, from the plant's outputs and the controller's statuses stamped within
-its span (a run's model version changes as it adapts, so nothing is filtered by version):
-
-* tracking cost: the mean squared error of the tracked outputs (the output of step k + 1
-  against the first reference row of the status of step k), before the first change
-  (t <= t_c) and after it (t > t_c), and as a ratio to the NMPC's over the same samples;
-* time to recover: the 5-s moving tracking cost (trailing window) over the NMPC's at the same
-  sample; after the change, the first time it exceeds ``RECOVERY_FACTOR`` (1.2) and then the
-  first time it is back within it, minus t_c (0: never exceeded; None: never back within
-  the run);
-* adaptation: the requests (step, trigger), the swaps (steps where the model version
-  changes), and the compute time of each adaptation in the loop (``NssmWeights.train_time``
-  of each online model the run used);
-* the change detector's relative T-step prediction error over time, plotted with the
-  requests and swaps marked.
-
-:func:`drift_experiment_report` gathers the seeds: per method and mode the median and the
-worst seed of the time to recover and of the after-change cost ratio, the adaptations, and
-the spurious adaptations of the constant runs.
-
-No rclpy here.
+Per tracking run of a drift seed (``<method>/<mode>``, modes 'none', 'periodic', 'triggered'
+and 'constant'; the NMPC's ``nmpc``), from the outputs and statuses stamped within its span:
+the tracking cost before and after the first theta change, as a ratio to the NMPC's on the
+same samples; the time to recover (the 5-s moving cost over the NMPC's back within
+:data:`RECOVERY_FACTOR` after the change); the adaptation requests, swaps and their compute
+times; the detector's error over time (plotted). :func:`drift_experiment_report` gathers the
+seeds into report.json and report.md (median and worst seed per method and mode, the spurious
+adaptations of the constant runs). No rclpy here.
 """
 import json
 import math

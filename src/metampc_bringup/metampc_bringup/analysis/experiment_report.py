@@ -1,41 +1,15 @@
 """The experiment's results from its recordings alone: per-seed reports, the paper's figures
 and the table of its claims.
 
-A seed's recording holds the orchestrator's events (:mod:`metampc_bringup.experiment_events`:
-the service results of meta_train and adapt, and the sim-time span [start, end] of every
-tracking run) and the closed-loop messages. :func:`seed_report` cuts the messages of each
-tracking run out by their header stamps (the plant stamps its n-th sample n dt, the controller
-stamps an input and its status with the stamp of the sample they answer), computes each run's
-metrics with :func:`metampc_bringup.analysis.metrics.compute_metrics` and plots it.
-:func:`experiment_report` gathers the seeds into ``report.json``, ``report.md`` and the
-figures:
-
-* Fig. 2 of the paper: meta-training loss (mean meta-test loss after each outer step, log
-  scale) per meta method: median over seeds and the min-max band;
-* Fig. 3: held-out target loss against adaptation steps of iMAML, MAML and supervised
-  training (median and band); the oracle's curve, hundreds of Adam steps on plentiful data,
-  is another kind of curve and only in report.json;
-* tracking: x (tracked outputs) and the reference per method, first seed.
-
-Held-out target loss (:func:`heldout_losses`): each published model (meta-model and adapted,
-decoded from the recorded NssmWeights) scored with l_SSM on >= 2000 samples of fresh
-simulated episodes of theta* (``metampc_learner.heldout``), per seed in report.json under
-``methods.<method>.heldout``, median over seeds in report.md. The adapt loss curves stay what
-the learner saw: the samples it held out of D_target (60 of 300 by default).
-
-Claims (each counted over seeds, reported whichever way it falls):
-
-(a) iMAML's meta-training loss below MAML's at equal outer steps (the final loss);
-(b) after K adaptation steps, K in {0, 1, 5, 20}: iMAML < MAML < supervised in held-out
-    target loss;
-(c) tracking cost of each method relative to the oracle's and to the true-model NMPC's.
-
-Each pairwise claim 'a < b' comes with its statistics over seeds (:func:`pairwise`, by
-:mod:`metampc_bringup.analysis.paired_stats` on log ratios): the seeds where it holds, the
-median ratio a/b with a bootstrap 95 % interval, a Wilcoxon p-value, and the verdict (supported
-only when the interval lies below 1).
-
-No rclpy here.
+:func:`seed_report` cuts each tracking run of a seed's recording out by its header stamps,
+using the orchestrator's events (:mod:`metampc_bringup.experiment_events`), computes its
+metrics (:func:`metampc_bringup.analysis.metrics.compute_metrics`) and plots it;
+:func:`heldout_losses` scores each published model with l_SSM of eq. (SSM) on fresh samples of
+theta*; :func:`experiment_report` gathers the seeds into ``report.json``, ``report.md`` and
+the figures (the paper's Figs. 2 and 3, tracking), with claims (a)-(c) counted over seeds and
+each pairwise claim tested by :mod:`metampc_bringup.analysis.paired_stats` (:func:`pairwise`).
+In: an experiment's output folder; out: files in it. The claims and how to read the report:
+docs/experiments.md. No rclpy here.
 """
 import json
 import math

@@ -1,19 +1,12 @@
 """Which recorded ControlInputs are the controller's answers, and which came from elsewhere.
 
-Anything may publish on ``u``: ``ros2 topic pub --once /u ...`` (docs/nodes.md) or a test tool
-injects inputs the plant applies like any other, and a recording (rosbag2's format) does not
-say which publisher sent a message. The controller, though, publishes every answer as a pair:
-its ControlInput for step k and right after it the MpcStatus of step k (controller_node).
-So a recorded ControlInput is the controller's when an MpcStatus of the same step is recorded
-next to it; one without such a status is *foreign*.
-
-Rule (:func:`controller_inputs`): walk the inputs and statuses in recorded order and pair each
-input with an unpaired status of the same step, the earliest one, provided that at most
-:data:`PAIRING_WINDOW` statuses were recorded between the two (the two topics are received on
-separate subscriptions, so their recorded orders may drift apart a little; a plant step recurs
-after every reset, and the window keeps an input from pairing with a later episode's status).
-Inputs left unpaired are foreign. Without any status recorded (a recording of ``y`` and ``u``
-only) no input can be judged, and all count as the controller's. No rclpy here.
+Anything may publish on ``u`` and a recording does not say which publisher sent a message, but
+the controller publishes each answer as a pair: its ControlInput of step k and right after it
+the MpcStatus of step k. :func:`controller_inputs` walks inputs and statuses in recorded order
+and pairs each input with the earliest unpaired status of its step at most
+:data:`PAIRING_WINDOW` statuses away; inputs left unpaired are *foreign*. In: the recorded
+steps of both topics; out: a mask [n_inputs]. Without any status recorded every input counts
+as the controller's. See docs/recording.md (metrics). No rclpy here.
 """
 from collections import deque
 from typing import Deque, Dict, Sequence, Tuple

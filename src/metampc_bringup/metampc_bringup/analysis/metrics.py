@@ -1,30 +1,13 @@
 """Metrics of a closed-loop run, on plain arrays (and on a :class:`RunSeries`).
 
-Conventions:
-
-- Episodes: the plant's step index restarts at 0 after every reset, so a sample is keyed by
-  ``(episode, step)``, the episode counting the decreases of `step` in that topic's sequence.
-- Reference: the MPC status answering step ``k`` carries ``y_ref`` = ``y_bar_{k+1..k+N}``; its
-  first row is the reference of the output of step ``k + 1``. Tracking pairs that output with
-  that row (pairs whose reference is not finite are left out).
-- Tracking cost: sum over paired samples and tracked outputs of the squared error (eq. mpc's
-  stage cost with Q = I on the tracked outputs); RMSE per tracked output and over all of them.
-- Controller's inputs: a ControlInput counts as the controller's answer when the MpcStatus
-  of its step is recorded next to it (:mod:`~metampc_bringup.analysis.input_sources`); the others
-  (``ros2 topic pub /u ...``) are counted as ``foreign_inputs`` and left out of every other
-  metric, so an injected step neither starts an episode of ``u`` nor hides answers.
-- Missed tick: a plant step with no ControlInput answering it (same episode and step), counted
-  from the first answered step up to, not including, the last output (whose answer may come
-  after the recording stopped).
-- Solve times: statuses that solved a QP (``iterations >= 0``); percentiles interpolate
-  linearly (numpy's default).
-- Live parameter changes: where the controller's ``config_version`` changes in its statuses,
-  the tracking metrics are also given per segment of one version (``tracking_segments``, the
-  status of step k with the output of step k + 1 as above; its step ``ranges`` one per
-  episode), and the recorded
-  ``/parameter_events`` that changed values are listed (``parameter_changes``); neither key
-  is there for a run without a change.
-
+Samples are keyed by (episode, step), the episode counting the resets; the MpcStatus of step k
+carries the reference of the output of step k + 1, and tracking pairs the two. Tracking cost:
+the stage cost of eq. (mpc) with Q = I on the tracked outputs (sum of squared errors), with
+RMSE per tracked output and overall; also missed ticks, input-bound violations, solve and tick
+times, foreign inputs (not the controller's, :mod:`~metampc_bringup.analysis.input_sources`;
+left out of every other metric), and per-``config_version`` segments with the recorded
+parameter changes when a live change happened. :func:`compute_metrics` returns a dict of plain
+values. Exact definitions: docs/recording.md#metrics-metricscompute_metrics-exact-definitions.
 No rclpy here.
 """
 from collections import Counter
@@ -125,7 +108,8 @@ def bound_violations(u: np.ndarray, u_min: Sequence[float], u_max: Sequence[floa
 
 
 def tick_accounting(output_steps: Sequence[int], input_steps: Sequence[int]) -> Dict:
-    """Answered and missed plant steps (see the module docstring for the window)."""
+    """Answered and missed plant steps, from the first answered step up to, not including,
+    the last output (whose answer may come after the recording stopped)."""
     answered = set(keys(input_steps))
     out_keys = keys(output_steps)
     first = next((i for i, key in enumerate(out_keys) if key in answered), None)

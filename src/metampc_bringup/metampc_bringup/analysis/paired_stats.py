@@ -1,31 +1,13 @@
 """Paired comparison of two per-seed samples: does the claim "a < b" (lower is better: a loss, a
 tracking cost) hold across seeds, and how surely?
 
-:func:`paired_claim` gives, for the pairs (a_i, b_i) of one seed each, the number of seeds where
-a_i < b_i, the median paired difference with a percentile-bootstrap 95 % interval (pairs are
-resampled), the two-sided Wilcoxon signed-rank p-value of the differences, and the verdict: the
-claim is *supported* when the interval lies below 0, *contradicted* when it lies above 0.
-
-Differences or ratios: losses and costs span orders of magnitude across seeds, so the report
-compares them with ``log=True``: the differences are log a_i - log b_i and the estimate reads
-as a ratio a/b (the exponential of the median log difference, with the interval's endpoints
-transformed alike; the bootstrap and the test are the same as on the log differences).
-
-Missing and infinite values: a pair with a NaN (value missing) is dropped. An escaped run has
-cost inf, the worst outcome, and keeps its place: the differences live on the extended reals,
-a - b = +inf when only a is inf (a is worse), and a pair with a == b (both inf included) is a
-tie, difference 0. Medians are order statistics there (the mean of the two middle values of an
-even count is +-inf when one is infinite, 0 for -inf and +inf), the interval's endpoints are
-bootstrap medians themselves (no interpolation between them), and the Wilcoxon test only uses
-the ranks of |a - b|, where an infinite difference is simply the largest: the same p-value as
-with any finite difference larger than the others (and tied like them). Zero differences
-(ties) do not enter the test (scipy's ``zero_method='wilcox'``).
-
-Small samples: the percentile bootstrap excludes 0 whenever all n differences share a sign,
-whatever n >= 2 (under no effect, all favour a with chance 2^-n); the p-value says how much
-that is worth.
-
-No rclpy here.
+:func:`paired_claim` takes the pairs (a_i, b_i), one per seed, and gives the number of seeds
+where a_i < b_i, the median paired difference (``log=True``: of log a - log b, read as the
+ratio a/b) with a percentile-bootstrap 95 % interval (pairs resampled), the two-sided Wilcoxon
+signed-rank p-value and the verdict: *supported* when the interval lies below 0 (ratio 1),
+*contradicted* when above. A pair with a NaN is dropped; inf (an escaped run) is the worst
+value and keeps its place (order statistics, no interpolation; ties leave the test).
+How to read it: docs/experiments.md. No rclpy here.
 """
 import math
 from typing import Any, Dict, Optional, Sequence, Tuple, Union

@@ -1,18 +1,13 @@
 """Analysis of a run from its recording alone: series, metrics, plots, report.json.
 
-``analyse(path)`` reads an MCAP file or a run folder holding one
-(:mod:`~metampc_recording.recording_reader`), picks the metampc topics by message type, rebuilds
-the series (:mod:`~metampc_bringup.analysis.run_series`; the file is streamed through, message by
-message, so memory does not hold the recording), computes the metrics
-(:mod:`~metampc_bringup.analysis.metrics`), and writes ``report.json`` and the PNG plots
-(:mod:`~metampc_bringup.analysis.plots`) next to the recording. The recorder's run
-configuration (the ``metampc`` metadata record) is copied into the report; its key
-``tracked_outputs`` (a list of output indices), when present, says which outputs tracking
-metrics cover.
-
-A ``report.json`` that this module did not write (its ``generator`` is not :data:`GENERATOR`,
-e.g. an experiment's per-seed report in the same folder) is never overwritten:
-:func:`analyse` raises FileExistsError before writing anything. No rclpy here.
+:func:`analyse` reads an MCAP file or a run folder holding one
+(:mod:`~metampc_recording.recording_reader`), streamed message by message, rebuilds the series
+(:mod:`~metampc_bringup.analysis.run_series`), computes the metrics
+(:mod:`~metampc_bringup.analysis.metrics`; ``tracked_outputs`` of the recorder's ``metampc``
+record, copied into the report, says which outputs track) and writes ``report.json`` and the
+plots next to the recording. Refuses (FileExistsError, before writing anything) to overwrite a
+``report.json`` it did not write (``generator`` not :data:`GENERATOR`). The report's fields:
+docs/recording.md. No rclpy here.
 """
 import json
 import math

@@ -1,17 +1,12 @@
 """The orchestrator's window on the graph: service calls, the plant's samples, event markers.
 
-An :class:`ExperimentClient` is an rclpy node (spun in a thread, :class:`SpunNode`) that
-
-* calls the services of the run (``reset`` of the plant, ``meta_train``, ``adapt`` and
-  ``set_buffering`` of the learner, ``set_active`` of each controller) and turns every failure
-  (no answer in time, the serving process gone, success=false) into an
-  :class:`ExperimentError` that says what failed;
-* follows ``y`` (the plant's samples: step, diverged flag, stamp), ``plant_info`` (latched) and
-  ``progress`` (the learner's training progress) so the orchestrator can wait on events;
-* publishes the experiment events (:mod:`metampc_bringup.experiment_events`) on
-  ``experiment_events``, reliable + transient_local: the recorder stores them with the run,
-  and the reports read phases, service results and the sim-time span of every tracking run
-  from them.
+An :class:`ExperimentClient` is an rclpy node (spun in a thread, :class:`SpunNode`) that calls
+the run's services (the plant's ``reset``; the learner's ``meta_train``, ``adapt``,
+``set_buffering``; each controller's ``set_active``), turning every failure (no answer in time,
+the server gone, success=false) into an :class:`ExperimentError` that says what failed; follows
+``y``, ``plant_info`` and ``progress`` so the orchestrator can wait on events; and publishes the
+experiment events (:mod:`metampc_bringup.experiment_events`) on their latched topic, which the
+recorder stores with the run for the reports.
 """
 import logging
 import os

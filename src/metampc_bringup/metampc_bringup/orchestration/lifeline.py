@@ -1,21 +1,13 @@
 """A process that dies with whoever started it, whatever killed that (SIGKILL included).
 
-The kernel's parent-death signal (prctl PR_SET_PDEATHSIG, Linux) delivers a chosen signal to a
-process when its parent ends. metampc's spawners (:class:`.processes.ProcessGroup`, the seed
-children of :mod:`.seed_jobs`, :mod:`.script_child`, the worker pools) put their own pid in
-the child's environment (:func:`child_env`); the child asks for the signal at its start
-(:func:`hold`) and, when its parent is already gone by then (re-parented to init or a
-subreaper between the fork and the call), sends it to itself at once. The `ros2` shim holds
-one for itself and gives its node one, so a killed orchestrator, seed child or test ends the
-`ros2 run` wrappers and through them the nodes (docs/nodes.md, "Process lifetime").
-
-Rules of the kernel that shape the use:
-- "the parent" is the *thread* that forked: spawn from the main thread, or from a thread that
-  lives as long as the children (a worker pool's manager thread);
-- the setting is kept across exec, so it may be set in the child between fork and exec;
-- only processes started with the variable set hold a lifeline: a node a user starts with
-  `nohup ros2 run ... &` outlives the shell, as it should.
-No rclpy here.
+The kernel's parent-death signal (prctl PR_SET_PDEATHSIG, Linux): a spawner puts its own pid
+in the child's environment (:func:`child_env`); the child asks for the signal at its start
+(:func:`hold`) and, when its parent is already gone by then, sends it to itself at once. The
+`ros2` shim holds one and gives its node one, so a killed orchestrator, seed child or test
+ends the nodes too. Spawn from the main thread or a thread that lives as long as the children
+("the parent" is the thread that forked). Only processes started with the variable set hold a
+lifeline: a node started by hand outlives its shell. Process lifetime: docs/nodes.md. No rclpy
+here.
 """
 import ctypes
 import multiprocessing

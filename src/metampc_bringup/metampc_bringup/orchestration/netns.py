@@ -1,25 +1,13 @@
-"""Several "hosts" on one Linux machine: network namespaces joined by a bridge (issue 10).
+"""Several "hosts" on one Linux machine: network namespaces joined by a bridge.
 
 The experiment's nodes can be placed in groups, one network namespace ("host") each, so that
-every message between groups crosses a network link as it would between machines::
-
-    namespace metampc-<pid>-<n>-br   bridge br0 (multicast snooping off), one port per host
-    namespace metampc-<pid>-<n>-h<i> lo + veth0 10.201.0.<i+1>/24, route 224.0.0.0/4 on veth0
-    namespace metampc-<pid>-<n>-orch the orchestrator's own rclpy client, 10.201.0.254/24
-
-Everything is made with iproute2 (``ip``) as root; each veth pair is created with its ends
-already inside their namespaces, so nothing ever appears in the machine's own namespace and
-no traffic leaves the namespaces made here. Deleting the namespaces deletes the links and the
-bridge with them, and :func:`split_hosts` does so on every exit (an exception, Ctrl-C, or
-SIGTERM once turned into KeyboardInterrupt by the orchestrator); namespaces left by a process
-that was SIGKILLed are removed by the next run.
-
-Nodes run under ``ip netns exec <namespace>``, and so does the orchestrator, in a new process
-(:func:`call_in_namespace`). ROS settings as on real machines: one ``ROS_DOMAIN_ID``,
-``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET`` (multicast discovery on the link). The data cross the
-links: measured, a plant's stream to a recorder in another namespace put as many bytes on them
-with Fast DDS's default transports as with ``FASTDDS_BUILTIN_TRANSPORTS=UDPv4`` (no shared
-memory). No rclpy here.
+every message between groups crosses a network link as between machines: one namespace per
+host (lo + a veth link 10.201.0.<i+1>/24), a bridge namespace and one for the orchestrator
+(:func:`call_in_namespace`), made with iproute2 (``ip``) as root with both ends of every link
+already inside, so nothing appears in the machine's own namespace. :func:`split_hosts` deletes
+them on every exit (an exception, Ctrl-C, SIGTERM); those of a SIGKILLed run go with the next
+run. Without root it refuses before creating anything. Set-up and what was measured:
+docs/experiments.md. No rclpy here.
 """
 import contextlib
 import itertools

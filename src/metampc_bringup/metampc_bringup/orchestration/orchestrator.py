@@ -1,33 +1,15 @@
 """The experiment of the paper, run on the ROS 2 graph: one bring-up and one recording per seed.
 
-For each seed (:class:`SeedRun`), in a ROS domain of its own:
-
-1. start the recorder first (and the Foxglove live view if asked), then the learner, the
-   plant (lockstep, waiting for inputs without a time-out), the latent-MPC controller and, if
-   ``nmpc`` is compared, a second controller with the true-model NMPC (both inactive); wait
-   until every service answers and the recorder has subscribed to every topic it records (no
-   sleeps as synchronisation);
-2. **collect**: reset the plant to theta* and let the controller's exploration input
-   (``pre_model_input: excitation``) drive it until the learner has buffered
-   ``target_samples`` samples (D_target; the plant is reset if it escapes);
-3. **meta-train** each meta method through ``meta_train`` (Algorithm 1; eqs. inner_imaml,
-   outer, Qb, cg for iMAML, eq. outer_maml for MAML); while the learner trains the first one,
-   the true-model NMPC (``nmpc``, which needs no model) **tracks** as in step 4 (the learner's
-   D_target is full by then: the plant's samples reach it in order, so the NMPC's episode
-   never enters it);
-4. per method: **adapt** through ``adapt`` (eq. infer from the meta-model; from a random
-   initialisation for ``supervised``; on plentiful target data for ``oracle``), wait until the
-   controller holds the adapted model, then **track**: reset the plant to ``track_x0`` and
-   run the controller for ``track_duration`` s of plant time (``nmpc``: the second
-   controller, no learning);
-5. stop the nodes (recorder last, so it records everything and finishes its file) and analyse
-   the recording (:mod:`metampc_bringup.analysis.experiment_report`).
-
-Every phase publishes an event (:mod:`metampc_bringup.experiment_events`) on
-``experiment_events``: the service results and the sim-time span of each tracking run are in
-the recording, and the report is computed from the recording alone. Ctrl-C (SIGINT) or
-SIGTERM stops the nodes in the same order, so the recording stays readable and no process is
-left behind.
+For each seed (:class:`SeedRun`), in a ROS domain of its own: start the recorder, learner,
+plant (lockstep) and controllers, waiting on their services and the recorder's subscriptions
+(no sleeps); **collect** D_target with the excitation input; **meta-train** each meta method
+(Algorithm 1: eqs. (inner_imaml), (outer), (Qb), (cg) for iMAML, (outer_maml) for MAML; the
+true-model NMPC tracks meanwhile); per method **adapt** (eq. (infer)) and **track** for
+``track_duration`` s; stop the nodes, recorder last, and analyse the recording
+(:mod:`metampc_bringup.analysis.experiment_report`). Every phase publishes an event
+(:mod:`metampc_bringup.experiment_events`), so the report comes from the recording alone.
+Ctrl-C (SIGINT) or SIGTERM stops the nodes in the same order, leaving no process and a
+readable recording. The steps in full: docs/experiments.md.
 """
 import contextlib
 import json

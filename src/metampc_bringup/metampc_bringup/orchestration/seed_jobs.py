@@ -1,24 +1,13 @@
 """Seeds in parallel: ``run_experiment.py --jobs N`` runs up to N seeds at once.
 
-Each seed runs in a child process of its own
-(``python -m metampc_bringup.orchestration.seed_jobs OUT SEED``) that claims a ROS domain of its
-own (:mod:`.domain`) and runs :class:`.orchestrator.SeedRun` exactly as the one-process
-experiment does, in a session of its own, so that its nodes and their DDS traffic never meet
-another seed's. The parent starts no node and no rclpy: it keeps
-N children running, and merges their recordings' reports as the one-process run does.
-
-Determinism: a lockstep seed's result does not depend on what runs beside it, so the per-seed
-reports equal those of ``--jobs 1`` (test_experiment checks it); the learner's torch thread
-count is part of the configuration and is not changed by ``--jobs``.
-
-A seed child dies with the parent (:mod:`.lifeline`: SIGINT when the parent ends, SIGKILL
-included), and stops its nodes then as on Ctrl-C.
-
-Ctrl-C (or SIGTERM) in the parent: no new seed starts, every running child gets SIGINT and
-stops its nodes as a one-process run does (controllers, plant, learner, recorder last, so
-every recording stays readable); then KeyboardInterrupt goes on. A seed that fails lets the
-running ones finish (nothing already computed is lost), starts no new one, and raises
-:class:`.experiment_client.ExperimentError` naming it. No rclpy in the parent's code here.
+Each seed runs in a child process (``python -m metampc_bringup.orchestration.seed_jobs OUT
+SEED``) with a ROS domain (:mod:`.domain`) and a session of its own, running
+:class:`.orchestrator.SeedRun` as the one-process experiment does; the parent starts no node
+and no rclpy, keeps N children running and merges their reports. A lockstep seed's report
+equals that of ``--jobs 1``. A child dies with the parent (:mod:`.lifeline`); Ctrl-C or SIGTERM
+in the parent starts no new seed and sends SIGINT to every running child (each stops its nodes,
+recorder last). A seed that fails lets the running ones finish and raises
+:class:`.experiment_client.ExperimentError` naming it. Measured: docs/speed.md#seeds-in-parallel.
 """
 import logging
 import os

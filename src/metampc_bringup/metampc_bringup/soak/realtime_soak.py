@@ -1,25 +1,13 @@
 """A real-time soak: a realtime plant and the latent-MPC controller for a long run.
 
-The logic of ``scripts/soak.py`` (its command line; docs/faults.md has the measured soaks).
-The plant runs in ``realtime`` mode (a wall-clock timer at ``rate`` Hz, zero-order hold of the
-latest input) and the controller on its own wall-clock timer at ``controller_rate`` with a
-trained model: the hand-built NSSM of ``metampc_model.manual_model`` (the plant
-linearised at the origin, discretised at the plant's dt) or a checkpoint (``weights``). It
-tracks a sine reference of x1; a little measurement noise keeps every input distinct. An
+The logic of ``scripts/soak.py``: the plant in ``realtime`` mode at ``rate`` Hz, the controller
+on its own wall-clock timer at ``controller_rate`` with a trained model (the hand-built NSSM of
+:mod:`metampc_model.manual_model` or the checkpoint ``weights``) tracking a sine of x1; an
 observer in this process (:mod:`metampc_bringup.soak.soak_observer`) records ``y``, ``u`` and
-``mpc_status``, and each node's RSS and CPU time are sampled once a second. The measures,
-after a warm-up that is left out, are those of :mod:`metampc_bringup.soak.soak_metrics`; the
-report also has the load average at start and end (the machine may be shared).
-
-The controller's tick answers the newest unanswered sample, or the next sample on arrival
-when there is none; at twice the plant's rate (the default) every other tick finds none, so
-each sample is answered on arrival. At the plant's own rate the two timers keep a fixed
-phase, and when the controller's tick comes late in the plant's period every answer is late.
-
-With ``adaptation`` (periodic or triggered) a learner process loads the checkpoint
-``weights`` as its meta-model, publishes it, and adapts at the controller's requests while
-the plant follows ``theta_schedule``: the soak then measures whether adaptation in the loop
-ever makes the real-time controller late (it never waits for a model in real time).
+``mpc_status`` and samples each node's RSS and CPU once a second. After the warm-up the
+measures are :mod:`metampc_bringup.soak.soak_metrics`'s, with the load average at start and
+end. With ``adaptation`` a learner adapts in the loop while the plant follows
+``theta_schedule``. Set-up, timers and measured soaks: docs/faults.md#real-time-soak.
 """
 from dataclasses import dataclass
 import os

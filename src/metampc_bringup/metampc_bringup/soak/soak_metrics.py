@@ -1,28 +1,13 @@
 """The measures of a real-time soak (:mod:`metampc_bringup.soak.realtime_soak`), on what an
 observer received and on process samples.
 
-Inputs, each in the order received, times in monotonic ns at the observer:
-
-- ys: [(t, step, u_applied)] of the plant's ``y``;
-- us: [(t, step, u, model_version)] of the controller's ``u``;
-- statuses: [(t, step, tick_time s, solve_time s, fallback)] of ``mpc_status``;
-- samples: name -> [(t, RSS bytes, CPU s)]
-  (:class:`metampc_bringup.orchestration.procfs.UsageSampler`).
-
-Only what arrived from ``start_ns`` on (the end of the warm-up) is measured:
-
-- Deadline misses: steps k whose input was not there before the plant's step k + 1. The
-  plant applies the latest input it has, so y_{k+1}.u_applied is the answer to step k exactly
-  when that answer was in time; a miss is a step whose y_{k+1} carries another input
-  (``late``), or whose answer never came (``unanswered``). Steps whose answer equals the
-  previous one bit for bit cannot be told apart and are counted as ``ambiguous`` (none
-  expected with measurement noise).
-- Dropped messages: plant steps never received (gaps in the step index), steps never
-  answered, inputs without their ``mpc_status``.
-- Per process: RSS at the start and the end (MiB), peak, growth in percent of the start, CPU
-  share (100: one core).
-
-Goals (issue 10): deadline misses <= 0.1 % and RSS growth <= 5 %. No rclpy here.
+In, each in the order received, times in monotonic ns at the observer: ys [(t, step,
+u_applied)], us [(t, step, u, model_version)], statuses [(t, step, tick_time s, solve_time s,
+fallback)] and samples name -> [(t, RSS bytes, CPU s)]; only what arrived from ``start_ns`` on
+is measured. Out: deadline misses (a step whose answer was not applied at step k + 1: late,
+unanswered; ambiguous when the answer equals the previous one), dropped messages, and per
+process RSS at start and end, peak, growth and CPU share. Goals: misses <= 0.1 % and RSS growth
+<= 5 %. Definitions: docs/faults.md#real-time-soak. No rclpy here.
 """
 import math
 import re

@@ -1,21 +1,13 @@
 """The experiment's learning set-up without ROS: meta-training and adaptation jobs.
 
 What ``scripts/tune.py``, ``scripts/robustness.py`` and ``scripts/sweep_inner_steps.py`` share:
-the learner configuration an experiment gives a seed (the same NSSM, source set, windows per
-task and request fields as the learner node gets from the orchestrator), validation targets
-that are never the experiment's test targets, and a job runner (worker processes, one torch
+the learner configuration an experiment gives a seed (:func:`settings_from`), validation
+targets that are never the experiment's test targets (theta_i from ``rng([1000 + i, 0x5a1])``,
+with ``target_samples`` adaptation samples and :data:`HELDOUT_SAMPLES` held out; the test
+targets come from ``rng([s, 0x7e7a])``), a job on one test target (``target_theta``, data seeded
+by :func:`target_data_seeds`), and a job runner (:func:`run_jobs`: worker processes, one torch
 thread count each, results cached on disk so that a long run stopped half-way resumes).
-
-Validation, never the test targets: the experiment's seed s uses ``source_seed = s`` and the
-target theta of ``rng([s, 0x7e7a])``; validation targets theta_i are drawn from the family's
-prior with ``rng([1000 + i, 0x5a1])``, each with ``target_samples`` adaptation samples (one
-bounded excitation episode, like the experiment's collection) and an independent held-out set
-of :data:`HELDOUT_SAMPLES` samples.
-
-Test targets (the sweep's evaluation): a job with ``target_theta`` is scored on that one target
-instead, the experiment's theta* of the run whose seed is the job's ``source_seed``; its
-adaptation episode and held-out set (``heldout_samples``, e.g. :data:`TEST_HELDOUT_SAMPLES`)
-are seeded by :func:`target_data_seeds`, a stream of its own.
+Protocols: docs/tuning.md, docs/sweep.md. No rclpy here.
 """
 import concurrent.futures as futures
 import hashlib

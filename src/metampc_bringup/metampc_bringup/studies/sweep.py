@@ -1,60 +1,15 @@
-"""Where does iMAML win? Held-out target loss, time and memory against the inner steps M.
+"""Where does iMAML win? The inner-steps sweep: held-out target loss, time and memory against M.
 
-The paper's argument: iMAML can afford many inner steps at flat memory, while first-order MAML's
-approximation degrades with M. The sweep meta-trains iMAML (Gauss-Newton curvature) and
-first-order MAML at M in {1, 5, 10, 25, 50} and unrolled (second-order) MAML at the M <= 10 of
-those (:data:`UNROLLED_MAX_M`: its memory grows ~23 MB per inner step, and its time with it), on
-the learning cores without ROS (:mod:`metampc_bringup.studies.offline`), each (method, M) tuned
-with the same budget, then tested on the experiment's own seeds.
-
-Protocol:
-
-- Tuning, per (method, M), on validation data only (as ``scripts/tune.py``): the
-  :data:`GRIDS` configurations of the method (4 each: iMAML lr_inner x gamma, MAML lr_inner),
-  the other MetaConfig fields (lr_outer, batch size, CG steps) at the experiment's tuned request
-  (unrolled MAML, never tuned, takes first-order MAML's), ``tune_iterations`` outer steps on
-  source set 1000; each adapted to ``thetas`` validation targets with every step size of
-  :data:`ADAPT_LRS` (``adapt_steps`` plain steps). Score: the mean held-out loss after the
-  last step at the best step size; the winner of (method, M) has the lowest score.
-- Test, per (method, M) winner and seed s of ``seeds``: meta-training for ``iterations``
-  outer steps on the experiment's source set s (meta seed s), adaptation with the winner's
-  step size on the experiment's target theta* of seed s (300 samples, one bounded excitation
-  episode) and the held-out loss on ``heldout_samples`` (2000) independent samples of theta*
-  after K in {0, 1, 5, 20} steps. 300 outer steps: the experiment's, so the figures read
-  against its runs.
-- Cost, per run in a fresh worker process (ProcessPoolExecutor with max_tasks_per_child 1):
-  meta-training wall time per outer step, the peak RSS of the process (``ru_maxrss``: torch,
-  data, meta-training and adaptation) and its RSS before meta-training.
-- Report: median over the seeds with a percentile-bootstrap 95 % interval (seeds resampled),
-  iMAML against first-order MAML (and first-order against unrolled MAML) paired by seed with
-  :func:`metampc_bringup.analysis.paired_stats.paired_claim` on the log losses.
-
-Budget (the defaults; CPU s per outer step at B = 16, the default NSSM, 1 torch thread, measured
-as process CPU time of 3 steps after a warm-up on the 2-core machine at load 3-4, bench_meta.py's
-M = 10 figures beside them), :data:`COST_PER_STEP`:
-
-- iMAML-GN (5 CG steps): 0.167 / 0.238 / 0.672 / 1.277 s at M = 1 / 5 / 25 / 50, i.e.
-  0.145 + 0.0225 M (M = 10: 0.37; bench 0.34);
-- first-order MAML: 0.043 / 0.113 / 0.565 / 1.218 s, i.e. 0.02 + 0.024 M (M = 10: 0.26; bench
-  0.22);
-- unrolled MAML: 0.069 / 0.242 s at M = 1 / 5, bench 0.51 at M = 10: 0.02 + 0.048 M.
-
-One outer step of every (method, M) cell: iMAML 5 x 0.145 + 0.0225 x 91 = 2.77 s (sum of M
-1 + 5 + 10 + 25 + 50 = 91), first-order MAML 0.10 + 0.024 x 91 = 2.28 s, unrolled MAML
-0.06 + 0.048 x 16 = 0.83 s: 5.88 CPU s. Outer steps per cell: 4 configurations x 100 (tuning)
-+ 5 seeds x 300 (test) = 1900, i.e. 11 170 CPU s. Per job on top (:data:`JOB_START_S`: spawn a
-process, import torch, simulate the data, ~6 s; :data:`ADAPT_S`: one target and step size,
-20 adaptation steps, ~0.5 s): 13 cells x 4 tuning jobs x (6 + 4 targets x 6 step sizes x 0.5)
-= 936 s, 65 test jobs x (6 + 1) = 455 s. In all ~12 570 CPU s = 3.5 CPU h, ~1.75 h wall with 2
-jobs x 1 thread on 2 otherwise idle cores (the longest job, iMAML M = 50 at 300 steps, ~6.4
-min). :func:`estimate_cpu_s` computes this for any plan; a shorter sweep takes fewer ``ms``,
-``seeds`` or outer steps.
-
-Resuming: every finished run is cached in ``OUT/cache/<key>.json`` (:func:`offline.run_jobs`)
-and never run again; the winners follow from the cached tuning runs, so a sweep stopped
-half-way and started again with the same arguments goes on where it stopped. A folder holding
-the report of a sweep with other settings is refused (:class:`SweepError`), never
-overwritten. No rclpy here.
+Meta-trains iMAML (eq. (inner_imaml), Gauss-Newton curvature, eq. (cg)), first-order MAML and
+unrolled MAML (eqs. (inner_maml), (outer_maml); M <= :data:`UNROLLED_MAX_M`) at each inner-step
+count M on the learning cores without ROS (:mod:`metampc_bringup.studies.offline`): each
+(method, M) tuned on validation data with the same budget (:data:`GRIDS`, :data:`ADAPT_LRS`),
+then tested on the experiment's seeds; iMAML and first-order MAML compared paired by seed
+(:func:`metampc_bringup.analysis.paired_stats.paired_claim`). In: the sweep's settings and the
+experiment's config; out: ``OUT/`` (report.md, sweep.json, plots; finished runs cached in
+``OUT/cache/``, so a stopped sweep resumes). Refuses (:class:`SweepError`) a folder holding a
+sweep of other settings. Cost model: :data:`COST_PER_STEP`, :func:`estimate_cpu_s`. Protocol,
+budget and measured costs: docs/sweep.md. No rclpy here.
 """
 import concurrent.futures as futures
 import hashlib
@@ -90,7 +45,7 @@ GRIDS: Dict[str, Tuple[Dict[str, float], ...]] = {
     'maml': _MAML_GRID, 'maml_unrolled': _MAML_GRID}
 SWEPT = ('iterations', 'inner_steps', 'lr_inner', 'gamma')
 ADAPT_LRS = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
-# CPU s per outer step = a + b M (B = 16, default NSSM, 1 thread; module docstring).
+# CPU s per outer step = a + b M (B = 16, default NSSM, 1 thread; docs/sweep.md).
 COST_PER_STEP = {'imaml': (0.145, 0.0225), 'maml': (0.02, 0.024),
                  'maml_unrolled': (0.02, 0.048)}
 JOB_START_S = 6.0    # CPU s: spawn a worker, import torch, simulate the data
@@ -194,7 +149,7 @@ def evaluation_jobs(experiment: ExperimentConfig, plan: Plan,
 
 
 def estimate_cpu_s(plan: Plan) -> Dict[str, float]:
-    """CPU seconds of the plan at the default NSSM and B = 16 (module docstring)."""
+    """CPU seconds of the plan at the default NSSM and B = 16 (docs/sweep.md, Budget)."""
     tune = test = 0.0
     for method, m in plan.cells():
         a, b = COST_PER_STEP[method]

@@ -1,55 +1,14 @@
 """A fair hyperparameter search for iMAML, first-order MAML and supervised training.
 
-The logic of ``scripts/tune.py`` (its command line); the result is in docs/tuning.md.
-
-Every method gets the same search budget, spent on validation systems only (docs/tuning.md):
-
-- Validation, never the test targets: the source set is drawn with ``source_seed`` 1000 (the
-  experiment's seeds 0..9 use ``source_seed = seed``) and ``thetas`` validation targets with
-  theta_i drawn from the family's prior with rng([1000 + i, 0x5a1]) (the experiment's test
-  targets come from rng([seed, 0x7e7a])). Each validation target gets ``target_samples`` (300)
-  adaptation samples (one bounded excitation episode, like the experiment's collection) and an
-  independent held-out set of 600 samples (three further episodes).
-- Budget: ``k`` (+ ``refine``) meta-trainings per meta method (iMAML with Gauss-Newton
-  curvature and the CG steps of :data:`CG_STEPS` for its gamma; first-order MAML), each of
-  ``iterations`` outer steps with B = 16 and the experiment's NSSM, source set size and
-  windows per task (from ``config``). Configuration 0 of each is the calibration (M = 10,
-  beta_in = 0.05, gamma = 1, Adam 1e-3); configurations 1..K-1 are drawn without replacement
-  from the grid of (inner_steps, lr_inner, lr_outer) and shared by both methods (paired draws);
-  iMAML adds a gamma from its grid (a shuffled sequence that holds every gamma of the grid in
-  turn). Every meta-trained model is then adapted (eq. infer, gamma = 0, ``adapt_steps``
-  plain steps) with every step size of :data:`ADAPT_LRS`; supervised training, which has no
-  meta-training, gets the same step sizes (8 = K configurations).
-- Score of a (configuration, step size), ``score`` 'control' (default): every adapted model
-  of a validation target tracks the experiment's reference in one process (the experiment's
-  controller core, its offset-free MPC included, against the plant core at that theta; no
-  ROS), and its tracking cost over the true-model NMPC's on the same target is that target's
-  ratio (inf when the plant escapes); the score is the geometric mean of the ratios, so a
-  configuration that predicts better and controls worse loses. The held-out loss after the
-  adaptation steps (normalised units, eq. l_SSM), the score of ``score`` 'prediction' and of
-  the searches before, is kept as ``prediction_score``. A configuration's score is that of its
-  best step size, and the winner of a method is its best configuration.
-- Refinement (stage 2, the same ``refine`` budget per meta method): neighbours of the
-  method's stage-1 winner (one hyperparameter moved one grid step, not tried yet) drawn at
-  random, topped up from the neighbours of the next best configurations when the winner has
-  too few; the winner is then the best of both stages.
-- Robustness (stage 3, the same budget per meta method): the ``finalists`` best configurations
-  of each meta method and the one in use (the incumbent: its request in ``config``, index -1,
-  unless it is a finalist already) are meta-trained for ``full_iterations`` (the experiment's
-  300) outer steps on each of ``robust_seeds`` validation source sets (``source_seed`` = meta
-  seed = 1000, 1001, ...) and scored with every step size; a finalist's robust score is the
-  mean over the source sets at its best step size, and the winner of a meta method is its
-  finalist with the lowest robust score; ``robust_seeds`` defaults to 5, so that a winner that
-  diverges on another source set loses. One source set is not enough: a winner of the one-seed
-  search (Adam 1e-2 for iMAML) diverged on another one, and on the stable model both finalists
-  of a 2-finalist search (gamma 0.01) diverged at 300 steps while the incumbent and the third
-  best did not (docs/tuning.md).
-
-Jobs run in ``jobs`` worker processes with ``threads`` torch threads each; every job is
-seeded (meta seed = source seed; supervised init seed 1000) and independent of the order in
-which the jobs finish, so the scores are reproducible at the same thread count. Progress goes
-to stderr (tqdm); :func:`tune` returns the report (configurations with scores, robustness
-runs, winners, wall time, CPU time of the jobs, load average).
+The logic of ``scripts/tune.py``: every method gets the same budget of meta-trainings, spent
+on validation systems only (source set 1000.., validation thetas from rng([1000 + i, 0x5a1]),
+never the experiment's test targets); each model is adapted by eq. (infer) with every step size
+of :data:`ADAPT_LRS` and scored by closed-loop tracking against the true-model NMPC
+(``score`` 'control') or by held-out loss ('prediction'); stage 2 refines around the winner,
+stage 3 re-runs the finalists and the incumbent on ``robust_seeds`` source sets. Jobs are
+seeded, so the scores are reproducible at the same thread count. :func:`tune` returns the
+report (configurations with scores, robustness runs, winners, wall and CPU time, load).
+Protocol and results: docs/tuning.md.
 """
 import concurrent.futures as futures
 import itertools

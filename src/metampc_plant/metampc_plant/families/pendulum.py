@@ -7,10 +7,8 @@
     m ~ U(0.5, 1.5) kg,  l ~ U(0.5, 1.5) m,  b ~ U(0.05, 0.3) N m s,  g = 9.81 m/s^2,
     |u| <= 3 N m.
 
-x1 is the angle from the lower rest position (rad), x2 the angular rate (rad/s). A torque of
-3 N m holds the angle of the heaviest, longest pendulum (m l g = 22 N m) up to about 0.14 rad
-and that of the lightest (3.7 N m) up to about 0.95 rad: set-points within +-1 rad are held by
-some targets only, which is what the family tests.
+x1 is the angle from the lower rest position (rad), x2 the angular rate (rad/s). Set-points
+within +-1 rad are held by some targets only (docs/families.md), which is what the family tests.
 """
 from dataclasses import dataclass
 

@@ -1,25 +1,15 @@
 """Johansson's quadruple-tank process: 4 states, 2 inputs, 2 outputs, uncertain valve splits.
 
-K. H. Johansson, "The quadruple-tank process: a multivariable laboratory process with an
-adjustable zero", IEEE Trans. Control Syst. Technol. 8(3), 2000. Levels h (cm), pump voltages v
-(V)::
+K. H. Johansson, IEEE Trans. Control Syst. Technol. 8(3), 2000. Levels h (cm), pumps v (V)::
 
     h1' = -a1/A1 s(h1) + a3/A1 s(h3) + g1 k1/A1 v1
     h2' = -a2/A2 s(h2) + a4/A2 s(h4) + g2 k2/A2 v2
     h3' = -a3/A3 s(h3) + (1 - g2) k2/A3 v2
     h4' = -a4/A4 s(h4) + (1 - g1) k1/A4 v1,      s(h) = sqrt(2 * 981 * max(h, 0)) cm/s,
-    y = 0.5 (h1, h2) V (level sensors, 0.5 V/cm),
+    y = 0.5 (h1, h2) V (level sensors, 0.5 V/cm),  0 <= v1, v2 <= 10 V,
 
-A1 = A3 = 28, A2 = A4 = 32 cm^2; a1 = a3 = 0.071, a2 = a4 = 0.057 cm^2; k1 = 3.33, k2 = 3.35
-cm^3/(V s); 0 <= v1, v2 <= 10 V; theta = (g1, g2) ~ U(0.3, 0.8) each. The flow through a valve
-splits g to the lower tank and 1 - g to the upper tank on the other side: with g1 + g2 > 1 the
-linearised plant is minimum phase, with g1 + g2 < 1 it has a right-half-plane zero, so a
-target drawn from Theta may be either, which is what makes the family hard.
-
-Sample time 5 s (default): the linearised time constants at Johansson's operating point
-(h = 12.4, 12.7, 1.8, 1.4 cm at v = 3 V) are 23-63 s, so an MPC horizon of 20 samples looks
-100 s ahead. The tanks are not capped (no overflow model): the state box |h|_inf <= 100 cm
-flags a level the laboratory tanks (20 cm) could not hold long before it.
+theta = (g1, g2) ~ U(0.3, 0.8) each (g1 + g2 < 1: a right-half-plane zero); dt 5 s; state box
+|h|_inf <= 100 cm (no overflow model). Constants, operating point and why: docs/families.md.
 """
 from dataclasses import dataclass
 

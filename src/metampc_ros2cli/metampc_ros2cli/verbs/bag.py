@@ -1,17 +1,12 @@
 """`ros2 bag info|play|record`, with ros2bag's (Jazzy) syntax, on this project's MCAP code.
 
-- ``record`` runs the project's recorder node in this process (``metampc_recording.main.recorder``,
-  the code of ``ros2 run metampc_recording recorder``) and makes a rosbag2 bag folder, as rosbag2
-  does: ``-o NAME`` (default ``rosbag2_YYYY_MM_DD-HH_MM_SS``) holds ``NAME_0.mcap`` and, once
-  Ctrl-C has finished the file, ``metadata.yaml`` written from the bag metadata the recorder
-  stored in it. What is recorded is what the recorder records.
-- ``info`` prints what rosbag2's prints (:mod:`metampc_ros2cli.bag_info`) for a bag folder or an
-  MCAP file.
-- ``play`` republishes a bag folder or an MCAP file with :mod:`metampc_recording.player`.
-
-Errors are one line and a non-zero status, as ros2bag's: a bag path that does not exist is an
-argparse error (status 2); the others (not a bag, cut short, unknown topic, an output folder
-that exists) status 1.
+``record`` runs the project's recorder node in this process and makes a rosbag2 bag folder
+(``-o NAME``, default ``rosbag2_YYYY_MM_DD-HH_MM_SS``: ``NAME_0.mcap`` and, once Ctrl-C has
+finished the file, ``metadata.yaml``); ``info`` prints what rosbag2's prints
+(:mod:`metampc_ros2cli.bag_info`) for a bag folder or an MCAP file; ``play`` republishes one
+with :mod:`metampc_recording.player`. Errors are one line and a non-zero status, as ros2bag's:
+a bag path that does not exist is an argparse error (status 2); the others (not a bag, cut
+short, unknown topic, an output folder that exists) status 1. See docs/recording.md.
 """
 import argparse
 import datetime

@@ -23,7 +23,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
 import yaml
 
-# One xdist worker runs this file and test_replay.py: they share the session's recorded
+# One xdist worker runs this file and test_run_report.py: they share the session's recorded
 # closed-loop run (recording_fixtures.closed_loop), built once.
 pytestmark = pytest.mark.xdist_group('closed_loop')
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-# One xdist worker runs this file and test_recorder.py: they share the session's recorded
+# One xdist worker runs this file and test_recorder_node.py: they share the session's recorded
 # closed-loop run (recording_fixtures.closed_loop), built once.
 pytestmark = pytest.mark.xdist_group('closed_loop')
 
