@@ -16,6 +16,8 @@ docs/speed.md). Per variant, from the seed report:
 - recorded: the outputs, inputs and MpcStatus the recording holds of each run; all of them
   (``recording_complete``: every step's u and mpc_status, at least one y per step, no missed
   tick) or the rate was bought with lost data;
+- foreign_inputs: inputs on u the replay did not pair with a status of the controller (0 in a
+  run where nothing else publishes on u);
 - ratio_to_bare: the slowest method's rate over ``bare_round_trips_per_s``, a lockstep plant
   and a controller that echoes u = 0 at once (``bench_plant.py``'s ROS part), the transport's
   ceiling on this machine, measured in the same run.
@@ -66,6 +68,7 @@ def run(steps: int, methods: List[str], overrides: Dict[str, Any]) -> Dict[str, 
         'steps_per_s_nmpc': steps / timings['track_nmpc'],
         'escaped': {m: t['escaped'] for m, t in tracking.items()},
         'recorded': {m: t['samples'] for m, t in tracking.items()},
+        'foreign_inputs': {m: t['foreign_inputs']['count'] for m, t in tracking.items()},
         'recording_complete': all(
             t['ticks']['missed'] == 0 and t['samples']['inputs'] == steps
             and t['samples']['mpc_status'] == steps and t['samples']['outputs'] >= steps

@@ -330,16 +330,12 @@ class SeriesBuilder:
             config_version=st.column('config_version', s))
 
     def _controller_inputs(self, order: np.ndarray) -> np.ndarray:
-        """Mask of the inputs (in `order`) that are the controller's (input_sources)."""
+        """Mask of the inputs (in `order`, the recorded one) that are the controller's
+        (input_sources)."""
         inp, st = self._inputs, self._status
         s = st.order()
-        times = np.concatenate([inp.column('log_time', order), st.column('log_time', s)])
-        arrivals = np.concatenate([np.frombuffer(inp.arrival, dtype=np.int64)[order],
-                                   np.frombuffer(st.arrival, dtype=np.int64)[s]])
-        rank = np.empty(times.size, dtype=np.int64)
-        rank[np.lexsort((arrivals, times))] = np.arange(times.size)
-        return controller_inputs(rank[:order.size], inp.column('step', order),
-                                 rank[order.size:], st.column('step', s))
+        return controller_inputs(inp.column('step', order), inp.column('stamp', order),
+                                 st.column('step', s), st.column('stamp', s))
 
 
 def _plant_info(info: Any) -> Dict[str, Any]:
