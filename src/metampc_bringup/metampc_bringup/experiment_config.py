@@ -33,6 +33,8 @@ import yaml
 
 from metampc_controller import controller_params
 from metampc_learner import learner_params
+from metampc_learner.learner_params import ADAPT_METHODS
+from metampc_learner.meta_train import META_METHODS
 from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
@@ -42,9 +44,7 @@ from metampc_plant.theta_schedule import ThetaSchedule
 PROTOCOLS = ('tuned', 'paper')
 SCENARIOS = ('paper', 'drift')
 DRIFT_MODES = ('none', 'periodic', 'triggered')
-META_METHODS = ('imaml', 'maml', 'maml_unrolled')
-ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
-METHODS = (*ADAPT_METHODS, 'nmpc')
+METHODS = (*ADAPT_METHODS, 'nmpc')       # what an experiment compares
 SHARED = ('family', 'dt', 'u_min', 'u_max')
 _TAKES_SHARED = {'plant': SHARED, 'learner': SHARED, 'controller': ('u_min', 'u_max')}
 # The request fields a config may set: the services' own (method and seed are the run's).

@@ -39,7 +39,7 @@ from metampc_learner.data import (normalisation_from, simulate_source, SourceCon
                                   SourceData, SourceSet, Trajectory, Windows)
 from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
-from metampc_learner.meta_train import meta_train, MetaConfig, METHODS
+from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
 from metampc_learner.online_collection import CollectionStats, OnlineCollector
 from metampc_learner.oracle import fit_oracle, oracle_data
 from metampc_learner.progress import ProgressFn
@@ -189,9 +189,9 @@ class LearnerSession:
             raise LearnerError(f'cannot load meta-model {path!r}: {err}') from None
         info = ckpt.info
         method = info.get('method', 'imaml')
-        if method not in METHODS:
+        if method not in META_METHODS:
             raise LearnerError(f'{path!r} holds a {method!r} model, not a meta-model of '
-                               f'{", ".join(METHODS)}')
+                               f'{", ".join(META_METHODS)}')
         return self._new_record(
             model=ckpt.model, params=ckpt.params, method=method, stage='meta',
             train_loss=float(info.get('train_loss', math.nan)),
