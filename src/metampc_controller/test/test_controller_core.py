@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
-                                                History, PlantDescription, PreModelInput)
+                                                History, PreModelInput)
 from metampc_controller.closed_loop import run_episode
 from metampc_controller.controller_params import ControllerConfig
 from metampc_common.excitation import ExcitationConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
 from metampc_model.weights_codec import DecodedWeights, WeightsError
+from metampc_plant.plant_description import PlantDescription
 from metampc_plant.simulator import Plant, PlantConfig
 
 

@@ -28,7 +28,7 @@ import math
 import os
 import re
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -44,6 +44,7 @@ from metampc_learner.online_collection import CollectionStats, OnlineCollector
 from metampc_learner.oracle import fit_oracle, oracle_data
 from metampc_learner.progress import ProgressFn
 from metampc_learner.target_buffer import split_target, TargetSamples
+from metampc_plant.plant_description import PlantDescription
 
 FINAL_LOSS_STEPS = 10   # final_loss of meta_train: mean meta-test loss of the last 10 steps
 CHECKPOINT_NAME = re.compile(r'(?:meta|adapted|online)_[a-z_]+_v(\d+)\.pt')
@@ -81,22 +82,6 @@ class ModelRecord:
     train_samples: int
     seed: int
     train_time: float = 0.0
-
-
-@dataclass
-class PlantFacts:
-    """The target plant as plant_info describes it: family name, theta (n_theta values; empty
-    when unknown, e.g. a real plant), dt (s), RK4 substeps, input bounds (one per input), the
-    number of outputs, state box."""
-
-    family: str
-    theta: Tuple[float, ...]
-    dt: float
-    substeps: int
-    u_min: Tuple[float, ...]
-    u_max: Tuple[float, ...]
-    n_y: int
-    state_bound: float
 
 
 @dataclass
@@ -257,12 +242,12 @@ class LearnerSession:
                                f"meta_train with method '{method}' first")
         return self.meta_models[method]
 
-    def _plant_source(self, plant: PlantFacts) -> SourceConfig:
+    def _plant_source(self, plant: PlantDescription) -> SourceConfig:
         """The source settings with the target plant's dynamics, bounds and box."""
         return plant_source(self.config.source, plant.dt, plant.substeps, plant.u_min,
                             plant.u_max, plant.state_bound)
 
-    def check_plant(self, plant: PlantFacts) -> None:
+    def check_plant(self, plant: PlantDescription) -> None:
         """LearnerError unless the plant samples at the dt the source systems are simulated at
         (the plant's plant_info is the one source of truth for dt) and has the source
         family's numbers of inputs and outputs."""
@@ -276,7 +261,7 @@ class LearnerSession:
                                f'{len(plant.u_min)} input(s) and {plant.n_y} output(s), the '
                                f'source family {fam.name} {fam.n_u} and {fam.n_y}')
 
-    def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantFacts],
+    def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantDescription],
               progress: Optional[ProgressFn] = None) -> AdaptOutcome:
         """Adapt (or train a baseline) on the buffered target samples; see the module.
 
@@ -371,5 +356,4 @@ class LearnerSession:
         return AdaptOutcome(new, result, used, _samples(train), 0)
 
 
-__all__ = ['LearnerError', 'ModelRecord', 'PlantFacts', 'MetaOutcome', 'AdaptOutcome',
-           'LearnerSession']
+__all__ = ['LearnerError', 'ModelRecord', 'MetaOutcome', 'AdaptOutcome', 'LearnerSession']
