@@ -267,7 +267,7 @@ def build_model(decoded: DecodedWeights, version: int, method: str, stage: str,
     except ValueError as err:
         raise WeightsError(str(err)) from None
     return ModelBundle(version, method, stage, predictor, mpc,
-                       PredictionError(predictor.latent, decoded.norm.y_std, cfg.horizon))
+                       PredictionError(predictor.latent, decoded.norm.y_std, cfg.loss_horizon))
 
 
 def latent_mpc(config: MpcConfig, predictor: NssmPredictor) -> LatentMpc:

@@ -202,7 +202,8 @@ def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
 
 
 def test_reference_time_restarts_with_each_episode_and_override():
-    """'paper' reference: x1 = 0.8 until 7.5 s, then -0.5; times are step * dt."""
+    """'setpoint_sequence' reference (the paper's task): x1 = 0.8 until 7.5 s, then -0.5;
+    times are step * dt."""
     core = ControllerCore(ControllerConfig(mpc=MpcConfig(horizon=2)))
     core.set_plant(vdp_plant())
     plant = Plant(PlantConfig())

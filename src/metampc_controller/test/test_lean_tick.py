@@ -124,7 +124,7 @@ def test_solve_is_a_second_osqp_on_the_same_qp_and_q_is_the_simulated_one():
     mpc.set_model(model)
     assert mpc._problem.ext is not None, 'the osqp wrapper changed: solve() lost its fast path'
     assert not mpc.terminal.fallback
-    reference = make_reference('paper', segment=3.0)
+    reference = make_reference('setpoint_sequence', segment=3.0)
     second = None
     z, u = np.zeros(5), np.zeros(1)
     for k in range(150):
@@ -200,8 +200,8 @@ def test_the_compiled_path_and_the_wrapper_path_give_the_same_bits(monkeypatch):
 # --- references and history ----------------------------------------------------------------
 
 @pytest.mark.parametrize('kind,params', [
-    ('paper', {}),
-    ('paper', dict(start=1.05, segment=2.5, outputs=(0, 1))),
+    ('setpoint_sequence', {}),
+    ('setpoint_sequence', dict(start=1.05, segment=2.5, outputs=(0, 1))),
     ('steps', dict(steps=[(0.0, 0.5), (7.4, -0.5), (7.5, 0.1), (12.0, 0.2)], initial=-0.3)),
     ('setpoint', dict(value=0.3, n_y=3, outputs=(2,))),
     ('sine', dict(amplitude=0.4, period=3.3, outputs=(0, 1)))])

@@ -152,7 +152,7 @@ class LearnerNode(Node):
                                    f'{self.cfg.meta_model_path!r}: published as v{record.version}')
             nssm = record.model.config      # the model that adapts is the loaded one
         self.get_logger().info(
-            f'learner up: NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.horizon}, encoder '
+            f'learner up: NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.loss_horizon}, encoder '
             f'{list(nssm.hidden)}; {src.n_systems} source systems; D_target of '
             f'{self.buffer.capacity} samples, buffering '
             + ('on' if self.buffer.enabled else 'off until set_buffering true'))
