@@ -73,10 +73,10 @@ from metampc_bringup.analysis.paired_stats import claim_cells, median_ci, paired
 from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.experiment_config import ExperimentConfig, load
 from metampc_bringup.orchestration.cpu_budget import check_jobs
-from metampc_learner.meta_train import META_METHODS
 from metampc_bringup.studies.offline import (CURVE_STEPS, init_worker, Job, request_meta_config,
                                              run_job, run_jobs, Settings, settings_from,
                                              TEST_HELDOUT_SAMPLES, validation, VALIDATION_SEED)
+from metampc_learner.meta_train import META_METHODS
 
 NAMES = {'imaml': 'iMAML', 'maml': 'first-order MAML', 'maml_unrolled': 'unrolled MAML'}
 DEFAULT_MS = (1, 5, 10, 25, 50)
