@@ -72,7 +72,7 @@ def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, 
     # rclpy keeps the parameters given to the node (-p, --params-file) in this attribute; it
     # has no public accessor for those not declared (test_nodes_start pins the behaviour).
     given = dict(getattr(node, '_parameter_overrides', {}))
-    current = current_names(given, table, 'parameter ')
+    current = current_names(given, table)
     error = undeclared(list(current), table)
     if error:
         raise ParameterError(error)

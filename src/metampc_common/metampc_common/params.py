@@ -146,7 +146,7 @@ def _scalar(name: str, value: Value, kind: type, rule: Rule) -> Any:
         # choice spelled that way is what the user meant.
         if isinstance(value, bool) and YAML_BOOL_WORDS[value] in rule.choices:
             value = YAML_BOOL_WORDS[value]
-        value = renamed_value(value, dict(rule.renamed), f'parameter {name}')
+        value = renamed_value(value, dict(rule.renamed), name)
         if not isinstance(value, str):
             raise ParameterError(f'{name} must be a string, got {value!r}')
         if rule.choices and value not in rule.choices:

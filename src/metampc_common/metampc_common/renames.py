@@ -38,7 +38,7 @@ def renamed_key(values: Mapping[str, Any], old: str, new: str, where: str = ''
 
 def renamed_value(value: Any, renames: Mapping[str, str], where: str) -> Any:
     """`value`, or its new name (with a warning) if `renames` ({old: new}) renames it; `where`
-    names the setting in the line (e.g. ``'parameter reference'``)."""
+    names the setting in the line (e.g. ``'reference'``)."""
     if isinstance(value, str) and value in renames:
         warn_once(f'{where}: {value!r} is renamed {renames[value]!r}; the old value will be '
                   'removed in the next release')

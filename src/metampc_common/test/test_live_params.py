@@ -174,11 +174,11 @@ def test_a_former_name_is_declared_under_todays_with_one_warning(renamed_node, c
     values = declare_parameters(node, table([RENAMED]))
     assert values == {'my_count': 5, 'my_mode': 'fast'}
     assert node.get_parameter('my_count').value == 5
-    assert capsys.readouterr().err == ('warning: parameter my_n is renamed my_count; the old '
-                                       'name will be removed in the next release\n')
+    assert capsys.readouterr().err == ('warning: my_n is renamed my_count; the old name will be '
+                                       'removed in the next release\n')
     node = renamed_node('-p', 'my_n:=5', '-p', 'my_count:=5')
-    with pytest.raises(ParameterError, match='^parameter my_n and my_count are both given: '
-                                             'my_n is renamed my_count; give my_count only$'):
+    with pytest.raises(ParameterError, match='^my_n and my_count are both given: my_n is '
+                                             'renamed my_count; give my_count only$'):
         declare_parameters(node, table([RENAMED]))
 
 
@@ -196,5 +196,5 @@ def test_a_renamed_choice_works_at_start_and_live_with_one_warning(renamed_node,
     assert node.set_parameters([Parameter('my_mode', value='slow')])[0].successful
     assert node.set_parameters([Parameter('my_mode', value='quick')])[0].successful
     assert applied == [Renamed(mode='slow'), Renamed(mode='fast')]
-    assert capsys.readouterr().err == ("warning: parameter my_mode: 'quick' is renamed 'fast'; "
-                                       'the old value will be removed in the next release\n')
+    assert capsys.readouterr().err == ("warning: my_mode: 'quick' is renamed 'fast'; the old "
+                                       'value will be removed in the next release\n')

@@ -103,6 +103,6 @@ def test_reference_paper_is_the_setpoint_sequence_with_one_warning(monkeypatch, 
     monkeypatch.setattr(renames, '_written', set())     # not yet written in this process
     old = [parse_params(values(reference='paper')) for _ in range(2)]
     assert old[0] == old[1] == parse_params(values(reference='setpoint_sequence'))
-    assert capsys.readouterr().err == ("warning: parameter reference: 'paper' is renamed "
+    assert capsys.readouterr().err == ("warning: reference: 'paper' is renamed "
                                        "'setpoint_sequence'; the old value will be removed in "
                                        'the next release\n')
