@@ -60,10 +60,10 @@ from metampc_learner.objective import FlatObjective
 from metampc_plant.registry import DEFAULT, get_family, register, UnknownFamily
 
 MEMORY_STEPS = (5, 10, 20, 50)
-METHODS = {'imaml_gn': dict(method='imaml', curvature='gauss_newton'),
-           'imaml_hessian': dict(method='imaml', curvature='hessian'),
-           'fomaml': dict(method='maml'),
-           'maml_unrolled': dict(method='maml_unrolled')}
+VARIANTS = {'imaml_gn': dict(method='imaml', curvature='gauss_newton'),
+            'imaml_hessian': dict(method='imaml', curvature='hessian'),
+            'fomaml': dict(method='maml'),
+            'maml_unrolled': dict(method='maml_unrolled')}
 LOOPED = ('imaml_gn', 'fomaml')
 FAST = ('imaml_gn', 'fomaml')
 
@@ -124,7 +124,7 @@ def fast_vs_eager(model, source, steps: int, rounds: int) -> dict:
                                'fast_over_eager', 'fast_over_eager_wall',
                                'max_abs_diff_grad', 'max_abs_grad')}
     for name in FAST:
-        kw = METHODS[name]
+        kw = VARIANTS[name]
         t = interleaved(model, source, steps, rounds,
                         {'eager': dict(backend='eager'), 'fast': dict(backend='fast')}, **kw)
         for backend in ('fast', 'eager'):
@@ -151,7 +151,7 @@ def cuda_check(args) -> dict:
                 'eager_cuda_max_abs_diff_grad_vs_cpu'):
         out[key] = {}
     for name in FAST:
-        kw = METHODS[name]
+        kw = VARIANTS[name]
         t = interleaved(model, source, args.steps, args.rounds,
                         {'cpu': dict(device='cpu'), 'cuda': dict(device='cuda')}, **kw)
         out['s_per_outer_step'][name] = {d: round(v[0], 4) for d, v in t.items()}
@@ -182,7 +182,7 @@ def memory_probe(name: str, inner_steps: int) -> int:
     model, source = setup()
     backend = 'fast' if name.endswith('_fast') else 'eager'
     config = MetaConfig(inner_steps=inner_steps, backend=backend,
-                        **METHODS[name[:-len('_fast')] if backend == 'fast' else name])
+                        **VARIANTS[name[:-len('_fast')] if backend == 'fast' else name])
     objective = FlatObjective(model)
     train, test = source.sample(range(config.batch_size), config.windows_per_task,
                                 np.random.default_rng(0))
@@ -225,7 +225,7 @@ def main() -> None:
         print(json.dumps({**head, **fast, 'goals': goal}))
         return
     timing, loop = {}, {}
-    for name, kw in METHODS.items():
+    for name, kw in VARIANTS.items():
         timing[name] = seconds_per_step(model, source, args.steps, backend='eager', **kw)
         if name in LOOPED:
             loop[name] = seconds_per_step(model, source, args.steps, vectorise=False,

@@ -46,7 +46,7 @@ def bench(horizon: int, ticks: int, seed: int) -> dict:
     cfg = MpcConfig(horizon=horizon)
     mpc = LatentMpc(cfg)
     mpc.set_model(model)
-    reference = make_reference('paper')
+    reference = make_reference('setpoint_sequence')
     raw = ext = None
     order = np.random.default_rng(seed + 1)
     z, u = np.zeros(model.n_z), np.zeros(model.n_u)

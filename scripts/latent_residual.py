@@ -31,7 +31,7 @@ from metampc_model.weights_codec import fields_of, weights_from_fields
 from metampc_learner.data import Windows
 from metampc_learner.heldout import plant_source, target_heldout
 
-SET_POINTS = (0.8, -0.5, 0.3, -0.8)       # the paper's reference (config reference: paper)
+SET_POINTS = (0.8, -0.5, 0.3, -0.8)       # the paper's reference (setpoint_sequence's)
 
 
 def rest_residuals(msg, horizon: int):
@@ -58,13 +58,13 @@ def heldout_set(recording: str, experiment: dict, seed: int, theta):
     learner = learner_config(from_mapping(experiment), seed)
     source, p = learner.source, _messages(read_recording(recording), PLANT_INFO)[-1]
     source = plant_source(source, p.dt, p.substeps, p.u_min, p.u_max, p.state_bound)
-    return target_heldout(np.atleast_1d(theta), source, seed), learner.nssm.horizon
+    return target_heldout(np.atleast_1d(theta), source, seed), learner.nssm.loss_horizon
 
 
-def heldout_consistency(msg, trajectories, horizon: int) -> float:
+def heldout_consistency(msg, trajectories, loss_horizon: int) -> float:
     """l_cons of the model on the held-out windows (normalised units)."""
     decoded = weights_from_fields(fields_of(msg))
-    config = replace(decoded.config, horizon=int(horizon))
+    config = replace(decoded.config, loss_horizon=int(loss_horizon))
     windows = Windows.from_trajectories(trajectories, decoded.norm, config)
     with torch.no_grad():
         return float(consistency_loss(Nssm(config, decoded.norm), torch_params(decoded.params),

@@ -27,12 +27,12 @@ import sys
 import time
 
 from metampc_bringup.analysis.run_report import json_safe
-from metampc_bringup.experiment_config import ConfigError, load, META_METHODS
+from metampc_bringup.experiment_config import ConfigError, load
 from metampc_bringup.orchestration.cpu_budget import check_jobs
 from metampc_bringup.studies.offline import init_worker, run_jobs, settings_from
 from metampc_bringup.studies.robustness import robustness_jobs, robustness_summary
 from metampc_bringup.studies.tuning import TuneConfig
-from metampc_learner.meta_train import MetaConfig
+from metampc_learner.meta_train import META_METHODS, MetaConfig
 FIXED = ('method', 'iterations', 'seed')  # set by the job, not by --set
 
 

@@ -5,7 +5,7 @@ Examples:
     python scripts/run_experiment.py                          # defaults: 1 seed, all methods
     python scripts/run_experiment.py --seeds 10               # the paper's comparison
     python scripts/run_experiment.py --seeds 10 --jobs 2      # two seeds at a time
-    python scripts/run_experiment.py --seeds 5 --protocol paper   # Algorithm 1 as written
+    python scripts/run_experiment.py --seeds 5 --protocol paper_settings   # Algorithm 1 as written
     python scripts/run_experiment.py --report runs/<time>     # recompute its reports
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
     python scripts/run_experiment.py --family duffing --seeds 5   # config/duffing.yaml
@@ -73,10 +73,13 @@ def main(argv=None) -> int:
                              'jobs x learner.torch_threads <= cores)')
     parser.add_argument('--theta', help="target theta*, comma-separated values of the family's "
                                         'components (default: drawn per seed)')
-    parser.add_argument('--protocol', help="'tuned' (default) or 'paper' (docs/experiments.md)")
-    parser.add_argument('--scenario', help="'paper' (default) or 'drift': theta* changes while "
-                                           'each method tracks, with and without adaptation in '
-                                           'the loop (docs/adaptation.md; config/drift.yaml)')
+    parser.add_argument('--protocol', help="'tuned' (default) or 'paper_settings': the paper's "
+                                           'Algorithm 1 and adaptation as written '
+                                           '(docs/experiments.md)')
+    parser.add_argument('--scenario', help="'adapt_once' (default): adapt once, track once per "
+                                           "method; or 'drift': theta* changes while each "
+                                           'method tracks, with and without adaptation in the '
+                                           'loop (docs/adaptation.md; config/drift.yaml)')
     parser.add_argument('--out', help='run folder to create (default: runs/<time>)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bars')
     parser.add_argument('--report', metavar='RUN_DIR',

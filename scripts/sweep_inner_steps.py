@@ -18,14 +18,15 @@ import json
 import sys
 
 from metampc_bringup.experiment_config import ConfigError
-from metampc_bringup.studies.sweep import DEFAULT_MS, main as run_sweep, METHODS, Plan, SweepError
+from metampc_bringup.studies.sweep import DEFAULT_MS, main as run_sweep, Plan, SweepError
+from metampc_learner.meta_train import META_METHODS
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--config', default='config/default.yaml', help='experiment YAML')
     parser.add_argument('--out', required=True, help='result folder (resumes if it exists)')
-    parser.add_argument('--methods', default=','.join(METHODS))
+    parser.add_argument('--methods', default=','.join(META_METHODS))
     parser.add_argument('--ms', default=','.join(map(str, DEFAULT_MS)),
                         help='inner steps M (unrolled MAML: those <= 10)')
     parser.add_argument('--seeds', type=int, default=5, help='test seeds first-seed, ...')

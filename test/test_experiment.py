@@ -140,7 +140,7 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     assert per_seed['methods']['imaml']['heldout']['adapted'] == pytest.approx(_numpy_loss(
         _weights(os.path.join(seed_dir, 'recording.mcap'), version),
         target_heldout(config.theta, learner.source, per_seed['seed']),
-        learner.nssm.horizon), rel=1e-4)
+        learner.nssm.loss_horizon), rel=1e-4)
     assert b0['imaml'] == per_seed['methods']['imaml']['adapt']['loss_curve'][0]
     # The same tracking runs in one process (closed_loop, no ROS) give the same costs: the
     # lockstep graph adds nothing and loses nothing (scripts/retrack.py's premise).

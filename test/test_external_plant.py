@@ -21,7 +21,7 @@ RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 LEARNER = {'family': 'duffing', 'n_systems': 4, 'episodes_per_system': 1,
-           'episode_samples': 40, 'history': 3, 'horizon': 3, 'hidden': [16], 'n_z': 3,
+           'episode_samples': 40, 'history': 3, 'loss_horizon': 3, 'hidden': [16], 'n_z': 3,
            'batch_size': 2, 'inner_steps': 2, 'cg_steps': 2, 'windows_per_task': 8,
            'torch_threads': 1, 'target_buffer_size': 40, 'heldout_fraction': 0.25}
 CONTROLLER = {'reference': 'setpoint', 'reference_values': [0.3], 'pre_model_input': 'excitation',

@@ -54,7 +54,7 @@ TYPES = {'y': PlantOutput, 'u': ControlInput, 'mpc_status': MpcStatus}
 CONTROLLER = {'use_sim_time': True, 'reference': 'setpoint', 'reference_values': [0.5]}
 # The learner of test_learner_node, smaller still: seconds per job, ~0.1 s per outer step.
 LEARNER = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
-           'horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
+           'loss_horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
            'cg_steps': 2, 'windows_per_task': 8, 'torch_threads': 1, 'target_buffer_size': 40,
            'heldout_fraction': 0.25, 'progress_period': 0.25, 'buffer_on_start': False}
 

@@ -13,7 +13,7 @@ from metampc_msgs.srv import MetaTrain, ResetPlant
 import pytest
 
 TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
-        'horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
+        'loss_horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
         'cg_steps': 2, 'windows_per_task': 8, 'iterations': 200, 'torch_threads': 1,
         'buffer_on_start': False}
 PLANT = {'theta': 1.0, 'x0': [1.0, 0.0], 'start_timeout': 0.2, 'input_timeout': 0.02}

@@ -110,6 +110,6 @@ def rebuild_report(out_dir: str) -> Dict[str, Any]:
     if os.path.exists(previous):
         with open(previous) as f:
             wall = json.load(f).get('wall_time_s') or wall
-    seed_report, experiment_report = reporters(config.get('scenario', 'paper'))
+    seed_report, experiment_report = reporters(config.get('scenario', 'adapt_once'))
     reports = [seed_report(os.path.join(out_dir, f'seed_{s}')) for s in seeds]
     return experiment_report(reports, out_dir, config, wall)

@@ -6,9 +6,10 @@ unknown key is an error. The node sections (``plant``, ``learner``, ``controller
 ``family``, ``dt``, ``u_min``, ``u_max`` are set once and copied into every node that takes
 them; the family fills in what the file leaves null. ``meta_train.<method>`` and
 ``adapt.<method>`` are the request fields per method, applied by the ``protocol``: 'tuned'
-(as written, plain adaptation steps) or 'paper' (Algorithm 1 with online collection, eq. (ub);
-iMAML adapts by eq. (infer) with its meta-training gamma). Refuses a bad file with
-:class:`ConfigError`. Keys and protocols: docs/experiments.md.
+(as written, plain adaptation steps) or 'paper_settings' (Algorithm 1 with online collection,
+eq. (ub); iMAML adapts by eq. (infer) with its meta-training gamma). Names renamed in this
+release still work for one release, with a warning (:mod:`metampc_common.renames`). Refuses a
+bad file with :class:`ConfigError`. Keys, protocols and renames: docs/experiments.md.
 """
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Dict, List, Optional, Union
@@ -16,20 +17,24 @@ from typing import Any, Dict, List, Optional, Union
 import numpy as np
 import yaml
 
+from metampc_common.params import ParameterError, upgraded
+from metampc_common.renames import renamed_value
 from metampc_controller import controller_params
 from metampc_learner import learner_params
+from metampc_learner.learner_params import ADAPT_METHODS
+from metampc_learner.meta_train import META_METHODS
 from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
 from metampc_plant.simulator import PlantConfig
 from metampc_plant.theta_schedule import ThetaSchedule
 
-PROTOCOLS = ('tuned', 'paper')
-SCENARIOS = ('paper', 'drift')
+PROTOCOLS = ('tuned', 'paper_settings')
+SCENARIOS = ('adapt_once', 'drift')
+# Values renamed in this release, {key: {old: new}}: the old ones work until the next.
+_RENAMED = {'protocol': {'paper': 'paper_settings'}, 'scenario': {'paper': 'adapt_once'}}
 DRIFT_MODES = ('none', 'periodic', 'triggered')
-META_METHODS = ('imaml', 'maml', 'maml_unrolled')
-ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
-METHODS = (*ADAPT_METHODS, 'nmpc')
+METHODS = (*ADAPT_METHODS, 'nmpc')       # what an experiment compares
 SHARED = ('family', 'dt', 'u_min', 'u_max')
 _TAKES_SHARED = {'plant': SHARED, 'learner': SHARED, 'controller': ('u_min', 'u_max')}
 # The request fields a config may set: the services' own (method and seed are the run's).
@@ -106,8 +111,8 @@ class ExperimentConfig:
             number for every input), shared by the nodes; None: the family's.
         plant, learner, controller, recorder: ROS parameters of each node.
         meta_train / adapt: request fields per method (see the module docstring).
-        protocol: 'tuned' or 'paper' (see the module docstring).
-        scenario: 'paper' (adapt once, track once per method) or 'drift' (theta* changes
+        protocol: 'tuned' or 'paper_settings' (see the module docstring).
+        scenario: 'adapt_once' (adapt once, track once per method) or 'drift' (theta* changes
             while each method tracks, with and without adaptation in the loop:
             :class:`DriftConfig`).
         drift: the drift scenario's settings (a mapping of :class:`DriftConfig`'s fields).
@@ -135,7 +140,7 @@ class ExperimentConfig:
     meta_train: Dict[str, Dict[str, Any]] = field(default_factory=dict)
     adapt: Dict[str, Dict[str, Any]] = field(default_factory=dict)
     protocol: str = 'tuned'
-    scenario: str = 'paper'
+    scenario: str = 'adapt_once'
     drift: Dict[str, Any] = field(default_factory=dict)
     timeouts: Timeouts = field(default_factory=Timeouts)
 
@@ -219,14 +224,14 @@ class ExperimentConfig:
         """The MetaTrain request fields of `method` under the protocol, typed as the request's
         fields (a YAML ``1`` for a double is 1.0)."""
         fields = dict(self.meta_train.get(method) or {})
-        if self.protocol == 'paper':
+        if self.protocol == 'paper_settings':
             fields['online_collection'] = True
         return _typed(f'meta_train.{method}', fields, MetaTrain.Request)
 
     def adapt_request(self, method: str) -> Dict[str, Any]:
         """The Adapt request fields of `method` under the protocol, typed as the request's."""
         fields = dict(self.adapt.get(method) or {})
-        if self.protocol == 'paper' and method in ('imaml', 'maml', 'supervised'):
+        if self.protocol == 'paper_settings' and method in ('imaml', 'maml', 'supervised'):
             fields['gamma'] = (float(self.meta_train['imaml']['gamma']) if method == 'imaml'
                                else 0.0)
         return _typed(f'adapt.{method}', fields, Adapt.Request)
@@ -277,10 +282,10 @@ class ExperimentConfig:
         if self.protocol not in PROTOCOLS:
             raise ConfigError(f'protocol must be one of {", ".join(PROTOCOLS)}, got '
                               f'{self.protocol!r}')
-        if (self.protocol == 'paper' and 'imaml' in self.methods
+        if (self.protocol == 'paper_settings' and 'imaml' in self.methods
                 and 'gamma' not in (self.meta_train.get('imaml') or {})):
-            raise ConfigError('protocol paper: iMAML adapts with its meta-training gamma; set '
-                              'meta_train.imaml.gamma')
+            raise ConfigError('protocol paper_settings: iMAML adapts with its meta-training '
+                              'gamma; set meta_train.imaml.gamma')
         if self.scenario not in SCENARIOS:
             raise ConfigError(f'scenario must be one of {", ".join(SCENARIOS)}, got '
                               f'{self.scenario!r}')
@@ -389,10 +394,28 @@ def _check_requests(section: str, requests: Dict[str, Dict[str, Any]], methods, 
 _RETIRED = {'theta_mean': 0.0, 'theta_std': 1.0}
 
 
+def _current(data: Dict[str, Any]) -> Dict[str, Any]:
+    """`data` under today's names: a renamed value of a top-level key, a node parameter under
+    its former name or with a renamed choice replaced, with one warning line each; ConfigError
+    if a node parameter is given under both names."""
+    out = dict(data)
+    for key, renames in _RENAMED.items():
+        if key in out:
+            out[key] = renamed_value(out[key], renames, f'config: {key}')
+    for node, (table, _) in _NODE_PARAMS.items():
+        if isinstance(out.get(node), dict):
+            try:
+                out[node] = upgraded(out[node], table, f'config: {node}.')
+            except ParameterError as err:
+                raise ConfigError(str(err)) from None
+    return out
+
+
 def from_mapping(data: Dict[str, Any]) -> ExperimentConfig:
-    """An ExperimentConfig from a mapping (e.g. parsed YAML); ConfigError on unknown keys."""
+    """An ExperimentConfig from a mapping (e.g. parsed YAML); ConfigError on unknown keys.
+    Names renamed in this release are taken with a warning (the module docstring)."""
     names = {f.name for f in fields(ExperimentConfig)}
-    data = dict(data)
+    data = _current(data)
     for key, value in _RETIRED.items():
         if key in data and data.pop(key) != value:
             raise ConfigError(f'{key} is retired: theta* is drawn from the family\'s prior '

@@ -8,7 +8,7 @@ TINY_EXPERIMENT = """
 methods: [imaml, maml]
 target_samples: 60
 learner: {n_systems: 4, episodes_per_system: 1, episode_samples: 40, hidden: [8], n_z: 2,
-          history: 3, horizon: 3, windows_per_task: 4}
+          history: 3, loss_horizon: 3, windows_per_task: 4}
 meta_train:
   imaml: {batch_size: 4, lr_outer: 0.005, cg_steps: 2}
   maml: {batch_size: 4, lr_outer: 0.01}

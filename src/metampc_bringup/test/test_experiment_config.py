@@ -2,6 +2,7 @@
 import pytest
 
 from metampc_bringup.experiment_config import ConfigError, from_mapping
+from metampc_common import renames
 
 REQUESTS = {'meta_train': {'imaml': {'gamma': 3.0, 'inner_steps': 10}, 'maml': {'lr_inner': 0.02}},
             'adapt': {'imaml': {'steps': 20, 'lr': 0.2}, 'maml': {'lr': 0.3},
@@ -16,8 +17,8 @@ def test_tuned_sends_the_requests_as_written():
     assert config.meta_request('maml_unrolled') == {}
 
 
-def test_paper_collects_online_and_adapts_imaml_by_eq_infer():
-    config = from_mapping({**REQUESTS, 'protocol': 'paper'}).validate()
+def test_paper_settings_collects_online_and_adapts_imaml_by_eq_infer():
+    config = from_mapping({**REQUESTS, 'protocol': 'paper_settings'}).validate()
     assert config.meta_request('imaml') == {'gamma': 3.0, 'inner_steps': 10,
                                             'online_collection': True}
     assert config.meta_request('maml') == {'lr_inner': 0.02, 'online_collection': True}
@@ -29,12 +30,57 @@ def test_paper_collects_online_and_adapts_imaml_by_eq_infer():
     assert config.meta_train['imaml'] == {'gamma': 3.0, 'inner_steps': 10}
 
 
-def test_bad_protocol_and_paper_without_imaml_gamma_are_refused():
-    with pytest.raises(ConfigError, match="protocol must be one of tuned, paper, got 'papr'"):
+def test_bad_protocol_and_paper_settings_without_imaml_gamma_are_refused():
+    with pytest.raises(ConfigError,
+                       match="protocol must be one of tuned, paper_settings, got 'papr'"):
         from_mapping({'protocol': 'papr'}).validate()
     with pytest.raises(ConfigError, match='set meta_train.imaml.gamma'):
-        from_mapping({'protocol': 'paper'}).validate()
-    from_mapping({'protocol': 'paper', 'methods': ['maml', 'nmpc']}).validate()
+        from_mapping({'protocol': 'paper_settings'}).validate()
+    from_mapping({'protocol': 'paper_settings', 'methods': ['maml', 'nmpc']}).validate()
+
+
+@pytest.fixture
+def fresh_warnings(monkeypatch):
+    """Warnings not yet written in this process (each is written once per process)."""
+    monkeypatch.setattr(renames, '_written', set())
+
+
+def _warnings(capsys) -> list:
+    return [line for line in capsys.readouterr().err.splitlines() if line]
+
+
+OLD = {  # renamed in this release: (old mapping, new mapping, the warning line)
+    'protocol': ({'protocol': 'paper'}, {'protocol': 'paper_settings'},
+                 "warning: config: protocol: 'paper' is renamed 'paper_settings'; the old value "
+                 'will be removed in the next release'),
+    'scenario': ({'scenario': 'paper'}, {'scenario': 'adapt_once'},
+                 "warning: config: scenario: 'paper' is renamed 'adapt_once'; the old value will "
+                 'be removed in the next release'),
+    'loss horizon': ({'learner': {'horizon': 7}}, {'learner': {'loss_horizon': 7}},
+                     'warning: config: learner.horizon is renamed loss_horizon; the old name '
+                     'will be removed in the next release'),
+    'reference': ({'controller': {'reference': 'paper'}},
+                  {'controller': {'reference': 'setpoint_sequence'}},
+                  "warning: config: controller.reference: 'paper' is renamed "
+                  "'setpoint_sequence'; the old value will be removed in the next release"),
+}
+
+
+@pytest.mark.parametrize('case', sorted(OLD))
+def test_an_old_name_works_with_one_warning_naming_the_new(case, fresh_warnings, capsys):
+    old, new, line = OLD[case]
+    meta = {'meta_train': {'imaml': {'gamma': 1.0}}}
+    got = [from_mapping({**meta, **old}).validate() for _ in range(2)]
+    assert _warnings(capsys) == [line]      # once, though loaded twice
+    assert got[0] == got[1] == from_mapping({**meta, **new}).validate()
+    assert _warnings(capsys) == []
+
+
+def test_the_old_and_the_new_name_together_are_refused(fresh_warnings):
+    with pytest.raises(ConfigError, match='^config: learner.horizon and loss_horizon are both '
+                                          'given: horizon is renamed loss_horizon; give '
+                                          'loss_horizon only$'):
+        from_mapping({'learner': {'horizon': 7, 'loss_horizon': 7}})
 
 
 def test_request_fields_take_the_requests_types():

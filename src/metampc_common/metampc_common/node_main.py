@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
-from metampc_common.params import ParameterError, ParamSpec, Value
+from metampc_common.params import current_names, ParameterError, ParamSpec, Value
 from metampc_common.stop_signals import StopSignals
 
 SHUTDOWN_POLL_S = 0.5    # s: longest a node takes to notice a shutdown that woke nobody
@@ -61,20 +61,27 @@ def declare_parameters(node: Node, table: Mapping[str, ParamSpec]) -> Dict[str, 
     Those not marked live are read-only: rclpy itself refuses a change (``Trying to set a
     read-only parameter: NAME.``); a live one is checked by :class:`LiveParameters`.
 
+    A parameter given under its former name (``ParamSpec.formerly``) is declared under
+    today's with that value, and a warning line names today's.
+
     Raises:
         ParameterError: a parameter given on the command line (or in a parameter file) that
             the node does not declare: ROS would ignore it, and a misspelt name would silently
-            run the default.
+            run the default; or one given under both its former name and today's.
     """
     # rclpy keeps the parameters given to the node (-p, --params-file) in this attribute; it
     # has no public accessor for those not declared (test_nodes_start pins the behaviour).
-    error = undeclared(list(getattr(node, '_parameter_overrides', {})), table)
+    given = dict(getattr(node, '_parameter_overrides', {}))
+    current = current_names(given, table)
+    error = undeclared(list(current), table)
     if error:
         raise ParameterError(error)
     for name, spec in table.items():
+        # Given under its former name: rclpy holds the value under that name.
+        value = current[name].value if name in current and name not in given else spec.default
         # dynamic_typing: the node's parse function accepts integers for doubles and names
         # bad types itself, with one clear line.
-        node.declare_parameter(name, spec.default, ParameterDescriptor(
+        node.declare_parameter(name, value, ParameterDescriptor(
             description=spec.description, read_only=not spec.live, dynamic_typing=True))
     return {name: node.get_parameter(name).value for name in table}
 

@@ -7,12 +7,16 @@ while the node runs, the others are read-only), the parse and range checks of ra
 (:func:`build` -> the typed config, or a :class:`ParameterError` naming the first bad
 parameter; then the config's own ``validate()``), the checks of a config built in code
 (:func:`check_fields`) and the docs' parameter rows (test/test_docs.py). A parameter is named
-after its field with the section's prefix, or an explicit rename. See docs/architecture.md.
+after its field with the section's prefix, or an explicit rename; one renamed in this release
+keeps its former name or choice for one release (``formerly=``, ``renamed=``; :mod:`.renames`).
+See docs/architecture.md.
 """
 import dataclasses
 import math
 import numbers
 from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
+
+from metampc_common.renames import renamed_key, renamed_value
 
 Value = Union[bool, int, float, str, List[float], List[int], List[str]]
 PARAM = 'metampc_param'      # the metadata key of a parameter field
@@ -23,12 +27,15 @@ class ParameterError(ValueError):
 
 
 class ParamSpec(NamedTuple):
-    """One declared node parameter: its default (which fixes its type), description, and
-    whether it may change while the node runs (else it is read-only)."""
+    """One declared node parameter: its default (which fixes its type), description, whether
+    it may change while the node runs (else it is read-only), its name before a rename ('':
+    none) and its renamed choices ((old, new) pairs)."""
 
     default: Value
     description: str
     live: bool = False
+    formerly: str = ''
+    renamed: Tuple[Tuple[str, str], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +53,8 @@ class Rule:
     scalar: bool = False             # a lone number is a list of one (`-p theta:=0.7`)
     live: bool = False               # may change while the node runs
     infinite: bool = False           # +-inf accepted (a bound that is no bound); never NaN
+    formerly: str = ''               # the field's name before a rename
+    renamed: Tuple[Tuple[str, str], ...] = ()   # (old, new) names of renamed choices
 
     def bounds(self) -> str:
         """'> 0', '>= 1', 'in [0, 1)', 'one of a, b' or ''."""
@@ -66,7 +75,7 @@ def param(default: Any, description: str, *, ge: Optional[float] = None,
           gt: Optional[float] = None, le: Optional[float] = None, lt: Optional[float] = None,
           choices: Sequence[str] = (), item: Optional[type] = None,
           length: Optional[int] = None, scalar: bool = False, live: bool = False,
-          infinite: bool = False) -> Any:
+          infinite: bool = False, formerly: str = '', renamed: Mapping[str, str] = {}) -> Any:
     """A dataclass field that is a node parameter.
 
     Args:
@@ -82,9 +91,13 @@ def param(default: Any, description: str, *, ge: Optional[float] = None,
         live: the node takes a new value while it runs (``ros2 param set``; the node says how
             and when it applies it); the others are read-only.
         infinite: numbers may be +-inf (e.g. a bound that leaves one side free); NaN never.
+        formerly: the field's name before it was renamed: the parameter's former name (with
+            the section's prefix) still works for one release, with a warning.
+        renamed: {old: new} choices renamed: an old one still works for one release, with a
+            warning.
     """
     rule = Rule(description, ge, gt, le, lt, tuple(choices), item, length, scalar, live,
-                infinite)
+                infinite, formerly, tuple(renamed.items()))
     if isinstance(default, (list, tuple)):
         frozen = tuple(default)
         return dataclasses.field(default=frozen, metadata={PARAM: rule})
@@ -124,6 +137,7 @@ def _scalar(name: str, value: Value, kind: type, rule: Rule) -> Any:
         # choice spelled that way is what the user meant.
         if isinstance(value, bool) and YAML_BOOL_WORDS[value] in rule.choices:
             value = YAML_BOOL_WORDS[value]
+        value = renamed_value(value, dict(rule.renamed), name)
         if not isinstance(value, str):
             raise ParameterError(f'{name} must be a string, got {value!r}')
         if rule.choices and value not in rule.choices:
@@ -193,7 +207,37 @@ def table(sections: Sequence[Section]) -> Dict[str, ParamSpec]:
             bounds = rule.bounds()
             default = list(f.default) if isinstance(f.default, tuple) else f.default
             out[name] = ParamSpec(default, rule.description + (f' ({bounds})' if bounds else ''),
-                                  rule.live)
+                                  rule.live, section.name(rule.formerly) if rule.formerly else '',
+                                  rule.renamed)
+    return out
+
+
+def current_names(values: Mapping[str, Any], table: Mapping[str, ParamSpec], where: str = ''
+                  ) -> Dict[str, Any]:
+    """`values` by parameter name, a former name replaced by today's (with a warning; `where`
+    prefixes the names in the lines).
+
+    Raises:
+        ParameterError: a parameter given under both names.
+    """
+    out = dict(values)
+    for name, spec in table.items():
+        if spec.formerly:
+            try:
+                out = renamed_key(out, spec.formerly, name, where)
+            except ValueError as err:
+                raise ParameterError(str(err)) from None
+    return out
+
+
+def upgraded(values: Mapping[str, Value], table: Mapping[str, ParamSpec], where: str = ''
+             ) -> Dict[str, Value]:
+    """`values` under today's names (:func:`current_names`) and choices (a renamed choice
+    replaced by today's, with a warning)."""
+    out = current_names(values, table, where)
+    for name, spec in table.items():
+        if spec.renamed and name in out:
+            out[name] = renamed_value(out[name], dict(spec.renamed), f'{where}{name}')
     return out
 
 

@@ -137,3 +137,64 @@ def test_node_check_refuses_with_its_reason_and_an_unchanged_config_is_not_appli
         assert result.successful and h.applied == []
     finally:
         h.close()
+
+
+@dataclass
+class Renamed:
+    count: int = param(2, 'count', ge=0, formerly='n')
+    mode: str = param('fast', 'mode', choices=('fast', 'slow'), renamed={'quick': 'fast'},
+                      live=True)
+
+
+RENAMED = Section(Renamed, 'my_')
+
+
+@pytest.fixture
+def renamed_node(monkeypatch):
+    """make(*ros_args): a node given those arguments (closed at the end); warnings not yet
+    written in this process (each is written once per process)."""
+    from metampc_common import renames
+    monkeypatch.setattr(renames, '_written', set())
+    made = []
+
+    def make(*args):
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        made.append((context, Node('renamed_test', context=context,
+                                   cli_args=['--ros-args', *args])))
+        return made[-1][1]
+    yield make
+    for context, node in made:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def test_a_former_name_is_declared_under_todays_with_one_warning(renamed_node, capsys):
+    node = renamed_node('-p', 'my_n:=5')
+    values = declare_parameters(node, table([RENAMED]))
+    assert values == {'my_count': 5, 'my_mode': 'fast'}
+    assert node.get_parameter('my_count').value == 5
+    assert capsys.readouterr().err == ('warning: my_n is renamed my_count; the old name will be '
+                                       'removed in the next release\n')
+    node = renamed_node('-p', 'my_n:=5', '-p', 'my_count:=5')
+    with pytest.raises(ParameterError, match='^my_n and my_count are both given: my_n is '
+                                             'renamed my_count; give my_count only$'):
+        declare_parameters(node, table([RENAMED]))
+
+
+def test_a_renamed_choice_works_at_start_and_live_with_one_warning(renamed_node, capsys):
+    node = renamed_node('-p', 'my_mode:=quick')
+    spec = table([RENAMED])
+
+    def parse_renamed(values):
+        return build(RENAMED, values)
+    values = declare_parameters(node, spec)
+    applied = []
+    live = LiveParameters(node, spec, values, parse_renamed(values), parse_renamed,
+                          lambda config, changes: applied.append(config))
+    assert live.config == Renamed(mode='fast')
+    assert node.set_parameters([Parameter('my_mode', value='slow')])[0].successful
+    assert node.set_parameters([Parameter('my_mode', value='quick')])[0].successful
+    assert applied == [Renamed(mode='slow'), Renamed(mode='fast')]
+    assert capsys.readouterr().err == ("warning: my_mode: 'quick' is renamed 'fast'; the old "
+                                       'value will be removed in the next release\n')

@@ -36,6 +36,7 @@ from metampc_controller.prediction_error import PredictionError
 from metampc_model.predictor import NssmPredictor
 from metampc_controller.references import make_reference
 from metampc_model.weights_codec import DecodedWeights, WeightsError
+from metampc_plant.plant_description import PlantDescription
 from metampc_plant.registry import get_family
 
 
@@ -266,7 +267,7 @@ def build_model(decoded: DecodedWeights, version: int, method: str, stage: str,
     except ValueError as err:
         raise WeightsError(str(err)) from None
     return ModelBundle(version, method, stage, predictor, mpc,
-                       PredictionError(predictor.latent, decoded.norm.y_std, cfg.horizon))
+                       PredictionError(predictor.latent, decoded.norm.y_std, cfg.loss_horizon))
 
 
 def latent_mpc(config: MpcConfig, predictor: NssmPredictor) -> LatentMpc:
@@ -356,20 +357,6 @@ class TickResult:
 
 # No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
 NO_ERRORS = (math.nan, math.nan, math.nan)
-
-
-@dataclass
-class PlantDescription:
-    """What the controller uses of PlantInfo: family name (for the NMPC, whose theta comes
-    with the samples: :meth:`ControllerCore.observe`), sample time dt (s), input bounds (one
-    per input), number of outputs, clock mode."""
-
-    family: str
-    dt: float
-    u_min: Tuple[float, ...]
-    u_max: Tuple[float, ...]
-    n_y: int
-    lockstep: bool
 
 
 def nmpc_unavailable(reason: str) -> str:

@@ -36,9 +36,10 @@ from std_msgs.msg import Float64MultiArray
 
 from metampc_controller.adaptation_trigger import Request
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
-                                                PlantDescription, TickResult)
+                                                TickResult)
 from metampc_controller.controller_params import ControllerConfig, PARAMETERS, parse_params
 from metampc_model.weights_codec import fields_of, weights_from_fields, WeightsError
+from metampc_plant.plant_description import PlantDescription
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
             'retunes', 'adapt_requests', 'adapt_timeouts', 'adapt_refusals', 'refused_models',
@@ -264,10 +265,7 @@ class ControllerNode(Node):
             self.get_logger().warning(f'ignored plant_info with dt={msg.dt}, bounds '
                                       f'{list(msg.u_min)}, {list(msg.u_max)}')
             return
-        warnings = self.core.set_plant(PlantDescription(
-            family=msg.family, dt=msg.dt, u_min=tuple(msg.u_min),
-            u_max=tuple(msg.u_max), n_y=len(msg.output_names),
-            lockstep=msg.clock_mode == 'lockstep'))
+        warnings = self.core.set_plant(PlantDescription.of(msg))
         self.rule.lockstep = msg.clock_mode == 'lockstep'
         self._warn_once(warnings)
 

@@ -21,14 +21,14 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
-from metampc_controller.references import make_reference, PaperConfig
+from metampc_controller.references import make_reference, SetpointSequenceConfig
 
 PLANNERS = ('latent_mpc', 'nmpc')
 PRE_MODEL_INPUTS = ('zero', 'excitation')
 # Excitation kinds whose signal is generated block by block (see controller_core): multisine
 # normalises its peak over the generated length, so blocks of it would not join up.
 EXCITATION_KINDS = ('random_hold', 'prbs')
-REFERENCE_KINDS = ('paper', 'setpoint', 'steps', 'sine')
+REFERENCE_KINDS = ('setpoint_sequence', 'setpoint', 'steps', 'sine')
 # Upper bound of the encoder history H the node accepts: the paper's H is ~10, and the history
 # buffer (2 x MAX_HISTORY samples) is allocated at start.
 MAX_HISTORY = 1000
@@ -38,19 +38,22 @@ MAX_HISTORY = 1000
 class ReferenceParams:
     """The reference_* parameters; :meth:`resolve` turns them into make_reference arguments."""
 
-    kind: str = param('paper', 'reference kind', choices=REFERENCE_KINDS, live=True)
+    kind: str = param('setpoint_sequence', 'reference kind', choices=REFERENCE_KINDS,
+                      renamed={'paper': 'setpoint_sequence'}, live=True)
     outputs: Tuple[int, ...] = param((0,), 'indices of the outputs that follow the reference',
                                      ge=0, live=True)
-    values: Tuple[float, ...] = param((), "paper: set-points (default the paper's "
-                                          f'{list(PaperConfig.setpoints)}); setpoint: one value '
-                                          '(default 0); steps: the value from each time on',
-                                      item=float, live=True)
+    values: Tuple[float, ...] = param((), "setpoint_sequence: set-points (default the paper's "
+                                          f'{list(SetpointSequenceConfig.setpoints)}); setpoint: '
+                                          'one value (default 0); steps: the value from each '
+                                          'time on', item=float, live=True)
     times: Tuple[float, ...] = param((), 'steps: increasing times, s since the plant reset',
                                      item=float, live=True)
     initial: float = param(0.0, 'steps: value before the first time', live=True)
-    segment: float = param(PaperConfig.segment, 'paper: seconds per set-point', gt=0, live=True)
-    start: float = param(PaperConfig.start, "paper: start of the first set-point's segment, s "
-                                            '(that set-point also holds before it)', live=True)
+    segment: float = param(SetpointSequenceConfig.segment, 'setpoint_sequence: seconds per '
+                                                           'set-point', gt=0, live=True)
+    start: float = param(SetpointSequenceConfig.start, "setpoint_sequence: start of the first "
+                                                       "set-point's segment, s (that set-point "
+                                                       'also holds before it)', live=True)
     amplitude: float = param(0.5, 'sine: amplitude', live=True)
     period: float = param(10.0, 'sine: period, s', gt=0, live=True)
     offset: float = param(0.0, 'sine: offset', live=True)
@@ -59,9 +62,9 @@ class ReferenceParams:
     def resolve(self, n_y: int) -> Dict[str, Any]:
         """The arguments of ``make_reference(kind, ...)`` for a plant with n_y outputs."""
         params: Dict[str, Any] = {'n_y': n_y, 'outputs': self.outputs}
-        if self.kind == 'paper':
-            params.update(setpoints=self.values or PaperConfig.setpoints, segment=self.segment,
-                          start=self.start)
+        if self.kind == 'setpoint_sequence':
+            params.update(setpoints=self.values or SetpointSequenceConfig.setpoints,
+                          segment=self.segment, start=self.start)
         elif self.kind == 'setpoint':
             if len(self.values) > 1:
                 raise ValueError(f'reference setpoint takes one value in reference_values, '
@@ -134,7 +137,7 @@ class ControllerConfig:
     n_u: int = 1
     planner: str = param('latent_mpc', 'latent_mpc is eq. mpc on the NSSM, nmpc the true-model '
                                        'yardstick (theta from every y)', choices=PLANNERS)
-    reference_kind: str = 'paper'
+    reference_kind: str = 'setpoint_sequence'
     reference_params: Dict[str, Any] = field(default_factory=dict)
     pre_model_input: str = param('zero', 'input before a model (excitation: seeded, within the '
                                          'bounds)', choices=PRE_MODEL_INPUTS)

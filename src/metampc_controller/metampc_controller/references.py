@@ -3,8 +3,9 @@
 A reference is a scalar signal of time put on the chosen output columns (default x1, column 0)
 of an (N, n_y) array; the other columns are 0 (they carry weight 0 in the MPC). It is
 evaluated over the horizon of the tick at time t0, i.e. at the samples t0 + dt, ..., t0 + N dt
-that the MPC predicts (y_{t+1..t+N}). Kinds: 'setpoint', 'steps', 'sine', and 'paper' (the
-tracking task of the paper's experiment: x1 set-points 0.8, -0.5, 0.3, -0.8 for 7.5 s each).
+that the MPC predicts (y_{t+1..t+N}). Kinds: 'setpoint', 'steps', 'sine', and
+'setpoint_sequence' (set-points held for equal segments; by default the tracking task of the
+paper's experiment: x1 set-points 0.8, -0.5, 0.3, -0.8 for 7.5 s each).
 Times are in seconds, values in the units of the outputs.
 """
 from abc import ABC, abstractmethod
@@ -76,9 +77,9 @@ class SineConfig(ReferenceConfig):
 
 
 @dataclass(frozen=True, kw_only=True)
-class PaperConfig(ReferenceConfig):
-    """The paper's tracking task: each set-point held `segment` seconds from `start` on, the
-    first one before `start`, the last one after the end."""
+class SetpointSequenceConfig(ReferenceConfig):
+    """Set-points held in turn (default: the paper's tracking task): each held `segment`
+    seconds from `start` on, the first one before `start`, the last one after the end."""
 
     setpoints: Sequence[float] = (0.8, -0.5, 0.3, -0.8)
     segment: float = 7.5
@@ -180,23 +181,24 @@ class Sine(Reference):
         return c.offset + c.amplitude * np.sin(2.0 * np.pi * t / c.period + c.phase)
 
 
-class PaperTask(Steps):
-    """The paper's set-point sequence (PaperConfig) as steps."""
+class SetpointSequence(Steps):
+    """SetpointSequenceConfig's set-points as steps."""
 
     @staticmethod
-    def _table(config: PaperConfig) -> tuple:
+    def _table(config: SetpointSequenceConfig) -> tuple:
         values = np.array([config.setpoints[0], *config.setpoints], dtype=float)
         times = config.start + config.segment * np.arange(len(config.setpoints))
         return times, values
 
 
 KINDS = {'setpoint': (SetpointConfig, Setpoint), 'steps': (StepsConfig, Steps),
-         'sine': (SineConfig, Sine), 'paper': (PaperConfig, PaperTask)}
+         'sine': (SineConfig, Sine),
+         'setpoint_sequence': (SetpointSequenceConfig, SetpointSequence)}
 
 
 def make_reference(kind: str, **params) -> Reference:
-    """A reference of a kind ('setpoint', 'steps', 'sine', 'paper') from its config fields,
-    e.g. make_reference('steps', steps=[(0.0, 0.5), (10.0, -0.5)], outputs=(0,))."""
+    """A reference of a kind ('setpoint', 'steps', 'sine', 'setpoint_sequence') from its config
+    fields, e.g. make_reference('steps', steps=[(0.0, 0.5), (10.0, -0.5)], outputs=(0,))."""
     if kind not in KINDS:
         raise ValueError(f'unknown reference kind {kind!r}; kinds: {sorted(KINDS)}')
     config_cls, reference_cls = KINDS[kind]

@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 
 from metampc_controller.adaptation_trigger import AdaptationTrigger, TriggerConfig
-from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
+from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
 from metampc_model.weights_codec import DecodedWeights
+from metampc_plant.plant_description import PlantDescription
 from metampc_plant.simulator import Plant, PlantConfig
 
 DT = 0.1

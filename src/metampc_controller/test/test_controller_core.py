@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
-                                                History, PlantDescription, PreModelInput)
+                                                History, PreModelInput)
 from metampc_controller.closed_loop import run_episode
 from metampc_controller.controller_params import ControllerConfig
 from metampc_common.excitation import ExcitationConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
 from metampc_model.weights_codec import DecodedWeights, WeightsError
+from metampc_plant.plant_description import PlantDescription
 from metampc_plant.simulator import Plant, PlantConfig
 
 
@@ -201,7 +202,8 @@ def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
 
 
 def test_reference_time_restarts_with_each_episode_and_override():
-    """'paper' reference: x1 = 0.8 until 7.5 s, then -0.5; times are step * dt."""
+    """'setpoint_sequence' reference (the paper's task): x1 = 0.8 until 7.5 s, then -0.5;
+    times are step * dt."""
     core = ControllerCore(ControllerConfig(mpc=MpcConfig(horizon=2)))
     core.set_plant(vdp_plant())
     plant = Plant(PlantConfig())

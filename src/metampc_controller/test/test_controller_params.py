@@ -4,6 +4,7 @@ import re
 
 import pytest
 
+from metampc_common import renames
 from metampc_common.params import ParameterError
 from metampc_controller.controller_params import parse_params, PARAMETERS
 
@@ -22,7 +23,7 @@ def test_defaults_are_the_paper_task_at_10_hz():
         10.0, 'latent_mpc', 2, 1, True, 0)
     assert (mpc.horizon, tuple(mpc.q), mpc.r, mpc.u_min, mpc.u_max) == (
         20, (1.0, 0.0), (0.05,), (-1.0,), (1.0,))
-    assert cfg.reference_kind == 'paper'
+    assert cfg.reference_kind == 'setpoint_sequence'
     assert cfg.reference_params == {'n_y': 2, 'outputs': (0,), 'setpoints': (0.8, -0.5, 0.3, -0.8),
                                     'segment': 7.5, 'start': 0.0}
     assert (cfg.pre_model_input, cfg.excitation.kind) == ('zero', 'random_hold')
@@ -74,7 +75,7 @@ BAD = {
     'steps order': ({'reference': 'steps', 'reference_times': [2.0, 1.0],
                      'reference_values': [1.0, 2.0]}, 'increasing times'),
     'sine period': ({'reference': 'sine', 'reference_period': 0.0}, 'period must be > 0'),
-    'paper segment': ({'reference_segment': -1.0}, 'reference_segment must be > 0'),
+    'sequence segment': ({'reference_segment': -1.0}, 'reference_segment must be > 0'),
     'pre-model': ({'pre_model_input': 'noise'}, 'pre_model_input must be one of'),
     'excitation kind': ({'excitation_kind': 'multisine'}, 'excitation_kind must be one of'),
     'amplitude': ({'excitation_amplitude': 0.0}, 'excitation_amplitude must be in (0, 1]'),
@@ -96,3 +97,12 @@ def test_bad_values_name_the_parameter(case):
     changes, message = BAD[case]
     with pytest.raises(ParameterError, match=re.escape(message)):
         parse_params(values(**changes))
+
+
+def test_reference_paper_is_the_setpoint_sequence_with_one_warning(monkeypatch, capsys):
+    monkeypatch.setattr(renames, '_written', set())     # not yet written in this process
+    old = [parse_params(values(reference='paper')) for _ in range(2)]
+    assert old[0] == old[1] == parse_params(values(reference='setpoint_sequence'))
+    assert capsys.readouterr().err == ("warning: reference: 'paper' is renamed "
+                                       "'setpoint_sequence'; the old value will be removed in "
+                                       'the next release\n')

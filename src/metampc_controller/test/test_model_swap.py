@@ -8,12 +8,13 @@ import math
 from typing import NamedTuple
 
 from metampc_controller.adaptation_trigger import AdaptationTrigger, TriggerConfig
-from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
+from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import MpcConfig
 from metampc_model.weights_codec import DecodedWeights
+from metampc_plant.plant_description import PlantDescription
 
 DT = 0.1
 TRIGGER = TriggerConfig(adaptation='periodic', adapt_period=2.0, swap_delay=10)

@@ -224,7 +224,7 @@ def test_larger_delta_u_weight_gives_smoother_inputs():
 
 def test_warm_start_lowers_iterations():
     model = random_model(7, 0.95)
-    paper = make_reference('paper', segment=3.0)
+    paper = make_reference('setpoint_sequence', segment=3.0)
     iters = {}
     for warm in (True, False):
         cfg = MpcConfig(horizon=20, warm_start=warm, time_limit=1.0)

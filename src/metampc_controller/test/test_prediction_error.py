@@ -26,7 +26,7 @@ def torch_error(model, params, norm, u, y, end, t):
     h = model.config.history
     rows = slice(end - t - h + 1, end + 1)
     u_n, y_n = norm.normalise(u[rows][None], y[rows][None])
-    cfg = NssmConfig(**{**model.config.__dict__, 'horizon': t})
+    cfg = NssmConfig(**{**model.config.__dict__, 'loss_horizon': t})
     with torch.no_grad():
         y_hat = functional_call(Nssm(cfg, norm, seed=0, dtype=torch.float64), params,
                                 (torch.as_tensor(u_n), torch.as_tensor(y_n)))
@@ -34,15 +34,15 @@ def torch_error(model, params, norm, u, y, end, t):
 
 
 def test_errors_are_the_loss_terms_of_the_torch_model():
-    config = NssmConfig(history=4, horizon=6, hidden=(16,), n_z=3)
+    config = NssmConfig(history=4, loss_horizon=6, hidden=(16,), n_z=3)
     norm = Normalisation(u_mean=np.array([0.1]), u_std=np.array([0.7]),
                          y_mean=np.array([0.2, -0.1]), y_std=np.array([1.5, 0.8]))
     model = Nssm(config, norm, seed=3, dtype=torch.float64)
     params = model.params()
     predictor = NssmPredictor(config, norm, params)
-    monitor = PredictionError(predictor.latent, norm.y_std, config.horizon)
+    monitor = PredictionError(predictor.latent, norm.y_std, config.loss_horizon)
     rng = np.random.default_rng(1)
-    n, h, t = 40, config.history, config.horizon
+    n, h, t = 40, config.history, config.loss_horizon
     u, y = rng.uniform(-1, 1, (n, 1)), rng.normal(0, 1, (n, 2))
     for k in range(h - 1, n):
         z = predictor.encode(u[k - h + 1:k + 1], y[k - h + 1:k + 1])
@@ -67,7 +67,7 @@ def test_the_tick_reports_the_errors_of_the_model_in_use():
     the rollouts exist, NaN before (and after a reset), far larger against another theta."""
     bundle = build_model(DecodedWeights(*linearised_vdp_nssm(0.5, 0.1, 10)), 1, 'manual',
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
-    horizon = bundle.predictor.config.horizon
+    horizon = bundle.predictor.config.loss_horizon
 
     def errors(theta_plant):
         core = ControllerCore(ControllerConfig())

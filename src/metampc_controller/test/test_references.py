@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from metampc_controller.references import (
-    make_reference, PaperConfig, PaperTask, Setpoint, Sine, Steps)
+    make_reference, Setpoint, SetpointSequence, SetpointSequenceConfig, Sine, Steps)
 
 
 def test_setpoint_fills_the_tracked_output_only():
@@ -32,10 +32,10 @@ def test_sine_at_the_sample_times():
     np.testing.assert_allclose(ref.evaluate(1.0, 0.25, 3)[:, 0], expected, rtol=1e-12)
 
 
-def test_paper_task():
-    ref = make_reference('paper')
-    assert isinstance(ref, PaperTask)
-    assert PaperConfig().duration == 30.0
+def test_setpoint_sequence_is_the_paper_task_by_default():
+    ref = make_reference('setpoint_sequence')
+    assert isinstance(ref, SetpointSequence)
+    assert SetpointSequenceConfig().duration == 30.0
     out = ref.evaluate(0.0, 0.1, 320)
     # Sample k (t = k / 10, k = 1..320) lies in segment k // 75 (7.5 s = 75 samples).
     levels = [0.8, -0.5, 0.3, -0.8]
@@ -52,15 +52,16 @@ def test_chosen_outputs_and_sizes():
 
 @pytest.mark.parametrize('kind,params', [
     ('ramp', {}), ('setpoint', {'amplitude': 1.0}), ('steps', {'steps': [(1.0, 0.0), (0.5, 1.0)]}),
-    ('sine', {'period': 0.0}), ('setpoint', {'outputs': (2,)}), ('paper', {'setpoints': ()})])
+    ('sine', {'period': 0.0}), ('setpoint', {'outputs': (2,)}),
+    ('setpoint_sequence', {'setpoints': ()})])
 def test_invalid_references_are_rejected(kind, params):
     with pytest.raises(ValueError):
         make_reference(kind, **params)
 
 
 @pytest.mark.parametrize('kind,params', [
-    ('paper', {}),
-    ('paper', dict(start=1.05, segment=2.5, outputs=(0, 1))),
+    ('setpoint_sequence', {}),
+    ('setpoint_sequence', dict(start=1.05, segment=2.5, outputs=(0, 1))),
     ('steps', dict(steps=[(0.0, 0.5), (7.4, -0.5), (7.5, 0.1), (12.0, 0.2)], initial=-0.3)),
     ('setpoint', dict(value=0.3, n_y=3, outputs=(2,))),
     ('sine', dict(amplitude=0.4, period=3.3, outputs=(0, 1)))])

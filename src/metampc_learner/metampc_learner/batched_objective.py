@@ -94,7 +94,7 @@ class BatchedNssm:
         self.spec = TrainingVector(cfg)
         self.shapes = list(self.spec.shapes.values())
         self.n_layers = len(cfg.hidden) + 1
-        t = cfg.horizon
+        t = cfg.loss_horizon
         lag = torch.arange(t)[:, None] - torch.arange(t)[None, :]
         # shift[l, k, j] = 1 where k - j = l: K = sum_l shift_l (x) C A^l B is a product,
         # and so is its adjoint (no index_put accumulation: deterministic on a GPU too)
@@ -112,7 +112,7 @@ class BatchedNssm:
         h = self.config.history
         x = torch.cat([u[:, :, :h], y[:, :, :h]], dim=-1).flatten(start_dim=-2)
         return Batch(x, u[:, :, h:].flatten(start_dim=-2), y[:, :, h:].flatten(start_dim=-2),
-                     u.shape[1] * self.config.horizon)
+                     u.shape[1] * self.config.loss_horizon)
 
     def split(self, flat: torch.Tensor) -> List[torch.Tensor]:
         """(B, P) -> one (B, *shape) view per parameter, canonical order (no copy)."""
@@ -141,7 +141,7 @@ class BatchedNssm:
             a, phi = w, torch.ones_like(w[:, :1, :1])
             dphi, u1, v1 = torch.zeros_like(phi), w[:, :, :1], w[:, :1, :]
         powers = [c]
-        for _ in range(cfg.horizon):
+        for _ in range(cfg.loss_horizon):
             powers.append(torch.bmm(powers[-1], a))
         powers = torch.stack(powers, dim=1)
         f, k = self._matrices(powers, b)
@@ -155,7 +155,7 @@ class BatchedNssm:
         markov = torch.matmul(powers[:, :-1], b[:, None])               # (B, T, n_y, n_u)
         k = torch.einsum('lkj,blyu->bkyju', self.shift, markov)
         return (powers[:, 1:].reshape(n_b, -1, cfg.n_z),
-                k.reshape(n_b, cfg.horizon * cfg.n_y, cfg.horizon * cfg.n_u))
+                k.reshape(n_b, cfg.loss_horizon * cfg.n_y, cfg.loss_horizon * cfg.n_u))
 
     def _head_tangent(self, hd: Head, dw: torch.Tensor, db: torch.Tensor, dc: torch.Tensor
                       ) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -166,7 +166,7 @@ class BatchedNssm:
             dx = torch.bmm(torch.bmm(hd.u1.transpose(1, 2), dw), hd.v1.transpose(1, 2))
             d_a = d_a + hd.w * (hd.dphi * dx / cfg.rho_max)
         d_powers = [dc]
-        for j in range(cfg.horizon):
+        for j in range(cfg.loss_horizon):
             d_powers.append(torch.baddbmm(torch.bmm(hd.powers[:, j], d_a), d_powers[-1], hd.a))
         d_powers = torch.stack(d_powers, dim=1)
         d_f, d_k = self._matrices(d_powers, hd.b)
@@ -177,7 +177,7 @@ class BatchedNssm:
                       ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(dL/dW, dL/dB, dL/dC) from (dL/dF, dL/dK): reverse mode through :meth:`head`."""
         cfg = self.config
-        n_b, t = d_f.shape[0], cfg.horizon
+        n_b, t = d_f.shape[0], cfg.loss_horizon
         d_markov = torch.einsum('lkj,bkyju->blyu', self.shift,
                                 d_k.view(n_b, t, cfg.n_y, t, cfg.n_u))  # (B, T, n_y, n_u)
         before = hd.powers[:, :-1]                                       # C A^k, k = 0..T-1

@@ -51,8 +51,10 @@ def load_checkpoint(path: str) -> Checkpoint:
         raise ValueError(f'{path}: not a torch checkpoint ({type(err).__name__})') from None
     if not isinstance(blob, dict) or blob.get('format') != FORMAT:
         raise ValueError(f'{path}: not a {FORMAT} checkpoint')
-    # files from before the stable latent parameterisation hold a free A
-    config = NssmConfig(**{'stable_latent': False, **blob['config']})
+    # files from before the stable latent parameterisation hold a free A; those from before
+    # the rename of T call it horizon
+    stored = {('loss_horizon' if k == 'horizon' else k): v for k, v in blob['config'].items()}
+    config = NssmConfig(**{'stable_latent': False, **stored})
     params = blob['params']
     if {k: tuple(v.shape) for k, v in params.items()} != dict(param_shapes(config)):
         raise ValueError(f'{path}: weights do not fit {config}')

@@ -68,14 +68,14 @@ def heldout_loss(model: Nssm, params: Mapping[str, torch.Tensor], windows: Windo
 
 
 def model_heldout_loss(weights: DecodedWeights, trajectories: List[Trajectory],
-                       horizon: int) -> float:
-    """l_SSM of a decoded model on windows of H + `horizon` samples of `trajectories`
+                       loss_horizon: int) -> float:
+    """l_SSM of a decoded model on windows of H + `loss_horizon` samples of `trajectories`
     (physical units), normalised with the model's own normalisation.
 
     The message carries no T, so the learner's is passed; the published A is the effective
     one (bounded already when ``stable_latent``), so the parameters are used as they are.
     """
-    config = replace(weights.config, horizon=int(horizon))
+    config = replace(weights.config, loss_horizon=int(loss_horizon))
     windows = Windows.from_trajectories(trajectories, weights.norm, config)
     return heldout_loss(Nssm(config, weights.norm), torch_params(weights.params), windows)
 

@@ -35,11 +35,11 @@ from metampc_model.weights_codec import fields_from_weights
 from metampc_learner.job_slot import JobCancelled, JobSlot, JobStatus
 from metampc_learner.learner_params import (LearnerNodeConfig, parse_params, PARAMETERS,
                                             resolve_adapt_request, resolve_meta_request)
-from metampc_learner.learner_session import (LearnerError, LearnerSession, ModelRecord,
-                                             PlantFacts)
+from metampc_learner.learner_session import LearnerError, LearnerSession, ModelRecord
 from metampc_learner.loop_adaptation import BEYOND_WINDOW, RecentSamples
 from metampc_learner.meta_train import MetaTrainingError
 from metampc_learner.target_buffer import TargetBuffer
+from metampc_plant.plant_description import PlantDescription
 
 # One thread trains, one answers a second request 'busy', one buffers y, one beats progress.
 EXECUTOR_THREADS = 4
@@ -67,7 +67,7 @@ class LearnerNode(Node):
         self.buffer = TargetBuffer(self.cfg.target_buffer_size)
         if not self.cfg.buffer_on_start:
             self.buffer.freeze()
-        self._plant: Optional[PlantFacts] = None
+        self._plant: Optional[PlantDescription] = None
         self._slot = JobSlot()
         self._progress_lock = threading.Lock()
 
@@ -113,7 +113,7 @@ class LearnerNode(Node):
                                    f'{self.cfg.meta_model_path!r}: published as v{record.version}')
             nssm = record.model.config      # the model that adapts is the loaded one
         self.get_logger().info(
-            f'learner up: NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.horizon}, encoder '
+            f'learner up: NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.loss_horizon}, encoder '
             f'{list(nssm.hidden)}; {src.n_systems} source systems; D_target of '
             f'{self.buffer.capacity} samples, buffering '
             + ('on' if self.buffer.enabled else 'off until set_buffering true'))
@@ -150,10 +150,7 @@ class LearnerNode(Node):
             self._unsubscribe_y()
 
     def _on_plant_info(self, msg: PlantInfo) -> None:
-        plant = PlantFacts(family=msg.family, theta=tuple(msg.theta), dt=msg.dt,
-                           substeps=msg.substeps, u_min=tuple(msg.u_min),
-                           u_max=tuple(msg.u_max), n_y=len(msg.output_names),
-                           state_bound=msg.state_bound)
+        plant = PlantDescription.of(msg)
         try:
             self.session.check_plant(plant)
         except LearnerError as err:

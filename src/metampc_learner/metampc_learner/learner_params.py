@@ -20,11 +20,12 @@ from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig
 from metampc_learner.loop_adaptation import LoopConfig
-from metampc_learner.meta_train import MetaConfig, METHODS
+from metampc_learner.meta_train import META_METHODS, MetaConfig
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
 
-ADAPT_METHODS = ('', *METHODS, 'supervised', 'oracle')
+# The methods an Adapt request may name ('' too: the latest meta-model).
+ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
 
 
 @dataclass
@@ -131,8 +132,9 @@ def resolve_meta_request(request, base: MetaConfig, online_default: bool
     if method == 'supervised':
         raise ValueError("'supervised' has no meta-training phase: call adapt with method "
                          "'supervised' to train it on the target buffer")
-    if method not in METHODS:
-        raise ValueError(f'unknown method {method!r}; expected one of {", ".join(METHODS)}')
+    if method not in META_METHODS:
+        raise ValueError(f'unknown method {method!r}; expected one of '
+                         f'{", ".join(META_METHODS)}')
     for name in ('gamma', 'lr_inner', 'lr_outer'):
         if not math.isfinite(getattr(request, name)):
             raise ValueError(f'{name} must be finite, got {getattr(request, name)}')
@@ -176,9 +178,9 @@ def resolve_adapt_request(request, adapt: AdaptConfig, oracle: OracleConfig) -> 
         ValueError: unknown method, non-finite or negative lr, non-finite gamma.
     """
     method = request.method
-    if method not in ADAPT_METHODS:
+    if method not in ('', *ADAPT_METHODS):
         raise ValueError(f'unknown method {method!r}; expected one of '
-                         f'{", ".join(repr(m) for m in ADAPT_METHODS)}')
+                         f'{", ".join(repr(m) for m in ("", *ADAPT_METHODS))}')
     if not (math.isfinite(request.lr) and request.lr >= 0):
         raise ValueError(f'lr must be finite and >= 0 (0: parameter), got {request.lr}')
     if not math.isfinite(request.gamma):

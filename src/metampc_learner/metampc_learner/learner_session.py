@@ -13,7 +13,7 @@ import math
 import os
 import re
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -24,11 +24,12 @@ from metampc_learner.data import (normalisation_from, simulate_source, SourceCon
                                   SourceData, SourceSet, Trajectory, Windows)
 from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
-from metampc_learner.meta_train import meta_train, MetaConfig, METHODS
+from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
 from metampc_learner.online_collection import CollectionStats, OnlineCollector
 from metampc_learner.oracle import fit_oracle, oracle_data
 from metampc_learner.progress import ProgressFn
 from metampc_learner.target_buffer import split_target, TargetSamples
+from metampc_plant.plant_description import PlantDescription
 
 FINAL_LOSS_STEPS = 10   # final_loss of meta_train: mean meta-test loss of the last 10 steps
 CHECKPOINT_NAME = re.compile(r'(?:meta|adapted|online)_[a-z_]+_v(\d+)\.pt')
@@ -66,22 +67,6 @@ class ModelRecord:
     train_samples: int
     seed: int
     train_time: float = 0.0
-
-
-@dataclass
-class PlantFacts:
-    """The target plant as plant_info describes it: family name, theta (n_theta values; empty
-    when unknown, e.g. a real plant), dt (s), RK4 substeps, input bounds (one per input), the
-    number of outputs, state box."""
-
-    family: str
-    theta: Tuple[float, ...]
-    dt: float
-    substeps: int
-    u_min: Tuple[float, ...]
-    u_max: Tuple[float, ...]
-    n_y: int
-    state_bound: float
 
 
 @dataclass
@@ -174,9 +159,9 @@ class LearnerSession:
             raise LearnerError(f'cannot load meta-model {path!r}: {err}') from None
         info = ckpt.info
         method = info.get('method', 'imaml')
-        if method not in METHODS:
+        if method not in META_METHODS:
             raise LearnerError(f'{path!r} holds a {method!r} model, not a meta-model of '
-                               f'{", ".join(METHODS)}')
+                               f'{", ".join(META_METHODS)}')
         return self._new_record(
             model=ckpt.model, params=ckpt.params, method=method, stage='meta',
             train_loss=float(info.get('train_loss', math.nan)),
@@ -242,12 +227,12 @@ class LearnerSession:
                                f"meta_train with method '{method}' first")
         return self.meta_models[method]
 
-    def _plant_source(self, plant: PlantFacts) -> SourceConfig:
+    def _plant_source(self, plant: PlantDescription) -> SourceConfig:
         """The source settings with the target plant's dynamics, bounds and box."""
         return plant_source(self.config.source, plant.dt, plant.substeps, plant.u_min,
                             plant.u_max, plant.state_bound)
 
-    def check_plant(self, plant: PlantFacts) -> None:
+    def check_plant(self, plant: PlantDescription) -> None:
         """LearnerError unless the plant samples at the dt the source systems are simulated at
         (the plant's plant_info is the one source of truth for dt) and has the source
         family's numbers of inputs and outputs."""
@@ -261,7 +246,7 @@ class LearnerSession:
                                f'{len(plant.u_min)} input(s) and {plant.n_y} output(s), the '
                                f'source family {fam.name} {fam.n_u} and {fam.n_y}')
 
-    def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantFacts],
+    def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantDescription],
               progress: Optional[ProgressFn] = None) -> AdaptOutcome:
         """Adapt (or train a baseline) on the buffered target samples; see the module.
 
@@ -356,5 +341,4 @@ class LearnerSession:
         return AdaptOutcome(new, result, used, _samples(train), 0)
 
 
-__all__ = ['LearnerError', 'ModelRecord', 'PlantFacts', 'MetaOutcome', 'AdaptOutcome',
-           'LearnerSession']
+__all__ = ['LearnerError', 'ModelRecord', 'MetaOutcome', 'AdaptOutcome', 'LearnerSession']

@@ -32,7 +32,7 @@ from metampc_learner.objective import FlatObjective
 from metampc_learner.progress import Progress, ProgressFn
 from metampc_learner.task_gradient import TaskGradient
 
-METHODS = ('imaml', 'maml', 'maml_unrolled')
+META_METHODS = ('imaml', 'maml', 'maml_unrolled')
 LR_SCHEDULES = ('constant', 'cosine')
 BACKENDS = ('fast', 'eager')
 DEVICES = ('cpu', 'cuda')
@@ -75,7 +75,7 @@ class MetaConfig:
         rollback_lr_factor: beta_out multiplier at each rollback.
     """
 
-    method: str = param('imaml', 'meta-training method', choices=METHODS, live=True)
+    method: str = param('imaml', 'meta-training method', choices=META_METHODS, live=True)
     iterations: int = param(300, 'outer steps', ge=1, live=True)
     batch_size: int = param(16, 'B, tasks per outer step', ge=1, live=True)
     inner_steps: int = param(10, 'M, inner gradient steps', ge=0, live=True)

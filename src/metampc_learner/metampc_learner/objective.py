@@ -56,7 +56,7 @@ class FlatObjective:
 
     def n_terms(self, u: torch.Tensor) -> int:
         """N * T: the loss is the sum of squared residuals divided by this (both terms)."""
-        return u.shape[-3] * self.model.config.horizon
+        return u.shape[-3] * self.model.config.loss_horizon
 
     def prox_objective(self, psi: torch.Tensor, anchor: torch.Tensor, u: torch.Tensor,
                        y: torch.Tensor, gamma: float) -> torch.Tensor:

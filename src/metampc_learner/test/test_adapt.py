@@ -10,7 +10,7 @@ from metampc_learner.data import normalisation_from, simulate_target, SourceConf
 from metampc_learner.objective import ARMIJO_C, FlatObjective
 
 torch.set_num_threads(1)
-TINY = NssmConfig(history=4, horizon=5, hidden=(16, 16), n_z=3)
+TINY = NssmConfig(history=4, loss_horizon=5, hidden=(16, 16), n_z=3)
 
 
 @pytest.fixture(scope='module')

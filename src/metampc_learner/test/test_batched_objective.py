@@ -18,7 +18,7 @@ from metampc_learner.task_gradient import TaskGradient
 
 torch.set_num_threads(1)
 pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
-TINY = NssmConfig(history=4, horizon=5, hidden=(16, 16), n_z=3)
+TINY = NssmConfig(history=4, loss_horizon=5, hidden=(16, 16), n_z=3)
 SRC = SourceConfig(n_systems=6, episodes_per_system=1, episode_samples=60, seed=3)
 CUDA = torch.cuda.is_available()
 
@@ -72,7 +72,7 @@ def test_fast_meta_gradient_equals_the_eager_reference_in_float32(method, weight
 def test_fast_meta_gradient_equals_the_eager_reference_in_float64(method, stable):
     """In float64 they agree to ~1e-10: the same mathematics, not an approximation (the head's
     hand-written derivatives through bounded_transition included; one hidden layer)."""
-    nssm = NssmConfig(history=3, horizon=4, hidden=(16,), n_z=3, stable_latent=stable)
+    nssm = NssmConfig(history=3, loss_horizon=4, hidden=(16,), n_z=3, stable_latent=stable)
     _, _, objective, args = _problem(nssm, torch.float64)
     eager, fast = _both(objective, args, method=method, init_loss_weight=0.2)
     _assert_close(eager, fast, rtol=1e-9, atol=1e-10)
@@ -81,7 +81,7 @@ def test_fast_meta_gradient_equals_the_eager_reference_in_float64(method, stable
 @pytest.mark.parametrize('hidden', [(), (8, 6, 5)])
 def test_several_inputs_and_outputs_and_any_depth_agree_with_the_reference(hidden):
     """n_u = 2, n_y = 4 (quadruple_tank's sizes), no or three hidden layers, random windows."""
-    nssm = NssmConfig(n_u=2, n_y=4, history=3, horizon=4, hidden=hidden, n_z=3)
+    nssm = NssmConfig(n_u=2, n_y=4, history=3, loss_horizon=4, hidden=hidden, n_z=3)
     gen = torch.Generator().manual_seed(1)
     u, y = (torch.randn(3, 6, 7, n, generator=gen, dtype=torch.float64) for n in (2, 4))
     model = Nssm(nssm, dtype=torch.float64)

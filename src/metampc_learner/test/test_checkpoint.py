@@ -9,7 +9,7 @@ from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 
 
 def test_round_trip(tmp_path):
-    config = NssmConfig(hidden=(32, 8), n_z=4, history=6, horizon=7)
+    config = NssmConfig(hidden=(32, 8), n_z=4, history=6, loss_horizon=7)
     norm = Normalisation([0.1], [0.5], [0.0, 1.0], [3.0, 2.5])
     params = init_params(config, 12)
     path = str(tmp_path / 'meta.pt')
@@ -24,6 +24,17 @@ def test_round_trip(tmp_path):
     a = torch.func.functional_call(ckpt.model, ckpt.params, (u, y))
     b = torch.func.functional_call(Nssm(config, norm), params, (u, y))
     assert torch.equal(a, b)
+
+
+def test_reads_a_file_that_calls_the_loss_horizon_horizon(tmp_path):
+    config = NssmConfig(hidden=(8,), n_z=2, history=3, loss_horizon=6)
+    path = str(tmp_path / 'old.pt')
+    save_checkpoint(path, Nssm(config, Normalisation([0.0], [1.0], [0.0, 0.0], [1.0, 1.0])),
+                    init_params(config, 1))
+    blob = torch.load(path, weights_only=True)
+    blob['config']['horizon'] = blob['config'].pop('loss_horizon')
+    torch.save(blob, path)
+    assert load_checkpoint(path).model.config == config
 
 
 def test_rejects_foreign_files(tmp_path):

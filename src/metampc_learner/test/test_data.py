@@ -13,7 +13,7 @@ from metampc_learner.data import (normalisation_from, simulate_episodes, simulat
 from metampc_plant.family import ThetaComponent
 from metampc_plant.registry import get_family, register
 
-SMALL = NssmConfig(history=3, horizon=4, hidden=(8,))
+SMALL = NssmConfig(history=3, loss_horizon=4, hidden=(8,))
 VDP = get_family('vanderpol')
 
 
@@ -113,7 +113,7 @@ def test_normalisation_from_source():
     norm = normalisation_from(trajs, y_spread=3.0)
     assert np.allclose(norm.u_mean, [2.0]) and np.allclose(norm.u_std, [1.0])
     assert np.allclose(norm.y_mean, [1.0, 1.0]) and np.allclose(norm.y_std, [3.0, 3.0])
-    w = Windows.from_trajectories(trajs, norm, NssmConfig(history=2, horizon=1))
+    w = Windows.from_trajectories(trajs, norm, NssmConfig(history=2, loss_horizon=1))
     assert w.u.shape == (2, 3, 1) and torch.allclose(w.u[0, :, 0], torch.tensor([-1., 1, -1]))
 
 

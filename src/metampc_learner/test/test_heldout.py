@@ -26,7 +26,7 @@ THETA = -0.7
 def _numpy_loss(params, norm: Normalisation, config: NssmConfig, trajs) -> float:
     """l_SSM by hand: every window of H + T samples, MLP encoder, latent recursion."""
     p = {k: v.double().numpy() for k, v in params.items()}
-    n_h, n_t = config.history, config.horizon
+    n_h, n_t = config.history, config.loss_horizon
     errors = []
     for traj in trajs:
         u = (traj.u - norm.u_mean) / norm.u_std
@@ -122,7 +122,7 @@ def test_plant_source_takes_the_plants_sampling_bounds_and_box():
 
 
 def test_loss_of_a_published_model_equals_the_numpy_rollout():
-    config = NssmConfig(history=3, horizon=4, hidden=(8, 6), n_z=3)
+    config = NssmConfig(history=3, loss_horizon=4, hidden=(8, 6), n_z=3)
     norm = Normalisation([0.1], [0.6], [0.2, -0.1], [2.5, 3.0])
     params = init_params(config, seed=5)
     params['A'] = params['A'] * 0.9
@@ -135,10 +135,10 @@ def test_loss_of_a_published_model_equals_the_numpy_rollout():
     # Through the message fields: the decoded model, its own normalisation, the learner's T
     # (the message carries none; the decoded config has the default).
     decoded = weights_from_fields(fields_from_weights(config, norm, params))
-    assert decoded.config.horizon != config.horizon
-    assert model_heldout_loss(decoded, trajs, config.horizon) == pytest.approx(expected,
-                                                                               rel=1e-5)
+    assert decoded.config.loss_horizon != config.loss_horizon
+    assert model_heldout_loss(decoded, trajs, config.loss_horizon) == pytest.approx(
+        expected, rel=1e-5)
     other = replace(norm, y_std=np.array([1.0, 1.0]))
     assert _numpy_loss(params, other, config, trajs) != pytest.approx(expected, rel=1e-3)
     assert np.isnan(heldout_loss(Nssm(config, norm), params, Windows.from_trajectories(
-        trajs, norm, replace(config, horizon=20))))
+        trajs, norm, replace(config, loss_horizon=20))))

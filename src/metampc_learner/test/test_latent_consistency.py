@@ -11,7 +11,7 @@ from metampc_learner.meta_train import batch_gradient_fn, MetaConfig
 from metampc_learner.objective import FlatObjective
 
 torch.set_num_threads(1)
-SMALL = dict(n_z=3, history=4, hidden=(8,), horizon=5)
+SMALL = dict(n_z=3, history=4, hidden=(8,), loss_horizon=5)
 
 
 def _windows(config, n, seed, dtype=torch.float64):
@@ -23,7 +23,7 @@ def _windows(config, n, seed, dtype=torch.float64):
 def _by_recursion(model, p, u, y):
     """l_cons written out step by step: the encoder's state at t+1 and the model's own step
     from its state at t, both run forward under the same inputs; outputs compared."""
-    n_h, n_t = model.config.history, model.config.horizon
+    n_h, n_t = model.config.history, model.config.loss_horizon
     with torch.no_grad():
         z_t, z_enc = (model.encode(u[:, j:j + n_h], y[:, j:j + n_h]) for j in (0, 1))
     z_own = z_t @ p['A'].T + u[:, n_h] @ p['B'].T

@@ -26,7 +26,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 ITERATIONS = 800
 CAPACITY = 40       # D_target; 10 held out (heldout_fraction 0.25), window H + T = 6
 TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
-        'horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
+        'loss_horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
         'cg_steps': 2, 'windows_per_task': 8, 'iterations': ITERATIONS, 'torch_threads': 1,
         'target_buffer_size': CAPACITY, 'heldout_fraction': 0.25, 'adapt_steps': 5,
         'oracle_episodes': 4, 'oracle_steps': 10, 'oracle_batch': 32,

@@ -25,6 +25,12 @@ def _raw(**overrides):
     return values
 
 
+def test_the_loss_horizon_was_called_horizon():
+    """The NSSM's T is loss_horizon (the MPC's N is the controller's horizon); the former name
+    still works for one release (metampc_common.renames)."""
+    assert PARAMETERS['loss_horizon'].formerly == 'horizon' and 'horizon' not in PARAMETERS
+
+
 def test_defaults_are_those_of_the_cores():
     cfg = parse_params(_raw())
     assert cfg.meta == MetaConfig() and cfg.nssm == NssmConfig() and (
@@ -39,7 +45,7 @@ def test_defaults_are_those_of_the_cores():
 def test_values_reach_the_config_and_integers_pass_for_doubles():
     cfg = parse_params(_raw(method='maml', iterations=7, batch_size=3, inner_steps=4, gamma=2,
                             lr_inner=1, lr_outer=0.01, cg_steps=6, curvature='hessian',
-                            windows_per_task=5, seed=11, n_z=4, history=6, horizon=7,
+                            windows_per_task=5, seed=11, n_z=4, history=6, loss_horizon=7,
                             hidden=[32, 8], n_systems=9, dt=1, u_min=-0.5, u_max=1,
                             excitation='prbs', hold_s=1, source_seed=5,
                             online_collection=True, online_noise_std=0, online_samples=40,
@@ -49,7 +55,7 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     assert cfg.meta == replace(MetaConfig(), method='maml', iterations=7, batch_size=3,
                                inner_steps=4, gamma=2.0, lr_inner=1.0, lr_outer=0.01,
                                cg_steps=6, curvature='hessian', windows_per_task=5, seed=11)
-    assert cfg.nssm == NssmConfig(n_z=4, history=6, horizon=7, hidden=(32, 8))
+    assert cfg.nssm == NssmConfig(n_z=4, history=6, loss_horizon=7, hidden=(32, 8))
     assert (cfg.source.n_systems, cfg.source.dt, cfg.source.seed) == (9, 1.0, 5)
     exc = cfg.source.excitation
     assert (exc.kind, exc.u_min, exc.u_max, exc.hold_s) == ('prbs', (-0.5,), (1.0,), 1.0)

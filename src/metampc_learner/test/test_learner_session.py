@@ -11,19 +11,20 @@ from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   Windows)
 from metampc_learner.learner_params import AdaptJob, parse_params, PARAMETERS
-from metampc_learner.learner_session import LearnerError, LearnerSession, PlantFacts
+from metampc_learner.learner_session import LearnerError, LearnerSession
 from metampc_learner.oracle import fit_oracle, oracle_data
 from metampc_learner.target_buffer import split_target, TargetSamples
+from metampc_plant.plant_description import PlantDescription
 
 torch.set_num_threads(1)
 pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
 TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
-        'horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
+        'loss_horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
         'cg_steps': 2, 'windows_per_task': 8, 'iterations': 12, 'target_buffer_size': 40,
         'heldout_fraction': 0.25, 'adapt_steps': 4, 'oracle_episodes': 3, 'oracle_steps': 15,
         'oracle_batch': 32, 'online_samples': 20, 'online_horizon': 5, 'seed': 2}
-PLANT = PlantFacts(family='vanderpol', theta=(0.4,), dt=0.1, substeps=10, u_min=(-1.0,),
-                   u_max=(1.0,), n_y=2, state_bound=10.0)
+PLANT = PlantDescription(family='vanderpol', theta=(0.4,), dt=0.1, substeps=10, u_min=(-1.0,),
+                         u_max=(1.0,), n_y=2, lockstep=True, state_bound=10.0)
 
 
 def _config(**overrides):

@@ -64,7 +64,7 @@ def test_a_window_the_plant_no_longer_feeds_is_refused():
 def test_the_anchor_is_the_proximal_centre():
     """From init psi_0 with the anchor elsewhere, a huge gamma pulls the result to the anchor
     (the data term is negligible); anchor = init is the former adaptation, bit for bit."""
-    config = NssmConfig(history=3, horizon=3, hidden=(8,), n_z=2)
+    config = NssmConfig(history=3, loss_horizon=3, hidden=(8,), n_z=2)
     norm = Normalisation(np.zeros(1), np.ones(1), np.zeros(2), np.ones(2))
     model = Nssm(config, norm, seed=0)
     rng = np.random.default_rng(0)
@@ -82,7 +82,7 @@ def test_the_anchor_is_the_proximal_centre():
 
 def tiny_session() -> LearnerSession:
     values = {name: spec.default for name, spec in PARAMETERS.items()}
-    values.update(history=3, horizon=3, hidden=[16], n_z=3, n_systems=4, episode_samples=40,
+    values.update(history=3, loss_horizon=3, hidden=[16], n_z=3, n_systems=4, episode_samples=40,
                   target_buffer_size=60, loop_window=40, loop_steps=5, loop_lr=0.05)
     config = parse_params(values)
     assert isinstance(config, LearnerNodeConfig)

@@ -14,7 +14,7 @@ from metampc_learner.online_collection import OnlineCollectionConfig, OnlineColl
 from metampc_plant.integrate import rk4_components
 from metampc_plant.registry import get_family
 
-TINY = NssmConfig(history=3, horizon=3, hidden=(16,), n_z=3)
+TINY = NssmConfig(history=3, loss_horizon=3, hidden=(16,), n_z=3)
 NORM = Normalisation([0.0], [0.6], [0.0, 0.0], [3.0, 3.0])
 SOURCE = SourceConfig(dt=0.1, substeps=10, state_bound=10.0)
 VDP = get_family('vanderpol')

@@ -20,7 +20,7 @@ class NssmConfig:
         n_z: latent dimension (paper: 5).
         history: H, samples of (u, y) the encoder reads.
         hidden: widths of the encoder's ReLU hidden layers (paper: 128, 128).
-        horizon: T, prediction steps of the training loss.
+        loss_horizon: T, prediction steps of the training loss (the MPC's horizon is N).
         stable_latent: A of eq. (z_next) bounded to spectral norm < rho_max by the smooth map
             of ``latent_stability.py`` (False: A free, as in the paper).
         rho_max: the bound (> 0).
@@ -33,7 +33,7 @@ class NssmConfig:
     n_z: int = param(5, 'latent dimension', ge=1)
     history: int = param(10, 'H, samples the encoder reads', ge=1)
     hidden: Tuple[int, ...] = param((128, 128), 'widths of the encoder ReLU layers', ge=1)
-    horizon: int = param(10, 'T, prediction steps of the loss', ge=1)
+    loss_horizon: int = param(10, 'T, prediction steps of the loss', ge=1, formerly='horizon')
     stable_latent: bool = param(True, 'bound the spectral norm of A by rho_max (false: A free, '
                                       'as in the paper)')
     rho_max: float = param(1.0, 'bound of the spectral norm of A', gt=0)
@@ -56,7 +56,7 @@ class NssmConfig:
     @property
     def window(self) -> int:
         """Samples in one training window, H + T."""
-        return self.history + self.horizon
+        return self.history + self.loss_horizon
 
 
 def param_shapes(config: NssmConfig) -> 'OrderedDict[str, Tuple[int, ...]]':

@@ -32,21 +32,21 @@ def test_functional_call_shapes_and_loss_definition():
     assert {k: tuple(v.shape) for k, v in params.items()} == dict(param_shapes(config))
     u, y = _windows(config, 7, 0)
     y_hat = functional_call(model, params, (u, y))
-    assert y_hat.shape == (7, config.horizon, config.n_y)
+    assert y_hat.shape == (7, config.loss_horizon, config.n_y)
     expected = ((y_hat - y[:, config.history:]) ** 2).sum(-1).mean()
     assert torch.allclose(prediction_loss(model, params, u, y), expected)
 
 
 def test_closed_form_rollout_equals_recursion():
-    config = NssmConfig(horizon=23)
+    config = NssmConfig(loss_horizon=23)
     model = Nssm(config, seed=3, dtype=torch.float64)
     p = model.params()
     gen = torch.Generator().manual_seed(1)
     z0 = torch.randn(4, config.n_z, generator=gen, dtype=torch.float64)
-    u = torch.randn(4, config.horizon, config.n_u, generator=gen, dtype=torch.float64)
+    u = torch.randn(4, config.loss_horizon, config.n_u, generator=gen, dtype=torch.float64)
     z = z0
     outputs = []
-    for k in range(config.horizon):
+    for k in range(config.loss_horizon):
         z = z @ p['A'].T + u[:, k] @ p['B'].T
         outputs.append(z @ p['C'].T)
     with torch.no_grad():
@@ -122,7 +122,7 @@ def test_latent_model_reproduces_the_rollout_in_physical_units(dtype, tol):
         assert np.abs(got - y_hat[i]).max() <= tol * scale
         # the same through LatentModel.step / output, as the MPC uses it
         z = predictor.encode(u_phys[i, :n_h], y_phys[i, :n_h])
-        for k in range(config.horizon):
+        for k in range(config.loss_horizon):
             z = lm.step(z, u_phys[i, n_h + k])
             assert np.abs(lm.output(z) - y_hat[i, k]).max() <= tol * scale
     with torch.no_grad():

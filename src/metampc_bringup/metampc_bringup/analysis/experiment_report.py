@@ -102,7 +102,7 @@ def heldout_losses(recording, events: List[ExperimentEvent], config: Dict[str, A
     of theta* (the start event's), with the source settings the learner had in this run
     (rebuilt from the run config) at the dt, substeps, input bounds and state box of the last
     recorded plant_info, seeded by ``heldout_seed(seed)``. Each model is scored in its own
-    normalisation on windows of H + T samples (T: the learner's horizon parameter).
+    normalisation on windows of H + T samples (T: the learner's loss_horizon parameter).
 
     Returns:
         (the set: samples, episodes, seed, stream, elapsed_s (wall time of decoding,
@@ -131,7 +131,7 @@ def heldout_losses(recording, events: List[ExperimentEvent], config: Dict[str, A
                                              'adapted': None})
         entry['meta' if isinstance(e, MetaTrained) else 'adapted'] = (
             None if weights is None
-            else model_heldout_loss(weights, trajectories, learner.nssm.horizon))
+            else model_heldout_loss(weights, trajectories, learner.nssm.loss_horizon))
     about = {'samples': samples, 'episodes': len(trajectories), 'seed': heldout_seed(seed),
              'stream': HELDOUT_STREAM, 'elapsed_s': time.monotonic() - t0}
     return about, losses

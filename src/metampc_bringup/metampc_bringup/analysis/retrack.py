@@ -21,7 +21,7 @@ import numpy as np
 from metampc_bringup.analysis.paired_stats import paired_claim
 from metampc_bringup.experiment_config import ExperimentConfig
 from metampc_controller.closed_loop import Episode, run_episode
-from metampc_controller.controller_core import build_model, ControllerCore, PlantDescription
+from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.controller_params import parse_params as parse_controller
 from metampc_controller.controller_params import PARAMETERS as CONTROLLER_PARAMETERS
@@ -29,6 +29,7 @@ from metampc_controller.model_check import check
 from metampc_model.predictor import NssmPredictor
 from metampc_model.weights_codec import (DecodedWeights, fields_of, weights_from_fields,
                                          WeightsError)
+from metampc_plant.plant_description import PlantDescription
 from metampc_plant.plant_params import parse_params as parse_plant
 from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
 from metampc_plant.simulator import Plant

@@ -175,7 +175,7 @@ class SeedRun:
             if 'nmpc' in config.methods and not nmpc_meanwhile:
                 self._track_nmpc()
             self._drift_runs()
-        for method in config.methods if config.scenario == 'paper' else ():
+        for method in config.methods if config.scenario == 'adapt_once' else ():
             if method == 'nmpc':
                 if not nmpc_meanwhile:
                     self._track_nmpc()

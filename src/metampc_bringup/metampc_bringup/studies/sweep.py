@@ -31,8 +31,8 @@ from metampc_bringup.orchestration.cpu_budget import check_jobs
 from metampc_bringup.studies.offline import (CURVE_STEPS, init_worker, Job, request_meta_config,
                                              run_job, run_jobs, Settings, settings_from,
                                              TEST_HELDOUT_SAMPLES, validation, VALIDATION_SEED)
+from metampc_learner.meta_train import META_METHODS
 
-METHODS = ('imaml', 'maml', 'maml_unrolled')
 NAMES = {'imaml': 'iMAML', 'maml': 'first-order MAML', 'maml_unrolled': 'unrolled MAML'}
 DEFAULT_MS = (1, 5, 10, 25, 50)
 UNROLLED_MAX_M = 10
@@ -65,7 +65,7 @@ class Plan:
     """What to sweep.
 
     Attributes:
-        methods: out of :data:`METHODS`.
+        methods: out of :data:`META_METHODS`.
         ms: inner steps M (unrolled MAML takes those <= UNROLLED_MAX_M).
         seeds: test seeds (the experiment's: source set, meta seed and theta* of seed s).
         iterations: outer steps of the test runs.
@@ -75,7 +75,7 @@ class Plan:
         heldout_samples: held-out samples of each test target.
     """
 
-    methods: Tuple[str, ...] = METHODS
+    methods: Tuple[str, ...] = META_METHODS
     ms: Tuple[int, ...] = DEFAULT_MS
     seeds: Tuple[int, ...] = (0, 1, 2, 3, 4)
     iterations: int = 300
@@ -86,10 +86,10 @@ class Plan:
 
     def check(self) -> 'Plan':
         """Raise SweepError naming the first bad field; return self."""
-        bad = [m for m in self.methods if m not in METHODS]
+        bad = [m for m in self.methods if m not in META_METHODS]
         if bad or not self.methods:
             raise SweepError(f'unknown method {", ".join(bad) or "(none)"}; expected some of '
-                             f'{", ".join(METHODS)}')
+                             f'{", ".join(META_METHODS)}')
         if not self.ms or any(m < 1 for m in self.ms):
             raise SweepError(f'every M must be >= 1, got {list(self.ms)}')
         if not self.seeds or any(not 0 <= s < VALIDATION_SEED for s in self.seeds):
@@ -514,7 +514,7 @@ def main(config: str, plan: Plan, out: str, jobs: int, threads: int) -> Dict[str
     return summary_line(report, out)
 
 
-__all__ = ['METHODS', 'DEFAULT_MS', 'UNROLLED_MAX_M', 'GRIDS', 'ADAPT_LRS', 'COST_PER_STEP',
+__all__ = ['DEFAULT_MS', 'UNROLLED_MAX_M', 'GRIDS', 'ADAPT_LRS', 'COST_PER_STEP',
            'SweepError', 'Plan', 'base_hyper', 'tune_jobs', 'winners', 'evaluation_jobs',
            'estimate_cpu_s', 'measured_run', 'heldout_at', 'summarise', 'paired',
            'plain_words', 'plot_loss', 'plot_memory', 'markdown', 'protocol', 'sweep',

@@ -41,7 +41,7 @@ GAMMA_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 CG_STEPS = {0.01: 20, 0.03: 20, 0.1: 10, 0.3: 10, 1.0: 5, 3.0: 5}
 AXES = {'imaml': {**SHARED_GRID, 'gamma': GAMMA_GRID}, 'maml': SHARED_GRID}
 ADAPT_LRS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
-META_METHODS = ('imaml', 'maml')
+TUNED_METHODS = ('imaml', 'maml')
 INCUMBENT = -1               # index of the configuration in use in stage 3
 
 
@@ -86,7 +86,7 @@ def refine_jobs(results: Sequence[dict], r: int, iterations: int, seed: int) -> 
     its best configuration; when that one has fewer, all of them and the rest from the next
     best configurations' neighbours, so every method gets the same r."""
     jobs = []
-    for m, method in enumerate(META_METHODS):
+    for m, method in enumerate(TUNED_METHODS):
         mine = sorted((x for x in results if x['method'] == method), key=lambda x: x['score'])
         tried = [x['hyper'] for x in mine]
         rng = np.random.default_rng([seed, DRAW_STREAM, 1 + m])
@@ -109,7 +109,7 @@ def robust_jobs(results: Sequence[dict], finalists: int, iterations: int,
     """Stage 3: the `finalists` best configurations of each meta method, and its incumbent
     (index -1; skipped when it is one of them), on every seed."""
     jobs = []
-    for method in META_METHODS:
+    for method in TUNED_METHODS:
         ranked = sorted((r for r in results if r['method'] == method and
                          math.isfinite(r['score'])), key=lambda r: r['score'])
         picked = [(r['index'], r['hyper']) for r in ranked[:finalists]]
@@ -127,7 +127,7 @@ def incumbents(path: str) -> Dict[str, dict]:
     request has them (a method whose request lacks a searched field has none)."""
     requests = load(path).meta_train
     out = {}
-    for method in META_METHODS:
+    for method in TUNED_METHODS:
         fields = requests.get(method) or {}
         if all(n in fields for n in AXES[method]):
             out[method] = {n: fields[n] for n in (*AXES[method], 'cg_steps') if n in fields}
@@ -236,7 +236,7 @@ def tune(cfg: TuneConfig) -> dict:
                                 incumbents(cfg.config))
         robust_runs = run_jobs(pool, finalists, 'robust', settings) if cfg.finalists else []
     robust = robust_scores(robust_runs)
-    best = {m: best_of(m, robust or results) for m in META_METHODS}
+    best = {m: best_of(m, robust or results) for m in TUNED_METHODS}
     best['supervised'] = best_of('supervised', results)
     winners = {m: request_fields(b, cfg.full_iterations, cfg.batch_size, cfg.adapt_steps)
                for m, b in best.items()}
