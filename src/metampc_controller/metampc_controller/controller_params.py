@@ -21,9 +21,10 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.planner_registry import REGISTRY
 from metampc_controller.references import make_reference, PaperConfig
 
-PLANNERS = ('latent_mpc', 'nmpc')
+PLANNERS = tuple(REGISTRY)
 PRE_MODEL_INPUTS = ('zero', 'excitation')
 # Excitation kinds whose signal is generated block by block (see controller_core): multisine
 # normalises its peak over the generated length, so blocks of it would not join up.

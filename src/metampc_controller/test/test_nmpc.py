@@ -56,7 +56,7 @@ def test_closed_loop_tracks_a_setpoint_on_an_unstable_plant():
     us = []
     for _ in range(50):
         res = ctrl.solve(plant.x, [u_prev], ref)
-        assert cfg.u_min <= res.u[0] <= cfg.u_max
+        assert ctrl.u_min[0] <= res.u[0] <= ctrl.u_max[0]
         u_prev = float(res.u[0])
         us.append(u_prev)
         y = plant.step([u_prev])
@@ -79,7 +79,7 @@ def test_two_inputs_and_unmeasured_states_on_the_quadruple_tank():
     y, u = plant.output(), np.array([3.0, 3.0])
     ref = np.tile(target, (cfg.horizon, 1))
     for _ in range(80):                      # 400 s
-        res = ctrl.solve(y, u, ref)
+        res = ctrl.solve(None, u, ref, y)     # the state estimated from y
         assert res.u.shape == (2,) and np.all((0.0 <= res.u) & (res.u <= 10.0))
         u = res.u
         y = plant.step(u)
