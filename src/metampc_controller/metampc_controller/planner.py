@@ -7,7 +7,7 @@ those settings once. Each is a :class:`Planner`, built by name outside the tick
 (:mod:`planner_registry`), and answers with a :class:`PlanResult`, so that the controller's
 tick, MpcStatus and the reports read one type whichever planner answered.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Optional, Protocol, Sequence, Tuple, Union
 
 import numpy as np
@@ -68,7 +68,7 @@ class PlannerConfig:
     def shared(self) -> dict:
         """This config's :class:`PlannerConfig` fields, {name: value}: what another
         planner's config takes of it (``NmpcConfig(**mpc.shared(), dt=...)``)."""
-        return {name: getattr(self, name) for name in PlannerConfig.__dataclass_fields__}
+        return {f.name: getattr(self, f.name) for f in fields(PlannerConfig)}
 
 
 @dataclass
