@@ -36,7 +36,7 @@ def _lsq_plan(cfg: NmpcConfig, x0, u_prev, y_ref):
 
 
 def test_linear_case_matches_bounded_least_squares():
-    cfg = NmpcConfig(horizon=15, q=(1.0, 0.1), r=0.05, max_iter=200)
+    cfg = NmpcConfig(horizon=15, q=(1.0, 0.1), r=0.05, u_min=-1.0, u_max=1.0, max_iter=200)
     y_ref = np.tile([0.8, 0.0], (cfg.horizon, 1))
     for x0, u_prev in (([0.0, 0.0], 0.0), ([-1.0, 0.5], 0.3), ([2.0, -1.0], -1.0)):
         plan = Nmpc(cfg, VDP, [0.0]).solve(np.array(x0), [u_prev], y_ref).u_plan[:, 0]
