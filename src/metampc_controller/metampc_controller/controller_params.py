@@ -115,7 +115,7 @@ class ControllerConfig:
         n_y: plant outputs (= len(mpc.q)).
         n_u: plant inputs (= the length of mpc's bounds and r; one value stands for every
             input, so 1 when all are single values).
-        planner: 'latent_mpc' or 'nmpc'.
+        planner: a name of :data:`~metampc_controller.planner_registry.REGISTRY`.
         reference_kind, reference_params: arguments of references.make_reference.
         pre_model_input: 'zero' or 'excitation'.
         excitation: the pre-model excitation (kind, bounds = [u_min, u_max] within the
