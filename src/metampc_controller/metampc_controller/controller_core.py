@@ -2,19 +2,15 @@
 
 Index convention (the plant's, the NSSM's and the MPC's): a plant sample of step k carries
 y_k and u_k, the input held over (k-1, k] that produced it. The tick that answers step k
-plans u_{k+1..k+N} from z_k = f_enc(u_{k-H+1..k}, y_{k-H+1..k}) (eq. z), the applied u_k and
-the references at the times (k + 1..k + N) dt since the plant's last reset; u_{k+1} is held
-over (k, k+1].
+plans u_{k+1..k+N} from z_k = f_enc(u_{k-H+1..k}, y_{k-H+1..k}) (eq. (z)), the applied u_k
+and the references at the times (k + 1..k + N) dt since the plant's last reset (eq. (mpc));
+u_{k+1} is held over (k, k+1].
 
-Pieces, each testable alone:
-
-* :class:`History`: the last H pairs (u_k, y_k) of the current episode.
-* :class:`AnswerRule`: which tick answers which sample (each sample at most once).
-* :class:`PreModelInput`: the input before a model (zero or seeded excitation).
-* :func:`build_model`: checked weights -> NSSM predictor + latent MPC (outside the tick).
-* :class:`~metampc_controller.model_swap.ModelSwap`: from which tick a new model is used.
-* :class:`Tuning`: what a live parameter change replaces (weights, bounds, horizon, reference).
-* :class:`ControllerCore`: observe samples, tick -> :class:`TickResult`.
+Pieces, each testable alone: :class:`History` (the last H samples), :class:`AnswerRule`
+(which tick answers which sample), :class:`PreModelInput` (the input before a model),
+:func:`build_model` (weights -> predictor + latent MPC, outside the tick), :class:`Tuning`
+(what a live change replaces), :class:`ControllerCore` (observe samples; tick ->
+:class:`TickResult` through the configured :class:`~metampc_controller.planner.Planner`).
 """
 from dataclasses import dataclass, field, replace
 import math
@@ -29,9 +25,9 @@ from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
 from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import LatentMpc, MpcConfig
-from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.offset_free import disturbance_model
-from metampc_controller.planner import PlanResult
+from metampc_controller.planner import Planner, PlanResult
+from metampc_controller.planner_registry import latent_mpc, planner_kind, TrueModel
 from metampc_controller.prediction_error import PredictionError
 from metampc_model.predictor import NssmPredictor
 from metampc_controller.references import make_reference
@@ -263,19 +259,11 @@ def build_model(decoded: DecodedWeights, version: int, method: str, stage: str,
         raise WeightsError(f'history H = {cfg.history}, the controller needs {need}')
     predictor = NssmPredictor(cfg, decoded.norm, decoded.params)
     try:
-        mpc = latent_mpc(mpc_config, predictor)
+        mpc = latent_mpc(mpc_config, predictor.latent)
     except ValueError as err:
         raise WeightsError(str(err)) from None
     return ModelBundle(version, method, stage, predictor, mpc,
                        PredictionError(predictor.latent, decoded.norm.y_std, cfg.loss_horizon))
-
-
-def latent_mpc(config: MpcConfig, predictor: NssmPredictor) -> LatentMpc:
-    """The latent MPC of `config` on a predictor's model: the QP, its OSQP set-up and the
-    DARE terminal cost (milliseconds: outside the tick). ValueError if the model does not fit."""
-    mpc = LatentMpc(config)
-    mpc.set_model(predictor.latent)
-    return mpc
 
 
 @dataclass(frozen=True, eq=False)
@@ -384,11 +372,15 @@ class ControllerCore:
     """
 
     def __init__(self, config: ControllerConfig):
+        self.kind = planner_kind(config.planner)    # not live: looked up once
         self.n_u, self.n_y = config.n_u, config.n_y
         self.history = History(MAX_HISTORY, self.n_u, self.n_y)
         self.plant: Optional[PlantDescription] = None
         self._override: Optional[np.ndarray] = None
-        self._nmpc: Optional[Nmpc] = None
+        # The planner on the plant's equations (a kind not learned: nmpc), built once per
+        # plant, theta told first, or tuning; it takes a new theta by set_theta. A learned
+        # kind's planner is its model's (ModelBundle.mpc).
+        self._true_planner: Optional[Planner] = None
         self._theta: Tuple[float, ...] = ()     # the newest sample's theta (nmpc; (): untold)
         self.nmpc_problem = ''      # why the nmpc planner has no model of the plant, or ''
         self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
@@ -491,20 +483,20 @@ class ControllerCore:
     def retune(self, config: ControllerConfig, version: int) -> None:
         """Use `config` as tuning `version` from the next tick on (builder thread).
 
-        Builds the QP of the model in use for it (OSQP set-up and DARE: milliseconds, while
-        the ticks go on with the tuning before) and the NMPC of its weights, then swaps them
-        in. The new QP starts cold, as on a new model. ValueError if the model does not fit
+        Builds the planner of the model in use for it (the QP's OSQP set-up and DARE:
+        milliseconds, while the ticks go on with the tuning before), then swaps it in; the
+        new planner starts cold, as on a new model. ValueError if the model does not fit
         (check_tuning first)."""
         with self._setup_lock:
             setup = self._setup
             model = setup.model
             if model is not None:
-                model = replace(model, mpc=latent_mpc(config.mpc, model.predictor))
+                model = replace(model, mpc=latent_mpc(config.mpc, model.predictor.latent))
             tuning = Tuning.of(config, version, self.n_u)
-            if self._nmpc is not None:
-                self._build_nmpc(tuning)    # here, never in the tick
+            if self._true_planner is not None:
+                self._build_true_planner(tuning)    # here, never in the tick
             self.swap.retune(lambda answer: replace(
-                answer, mpc=latent_mpc(config.mpc, answer.predictor)))
+                answer, mpc=latent_mpc(config.mpc, answer.predictor.latent)))
             self._setup = setup._replace(tuning=tuning, model=model)
         self.trigger.config = config.trigger
 
@@ -513,25 +505,25 @@ class ControllerCore:
         """Sample time, s: the plant's, or 1 / rate_hz until plant_info has arrived."""
         return self.plant.dt if self.plant is not None else 1.0 / self.config.rate_hz
 
-    def _build_nmpc(self, tuning: Tuning) -> str:
-        """Build the NMPC of the plant (plant_info: family, dt) with the samples' theta and the
-        tuning (no set-up: cheap) and swap it in as one reference; '' or why there is none. No
-        sample has told theta yet: none, and nothing to say."""
+    def _build_true_planner(self, tuning: Tuning) -> str:
+        """Build the planner on the plant's equations (plant_info: family, dt) with the
+        samples' theta and the tuning (NMPC: no set-up, cheap) and swap it in as one
+        reference; '' or why there is none. No sample has told theta yet: none, and nothing
+        to say."""
         plant = self.plant
-        if plant is None or tuning.config.planner != 'nmpc':
+        if plant is None or self.kind.learned:
             return ''
-        mpc = tuning.config.mpc
         try:
             family = get_family(plant.family)
             if not self._theta:
-                self._nmpc = None
+                self._true_planner = None
                 return ''
-            nmpc = Nmpc(NmpcConfig(horizon=mpc.horizon, q=mpc.q, r=mpc.r, u_min=tuning.u_min,
-                                   u_max=tuning.u_max, dt=plant.dt), family, self._theta)
+            planner = self.kind.build(tuning.config.mpc, TrueModel(family, self._theta,
+                                                                   plant.dt))
         except ValueError as err:     # unknown family, or a wrong theta
-            self._nmpc = None
+            self._true_planner = None
             return str(err)
-        self._nmpc = nmpc
+        self._true_planner = planner
         return ''
 
     def set_plant(self, plant: PlantDescription) -> List[str]:
@@ -556,7 +548,7 @@ class ControllerCore:
         known = self.plant
         self.plant = plant
         if known is None or (known.family, known.dt) != (plant.family, plant.dt):
-            error = self._build_nmpc(tuning)
+            error = self._build_true_planner(tuning)
             if error:
                 warnings.append(nmpc_unavailable(error))
         return warnings
@@ -591,12 +583,12 @@ class ControllerCore:
         new_episode = self.history.append(step, u, y)
         if new_episode:
             model = self.model
-            for planner in (self._nmpc, model.mpc if model is not None else None):
+            for planner in (self._true_planner, model.mpc if model is not None else None):
                 if planner is not None:
                     planner.reset()
             self.trigger.new_episode()
             self.swap.new_episode()
-        if self.config.planner == 'nmpc':
+        if not self.kind.learned:
             self._tell_theta(tuple(theta))
         return new_episode
 
@@ -609,14 +601,14 @@ class ControllerCore:
         if theta == self._theta:
             return
         self._theta = theta
-        nmpc, error = self._nmpc, ''
-        if nmpc is None:
-            error = self._build_nmpc(self.tuning)
+        planner, error = self._true_planner, ''
+        if planner is None:
+            error = self._build_true_planner(self.tuning)
         else:
             try:
-                nmpc.set_theta(theta)   # warm start kept
+                planner.set_theta(theta)    # warm start kept, nothing rebuilt
             except ValueError as err:
-                self._nmpc, error = None, str(err)
+                self._true_planner, error = None, str(err)
         self.nmpc_problem = nmpc_unavailable(error) if error else ''
 
     # --- the tick -----------------------------------------------------------------------
@@ -645,21 +637,24 @@ class ControllerCore:
         tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)
-        planner = tuning.config.planner
-        errors, request, version = NO_ERRORS, None, 0
-        if planner == 'latent_mpc' and model is not None:
-            u_hist, y_hist = history.window(model.history)
-            z = model.predictor.encode(u_hist, y_hist)
-            errors = model.prediction.update(step, u_prev, history.y, z)
-            request = self.trigger.update(step, self.dt, errors[1], errors[2], model.version)
-            res, version = model.mpc.solve(z, u_prev, y_ref, history.y, step), model.version
-        elif planner == 'nmpc' and self._nmpc is not None:
-            res = self._nmpc.solve(history.y, u_prev, y_ref)
+        errors, request, version, state = NO_ERRORS, None, 0, None
+        if self.kind.learned:
+            planner = None
+            if model is not None:
+                u_hist, y_hist = history.window(model.history)
+                state = model.predictor.encode(u_hist, y_hist)
+                errors = model.prediction.update(step, u_prev, history.y, state)
+                request = self.trigger.update(step, self.dt, errors[1], errors[2],
+                                              model.version)
+                planner, version = model.mpc, model.version
+        else:
+            planner = self._true_planner
+        if planner is not None:
+            res = planner.solve(state, u_prev, y_ref, history.y, step)
         else:
             res = PlanResult(u=tuning.pre_model.value(step, self.dt), u_plan=np.zeros(
                 (0, self.n_u)), y_pred=np.zeros((0, self.n_y)), cost=math.nan,
-                status='no_model' if planner == 'latent_mpc' else 'no_plant_info',
-                iterations=-1, solve_time=0.0)
+                status=self.kind.waiting, iterations=-1, solve_time=0.0)
         return self._answer(step, tuning, model_status, y_ref, u_prev, res, version, errors,
                             request)
 

@@ -92,7 +92,7 @@ class ControllerNode(Node):
         self.create_subscription(PlantOutput, 'y', self._on_y, STREAM)
         self.create_subscription(PlantInfo, 'plant_info', self._on_plant_info, LATCHED)
         self.create_subscription(Float64MultiArray, 'reference', self._on_reference, SPARSE)
-        if self.cfg.planner == 'latent_mpc':
+        if self.core.kind.learned:     # its models come from the learner
             self.create_subscription(NssmWeights, 'nssm_weights', self._on_weights, LATCHED)
             self.create_subscription(AdaptRefusal, 'adapt_refusals', self._on_refusal, SPARSE)
         self._replies = Replies(TaskFuture)     # a repeated request id: the first answer

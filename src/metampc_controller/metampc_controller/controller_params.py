@@ -21,9 +21,10 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.planner_registry import REGISTRY
 from metampc_controller.references import make_reference, SetpointSequenceConfig
 
-PLANNERS = ('latent_mpc', 'nmpc')
+PLANNERS = tuple(REGISTRY)
 PRE_MODEL_INPUTS = ('zero', 'excitation')
 # Excitation kinds whose signal is generated block by block (see controller_core): multisine
 # normalises its peak over the generated length, so blocks of it would not join up.
@@ -117,7 +118,7 @@ class ControllerConfig:
         n_y: plant outputs (= len(mpc.q)).
         n_u: plant inputs (= the length of mpc's bounds and r; one value stands for every
             input, so 1 when all are single values).
-        planner: 'latent_mpc' or 'nmpc'.
+        planner: a name of :data:`~metampc_controller.planner_registry.REGISTRY`.
         reference_kind, reference_params: arguments of references.make_reference.
         pre_model_input: 'zero' or 'excitation'.
         excitation: the pre-model excitation (kind, bounds = [u_min, u_max] within the

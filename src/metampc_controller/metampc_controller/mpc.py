@@ -1,69 +1,34 @@
 """Latent linear MPC of eq. (mpc): a condensed box-constrained QP solved by OSQP.
 
-Index convention (that of latent_model): u_k is the input held over (k-1, k] that produced y_k.
-At tick t the controller knows the latent state z_t (encoder) and the applied input u_t, and
-plans U = [u_{t+1}; ...; u_{t+N}] for the model of eq. (SSM) in physical units::
+The model is eq. (SSM)'s linear part in physical units (eqs. (z_next), (haty)),
+``z_{k+1} = A z_k + B u_{k+1} + e``, ``y_k = C z_k + d``, with u_k the input held over
+(k-1, k] that produced y_k. From z_t (eq. (z)), the applied u_t and the references
+r_{t+1..t+N} it plans U = [u_{t+1}; ...; u_{t+N}] within the input bounds, minimising the
+tracking and Delta-u cost of eq. (mpc) with the DARE terminal cost (:mod:`terminal_cost`),
+offset-free tracking (:mod:`offset_free`, or eq. (mpc) as the paper writes it) and optional
+soft output bounds.
 
-    z_{k+1} = A z_k + B u_{k+1} + e,   y_k = C z_k + d
-
-It minimises, over u_min <= u_{t+k} <= u_max (k = 1..N)::
-
-    J(U) = sum_{k=1..N-1} ytilde_{t+k}' Q ytilde_{t+k}          ytilde = y_hat - r
-         + sum_{k=0..N-1} du_{t+k}' R du_{t+k}                  du_{t+k} = u_{t+k+1} - u_{t+k}
-         + (s_{t+N} - s_ss)' P (s_{t+N} - s_ss)                 s = [z; u], see terminal_cost
-
-The k = 0 output term of eq. (mpc) is fixed by z_t and left out; the terminal term replaces the
-k = N output term (P from the DARE, or Q on the output error in the fallback). Substituting
-the predictions (eq. (compact) unrolled) makes J a linear least-squares residual in U::
-
-    J(U) = ||L U - b(w)||^2,   b(w) = G w,
-
-    w = [z_t; u_t; r_{t+1}; ...; r_{t+N}; e'; d'; s_ss]
-
-(e', d' the model's constants, corrected by the offset-free disturbance estimate; s_ss the
-terminal cost's steady state, see offset_free), so the QP is ``min 1/2 U' H U + q' U`` with
-H = 2 L'L fixed per model and q = -2 L' b(w), and the only constraints are the box
-``l <= I U <= u``. Per tick only q changes: one matrix-vector
-product (set_model() builds everything else, and the OSQP factorisation, once). A condensed
-QP (N n_u variables, no equality constraints) is chosen over the sparse form because the only
-constraints are on inputs: OSQP's KKT system is then tiny and every returned plan satisfies the
-model exactly. Its Hessian's condition number grows with the
-model's spectral radius rho like rho^(2N), which for learned models near the unit circle and
-N <= 50 stays harmless (tested up to rho = 1.15 at N = 15 against a direct least-squares solver).
-
-Failure handling: any OSQP status other than solved / solved inaccurate, a non-finite solution,
-or non-finite data (z_t, u_t, r) give the previous plan shifted by one step (last input
-repeated), or u_t held before any plan exists, clipped into the bounds and flagged
-``fallback``. solve() never returns a non-finite or out-of-bounds input.
-
-Offset-free tracking (``offset_free``, default 'state'; 'none' is eq. (mpc) as the paper writes
-it): solve() given the measured y_t updates the disturbance estimate of
-:mod:`~metampc_controller.offset_free` and plans with the corrected model, its terminal cost
-centred on the bounded steady-state target. Only vectors of the QP change (e', d', s_ss in w).
-
-Use::
-
-    mpc = LatentMpc(MpcConfig(horizon=20))
-    mpc.set_model(latent_model)                  # outside the control tick
-    result = mpc.solve(z_t, u_t, y_ref, y_t, t)  # each tick; apply result.u over (t, t+1]
+Contract: :meth:`LatentMpc.set_model` builds the QP and its OSQP factorisation once per
+(model, config), outside the tick; per tick :meth:`LatentMpc.solve` changes only OSQP's
+vectors (one matrix-vector product) and never returns a non-finite or out-of-bounds input (a
+failed solve gives the previous plan shifted, ``fallback``). Derivation, settings and
+measurements: docs/mpc.md.
 """
 from dataclasses import dataclass, field
 import math
 import time
-from typing import Optional, Sequence, Tuple, Union
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from metampc_common.params import check_fields, param
+from metampc_common.params import param
 from metampc_model.latent_model import LatentModel
-from metampc_controller.planner import PlanResult
+from metampc_controller.planner import PlannerConfig, PlanResult
 from metampc_controller.offset_free import (DisturbanceEstimator, disturbance_model, FORMS,
                                             SteadyStateTarget)
 from metampc_controller.terminal_cost import terminal_cost, TerminalCost
-
-Weights = Union[float, Sequence[float]]
 
 # OSQP statuses whose solution is used; 'solved inaccurate' is what a capped solve reports when
 # it meets 10x the tolerances, still a good plan.
@@ -72,35 +37,13 @@ _USABLE = frozenset(int(s) for s in (osqp.SolverStatus.OSQP_SOLVED,
 
 
 @dataclass
-class MpcConfig:
-    """Settings of the latent MPC. Weights and bounds are in the model's physical units.
+class MpcConfig(PlannerConfig):
+    """Settings of the latent MPC: the shared horizon, weights and bounds
+    (:class:`~metampc_controller.planner.PlannerConfig`) and its own. Weights and bounds are
+    in the model's physical units; why each OSQP setting has its value: docs/mpc.md (OSQP
+    settings).
 
     Attributes:
-        horizon: N, samples.
-        q: output weights Q = diag(q), (n_y,), >= 0; the default tracks x1 only.
-        r: Delta-u weights R = diag(r), (n_u,) or one value for all inputs, > 0.
-        u_min, u_max: input bounds, (n_u,) or one value; +-inf for none.
-        terminal_reg: eps of Qbar = Cbar'QCbar + eps I, relative to ||Cbar'QCbar||_2.
-        max_iter: OSQP iteration cap. Ticks of the paper task take 5-40 iterations warm-started
-            (mean ~7), up to 75 cold; a capped solve is a failure (fallback), not a result.
-        time_limit: OSQP run-time cap, s (wall clock). 50 ms is half the 0.1 s sample time of
-            the experiments and ~200x the measured CPU-time p99 of a solve: it trips only when
-            the machine stalls the process, when the input would be late anyway (a 20 ms cap
-            tripped on 5 of 1000 benchmark ticks while other jobs loaded the 2-core machine).
-        eps_abs, eps_rel: OSQP termination tolerances. 1e-4 put the plan within 5e-5 (median)
-            and 5e-4 (p99) of the exact optimum on the paper task (random n_z = 5 models,
-            |u| <= 1), far below what the plant can tell apart, at ~7 iterations warm-started.
-        warm_start: start OSQP from the shifted previous plan (its duals stay OSQP's own).
-        polish: OSQP polishing (an extra reduced KKT solve for an active-set-exact answer).
-            Off: the ADMM answer is accurate enough, polishing added 35-150 us per solve, and
-            OSQP's C code then prints 'Polishing not needed' to stdout despite verbose=False.
-        check_termination: OSQP checks convergence every this many iterations. OSQP's default
-            25 makes every solve run at least 25 iterations; 5 let warm-started solves stop
-            after 8 on average (1: 5) at the same wall time, residual checks being cheap here.
-        scaling: OSQP Ruiz equilibration iterations (the condensed Hessian is badly scaled).
-        adaptive_rho_interval: iterations between OSQP rho updates; fixed (not 0 = automatic
-            by timing) so that iteration counts do not depend on the machine's speed. 25 gave
-            the mean iterations of OSQP's 50 with a lower worst case (30 against 55).
         offset_free: disturbance form of :mod:`~metampc_controller.offset_free`, or 'none'.
         disturbance_gain: its estimator's filter gain g in (0, 1].
         y_min, y_max: soft output bounds, (n_y,) each or empty (none); +-inf leaves an output
@@ -109,18 +52,21 @@ class MpcConfig:
             above the constraint's multiplier the plan meets the bounds whenever it can, and
             a plan always exists).
         soft_penalty: rho of that penalty, cost units per output unit and step.
+        terminal_reg: eps of Qbar = Cbar'QCbar + eps I, relative to ||Cbar'QCbar||_2.
+        max_iter: OSQP iteration cap; a capped solve is a failure (fallback), not a result.
+        time_limit: OSQP run-time cap, s (wall clock): it should trip only when the machine
+            stalls the process, when the input would be late anyway.
+        eps_abs, eps_rel: OSQP termination tolerances.
+        warm_start: start OSQP from the shifted previous plan (its duals stay OSQP's own).
+        polish: OSQP polishing (an extra reduced KKT solve for an active-set-exact answer;
+            when on, OSQP's C code prints to stdout despite verbose=False).
+        check_termination: OSQP checks convergence every this many iterations (its default
+            25 makes every solve run at least 25).
+        scaling: OSQP Ruiz equilibration iterations (the condensed Hessian is badly scaled).
+        adaptive_rho_interval: iterations between OSQP rho updates; fixed (not 0 = automatic
+            by timing) so that iteration counts do not depend on the machine's speed.
     """
 
-    horizon: int = param(20, 'MPC horizon N, samples', ge=1, live=True)
-    q: Sequence[float] = param((1.0, 0.0), 'output tracking weights Q = diag(q), one per plant '
-                                           'output (the default tracks x1 only)', ge=0,
-                               live=True)
-    r: Weights = param((0.05,), 'Delta-u weights, one per input (one value: every input)',
-                       gt=0, scalar=True, live=True)
-    u_min: Weights = param((-1.0,), 'input lower bounds, one per input (one value: every '
-                                    'input; <= u_max)', scalar=True, live=True)
-    u_max: Weights = param((1.0,), 'input upper bounds, one per input (one value: every '
-                                   'input; >= u_min)', scalar=True, live=True)
     offset_free: str = param('state', 'offset-free tracking: the integrating disturbance form '
                                       '(state: latent and output, input, output; none: eq. mpc '
                                       'as the paper writes it)', choices=FORMS, live=True)
@@ -146,31 +92,13 @@ class MpcConfig:
     adaptive_rho_interval: int = 25
 
     def __post_init__(self):
-        q = np.asarray(self.q, dtype=float)
-        r = np.asarray(self.r, dtype=float)
-        lo, hi = np.asarray(self.u_min, dtype=float), np.asarray(self.u_max, dtype=float)
-        check_fields(self, skip=('q', 'r', 'u_min', 'u_max'))   # vectors, checked here
-        if q.ndim != 1 or not np.all(np.isfinite(q)) or np.any(q < 0):
-            raise ValueError(f'q must be a vector of finite weights >= 0, got {self.q}')
-        if not np.all(np.isfinite(r)) or np.any(r <= 0):
-            raise ValueError(f'r must be finite and > 0, got {self.r}')
-        sizes = {v.size for v in (r, lo, hi)} - {1}
-        if len(sizes) > 1 or any(v.ndim > 1 for v in (r, lo, hi)):
-            raise ValueError(f'r, u_min and u_max need one value per input (or one for all), '
-                             f'got {self.r}, {self.u_min}, {self.u_max}')
-        if np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo > hi):
-            raise ValueError(f'need u_min <= u_max, got {self.u_min}, {self.u_max}')
-        y_lo, y_hi = self.output_bounds(q.size)
+        super().__post_init__()
+        y_lo, y_hi = self.output_bounds(np.size(self.q))
         if np.any(np.isnan(y_lo)) or np.any(np.isnan(y_hi)) or np.any(y_lo > y_hi):
             raise ValueError(f'soft output bounds need y_min <= y_max, got {list(self.y_min)}, '
                              f'{list(self.y_max)}')
         if not (self.terminal_reg > 0 and self.check_termination >= 1):
             raise ValueError('need terminal_reg > 0 and check_termination >= 1')
-
-    @property
-    def n_u(self) -> int:
-        """Inputs the weights and bounds are for: their longest length (1: any)."""
-        return max(np.size(self.r), np.size(self.u_min), np.size(self.u_max))
 
     def output_bounds(self, n_y: int) -> Tuple[np.ndarray, np.ndarray]:
         """(y_min, y_max), each (n_y,) (-inf / inf where none); ValueError for a length that
@@ -185,11 +113,6 @@ class MpcConfig:
                                  f'{v.tolist()}')
             out.append(v)
         return out[0], out[1]
-
-    def bounds(self, n_u: int) -> Tuple[np.ndarray, np.ndarray]:
-        """(u_min, u_max), each broadcast to shape (n_u,)."""
-        return tuple(np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
-                     for v in (self.u_min, self.u_max))
 
     def osqp_settings(self) -> dict:
         """Keyword settings for osqp.OSQP.setup (osqp >= 1.0 names)."""
@@ -335,9 +258,10 @@ def _soft_bounds(cfg: MpcConfig, y_u: np.ndarray, hess: sp.csc_matrix, lo: np.nd
 
 
 class LatentMpc:
-    """Receding-horizon latent MPC; call set_model() (outside the control tick), then solve()
-    once per tick. solve() is not reentrant; set_model() may run in another thread (it swaps
-    one reference), and the previous plan survives a model swap (it is a plan of inputs)."""
+    """Receding-horizon latent MPC, a :class:`~metampc_controller.planner.Planner`; call
+    set_model() (outside the control tick), then solve() once per tick. solve() is not
+    reentrant; set_model() may run in another thread (it swaps one reference), and the
+    previous plan survives a model swap (it is a plan of inputs)."""
 
     def __init__(self, config: MpcConfig):
         self._config = config

@@ -1,63 +1,46 @@
 """Nonlinear MPC on the true plant model: the tracking yardstick (not the paper's method).
 
-Same horizon, cost and bounds as the latent MPC of eq. (mpc), but the prediction is the plant
-family's own equations (``metampc_plant``, the RK4 core) with the true theta, so its tracking
-cost is the physical limit for this cost. Single shooting over the N input vectors
-u_{t+1..t+N}::
+The horizon, weights and bounds of the latent MPC (:class:`~planner.PlannerConfig`), the cost
+of eq. (mpc) with Q on the terminal output (no DARE: this controller has no linear model),
+but the prediction is the plant family's own equations (``metampc_plant``, the RK4 core) with
+the true theta, so its tracking cost is the physical limit for this cost. Single shooting
+over u_{t+1..t+N}, solved by L-BFGS-B with a forward-difference gradient (the N n_u + 1
+rollouts as one batch), warm-started from the shifted previous plan::
 
-    J(u) = sum_{k=1..N} (y_{t+k} - r_{t+k})' Q (y_{t+k} - r_{t+k})
-           + sum_{k=0..N-1} (u_{t+k+1} - u_{t+k})' R (u_{t+k+1} - u_{t+k}),
-    u_min <= u <= u_max,
+    J(u) = sum_{k=1..N} ||y_{t+k} - r_{t+k}||_Q^2 + sum_{k=0..N-1} ||u_{t+k+1} - u_{t+k}||_R^2
 
-with u_t the previous applied input. Solved by L-BFGS-B (scipy) with a forward-difference
-gradient whose N n_u + 1 rollouts run as one batch of the vectorised plant model, warm-started
-from the shifted previous plan. The terminal output term uses Q: the DARE weight of the latent
-MPC belongs to a linear model this controller does not have.
-
-The state: the yardstick knows the equations, not the state. Where y = x (van der Pol,
-Duffing, pendulum) the measured y is the state. Otherwise the family fills in the unmeasured
-components from the model's one-step prediction of the previous estimate
-(``PlantFamily.state_from_output``; the quadruple tank's lower levels), starting from the
-family's x0 at each episode: exact without noise once the model's transient has died out.
+Contract: a :class:`~planner.Planner`; theta may change between solves (:meth:`Nmpc.set_theta`,
+no rebuild). Its state is estimated from the measured y (``PlantFamily.state_from_output``:
+y itself where y = x, else the unmeasured components from the model's one-step prediction,
+from the family's x0 at each episode).
 """
 from dataclasses import dataclass
 import time
-from typing import Optional, Sequence, Union
+from typing import Optional, Sequence
 
 import numpy as np
 from scipy.optimize import minimize
 
-from metampc_controller.planner import PlanResult
+from metampc_controller.planner import PlannerConfig, PlanResult
 # The plant's equations (the controller's other import of the plant package is closed_loop's
 # plant core, a harness outside the node).
 from metampc_plant.family import PlantFamily
 from metampc_plant.integrate import rk4_sample
 
-Weights = Union[float, Sequence[float]]
-
 
 @dataclass
-class NmpcConfig:
-    """Settings of the nonlinear MPC.
+class NmpcConfig(PlannerConfig):
+    """Settings of the nonlinear MPC: the shared horizon, weights and bounds
+    (:class:`~metampc_controller.planner.PlannerConfig`) and its own.
 
     Attributes:
-        horizon: N, samples.
-        q: output weights (n_y,), >= 0 (default: track the first of two outputs).
-        r: Delta-u weights (n_u,) or one for all inputs, > 0.
-        u_min, u_max: input bounds (n_u,) or one for all inputs.
         dt: sample time, s.
-        substeps: RK4 steps per sample of the prediction. 2 (h = 0.05 s) predicts the van der
-            Pol plant's 10-substep trajectory to ~1e-5 over a 2 s horizon at a fifth of the
-            cost.
+        substeps: RK4 steps per sample of the prediction (why 2: docs/controller.md,
+            Planners).
         max_iter: L-BFGS-B iteration cap per solve.
         fd_step: forward-difference step on u.
     """
 
-    horizon: int = 20
-    q: Sequence[float] = (1.0, 0.0)
-    r: Weights = 0.05
-    u_min: Weights = -1.0
-    u_max: Weights = 1.0
     dt: float = 0.1
     substeps: int = 2
     max_iter: int = 50
@@ -65,7 +48,8 @@ class NmpcConfig:
 
 
 class Nmpc:
-    """Receding-horizon nonlinear MPC on the plant family's model with parameters theta."""
+    """Receding-horizon nonlinear MPC on the plant family's model with parameters theta, a
+    :class:`~metampc_controller.planner.Planner`."""
 
     def __init__(self, config: NmpcConfig, family: PlantFamily, theta: Sequence[float]):
         self.family = family
@@ -74,8 +58,6 @@ class Nmpc:
         self.r, self.u_min, self.u_max = (
             np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
             for v in (config.r, config.u_min, config.u_max))
-        if config.horizon < 1 or np.any(self.r <= 0) or np.any(self.u_min > self.u_max):
-            raise ValueError('need horizon >= 1, r > 0 and u_min <= u_max')
         self.config = config
         self.q = np.asarray(config.q, dtype=float).reshape(family.n_y)
         self._plan: Optional[np.ndarray] = None     # (N n_u,)
@@ -134,14 +116,21 @@ class Nmpc:
             return rk4_sample(self.family, x[None], np.asarray(u, dtype=float)[None],
                               self.theta[None], self.config.dt, self.config.substeps)[0]
 
-    def solve(self, y: np.ndarray, u_prev: Sequence[float], y_ref: np.ndarray) -> PlanResult:
-        """Plan from the measured y_t (n_y,) and the previous input u_t (n_u,) for references
-        y_ref (N, n_y)."""
+    def solve(self, state: Optional[np.ndarray], u_prev: Sequence[float], y_ref: np.ndarray,
+              y: Optional[np.ndarray] = None, step: Optional[int] = None) -> PlanResult:
+        """Plan from the plant state x_t (n_x,), or with None from the measured y_t (n_y,)
+        (:meth:`estimate`), the previous input u_t (n_u,) and references y_ref (N, n_y);
+        `step` is not needed (the :class:`~metampc_controller.planner.Planner` call)."""
         cfg, n_u = self.config, self.family.n_u
         n = cfg.horizon
         start = time.perf_counter()
         u_prev = np.asarray(u_prev, dtype=float).reshape(n_u)
-        x0 = self.estimate(y, u_prev)
+        if state is not None:
+            x0 = self._x = np.array(state, dtype=float)
+        elif y is not None:
+            x0 = self.estimate(y, u_prev)
+        else:
+            raise ValueError('Nmpc.solve needs the state or the measured y')
         lo, hi = np.tile(self.u_min, n), np.tile(self.u_max, n)
         if self._plan is None:
             guess = np.tile(np.clip(u_prev, self.u_min, self.u_max), n)

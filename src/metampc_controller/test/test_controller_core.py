@@ -14,6 +14,7 @@ from metampc_controller.controller_params import ControllerConfig
 from metampc_common.excitation import ExcitationConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.nmpc import Nmpc
 from metampc_model.weights_codec import DecodedWeights, WeightsError
 from metampc_plant.plant_description import PlantDescription
 from metampc_plant.simulator import Plant, PlantConfig
@@ -259,6 +260,33 @@ def test_the_nmpc_follows_the_samples_theta_under_a_schedule():
     assert episode.escaped_at is None
     predicted = np.array([t.y_pred[0] for t in episode.ticks])
     assert np.abs(predicted - episode.y[1:]).max() < 1e-5
+
+
+def test_the_nmpc_is_built_per_plant_and_tuning_never_per_tick_or_theta(monkeypatch):
+    """NMPC constructions counted over ticks whose samples tell a new theta each (a ramp over
+    2.5 s): one for the plant and its first theta, one per retune, none per tick, theta or
+    episode. A new theta is set_theta on the same NMPC: its warm start and state estimate
+    stay, which a rebuild would drop (the tank's unmeasured levels would restart from x0)."""
+    built = []
+    init = Nmpc.__init__
+
+    def counted(self, *args, **kwargs):
+        built.append(self)
+        init(self, *args, **kwargs)
+
+    monkeypatch.setattr(Nmpc, '__init__', counted)
+    cfg = ControllerConfig(planner='nmpc', mpc=MpcConfig(horizon=10), reference_kind='setpoint',
+                           reference_params={'value': 0.4})
+    core = ControllerCore(cfg)
+    core.set_plant(vdp_plant())
+    plant = Plant(PlantConfig(theta=(0.5,), x0=(0.5, 0.0), theta_schedule=(0.5, 3.0, 1.5)))
+    episode = run_episode(core, plant, 40)
+    assert [t.solver_status for t in episode.ticks] == ['solved'] * 40
+    assert len(built) == 1 and built[0].theta.tolist() == [1.5]    # the ramp's end
+    core.retune(dataclasses.replace(cfg, mpc=MpcConfig(horizon=12)), 1)
+    assert len(built) == 2
+    again = run_episode(core, plant, 30)      # a new episode, the ramp again
+    assert len(built) == 2 and again.ticks[-1].u_plan.shape == (12, 1)
 
 
 def test_a_sample_theta_that_does_not_fit_leaves_no_nmpc_and_the_loop_goes_on():

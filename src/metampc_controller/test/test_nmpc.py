@@ -36,7 +36,7 @@ def _lsq_plan(cfg: NmpcConfig, x0, u_prev, y_ref):
 
 
 def test_linear_case_matches_bounded_least_squares():
-    cfg = NmpcConfig(horizon=15, q=(1.0, 0.1), r=0.05, max_iter=200)
+    cfg = NmpcConfig(horizon=15, q=(1.0, 0.1), r=0.05, u_min=-1.0, u_max=1.0, max_iter=200)
     y_ref = np.tile([0.8, 0.0], (cfg.horizon, 1))
     for x0, u_prev in (([0.0, 0.0], 0.0), ([-1.0, 0.5], 0.3), ([2.0, -1.0], -1.0)):
         plan = Nmpc(cfg, VDP, [0.0]).solve(np.array(x0), [u_prev], y_ref).u_plan[:, 0]
@@ -56,7 +56,7 @@ def test_closed_loop_tracks_a_setpoint_on_an_unstable_plant():
     us = []
     for _ in range(50):
         res = ctrl.solve(plant.x, [u_prev], ref)
-        assert cfg.u_min <= res.u[0] <= cfg.u_max
+        assert ctrl.u_min[0] <= res.u[0] <= ctrl.u_max[0]
         u_prev = float(res.u[0])
         us.append(u_prev)
         y = plant.step([u_prev])
@@ -79,7 +79,7 @@ def test_two_inputs_and_unmeasured_states_on_the_quadruple_tank():
     y, u = plant.output(), np.array([3.0, 3.0])
     ref = np.tile(target, (cfg.horizon, 1))
     for _ in range(80):                      # 400 s
-        res = ctrl.solve(y, u, ref)
+        res = ctrl.solve(None, u, ref, y)     # the state estimated from y
         assert res.u.shape == (2,) and np.all((0.0 <= res.u) & (res.u <= 10.0))
         u = res.u
         y = plant.step(u)
