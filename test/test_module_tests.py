@@ -121,13 +121,6 @@ WIRING: Dict[str, str] = {
     'metampc_recording.main': _ENTRY,
 }
 
-# Docstrings still longer, and why (each must leave once short).
-LONG_DOCSTRINGS: Dict[str, str] = {
-    'metampc_controller.mpc': 'edited by the control issue\'s branch at the same time',
-    'metampc_controller.nmpc': 'edited by the control issue\'s branch at the same time',
-    'metampc_controller.controller_core': 'edited by the control issue\'s branch at the same time',
-}
-
 
 def library_modules() -> Iterator[Tuple[str, Path]]:
     """(dotted name, path) of every module of every package under src/."""
@@ -180,8 +173,5 @@ def test_every_library_module_has_a_short_docstring():
                for name, tree in parsed().items()}
     undocumented = sorted(name for name, n in lengths.items() if n == 0)
     assert not undocumented, f'modules without a docstring: {undocumented}'
-    long = {name: n for name, n in lengths.items()
-            if n > MAX_DOCSTRING_LINES and name not in LONG_DOCSTRINGS}
+    long = {name: n for name, n in lengths.items() if n > MAX_DOCSTRING_LINES}
     assert not long, f'module docstrings over {MAX_DOCSTRING_LINES} lines: {long}'
-    short = [name for name in LONG_DOCSTRINGS if lengths.get(name, 0) <= MAX_DOCSTRING_LINES]
-    assert not short, f'short (or gone) by now: remove {short} from LONG_DOCSTRINGS'

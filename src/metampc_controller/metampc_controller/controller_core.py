@@ -1,16 +1,14 @@
 """What the `controller` node computes, without rclpy: history, answer rule, model, tick.
 
-Index convention (the plant's, the NSSM's and the MPC's): a plant sample of step k carries
-y_k and u_k, the input held over (k-1, k] that produced it. The tick that answers step k
-plans u_{k+1..k+N} from z_k = f_enc(u_{k-H+1..k}, y_{k-H+1..k}) (eq. (z)), the applied u_k
-and the references at the times (k + 1..k + N) dt since the plant's last reset (eq. (mpc));
-u_{k+1} is held over (k, k+1].
-
-Pieces, each testable alone: :class:`History` (the last H samples), :class:`AnswerRule`
-(which tick answers which sample), :class:`PreModelInput` (the input before a model),
-:func:`build_model` (weights -> predictor + latent MPC, outside the tick), :class:`Tuning`
-(what a live change replaces), :class:`ControllerCore` (observe samples; tick ->
-:class:`TickResult` through the configured :class:`~metampc_controller.planner.Planner`).
+Index convention (the plant's, the NSSM's and the MPC's): a sample of step k carries y_k and
+u_k, the input held over (k-1, k] that produced it. The tick answering step k plans
+u_{k+1..k+N} from z_k = f_enc(u_{k-H+1..k}, y_{k-H+1..k}) (eq. (z)), the applied u_k and the
+references at (k + 1..k + N) dt since the last reset (eq. (mpc)). Pieces, each testable
+alone: :class:`History` (the last H samples), :class:`AnswerRule` (which tick answers which
+sample), :class:`PreModelInput` (the input before a model), :func:`build_model` (weights ->
+predictor + latent MPC, outside the tick), :class:`Tuning` (what a live change replaces),
+:class:`ControllerCore` (samples in; tick -> :class:`TickResult` through the configured
+:class:`~metampc_controller.planner.Planner`).
 """
 from dataclasses import dataclass, field, replace
 import math

@@ -1,18 +1,14 @@
 """Latent linear MPC of eq. (mpc): a condensed box-constrained QP solved by OSQP.
 
-The model is eq. (SSM)'s linear part in physical units (eqs. (z_next), (haty)),
-``z_{k+1} = A z_k + B u_{k+1} + e``, ``y_k = C z_k + d``, with u_k the input held over
-(k-1, k] that produced y_k. From z_t (eq. (z)), the applied u_t and the references
-r_{t+1..t+N} it plans U = [u_{t+1}; ...; u_{t+N}] within the input bounds, minimising the
-tracking and Delta-u cost of eq. (mpc) with the DARE terminal cost (:mod:`terminal_cost`),
-offset-free tracking (:mod:`offset_free`, or eq. (mpc) as the paper writes it) and optional
-soft output bounds.
-
-Contract: :meth:`LatentMpc.set_model` builds the QP and its OSQP factorisation once per
-(model, config), outside the tick; per tick :meth:`LatentMpc.solve` changes only OSQP's
-vectors (one matrix-vector product) and never returns a non-finite or out-of-bounds input (a
-failed solve gives the previous plan shifted, ``fallback``). Derivation, settings and
-measurements: docs/mpc.md.
+Model: eq. (SSM)'s linear part in physical units (eqs. (z_next), (haty)), z_{k+1} = A z_k +
+B u_{k+1} + e, y_k = C z_k + d, u_k held over (k-1, k]. From z_t (eq. (z)), the applied u_t and
+the references r_{t+1..t+N} it plans U = [u_{t+1}; ...; u_{t+N}] within the input bounds, with
+eq. (mpc)'s tracking and Delta-u cost, the DARE terminal cost (:mod:`terminal_cost`), offset-free
+tracking (:mod:`offset_free`) and optional soft output bounds. Contract: :meth:`LatentMpc.
+set_model` builds the QP and its OSQP factorisation once per (model, config); per tick
+:meth:`LatentMpc.solve` changes only OSQP's vectors and never returns a non-finite or
+out-of-bounds input (a failed solve: the previous plan shifted, ``fallback``). Derivation,
+settings and measurements: docs/mpc.md.
 """
 from dataclasses import dataclass, field
 import math

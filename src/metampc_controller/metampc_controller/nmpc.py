@@ -1,18 +1,14 @@
 """Nonlinear MPC on the true plant model: the tracking yardstick (not the paper's method).
 
-The horizon, weights and bounds of the latent MPC (:class:`~planner.PlannerConfig`), the cost
-of eq. (mpc) with Q on the terminal output (no DARE: this controller has no linear model),
-but the prediction is the plant family's own equations (``metampc_plant``, the RK4 core) with
-the true theta, so its tracking cost is the physical limit for this cost. Single shooting
-over u_{t+1..t+N}, solved by L-BFGS-B with a forward-difference gradient (the N n_u + 1
-rollouts as one batch), warm-started from the shifted previous plan::
-
-    J(u) = sum_{k=1..N} ||y_{t+k} - r_{t+k}||_Q^2 + sum_{k=0..N-1} ||u_{t+k+1} - u_{t+k}||_R^2
-
-Contract: a :class:`~planner.Planner`; theta may change between solves (:meth:`Nmpc.set_theta`,
-no rebuild). Its state is estimated from the measured y (``PlantFamily.state_from_output``:
-y itself where y = x, else the unmeasured components from the model's one-step prediction,
-from the family's x0 at each episode).
+The latent MPC's horizon, weights and bounds (:class:`~planner.PlannerConfig`) and eq. (mpc)'s
+cost with Q on the terminal output (no DARE: no linear model), J(u) = sum_k ||y_{t+k} -
+r_{t+k}||_Q^2 + ||u_{t+k+1} - u_{t+k}||_R^2, predicted by the plant family's own equations
+(``metampc_plant``, RK4) with the true theta: the physical limit for this cost. Single
+shooting over u_{t+1..t+N} by L-BFGS-B, forward-difference gradient (N n_u + 1 rollouts as one
+batch), warm-started from the shifted previous plan. Contract: a :class:`~planner.Planner`;
+theta may change between solves (:meth:`Nmpc.set_theta`, no rebuild); the state is estimated
+from y (``PlantFamily.state_from_output``: unmeasured components from the model's one-step
+prediction, from the family's x0 at each episode).
 """
 from dataclasses import dataclass
 import time

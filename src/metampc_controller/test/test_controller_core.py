@@ -454,3 +454,21 @@ def test_run_episode_is_the_lockstep_loop_replayed_exactly():
     idle.set_plant(vdp_plant())
     escaped = run_episode(idle, Plant(PlantConfig(theta=(-1.5,))), 300, (-1.5,), (3.0, 3.0))
     assert escaped.escaped_at is not None and len(escaped.y) == escaped.escaped_at + 1
+
+
+def test_history_rows_are_the_samples_of_the_episode():
+    rng = np.random.default_rng(0)
+    for capacity in (1, 2, 7):
+        hist = History(capacity, n_u=1, n_y=2)
+        episode, step = [], -1
+        for _ in range(400):
+            step = step + 1 if rng.random() > 0.05 else int(rng.integers(0, 20))
+            u, y = rng.normal(size=1), rng.normal(size=2).tolist()
+            if hist.append(step, u, y):
+                episode = []
+            episode.append((u.tolist(), y))
+            for h in range(1, capacity + 1):
+                rows = [episode[max(j, 0)] for j in range(len(episode) - h, len(episode))]
+                u_win, y_win = hist.window(h)
+                assert u_win.tolist() == [r[0] for r in rows]
+                assert y_win.tolist() == [r[1] for r in rows]

@@ -1,11 +1,8 @@
-"""The lean control tick against answers computed without it (docs/mpc.md, Speed of the tick).
-
-- LatentMpc.solve(), which calls OSQP's compiled solver directly, against a second
-  osqp.OSQP driven through its public API with the same data, bit for bit; its q against
-  -2 M'v of a least-squares form built by simulating the model (not from mpc.py's matrices);
-- the history's one-assignment write against a plain list of the samples.
-(The numpy encoder's test is the model's test_predictor.py; the references' constant-horizon
-path is in test_references.py.)
+"""LatentMpc.solve's lean path (docs/mpc.md, Speed of the tick): the compiled OSQP call against
+a second osqp.OSQP driven through its public API with the same data, bit for bit; its q against
+-2 M'v of a least-squares form built by simulating the model (not from mpc.py's matrices). (The
+numpy encoder's test is the model's test_predictor.py; the history's is in
+test_controller_core.py.)
 """
 from dataclasses import replace
 
@@ -14,7 +11,6 @@ import osqp
 import pytest
 
 from metampc_controller import mpc as mpc_module
-from metampc_controller.controller_core import History
 from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.references import make_reference
@@ -147,23 +143,3 @@ def test_the_compiled_path_and_the_wrapper_path_give_the_same_bits(monkeypatch):
             assert a.fallback == (k in (30, 31) or k >= 90)
             u = a.u
             z = model.step(z, u)
-
-
-# --- history --------------------------------------------------------------------------------
-
-def test_history_rows_are_the_samples_of_the_episode():
-    rng = np.random.default_rng(0)
-    for capacity in (1, 2, 7):
-        hist = History(capacity, n_u=1, n_y=2)
-        episode, step = [], -1
-        for _ in range(400):
-            step = step + 1 if rng.random() > 0.05 else int(rng.integers(0, 20))
-            u, y = rng.normal(size=1), rng.normal(size=2).tolist()
-            if hist.append(step, u, y):
-                episode = []
-            episode.append((u.tolist(), y))
-            for h in range(1, capacity + 1):
-                rows = [episode[max(j, 0)] for j in range(len(episode) - h, len(episode))]
-                u_win, y_win = hist.window(h)
-                assert u_win.tolist() == [r[0] for r in rows]
-                assert y_win.tolist() == [r[1] for r in rows]
