@@ -127,7 +127,7 @@ class OnlineCollector:
                 raise ValueError('weights are not finite')
             predictor = NssmPredictor(self.model.config, self.model.norm, params)
             bundle = ModelBundle.of(predictor, call, 'online_collection', 'adapted',
-                                    self._mpc_config)
+                                    self._mpc_config, monitor=False)
         except (ValueError, np.linalg.LinAlgError):
             self.stats.model_failures += 1
             return []
