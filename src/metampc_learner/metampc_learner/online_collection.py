@@ -74,7 +74,7 @@ class CollectionStats:
         samples: samples returned.
         escaped: episodes cut short because the state left the box.
         model_failures: calls without data because the MPC rejected the model.
-        mpc_fallbacks: ticks whose input was the MPC's fallback (shifted previous plan).
+        mpc_fallbacks: ticks whose answer was a fallback (the MPC's shifted previous plan).
     """
 
     calls: int = 0
