@@ -31,7 +31,7 @@ class ModelCheckConfig:
                                           'late ones too), all, off', choices=CHECKED,
                              live=True)
     model_check_margin: float = param(0.0, 'a new model may predict up to this fraction worse '
-                                            'than the model in use and still fly', ge=0,
+                                           'than the model in use and still fly', ge=0,
                                       live=True)
     model_check_window: int = param(200, 'latest samples of the episode the check scores', ge=1,
                                     le=900, live=True)
