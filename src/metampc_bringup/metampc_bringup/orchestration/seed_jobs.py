@@ -1,31 +1,38 @@
-"""Seeds in parallel: ``run_experiment.py --jobs N`` runs up to N seeds at once.
+"""The seeds of an experiment as jobs of a cluster (:mod:`.cluster`): ``--jobs N`` or
+``--scheduler ADDRESS`` of run_experiment.py.
 
-Each seed runs in a child process (``python -m metampc_bringup.orchestration.seed_jobs OUT
-SEED``) with a ROS domain (:mod:`.domain`) and a session of its own, running
-:class:`.orchestrator.SeedRun` as the one-process experiment does; the parent starts no node
-and no rclpy, keeps N children running and merges their reports. A lockstep seed's report
-equals that of ``--jobs 1``. A child dies with the parent (:mod:`.lifeline`); Ctrl-C or SIGTERM
-in the parent starts no new seed and sends SIGINT to every running child (each stops its nodes,
-recorder last). A seed that fails lets the running ones finish and raises
-:class:`.experiment_client.ExperimentError` naming it. Measured: docs/speed.md#seeds-in-parallel.
+A seed's job (:func:`run_seed`, on a worker) runs the seed in a child process (``python -m
+metampc_bringup.orchestration.seed_jobs WORK SEED``, :class:`.orchestrator.SeedRun`) with a ROS
+domain (:mod:`.domain`) and a session of its own, in the worker's scratch space; the child dies
+with the worker (:mod:`.lifeline`). The seed's folder comes back as a tar into the client's run
+folder (no shared filesystem). A lockstep seed's report equals that of ``--jobs 1``. Ctrl-C
+cancels the jobs (each child stops its nodes, recorder last); a failed seed lands with its logs
+while the others run to their end. Measured: docs/speed.md#seeds-in-parallel.
 """
+import collections
+import dataclasses
+import functools
+import io
 import logging
 import os
 import signal
 import subprocess
 import sys
-import time
-from typing import Dict, List, Sequence
+import tarfile
+import tempfile
+import threading
+from typing import Callable, Deque, List, Sequence
 
+from metampc_bringup.orchestration.cluster import job_cancelled, run_batch
 from metampc_bringup.orchestration.experiment_client import ExperimentError
 from metampc_bringup.orchestration.lifeline import child_env, hold
-from metampc_bringup.orchestration.processes import signals_held
 
 log = logging.getLogger('metampc.seed_jobs')
 
-POLL_S = 0.2            # how often the parent looks at its children
+POLL_S = 0.2            # how often a job looks at its child and at its cancellation
 STOP_S = 120.0          # s for an interrupted child to stop its nodes before SIGKILL
 INTERRUPTED = 130       # a child's exit status after Ctrl-C
+TAIL_LINES = 40         # lines of a failed seed's output shown by the client
 
 
 def seed_dir(out_dir: str, seed: int) -> str:
@@ -33,64 +40,116 @@ def seed_dir(out_dir: str, seed: int) -> str:
     return os.path.join(out_dir, f'seed_{seed}')
 
 
-def run_seeds(out_dir: str, seeds: Sequence[int], jobs: int) -> None:
-    """Run `seeds` of the experiment in `out_dir` (its config.yaml written) in `jobs` children.
+@dataclasses.dataclass
+class SeedOutcome:
+    """What a seed's job sends back: the child's exit status, its seed folder (a tar holding
+    ``seed_<s>/``, empty if the child made none) and the last lines of its output."""
+    status: int
+    folder: bytes
+    tail: str
+
+
+def run_seeds(client, out_dir: str, seeds: Sequence[int], landed: Callable[[int], None],
+              progress: bool = False) -> None:
+    """Run `seeds` of the experiment in `out_dir` (its config.yaml written) on `client`'s
+    cluster; as each seed's folder lands in `out_dir`, ``landed(seed)`` (e.g. its report).
 
     Raises:
         ExperimentError: a seed failed (the others ran to their end).
-        KeyboardInterrupt: Ctrl-C or SIGTERM (every child stopped first).
+        KeyboardInterrupt: Ctrl-C or SIGTERM (the jobs cancelled, their children stopped).
     """
-    pending: List[int] = list(seeds)
-    running: Dict[int, subprocess.Popen] = {}
+    with open(os.path.join(out_dir, 'config.yaml')) as f:
+        config_text = f.read()
     failed: List[str] = []
-    try:
-        while pending or running:
-            while pending and not failed and len(running) < jobs:
-                _start(out_dir, pending.pop(0), running)
-            time.sleep(POLL_S)
-            for seed, child in list(running.items()):
-                if child.poll() is None:
-                    continue
-                del running[seed]
-                if child.returncode == 0:
-                    log.info('seed %d: done (%d of %d)', seed,
-                             len(seeds) - len(pending) - len(running) - len(failed), len(seeds))
-                else:
-                    failed.append(f'seed {seed} (exit status {child.returncode}; logs in '
-                                  f'{seed_dir(out_dir, seed)}/logs)')
-                    if pending:
-                        log.warning('seed %d failed: no new seed starts; %d running go on',
-                                    seed, len(running))
-    except KeyboardInterrupt:
-        _stop(running.values())
-        raise
+    finished: List[int] = []
+
+    def done(seed: int, outcome: SeedOutcome) -> None:
+        _unpack(outcome.folder, out_dir, seed)
+        if outcome.status != 0:
+            failed.append(f'seed {seed} (exit status {outcome.status}; logs in '
+                          f'{seed_dir(out_dir, seed)}/logs)')
+            log.warning('seed %d failed (exit status %d); its last lines:\n%s', seed,
+                        outcome.status, outcome.tail)
+            return
+        landed(seed)
+        finished.append(seed)
+        log.info('seed %d: done (%d of %d)', seed, len(finished), len(seeds))
+
+    errors = run_batch(client, functools.partial(run_seed, config_text), seeds, 'seeds', done,
+                       progress)
+    failed += [f'seed {seed} ({err.__class__.__name__}: {err})' for seed, err in errors]
     if failed:
-        raise ExperimentError('failed: ' + ', '.join(failed)
-                              + (f'; not run: seeds {pending}' if pending else ''))
+        raise ExperimentError('failed: ' + ', '.join(failed))
 
 
-def _start(out_dir: str, seed: int, running: Dict[int, subprocess.Popen]) -> None:
-    # A Ctrl-C between the fork and the bookkeeping would leave a child that the parent does
-    # not stop: it is held until the child is in `running`.
-    with signals_held():
-        running[seed] = subprocess.Popen(
-            [sys.executable, '-m', 'metampc_bringup.orchestration.seed_jobs', out_dir, str(seed)],
-            stdin=subprocess.DEVNULL, start_new_session=True, env=child_env())
+def _unpack(folder: bytes, out_dir: str, seed: int) -> None:
+    """The seed's folder from its tar into `out_dir`, whole or not at all."""
+    if not folder:
+        return
+    with tempfile.TemporaryDirectory(prefix=f'.seed_{seed}-', dir=out_dir) as landing:
+        with tarfile.open(fileobj=io.BytesIO(folder)) as tar:
+            tar.extractall(landing, filter='data')
+        os.rename(seed_dir(landing, seed), seed_dir(out_dir, seed))
 
 
-def _stop(children) -> None:
-    """SIGINT to each child (its orchestrator stops its nodes, recorder last), then wait."""
-    children = list(children)
-    for child in children:
-        if child.poll() is None:
-            child.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + STOP_S
-    for child in children:
+def run_seed(config_text: str, seed: int) -> SeedOutcome:
+    """The job of one seed, on a worker: its child in a scratch folder, then the folder."""
+    from distributed import get_worker
+    with tempfile.TemporaryDirectory(prefix=f'seed_{seed}-',
+                                     dir=get_worker().local_directory) as work:
+        with open(os.path.join(work, 'config.yaml'), 'w') as f:
+            f.write(config_text)
+        # Forked by this thread, which waits for it: the child's lifeline holds.
+        child = subprocess.Popen(
+            [sys.executable, '-m', 'metampc_bringup.orchestration.seed_jobs', work, str(seed)],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            start_new_session=True, env=child_env(), text=True)
+        tail: Deque[str] = collections.deque(maxlen=TAIL_LINES)
+        reader = threading.Thread(target=_tee, args=(child.stdout, tail), daemon=True)
+        reader.start()
         try:
-            child.wait(max(deadline - time.monotonic(), 0.1))
-        except subprocess.TimeoutExpired:
-            os.killpg(child.pid, signal.SIGKILL)
-            child.wait()
+            while child.poll() is None:
+                if job_cancelled():
+                    _stop(child)
+                    break
+                try:
+                    child.wait(POLL_S)
+                except subprocess.TimeoutExpired:
+                    continue
+        finally:
+            if child.poll() is None:    # the job itself failed: nothing of it stays
+                _stop(child)
+        reader.join(STOP_S)
+        return SeedOutcome(child.returncode, _tar(work, seed), ''.join(tail))
+
+
+def _tee(stream, tail: Deque[str]) -> None:
+    """The child's output to this worker's (the client's, on the embedded cluster) and the
+    last lines into `tail`."""
+    for line in stream:
+        sys.stdout.write(line)
+        sys.stdout.flush()
+        tail.append(line)
+
+
+def _tar(work: str, seed: int) -> bytes:
+    folder = seed_dir(work, seed)
+    if not os.path.isdir(folder):
+        return b''
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode='w') as tar:
+        tar.add(folder, arcname=os.path.basename(folder))
+    return buffer.getvalue()
+
+
+def _stop(child: subprocess.Popen) -> None:
+    """SIGINT to the child (its orchestrator stops its nodes, recorder last), then wait."""
+    child.send_signal(signal.SIGINT)
+    try:
+        child.wait(STOP_S)
+    except subprocess.TimeoutExpired:
+        os.killpg(child.pid, signal.SIGKILL)
+        child.wait()
 
 
 def child_main(argv: Sequence[str]) -> int:

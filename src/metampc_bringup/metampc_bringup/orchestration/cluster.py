@@ -1,0 +1,189 @@
+"""One execution layer for batches of independent jobs: a dask.distributed cluster.
+
+Embedded (:func:`connect` without an address): a LocalCluster of ``jobs`` single-threaded
+worker processes on 127.0.0.1, no dashboard, stopped on return. An address: an existing cluster
+(``dask scheduler`` / ``dask worker``, dask-jobqueue; docs/experiments.md#on-a-cluster); a
+plain ``tcp://`` one off this machine is refused without ``insecure``, before any connection
+(a scheduler runs whatever it is sent). Each job holds one worker slot (resource :data:`SLOT`),
+so jobs never crowd a host. A job runs in a worker thread that lives as long as the job, so
+the lifelines (:mod:`.lifeline`) of the processes it forks hold: they die with the worker, and
+the scheduler runs the job again on another.
+"""
+import contextlib
+import dataclasses
+import ipaddress
+import logging
+import os
+import tempfile
+import time
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+
+log = logging.getLogger('metampc.cluster')
+
+SLOT = 'slot'               # the worker resource a job holds: one job per slot
+CONNECT_TIMEOUT_S = 10.0    # s for a scheduler to answer, and for a first worker to show up
+LOOPBACK_NAMES = ('localhost',)
+
+
+class ClusterError(Exception):
+    """The cluster cannot be used: no answer, or no worker with a slot."""
+
+
+@dataclasses.dataclass
+class ClusterSpec:
+    """Where a batch runs.
+
+    Attributes:
+        jobs: workers of the embedded cluster (jobs at once); unused with ``scheduler``.
+        scheduler: address of an existing scheduler (``tcp://host:port``); None: embedded.
+        insecure: allow a plain ``tcp://`` scheduler that is not on loopback.
+    """
+    jobs: int = 1
+    scheduler: Optional[str] = None
+    insecure: bool = False
+
+
+def check_address(address: str, insecure: bool = False) -> None:
+    """ValueError unless `address` is a scheduler address this layer may connect to: a
+    ``tcp://`` address on loopback, or anywhere with `insecure`. Nothing is resolved or
+    connected: a host name other than localhost counts as another machine."""
+    scheme, sep, rest = address.partition('://')
+    if not sep:
+        scheme, rest = 'tcp', address
+    host = rest.rsplit(':', 1)[0] if ':' in rest else rest
+    host = host.strip('[]')
+    if scheme == 'tls':
+        raise ValueError(f'--scheduler {address}: tls:// is not supported yet; use a '
+                         'loopback tcp:// address (e.g. through an ssh tunnel) or --insecure '
+                         'on a network you trust')
+    if scheme != 'tcp' or not host:
+        raise ValueError(f'--scheduler {address}: expected tcp://HOST:PORT')
+    if not (insecure or _loopback(host)):
+        raise ValueError(f'--scheduler {address}: a plain tcp:// scheduler off this machine '
+                         'runs whatever anyone who reaches it sends; refused without '
+                         '--insecure (docs/experiments.md#on-a-cluster)')
+
+
+def _loopback(host: str) -> bool:
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@contextlib.contextmanager
+def connect(spec: ClusterSpec) -> Iterator[Any]:
+    """A dask Client of `spec`'s cluster (embedded: started here, stopped on return).
+
+    Raises:
+        ValueError: the address is refused (:func:`check_address`), before any connection.
+        ClusterError: the scheduler does not answer within :data:`CONNECT_TIMEOUT_S`, or has
+            no worker with a slot by then.
+    """
+    if spec.scheduler is None:
+        with _embedded(spec.jobs) as client:
+            yield client
+        return
+    check_address(spec.scheduler, spec.insecure)
+    from distributed import Client
+    try:
+        client = Client(spec.scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+    except (OSError, TimeoutError) as err:
+        raise ClusterError(f'--scheduler {spec.scheduler}: no answer within '
+                           f'{CONNECT_TIMEOUT_S:.0f} s ({err.__class__.__name__})') from None
+    with client:
+        _wait_for_slot(client, spec.scheduler)
+        yield client
+
+
+@contextlib.contextmanager
+def _embedded(jobs: int) -> Iterator[Any]:
+    """A LocalCluster of `jobs` one-slot workers on loopback and its client; on return (Ctrl-C
+    included) the workers are stopped, and so are the processes their jobs started (their
+    lifelines), which are waited for."""
+    from distributed import Client, LocalCluster
+    # The scheduler and nannies run in this process: their INFO lines are not the run's.
+    logging.getLogger('distributed').setLevel(logging.WARNING)
+    with tempfile.TemporaryDirectory(prefix='metampc-cluster-') as scratch:
+        cluster = LocalCluster(
+            n_workers=jobs, threads_per_worker=1, processes=True, host='127.0.0.1',
+            scheduler_port=0, dashboard_address=None, resources={SLOT: 1},
+            local_directory=scratch, silence_logs=logging.WARNING)
+        pids = [nanny.pid for nanny in cluster.workers.values()]
+        try:
+            log.info('embedded cluster: %d worker(s) on 127.0.0.1', jobs)
+            with Client(cluster, set_as_default=False) as client:
+                yield client
+        finally:
+            cluster.close()
+            _wait_for_children(pids)
+
+
+def _wait_for_slot(client, address: str) -> None:
+    """ClusterError unless a worker with a slot joins within CONNECT_TIMEOUT_S."""
+    try:
+        client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+    except TimeoutError:
+        raise ClusterError(f'--scheduler {address}: no worker joined within '
+                           f'{CONNECT_TIMEOUT_S:.0f} s') from None
+    workers = client.scheduler_info()['workers'].values()
+    slots = sum(w.get('resources', {}).get(SLOT, 0) for w in workers)
+    if not slots:
+        raise ClusterError(f'--scheduler {address}: no worker has a {SLOT} (start each with '
+                           f'`dask worker {address} --nthreads 1 --resources {SLOT}=1`)')
+    log.info('cluster %s: %d worker(s), %d slot(s)', address, len(workers), slots)
+
+
+def _wait_for_children(worker_pids: Sequence[int], timeout: float = 120.0) -> None:
+    """Wait until the processes started by the embedded workers (killed with the cluster:
+    their lifelines fire) have stopped their nodes and ended."""
+    from metampc_bringup.orchestration.lifeline import ENV
+    from metampc_bringup.orchestration.procfs import pids_with_env
+    deadline = time.monotonic() + timeout
+    left = [p for w in worker_pids for p in pids_with_env({ENV: str(w)})]
+    while left and time.monotonic() < deadline:
+        time.sleep(0.1)
+        left = [p for p in left if os.path.exists(f'/proc/{p}')]
+
+
+def job_cancelled() -> bool:
+    """In a job on a worker: whether the client no longer wants its result (cancelled, or
+    the client gone): the job should stop what it started and return."""
+    from distributed import get_worker
+    worker = get_worker()
+    task = worker.state.tasks.get(worker.get_current_task())
+    return task is None or task.state not in ('executing', 'long-running')
+
+
+def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
+              done: Callable[[Any, Any], None], progress: bool = False
+              ) -> List[Tuple[Any, BaseException]]:
+    """Run ``job(item)`` for every item on `client`'s cluster, one slot each; ``done(item,
+    result)`` in this process as each finishes. Returns the (item, exception) of the jobs
+    that raised (the others ran to their end); Ctrl-C cancels what is left and re-raises.
+
+    `name` labels the progress line (tqdm: done, running, failed) when `progress`."""
+    from distributed import as_completed
+    from tqdm import tqdm
+    futures: Dict[Any, Any] = {
+        client.submit(job, item, key=f'{name}-{item}-{os.getpid()}', pure=False,
+                      resources={SLOT: 1}): item for item in items}
+    failed: List[Tuple[Any, BaseException]] = []
+    bar = tqdm(total=len(items), desc=name, unit='job', disable=not progress)
+    try:
+        for future in as_completed(futures, loop=client.loop):
+            item = futures[future]
+            if future.status == 'error':
+                failed.append((item, future.exception()))
+            else:
+                done(item, future.result())
+            bar.update()
+            bar.set_postfix(failed=len(failed), refresh=False)
+    except KeyboardInterrupt:
+        client.cancel(list(futures))
+        raise
+    finally:
+        bar.close()
+    return failed
