@@ -1,0 +1,120 @@
+"""The execution layer (metampc_bringup.orchestration.cluster): which schedulers it refuses
+before connecting, one that does not answer, and the lifeline of a job's process when its
+worker is killed. Tests address loopback only."""
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import cloudpickle
+import pytest
+
+from metampc_bringup.orchestration import cluster
+from metampc_bringup.orchestration.cluster import check_address, ClusterSpec, connect
+from metampc_bringup.orchestration.lifeline import child_env, ENV
+from metampc_bringup.orchestration.procfs import pids_with_env
+from metampc_testing import alive
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
+    os.path.abspath(__file__)))))
+SCRIPT = os.path.join(ROOT, 'scripts', 'run_experiment.py')
+CI_CONFIG = os.path.join(ROOT, 'config', 'ci.yaml')
+# Written as addresses only, never reached: connecting fails the test first.
+OFF_HOST = ('tcp://192.0.2.7:8786', 'tcp://scheduler.example.org:8786', '192.0.2.7:8786',
+            'tcp://[2001:db8::1]:8786')
+
+
+@pytest.fixture
+def no_connection(monkeypatch):
+    """Any name lookup or connection (socket, dask Client) fails the test."""
+    def refuse(*args, **kwargs):
+        pytest.fail(f'a connection was tried: {args}')
+    monkeypatch.setattr(socket, 'getaddrinfo', refuse)
+    monkeypatch.setattr(socket, 'create_connection', refuse)
+    monkeypatch.setattr(socket.socket, 'connect', refuse)
+    monkeypatch.setattr(socket.socket, 'connect_ex', refuse)
+    import distributed
+    monkeypatch.setattr(distributed, 'Client', refuse)
+    monkeypatch.setattr(distributed, 'LocalCluster', refuse)
+
+
+def test_a_plain_tcp_scheduler_off_this_machine_is_refused_before_any_connection(
+        no_connection, tmp_path, capsys):
+    for address in OFF_HOST:
+        with pytest.raises(ValueError, match='refused without --insecure'):
+            with connect(ClusterSpec(scheduler=address)):
+                pass
+        check_address(address, insecure=True)       # the user's explicit choice
+    with pytest.raises(ValueError, match='tls:// is not supported yet'):
+        check_address('tls://127.0.0.1:8786')
+    for address in ('tcp://127.0.0.1:8786', 'tcp://localhost:8786', 'tcp://[::1]:8786',
+                    '127.0.0.2:8786'):
+        check_address(address)
+    # As a user runs it: one line, exit 2, nothing written.
+    import importlib.util
+    spec = importlib.util.spec_from_file_location('run_experiment_script', SCRIPT)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / 'run'
+    assert script.main(['--config', CI_CONFIG, '--out', str(out), '--seeds', '2',
+                        '--scheduler', OFF_HOST[0]]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and '--insecure' in err, err
+    assert not out.exists()
+
+
+def test_a_scheduler_that_does_not_answer_is_one_line_and_exit_2(tmp_path):
+    """A loopback port bound by this test and never listened on: refused connections until
+    the timeout, then one line; nothing written."""
+    with socket.socket() as held:
+        held.bind(('127.0.0.1', 0))
+        address = 'tcp://127.0.0.1:%d' % held.getsockname()[1]
+        out = tmp_path / 'run'
+        started = time.monotonic()
+        done = subprocess.run(
+            [sys.executable, SCRIPT, '--config', CI_CONFIG, '--out', str(out), '--seeds', '2',
+             '--no-progress', '--scheduler', address], stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, text=True, timeout=300)
+        took = time.monotonic() - started
+    assert done.returncode == 2, done.stdout
+    assert done.stdout.strip().splitlines() == [
+        f'run_experiment: --scheduler {address}: no answer within '
+        f'{cluster.CONNECT_TIMEOUT_S:.0f} s (OSError)'], done.stdout
+    assert took < cluster.CONNECT_TIMEOUT_S + 120, took      # imports on a loaded machine
+    assert not out.exists()
+
+
+def _job(marker: str) -> int:
+    """On a worker: a process holding a lifeline to this worker, waited for (unless `marker`
+    exists: the test is over, the job's rerun starts nothing)."""
+    if os.path.exists(marker):
+        return 0
+    return subprocess.call(
+        [sys.executable, '-c', 'import time\nfrom metampc_bringup.orchestration.lifeline '
+         'import hold\nhold()\ntime.sleep(120)'], env=child_env(), start_new_session=True)
+
+
+def test_a_jobs_process_dies_with_its_killed_worker(tmp_path):
+    """SIGKILL of an embedded worker while its job waits for a process it started from the
+    job's thread: that process ends within 5 s (the lifeline holds in a dask worker)."""
+    marker = str(tmp_path / 'over')
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])    # workers lack test/
+    with connect(ClusterSpec(jobs=1)) as client:
+        worker, = client.run(os.getpid).values()
+        future = client.submit(_job, marker, resources={cluster.SLOT: 1}, pure=False)
+        deadline = time.monotonic() + 120
+        while not (children := pids_with_env({ENV: str(worker)})):
+            assert time.monotonic() < deadline and future.status == 'pending'
+            time.sleep(0.05)
+        open(marker, 'w').close()
+        os.kill(worker, signal.SIGKILL)
+        deadline = time.monotonic() + 5.0
+        while any(map(alive, children)) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        left = [p for p in children if alive(p)]
+        for pid in left:
+            os.kill(pid, signal.SIGKILL)
+        assert not left, 'the job\'s process outlived its worker'
+        assert future.result(timeout=120) == 0      # run again on the restarted worker
