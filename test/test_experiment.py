@@ -10,6 +10,7 @@ import math
 import os
 from pathlib import Path
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -290,7 +291,7 @@ def _wait_domain_empty(domain: int, killed: float, timeout: float = 5.0) -> list
     return _pids_in_domain(domain, killed)
 
 
-def _kill_leftovers(proc: subprocess.Popen, domains, out: str, killed: float) -> None:
+def _kill_leftovers(proc: subprocess.Popen, domains, killed: float) -> None:
     """After a failed assertion: nothing of the run may outlive the test (its session, its
     domains' nodes, its seed children: their ROS_DOMAIN_ID is not in their /proc environ).
 
@@ -298,8 +299,7 @@ def _kill_leftovers(proc: subprocess.Popen, domains, out: str, killed: float) ->
     came): until then the run held its domains, so nobody else's process can be in them; once
     its nodes are gone another test session may claim a domain, and its processes are not
     ours to kill (measured: a recorder of a second suite SIGKILLed at start-up)."""
-    children = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
-                if out in _cmdline(pid)]
+    children = _seed_children(killed)
     nodes = [p for d in domains for p in _pids_in_domain(d, killed)]
     for pid in session_pids(proc) + children + nodes:
         with contextlib.suppress(ProcessLookupError):
@@ -323,7 +323,7 @@ def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
         proc.wait()
         assert _wait_domain_empty(domains[0], killed) == [], 'processes left behind'
     finally:
-        _kill_leftovers(proc, domains, out, killed if killed is not None else uptime_s())
+        _kill_leftovers(proc, domains, killed if killed is not None else uptime_s())
         proc.stdout.close()
 
 
@@ -338,8 +338,7 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
             found = _read_until(proc, r'seed (\d): ROS_DOMAIN_ID=(\d+)', lines)
             domains[int(found.group(1))] = int(found.group(2))
         _read_until(proc, r'seed 0: collect done', lines)
-        child = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
-                 if _cmdline(pid)[-3:] == ['metampc_bringup.orchestration.seed_jobs', out, '0']]
+        child = [pid for pid in _seed_children(killed=uptime_s()) if _cmdline(pid)[-1] == '0']
         assert len(child) == 1, child
         os.kill(child[0], signal.SIGKILL)
         killed = uptime_s()
@@ -350,9 +349,15 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
         assert 'seed 1: done' in text, text
         assert _pids_in_domain(domains[1], ended) == [], 'processes left behind'
     finally:
-        _kill_leftovers(proc, domains.values(), out,
-                        killed if killed is not None else uptime_s())
+        _kill_leftovers(proc, domains.values(), killed if killed is not None else uptime_s())
         proc.stdout.close()
+
+
+def _seed_children(killed: float) -> list:
+    """This session's seed children that started before `killed` (s since boot): the test's
+    own, since a session runs one test at a time."""
+    return [pid for pid in pids_with_env({SESSION_ENV: os.environ[SESSION_ENV]}, killed)
+            if 'metampc_bringup.orchestration.seed_jobs' in _cmdline(pid)]
 
 
 def _cmdline(pid: int) -> list:
@@ -411,47 +416,91 @@ def _results(report: dict):
     return report
 
 
-def test_jobs_2_gives_the_per_seed_results_of_jobs_1(tmp_path):
-    """Two seeds at once (run_experiment.py --jobs 2, a child process and a ROS domain per
-    seed) give, seed for seed, the results of the one-process run (lockstep is deterministic);
-    the merged report covers both seeds."""
-    out = str(tmp_path / 'parallel')
-    done = subprocess.run(
+PARALLEL = ['--methods', 'maml', '--seeds', '2', '--jobs', '2']
+
+
+def _run_to_end(args, timeout: float = 400) -> subprocess.CompletedProcess:
+    """run_experiment.py on the CI config with `args`, to its end."""
+    return subprocess.run(
         [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
-         CI_CONFIG, '--out', out, '--no-progress', '--methods', 'maml', '--seeds', '2',
-         '--jobs', '2'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        timeout=400)
+         CI_CONFIG, '--no-progress', *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True, timeout=timeout)
+
+
+@pytest.fixture(scope='module')
+def parallel_run(tmp_path_factory):
+    """Two seeds at once on the embedded cluster (--jobs 2); (run folder, its output)."""
+    out = str(tmp_path_factory.mktemp('parallel') / 'run')
+    done = _run_to_end(['--out', out, *PARALLEL])
     assert done.returncode == 0, done.stdout
-    domains = set(re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', done.stdout))
-    assert len(domains) == 2, done.stdout
+    return out, done.stdout
+
+
+def _per_seed(out: str) -> list:
+    with open(os.path.join(out, 'report.json')) as f:
+        return json.load(f)['per_seed']
+
+
+def test_jobs_2_gives_the_per_seed_results_of_jobs_1(parallel_run, tmp_path):
+    """Two seeds at once (run_experiment.py --jobs 2: an embedded dask cluster of two workers
+    on loopback, a child process and a ROS domain per seed, the seed folders sent back) give,
+    seed for seed, the results of the one-process run (lockstep is deterministic); the merged
+    report covers both seeds."""
+    out, text = parallel_run
+    assert 'embedded cluster: 2 worker(s) on 127.0.0.1' in text, text
+    domains = set(re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text))
+    assert len(domains) == 2, text
     serial = run_experiment(load(CI_CONFIG, {'methods': ['maml'], 'first_seed': 1}),
                             str(tmp_path / 'serial'), progress=False)
-    with open(os.path.join(out, 'report.json')) as f:
-        merged = json.load(f)
-    assert [s['seed'] for s in merged['per_seed']] == [0, 1]
-    parallel_1 = _results(merged['per_seed'][1])
+    merged = _per_seed(out)
+    assert [s['seed'] for s in merged] == [0, 1]
+    assert merged[1]['recording'] == os.path.join(out, 'seed_1', 'recording.mcap')
+    parallel_1 = _results(merged[1])
     assert parallel_1 == _results(serial['per_seed'][0])
-    for run in (merged['per_seed'][1], serial['per_seed'][0]):
+    for run in (merged[1], serial['per_seed'][0]):
         assert (run['buffering']['kept'], run['buffering']['lost']) == (120, 0), run['buffering']
     assert parallel_1['methods']['maml']['tracking']['tracking']['rmse'] > 0
 
 
-def test_ctrl_c_with_jobs_2_stops_every_seed(tmp_path):
-    """Ctrl-C while two seeds run: exit 130, no process left in either seed's domain, both
-    recordings readable."""
+def test_the_same_command_resumes_running_only_the_seeds_without_a_report(
+        parallel_run, tmp_path):
+    """A copy of the two-seed run with seed 0's report gone (as if stopped before it landed):
+    the same command runs seed 0 alone, leaves seed 1's folder untouched, and the merged
+    report equals the uninterrupted one; a command of another configuration is refused."""
     out = str(tmp_path / 'run')
-    code, text = _interrupt_after_collection(
-        ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'], 2, 120)
+    shutil.copytree(parallel_run[0], out)
+    os.remove(os.path.join(out, 'seed_0', 'report.json'))
+    kept = os.stat(os.path.join(out, 'seed_1', 'recording.mcap'))
+    done = _run_to_end(['--out', out, *PARALLEL])
+    assert done.returncode == 0, done.stdout
+    assert f'resuming {out}: 1 of 2 seeds done; running 1: 0' in done.stdout, done.stdout
+    assert re.findall(r'seed (\d): ROS_DOMAIN_ID', done.stdout) == ['0'], done.stdout
+    now = os.stat(os.path.join(out, 'seed_1', 'recording.mcap'))
+    assert (now.st_ino, now.st_mtime_ns) == (kept.st_ino, kept.st_mtime_ns)
+    assert [_results(s) for s in _per_seed(out)] == \
+        [_results(s) for s in _per_seed(parallel_run[0])]
+    other = _run_to_end(['--out', out, '--methods', 'maml', '--seeds', '3', '--jobs', '2'])
+    assert other.returncode == 2 and 'another configuration' in other.stdout, other.stdout
+    assert len(other.stdout.strip().splitlines()) == 1, other.stdout
+
+
+def test_ctrl_c_with_jobs_2_stops_every_seed_and_the_same_command_resumes(tmp_path):
+    """Ctrl-C while two seeds run on the embedded cluster: exit 130, no process left in either
+    seed's domain, no half-landed seed folder; the same command again runs both seeds."""
+    out = str(tmp_path / 'run')
+    args = ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2']
+    code, text = _interrupt_after_collection(args, 2, 180)
     ended = uptime_s()
     assert code == 130, text
     domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
     assert len(domains) == 2, text
     for domain in domains:
         assert _pids_in_domain(domain, ended) == [], f'processes left behind in domain {domain}'
-    for seed in (0, 1):
-        events, outputs, _, _ = read_with_rosbags(
-            os.path.join(out, f'seed_{seed}', 'recording.mcap'))
-        assert events[0]['event'] == 'start' and len(outputs) >= 60
+    assert sorted(os.listdir(out)) == ['config.yaml'], os.listdir(out)
+    done = _run_to_end(args)
+    assert done.returncode == 0, done.stdout
+    assert f'resuming {out}: 0 of 2 seeds done; running 2: 0, 1' in done.stdout, done.stdout
+    assert [s['seed'] for s in _per_seed(out)] == [0, 1]
 
 
 def test_jobs_beyond_the_cores_is_refused(tmp_path):

@@ -38,8 +38,8 @@ def done_seeds(out_dir: str, config: Dict[str, Any], seeds: Sequence[int]) -> Li
         return []
     path = os.path.join(out_dir, 'config.yaml')
     if not os.path.isfile(path):
-        raise FileExistsError(f'{out_dir} exists and is not a run folder (no config.yaml); '
-                              'runs are never overwritten')
+        raise FileExistsError(f'{out_dir} exists and is not empty; runs are never overwritten '
+                              '(no config.yaml: not a run folder to resume)')
     with open(path) as f:
         if f.read() != config_text(config):
             raise FileExistsError(f'{out_dir} holds the run of another configuration (its '
