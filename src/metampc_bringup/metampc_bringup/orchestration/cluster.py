@@ -16,6 +16,7 @@ import logging
 import os
 import tempfile
 import time
+import uuid
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 log = logging.getLogger('metampc.cluster')
@@ -168,7 +169,7 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
     from distributed import as_completed
     from tqdm import tqdm
     futures: Dict[Any, Any] = {
-        client.submit(job, item, key=f'{name}-{item}-{os.getpid()}', pure=False,
+        client.submit(job, item, key=f'{name}-{item}-{uuid.uuid4().hex[:12]}', pure=False,
                       resources={SLOT: 1}): item for item in items}
     failed: List[Tuple[Any, BaseException]] = []
     bar = tqdm(total=len(items), desc=name, unit='job', disable=not progress)
