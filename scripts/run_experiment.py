@@ -20,7 +20,8 @@ The defaults are config/default.yaml (tuned hyperparameters, see docs/experiment
 with --family F and no --config, config/F.yaml when it exists (docs/families.md); with
 --scenario drift and no --config, config/drift.yaml (docs/adaptation.md).
 Exit status: 0 done, 1 a phase failed (the message names it), 2 bad arguments or
-configuration, 130 interrupted (the nodes are stopped, the recording stays readable).
+configuration, a cluster refused or not answering, or an --out of another configuration,
+130 interrupted (the nodes are stopped, the recording stays readable).
 """
 import argparse
 import datetime
@@ -165,8 +166,8 @@ def main(argv=None) -> int:
         print(f'run_experiment: failed: {err}\nrun folder: {out}', file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f'run_experiment: interrupted; nodes stopped, recordings in {out}',
-              file=sys.stderr)
+        print(f'run_experiment: interrupted; nodes stopped, recordings in {out} (the same '
+              'command resumes it)', file=sys.stderr)
         return 130
     print(f"run folder: {out}\nreport: {os.path.join(out, 'report.md')} "
           f"({report['wall_time_s']:.0f} s)")

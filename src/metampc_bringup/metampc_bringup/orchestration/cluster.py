@@ -13,21 +13,22 @@ import contextlib
 import dataclasses
 import ipaddress
 import logging
-import os
 import tempfile
 import time
 import uuid
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 log = logging.getLogger('metampc.cluster')
 
 SLOT = 'slot'               # the worker resource a job holds: one job per slot
 CONNECT_TIMEOUT_S = 10.0    # s for a scheduler to answer, and for a first worker to show up
+STOP_S = 120.0              # s for the processes of a stopped embedded cluster's jobs to end
 LOOPBACK_NAMES = ('localhost',)
 
 
 class ClusterError(Exception):
-    """The cluster cannot be used: no answer, or no worker with a slot."""
+    """The cluster cannot be used: no answer, no worker with a slot, or (embedded) it did not
+    start."""
 
 
 @dataclasses.dataclass
@@ -108,18 +109,22 @@ def _embedded(jobs: int) -> Iterator[Any]:
     # The scheduler and nannies run in this process: their INFO lines are not the run's.
     logging.getLogger('distributed').setLevel(logging.WARNING)
     with tempfile.TemporaryDirectory(prefix='metampc-cluster-') as scratch:
-        cluster = LocalCluster(
-            n_workers=jobs, threads_per_worker=1, processes=True, host='127.0.0.1',
-            scheduler_port=0, dashboard_address=None, resources={SLOT: 1},
-            local_directory=scratch, silence_logs=logging.WARNING)
-        pids = [nanny.pid for nanny in cluster.workers.values()]
+        try:
+            cluster = LocalCluster(
+                n_workers=jobs, threads_per_worker=1, processes=True, host='127.0.0.1',
+                scheduler_port=0, dashboard_address=None, resources={SLOT: 1},
+                local_directory=scratch, silence_logs=logging.WARNING)
+        except (RuntimeError, OSError, TimeoutError) as err:
+            raise ClusterError(f'the embedded cluster did not start: {err}') from None
+        pids = {nanny.pid for nanny in cluster.workers.values()}
         try:
             log.info('embedded cluster: %d worker(s) on 127.0.0.1', jobs)
             with Client(cluster, set_as_default=False) as client:
                 yield client
         finally:
+            pids |= {nanny.pid for nanny in cluster.workers.values()}     # restarted ones
             cluster.close()
-            _wait_for_children(pids)
+            _wait_for_children(pids - {None})
 
 
 def _wait_for_slot(client, address: str) -> None:
@@ -137,16 +142,15 @@ def _wait_for_slot(client, address: str) -> None:
     log.info('cluster %s: %d worker(s), %d slot(s)', address, len(workers), slots)
 
 
-def _wait_for_children(worker_pids: Sequence[int], timeout: float = 120.0) -> None:
-    """Wait until the processes started by the embedded workers (killed with the cluster:
-    their lifelines fire) have stopped their nodes and ended."""
+def _wait_for_children(worker_pids: Iterable[int]) -> None:
+    """Wait (up to :data:`STOP_S`) until the processes that the embedded workers started have
+    ended: killed with the cluster, they get their lifelines' signal and stop their nodes."""
     from metampc_bringup.orchestration.lifeline import ENV
     from metampc_bringup.orchestration.procfs import pids_with_env
-    deadline = time.monotonic() + timeout
-    left = [p for w in worker_pids for p in pids_with_env({ENV: str(w)})]
-    while left and time.monotonic() < deadline:
+    deadline = time.monotonic() + STOP_S
+    while any(pids_with_env({ENV: str(w)}) for w in worker_pids) \
+            and time.monotonic() < deadline:
         time.sleep(0.1)
-        left = [p for p in left if os.path.exists(f'/proc/{p}')]
 
 
 def job_cancelled() -> bool:
