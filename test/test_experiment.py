@@ -12,6 +12,7 @@ from pathlib import Path
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -346,6 +347,7 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
         text = ''.join(lines) + proc.communicate(timeout=300)[0]
         ended = uptime_s()
         assert proc.returncode == 1 and 'seed 0 (exit status -9' in text, text
+        assert 'seed 0 failed (exit status -9); its last lines:' in text, text
         assert 'seed 1: done' in text, text
         assert _pids_in_domain(domains[1], ended) == [], 'processes left behind'
     finally:
@@ -482,6 +484,50 @@ def test_the_same_command_resumes_running_only_the_seeds_without_a_report(
     other = _run_to_end(['--out', out, '--methods', 'maml', '--seeds', '3', '--jobs', '2'])
     assert other.returncode == 2 and 'another configuration' in other.stdout, other.stdout
     assert len(other.stdout.strip().splitlines()) == 1, other.stdout
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def test_an_existing_loopback_cluster_gives_the_results_of_the_embedded_one(
+        parallel_run, tmp_path):
+    """`dask scheduler` and a `dask worker` of two one-slot processes, started here on
+    loopback: run_experiment.py --scheduler gives, seed for seed, the embedded cluster's
+    results; the seeds ran on that worker (their lines are in its log, not the client's)."""
+    port = _free_port()
+    address = f'tcp://127.0.0.1:{port}'
+    dask = os.path.join(os.path.dirname(sys.executable), 'dask')
+    logs = tmp_path / 'worker.log'
+    started = [subprocess.Popen([dask, 'scheduler', '--host', '127.0.0.1', '--port',
+                                 str(port), '--no-dashboard'], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)]
+    try:
+        with open(logs, 'w') as log:
+            started.append(subprocess.Popen(
+                [dask, 'worker', address, '--host', '127.0.0.1', '--nworkers', '2',
+                 '--nthreads', '1', '--resources', 'slot=1', '--no-dashboard'],
+                stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
+        out = str(tmp_path / 'run')
+        done = _run_to_end(['--out', out, '--scheduler', address, *PARALLEL[:-2]])
+        assert done.returncode == 0, done.stdout
+        assert f'cluster {address}: 2 worker(s), 2 slot(s)' in done.stdout, done.stdout
+        assert 'ROS_DOMAIN_ID' not in done.stdout and \
+            len(re.findall(r'seed \d: ROS_DOMAIN_ID', logs.read_text())) == 2
+        assert [_results(s) for s in _per_seed(out)] == \
+            [_results(s) for s in _per_seed(parallel_run[0])]
+    finally:
+        for proc in reversed(started):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                for pid in session_pids(proc):
+                    os.kill(pid, signal.SIGKILL)
+                proc.wait()
 
 
 def test_ctrl_c_with_jobs_2_stops_every_seed_and_the_same_command_resumes(tmp_path):

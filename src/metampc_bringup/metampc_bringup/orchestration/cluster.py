@@ -184,8 +184,8 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
                 failed.append((item, future.exception()))
             else:
                 done(item, future.result())
-            bar.update()
             bar.set_postfix(failed=len(failed), refresh=False)
+            bar.update()
     except KeyboardInterrupt:
         client.cancel(list(futures))
         raise
