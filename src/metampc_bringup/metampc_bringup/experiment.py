@@ -23,7 +23,8 @@ from metampc_bringup.orchestration.domain import isolated
 from metampc_bringup.orchestration.netns import call_in_namespace, split_hosts
 from metampc_bringup.orchestration.orchestrator import SeedRun, terminate_as_interrupt
 from metampc_bringup.orchestration.cluster import ClusterSpec, connect
-from metampc_bringup.orchestration.seed_jobs import run_seeds, seed_dir
+from metampc_bringup.orchestration.seed_jobs import (check_workers_run_this_code, run_seeds,
+                                                     seed_dir)
 from metampc_bringup.run_folder import done_seeds, prepare
 
 log = logging.getLogger('metampc.experiment')
@@ -61,7 +62,8 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
     Raises:
         FileExistsError: `out_dir` is not the run folder of this configuration (before
             anything is written).
-        ValueError, ClusterError: the cluster is refused or does not answer (idem).
+        ValueError, ClusterError: the cluster is refused, does not answer, or has a worker
+            that runs other code (idem).
     """
     if cluster is not None and (hosts or prefix or foxglove_port is not None):
         raise ValueError('a cluster runs each seed on a worker in a domain of its own: not '
@@ -81,6 +83,7 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
     started = time.monotonic()
     if cluster is not None:
         with connect(cluster) as client:
+            check_workers_run_this_code(client)
             run_seeds(client, out_dir, prepare(out_dir, config.to_dict(), seeds), land,
                       progress)
     else:

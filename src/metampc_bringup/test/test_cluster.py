@@ -1,6 +1,6 @@
 """The execution layer (metampc_bringup.orchestration.cluster): which schedulers it refuses
-before connecting, one that does not answer, and the lifeline of a job's process when its
-worker is killed. Tests address loopback only."""
+before connecting, one that does not answer, the lifeline of a job's process when its worker
+is killed, workers that run other code. Tests address loopback only."""
 import os
 import signal
 import socket
@@ -12,9 +12,11 @@ import cloudpickle
 import pytest
 
 from metampc_bringup.orchestration import cluster
-from metampc_bringup.orchestration.cluster import check_address, ClusterSpec, connect
+from metampc_bringup.orchestration.cluster import (check_address, check_workers, ClusterSpec,
+                                                   connect)
 from metampc_bringup.orchestration.lifeline import child_env, ENV
 from metampc_bringup.orchestration.procfs import pids_with_env
+from metampc_bringup.orchestration.seed_jobs import code_fingerprint
 from metampc_testing import alive
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
@@ -118,3 +120,28 @@ def test_a_jobs_process_dies_with_its_killed_worker(tmp_path):
             os.kill(pid, signal.SIGKILL)
         assert not left, 'the job\'s process outlived its worker'
         assert future.result(timeout=120) == 0      # run again on the restarted worker
+
+
+def _pid_probe() -> str:
+    return str(os.getpid())
+
+
+def _missing_probe() -> str:
+    if os.environ.get('METAMPC_TEST_CLIENT') != str(os.getpid()):
+        raise ModuleNotFoundError("No module named 'metampc_bringup'")
+    return 'here'
+
+
+def test_a_worker_that_runs_other_code_is_refused(monkeypatch):
+    """check_workers: a probe (the code's fingerprint, for seeds) that gives another value on
+    a worker, or fails there as on a machine without the project: ClusterError naming it;
+    the same value everywhere passes."""
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    monkeypatch.setenv('METAMPC_TEST_CLIENT', str(os.getpid()))
+    with connect(ClusterSpec(jobs=1)) as client:
+        with pytest.raises(cluster.ClusterError, match=r'1 of 1 worker\(s\) do not run it .*'
+                           'another version'):
+            check_workers(client, _pid_probe, 'it')
+        with pytest.raises(cluster.ClusterError, match='ModuleNotFoundError'):
+            check_workers(client, _missing_probe, 'it')
+        check_workers(client, code_fingerprint, 'this version of metampc')

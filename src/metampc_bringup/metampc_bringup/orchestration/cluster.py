@@ -153,6 +153,20 @@ def _wait_for_children(worker_pids: Iterable[int]) -> None:
         time.sleep(0.1)
 
 
+def check_workers(client, probe: Callable[[], str], what: str) -> None:
+    """ClusterError unless ``probe()`` gives on every worker of `client` what it gives here
+    (e.g. a fingerprint of the code the jobs run); a worker where it fails counts too."""
+    mine = probe()
+    theirs = client.run(probe, on_error='return')
+    wrong = sorted(address for address, value in theirs.items() if value != mine)
+    if wrong:
+        sample = theirs[wrong[0]]
+        reason = (f'{sample.__class__.__name__}: {sample}' if isinstance(sample, BaseException)
+                  else 'another version')
+        raise ClusterError(f'{len(wrong)} of {len(theirs)} worker(s) do not run {what} '
+                           f'({wrong[0]}: {reason}); install and build this commit there')
+
+
 def job_cancelled() -> bool:
     """In a job on a worker: whether the client no longer wants its result (cancelled, or
     the client gone): the job should stop what it started and return."""

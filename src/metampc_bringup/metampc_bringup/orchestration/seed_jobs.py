@@ -12,6 +12,8 @@ while the others run to their end. Measured: docs/speed.md#seeds-in-parallel.
 import collections
 import dataclasses
 import functools
+import hashlib
+import importlib
 import io
 import logging
 import os
@@ -23,7 +25,7 @@ import tempfile
 import threading
 from typing import Callable, Deque, List, Sequence
 
-from metampc_bringup.orchestration.cluster import job_cancelled, run_batch
+from metampc_bringup.orchestration.cluster import check_workers, job_cancelled, run_batch
 from metampc_bringup.orchestration.experiment_client import ExperimentError
 from metampc_bringup.orchestration.lifeline import child_env, hold
 
@@ -47,6 +49,32 @@ class SeedOutcome:
     status: int
     folder: bytes
     tail: str
+
+
+PACKAGES = ('metampc_bringup', 'metampc_common', 'metampc_controller', 'metampc_learner',
+            'metampc_model', 'metampc_plant', 'metampc_recording')   # what a seed runs
+
+
+def code_fingerprint() -> str:
+    """sha256 of the Python sources of :data:`PACKAGES` as installed here: a worker whose
+    fingerprint differs from the client's would run other code (or none)."""
+    digest = hashlib.sha256()
+    for package in PACKAGES:
+        root = os.path.dirname(importlib.import_module(package).__file__)
+        for folder, dirs, files in os.walk(root):
+            dirs.sort()
+            for name in sorted(f for f in files if f.endswith('.py')):
+                path = os.path.join(folder, name)
+                digest.update(os.path.relpath(path, root).encode())
+                with open(path, 'rb') as f:
+                    digest.update(f.read())
+    return digest.hexdigest()
+
+
+def check_workers_run_this_code(client) -> None:
+    """ClusterError unless every worker of `client` runs this code (:func:`code_fingerprint`;
+    no metampc at all counts as another)."""
+    check_workers(client, code_fingerprint, 'this version of metampc')
 
 
 def run_seeds(client, out_dir: str, seeds: Sequence[int], landed: Callable[[int], None],
