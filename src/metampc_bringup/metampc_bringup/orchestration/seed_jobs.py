@@ -180,19 +180,29 @@ def _stop(child: subprocess.Popen) -> None:
         child.wait()
 
 
+def _interrupt_once(signum, frame) -> None:
+    """The first SIGINT or SIGTERM stops the seed (KeyboardInterrupt); later ones, e.g. the
+    lifeline's when the worker ends after cancelling the job, would cut its nodes' stopping
+    short, and are ignored."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_IGN)
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
 def child_main(argv: Sequence[str]) -> int:
     """One seed of the run folder argv[0] (its config.yaml), seed argv[1]; the exit status."""
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _interrupt_once)
     out_dir, seed = argv[0], int(argv[1])
     logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
                         datefmt='%H:%M:%S')
     try:
-        hold(signal.SIGINT)    # the parent killed: stop the nodes as on Ctrl-C
+        hold(signal.SIGINT)    # the worker killed: stop the nodes as on Ctrl-C
         from metampc_bringup.orchestration.domain import isolated
         from metampc_bringup.experiment_config import load
-        from metampc_bringup.orchestration.orchestrator import SeedRun, terminate_as_interrupt
+        from metampc_bringup.orchestration.orchestrator import SeedRun
         config = load(os.path.join(out_dir, 'config.yaml'))
-        with terminate_as_interrupt(), isolated() as domain:
+        with isolated() as domain:
             log.info('seed %d: ROS_DOMAIN_ID=%d (localhost discovery)', seed, domain)
             SeedRun(config, seed, seed_dir(out_dir, seed), progress=False).run()
     except ExperimentError as err:
