@@ -106,14 +106,15 @@ def _embedded(jobs: int) -> Iterator[Any]:
     included) the workers are stopped, and so are the processes their jobs started (their
     lifelines), which are waited for."""
     from distributed import Client, LocalCluster
-    # The scheduler and nannies run in this process: their INFO lines are not the run's.
-    logging.getLogger('distributed').setLevel(logging.WARNING)
+    # The scheduler and nannies run in this process: their lines are not the run's, and on
+    # Ctrl-C they warn of the cancelled jobs and workers killed as intended.
+    logging.getLogger('distributed').setLevel(logging.ERROR)
     with tempfile.TemporaryDirectory(prefix='metampc-cluster-') as scratch:
         try:
             cluster = LocalCluster(
                 n_workers=jobs, threads_per_worker=1, processes=True, host='127.0.0.1',
                 scheduler_port=0, dashboard_address=None, resources={SLOT: 1},
-                local_directory=scratch, silence_logs=logging.WARNING)
+                local_directory=scratch, silence_logs=logging.ERROR)
         except (RuntimeError, OSError, TimeoutError) as err:
             raise ClusterError(f'the embedded cluster did not start: {err}') from None
         pids = {nanny.pid for nanny in cluster.workers.values()}
