@@ -9,7 +9,8 @@ live view) needs nothing of the model, the nodes or the orchestration; the contr
 the plant for the true-model NMPC only, the learner reaches the controller for the MPC of online
 collection; ros2cli reaches recording and common, never bringup. Every import counts: top
 level, inside functions, and `from . import` (a relative import, counted as '.', allowed to
-no package: every import names its package).
+no package: every import names its package). Modules import each other without a cycle, in
+any package.
 """
 import ast
 import glob
@@ -54,6 +55,55 @@ def imported_packages(package: str) -> dict:
     return found
 
 
+def module_graph() -> dict:
+    """{module: the metampc modules it imports}, dotted names, over every package under src/
+    (every import statement, inside functions too; `from pkg import sub` counts the submodule
+    `pkg.sub` where there is one)."""
+    paths = {}
+    for path in glob.glob(os.path.join(ROOT, 'src', '*', 'metampc_*', '**', '*.py'),
+                          recursive=True):
+        rel = os.path.relpath(path, os.path.join(ROOT, 'src'))
+        parts = rel[:-3].split(os.sep)[1:]
+        paths['.'.join(parts[:-1] if parts[-1] == '__init__' else parts)] = path
+    graph = {}
+    for module, path in paths.items():
+        names = set()
+        for node in ast.walk(ast.parse(open(path).read(), path)):
+            if isinstance(node, ast.Import):
+                names.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                names.update(f'{node.module}.{alias.name}'
+                             if f'{node.module}.{alias.name}' in paths else node.module
+                             for alias in node.names)
+        graph[module] = {n for n in names if n in paths and n != module}
+    return graph
+
+
+def cycle(graph: dict) -> list:
+    """A cycle of `graph` as [a, b, ..., a], or [] when there is none."""
+    done, path = set(), []
+
+    def visit(node):
+        if node in path:
+            return path[path.index(node):] + [node]
+        if node in done:
+            return []
+        path.append(node)
+        for other in sorted(graph.get(node, ())):
+            found = visit(other)
+            if found:
+                return found
+        path.pop()
+        done.add(node)
+        return []
+
+    for node in sorted(graph):
+        found = visit(node)
+        if found:
+            return found
+    return []
+
+
 def declared_packages(package: str) -> set:
     """The metampc packages of `package`'s package.xml dependencies."""
     root = ET.parse(os.path.join(ROOT, 'src', package, 'package.xml')).getroot()
@@ -85,6 +135,19 @@ def test_the_table_is_layered_as_the_docstring_draws_it():
 def test_layers_finds_a_cycle():
     with pytest.raises(AssertionError, match='cycle'):
         layers({COMMON: set(), MODEL: {COMMON, CONTROLLER}, CONTROLLER: {MODEL}})
+
+
+def test_no_import_cycle_between_modules():
+    # A package's __init__ importing its own modules is no cycle of ideas: leave them out.
+    graph = {m: {n for n in deps if not m.startswith(n + '.')}
+             for m, deps in module_graph().items()}
+    assert len(graph) > 100     # every module was read
+    assert cycle(graph) == []
+
+
+def test_cycle_finds_one_and_only_one():
+    assert cycle({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': set()}) == ['a', 'b', 'c', 'a']
+    assert cycle({'a': {'b', 'c'}, 'b': {'c'}, 'c': set()}) == []
 
 
 @pytest.mark.parametrize('package', sorted(MAY_IMPORT))

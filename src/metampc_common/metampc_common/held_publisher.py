@@ -23,11 +23,16 @@ HELD = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.
                   durability=DurabilityPolicy.VOLATILE)
 RETRY_S = 0.001     # pause between two tries of a held-back publish, s
 
-__all__ = ['BACKLOG', 'HELD', 'HeldPublisher', 'HoldConfig']
+__all__ = ['BACKLOG', 'HELD', 'HeldPublisher', 'HoldConfig', 'held_qos']
+
+
+def held_qos(config: HoldConfig) -> QoSProfile:
+    """The writers' QoS profile: :data:`HELD`, or qos.BACKLOG without ``hold_for_readers``."""
+    return HELD if config.hold_for_readers else BACKLOG
 
 
 class HeldPublisher:
-    """Wraps an rclpy publisher created with ``config.profile()``: ``publish`` waits while a
+    """Wraps an rclpy publisher created with ``held_qos(config)``: ``publish`` waits while a
     reader that keeps all is full.
 
     Attributes:

@@ -1,6 +1,7 @@
 """Whether and how long the writers of y, u and mpc_status wait for a reader that keeps all
-(the parameters of :mod:`.held_publisher`), declared once for the plant and the controller.
-No rclpy here: the params modules that use it stay free of it."""
+(the parameters of :mod:`.held_publisher`, whose ``held_qos`` makes the writers' QoS of them),
+declared once for the plant and the controller. No rclpy here: the params modules that use it
+stay free of it."""
 from dataclasses import dataclass
 
 from metampc_common.params import param
@@ -22,9 +23,3 @@ class HoldConfig:
                                          '1000; a slow recorder loses messages)')
     hold_timeout: float = param(10.0, 'longest wait, s, for a full reader that keeps all; '
                                       'then the message is dropped and counted', gt=0)
-
-    def profile(self):
-        """The writers' QoS profile (rclpy's, imported here: the config itself needs none)."""
-        from metampc_common.held_publisher import HELD
-        from metampc_common.qos import BACKLOG
-        return HELD if self.hold_for_readers else BACKLOG

@@ -2,7 +2,7 @@
 keeps all is full (rclpy raises 'cannot publish data')."""
 import pytest
 
-from metampc_common.held_publisher import BACKLOG, HELD, HeldPublisher, HoldConfig
+from metampc_common.held_publisher import BACKLOG, HELD, held_qos, HeldPublisher, HoldConfig
 
 
 class Full(Exception):
@@ -48,5 +48,5 @@ def test_other_errors_are_not_retried():
 
 
 def test_the_switch_picks_the_writers_profile():
-    assert HoldConfig().profile() is HELD
-    assert HoldConfig(hold_for_readers=False).profile() is BACKLOG
+    assert held_qos(HoldConfig()) is HELD
+    assert held_qos(HoldConfig(hold_for_readers=False)) is BACKLOG

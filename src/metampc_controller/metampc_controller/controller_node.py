@@ -19,7 +19,7 @@ import sys
 import time
 from typing import Optional
 
-from metampc_common.held_publisher import HeldPublisher
+from metampc_common.held_publisher import held_qos, HeldPublisher
 from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, SPARSE, STREAM
@@ -83,10 +83,10 @@ class ControllerNode(Node):
         # Held back while a reader that keeps all is full: the recorder never loses an
         # answer, however fast the lockstep loop (metampc_common.held_publisher).
         held, hold = partial(self._warn, 'dropped'), self.cfg.hold
-        self._pub_u = HeldPublisher(self.create_publisher(ControlInput, 'u', hold.profile()),
+        self._pub_u = HeldPublisher(self.create_publisher(ControlInput, 'u', held_qos(hold)),
                                     hold, held)
         self._pub_status = HeldPublisher(
-            self.create_publisher(MpcStatus, 'mpc_status', hold.profile()), hold, held)
+            self.create_publisher(MpcStatus, 'mpc_status', held_qos(hold)), hold, held)
         self._pub_hold = self.create_publisher(StepHold, 'u_hold', STREAM)
         self._hold_msg = StepHold()
         self.create_subscription(PlantOutput, 'y', self._on_y, STREAM)

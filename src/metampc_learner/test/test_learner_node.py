@@ -222,8 +222,11 @@ def test_a_full_d_target_takes_no_more_samples(procs, probe):
     restarted, it subscribes again."""
     buffering = probe.node.create_client(SetBuffering, 'set_buffering')
     learner = procs.start('metampc_learner', 'learner', params={**TINY, 'buffer_on_start': True})
-    procs.start('metampc_plant', 'plant', params=PLANT)
+    # The plant starts only once the subscription is seen: 40 samples at 20 ms fill D_target in
+    # under a second, so a plant started at once could fill it (and the learner leave y) before
+    # the probe's graph showed the subscription (CI stop 39).
     probe.wait_for(lambda: 'learner' in y_subscribers(probe), 60.0, "the learner's y")
+    procs.start('metampc_plant', 'plant', params=PLANT)
     probe.wait_for(lambda: 'D_target full: 40 samples' in procs.output(learner), 120.0,
                    'a full D_target')
     assert 'y unsubscribed until buffering restarts' in procs.output(learner)

@@ -19,7 +19,7 @@ from functools import partial
 from typing import Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
-from metampc_common.held_publisher import HeldPublisher
+from metampc_common.held_publisher import held_qos, HeldPublisher
 from metampc_common.node_main import (declare_parameters, EventCounts, LiveParameters,
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, STREAM
@@ -66,7 +66,7 @@ class PlantNode(Node):
         lockstep = self.cfg.mode == 'lockstep'
         # Held back while a reader that keeps all (the recorder) is full: nothing lost.
         self._pub_y = HeldPublisher(
-            self.create_publisher(PlantOutput, 'y', self.cfg.hold.profile()), self.cfg.hold,
+            self.create_publisher(PlantOutput, 'y', held_qos(self.cfg.hold)), self.cfg.hold,
             partial(self._warn, 'dropped'))
         self._pub_info = self.create_publisher(PlantInfo, 'plant_info', LATCHED)
         self._pub_clock = (self.create_publisher(ClockMsg, '/clock', STREAM)

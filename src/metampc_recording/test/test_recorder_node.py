@@ -13,7 +13,7 @@ import time
 from mcap.reader import make_reader
 from metampc_recording.msg_schema import DefinitionSource
 from metampc_recording.recording_reader import read_recording
-from metampc_common.held_publisher import HeldPublisher, HoldConfig
+from metampc_common.held_publisher import held_qos, HeldPublisher, HoldConfig
 from metampc_recording.rosbag2_qos import profiles_from_yaml
 from metampc_msgs.msg import PlantOutput
 from metampc_testing import own_lines
@@ -172,7 +172,7 @@ def test_a_held_stream_much_faster_than_the_recorder_is_recorded_whole(
     path = tmp_path / 'burst.mcap'
     recorder = recorders.start(path, flush_period=0.2)
     config = HoldConfig()
-    pub = HeldPublisher(probe.node.create_publisher(PlantOutput, 'y', config.profile()), config)
+    pub = HeldPublisher(probe.node.create_publisher(PlantOutput, 'y', held_qos(config)), config)
     recorders.wait_matched([pub])
     assert all(pub.publish(output_msg(k)) for k in range(n))
     recorders.wait_recorded(path, {'/y': n})
