@@ -25,7 +25,7 @@ from metampc_bringup.orchestration.orchestrator import SeedRun, terminate_as_int
 from metampc_bringup.orchestration.cluster import ClusterSpec, connect
 from metampc_bringup.orchestration.seed_jobs import (check_workers_run_this_code, run_seeds,
                                                      seed_dir)
-from metampc_bringup.run_folder import done_seeds, prepare
+from metampc_bringup.run_folder import done_seeds, incomplete, mark_incomplete, prepare
 
 log = logging.getLogger('metampc.experiment')
 
@@ -108,8 +108,13 @@ def _run_here(config: ExperimentConfig, out_dir: str, seeds: List[int],
                      'free domain of its own, so that two never share one'
                      if exported not in (None, str(domain)) else '')
         for seed in seeds:
-            SeedRun(config, seed, seed_dir(out_dir, seed), progress, prefix,
-                    foxglove_port).run()
+            try:
+                SeedRun(config, seed, seed_dir(out_dir, seed), progress, prefix,
+                        foxglove_port).run()
+            except BaseException as err:
+                mark_incomplete(seed_dir(out_dir, seed), 'interrupted'
+                                if isinstance(err, KeyboardInterrupt) else f'failed ({err})')
+                raise
             land(seed)
 
 
@@ -119,15 +124,17 @@ def rebuild_report(out_dir: str) -> Dict[str, Any]:
     ``report.md`` and the figures are written again; the recordings are only read.
 
     Raises:
-        FileNotFoundError: no config.yaml or no seed_<s>/recording.mcap in `out_dir`.
+        FileNotFoundError: no config.yaml or no seed_<s>/recording.mcap in `out_dir` (a
+            seed's folder marked incomplete, :mod:`.run_folder`, does not count).
     """
     with open(os.path.join(out_dir, 'config.yaml')) as f:
         config = yaml.safe_load(f)
     seeds = sorted((int(name[len('seed_'):]) for name in os.listdir(out_dir)
                     if name.startswith('seed_') and name[len('seed_'):].isdigit()
-                    and os.path.exists(os.path.join(out_dir, name, 'recording.mcap'))))
+                    and os.path.exists(os.path.join(out_dir, name, 'recording.mcap'))
+                    and not incomplete(os.path.join(out_dir, name))))
     if not seeds:
-        raise FileNotFoundError(f'{out_dir}: no seed_<s>/recording.mcap')
+        raise FileNotFoundError(f'{out_dir}: no seed_<s>/recording.mcap of a finished seed')
     wall = float('nan')
     previous = os.path.join(out_dir, 'report.json')
     if os.path.exists(previous):

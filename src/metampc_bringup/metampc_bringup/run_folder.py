@@ -2,18 +2,21 @@
 one is resumed by the same command.
 
 The folder's config.yaml (the resolved configuration) names its run; a seed is done once its
-``seed_<s>/report.json`` is written (after its recording is complete). Resuming runs only the
-seeds not done, after removing what an unfinished try of them left; a folder of another
-configuration, or one that is not a run folder, is refused before anything is written.
+``seed_<s>/report.json`` is written (after its recording is complete). A seed stopped before
+(Ctrl-C, a failure) keeps its folder, marked by an :data:`INCOMPLETE` file. Resuming runs only
+the seeds not done, after moving what an unfinished try of them left to
+``incomplete/seed_<s>.<try>/``; a folder of another configuration, or one that is not a run
+folder, is refused before anything is written.
 """
 import logging
 import os
-import shutil
 from typing import Any, Dict, List, Sequence
 
 import yaml
 
 log = logging.getLogger('metampc.run_folder')
+
+INCOMPLETE = 'INCOMPLETE'       # in a seed's folder: why it stopped before its report
 
 
 def config_text(config: Dict[str, Any]) -> str:
@@ -65,6 +68,29 @@ def prepare(out_dir: str, config: Dict[str, Any], seeds: Sequence[int]) -> List[
     for seed in todo:
         unfinished = os.path.join(out_dir, f'seed_{seed}')
         if os.path.exists(unfinished):
-            log.info('seed %d: removing the unfinished try in %s', seed, unfinished)
-            shutil.rmtree(unfinished)
+            kept = _free_try(out_dir, seed)
+            log.info('seed %d: the unfinished try in %s kept in %s', seed, unfinished, kept)
+            os.makedirs(os.path.dirname(kept), exist_ok=True)
+            os.rename(unfinished, kept)
     return todo
+
+
+def _free_try(out_dir: str, seed: int) -> str:
+    """The first ``incomplete/seed_<seed>.<try>`` of `out_dir` not taken (try from 1)."""
+    tries = 1
+    while os.path.exists(path := os.path.join(out_dir, 'incomplete', f'seed_{seed}.{tries}')):
+        tries += 1
+    return path
+
+
+def mark_incomplete(seed_folder: str, why: str) -> None:
+    """Mark a seed's folder that stopped before its report (its recording is readable up to
+    there): an :data:`INCOMPLETE` file saying `why`; nothing if the folder was not made."""
+    if os.path.isdir(seed_folder):
+        with open(os.path.join(seed_folder, INCOMPLETE), 'w') as f:
+            f.write(f'{why}; no report: the same command runs this seed again\n')
+
+
+def incomplete(seed_folder: str) -> bool:
+    """Whether a seed's folder is marked incomplete (:func:`mark_incomplete`)."""
+    return os.path.exists(os.path.join(seed_folder, INCOMPLETE))

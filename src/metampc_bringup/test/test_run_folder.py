@@ -1,10 +1,11 @@
 """A run folder belongs to one configuration (metampc_bringup.run_folder): created, resumed
-with only its unfinished seeds, or refused with nothing changed."""
+with only its unfinished seeds (their tries kept aside), or refused with nothing changed."""
 import os
 
 import pytest
 
-from metampc_bringup.run_folder import config_text, done_seeds, prepare
+from metampc_bringup.run_folder import (config_text, done_seeds, incomplete, mark_incomplete,
+                                        prepare)
 
 CONFIG = {'family': 'vanderpol', 'seeds': 3, 'first_seed': 0, 'methods': ['maml']}
 
@@ -37,10 +38,23 @@ def test_a_resumed_folder_runs_only_the_seeds_without_a_report(tmp_path):
         (out / f'seed_{seed}' / 'recording.mcap').write_bytes(b'complete')
     (out / 'seed_0' / 'report.json').write_text('{}')
     kept = _files(out / 'seed_0')
+    mark_incomplete(str(out / 'seed_2'), 'interrupted')
+    assert incomplete(str(out / 'seed_2')) and not incomplete(str(out / 'seed_0'))
+    assert (out / 'seed_2' / 'INCOMPLETE').read_text() == \
+        'interrupted; no report: the same command runs this seed again\n'
+    unfinished = _files(out / 'seed_2')
     assert done_seeds(str(out), CONFIG, [0, 1, 2]) == [0]
     assert prepare(str(out), CONFIG, [0, 1, 2]) == [1, 2]
-    assert not (out / 'seed_2').exists(), 'the unfinished try is removed'
+    assert not (out / 'seed_2').exists(), 'the seed runs again in a new folder'
     assert _files(out / 'seed_0') == kept
+    assert [(p.replace('incomplete/seed_2.1', 'seed_2'), v[0]) for p, v in
+            _files(out / 'incomplete' / 'seed_2.1').items()] == \
+        [(p, v[0]) for p, v in unfinished.items()], 'the unfinished try is kept'
+    (out / 'seed_2').mkdir()        # a second try, unfinished too
+    assert prepare(str(out), CONFIG, [0, 1, 2]) == [1, 2]
+    assert sorted(os.listdir(out / 'incomplete')) == ['seed_2.1', 'seed_2.2']
+    mark_incomplete(str(out / 'seed_1'), 'never made')
+    assert not (out / 'seed_1').exists()
 
 
 def test_a_folder_of_another_run_is_refused_with_nothing_changed(tmp_path):
