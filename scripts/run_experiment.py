@@ -19,9 +19,10 @@ Examples:
 The defaults are config/default.yaml (tuned hyperparameters, see docs/experiments.md);
 with --family F and no --config, config/F.yaml when it exists (docs/families.md); with
 --scenario drift and no --config, config/drift.yaml (docs/adaptation.md).
-Exit status: 0 done, 1 a phase failed (the message names it), 2 bad arguments or
-configuration, a cluster refused or not answering, or an --out of another configuration,
-130 interrupted (the nodes are stopped, the recording stays readable).
+Exit status: 0 done, 1 a phase failed (the message names it) or the scheduler was lost, 2 bad
+arguments or configuration, a cluster refused or not answering, or an --out of another
+configuration, 130 interrupted (the nodes are stopped, the recordings stay readable, an
+unfinished seed's folder is marked INCOMPLETE).
 """
 import argparse
 import datetime
@@ -113,7 +114,8 @@ def main(argv=None) -> int:
         from metampc_recording.foxglove_params import DEFAULT_PORT, FoxgloveConfig
         from metampc_bringup.orchestration.netns import NetnsError, parse_hosts
         from metampc_bringup.orchestration.cpu_budget import check_jobs
-        from metampc_bringup.orchestration.cluster import check_address, ClusterError, ClusterSpec
+        from metampc_bringup.orchestration.cluster import (check_address, ClusterError,
+                                                           ClusterSpec, SchedulerLost)
     except KeyboardInterrupt:
         print('run_experiment: interrupted before it started; nothing written', file=sys.stderr)
         return 130
@@ -159,6 +161,9 @@ def main(argv=None) -> int:
     try:
         report = run_experiment(config, out, progress=not args.no_progress, hosts=hosts,
                                 foxglove_port=foxglove, cluster=cluster)
+    except SchedulerLost as err:
+        print(f'run_experiment: {err}', file=sys.stderr)
+        return 1
     except (FileExistsError, NetnsError, ClusterError) as err:
         print(f'run_experiment: {err}', file=sys.stderr)
         return 2
@@ -166,8 +171,9 @@ def main(argv=None) -> int:
         print(f'run_experiment: failed: {err}\nrun folder: {out}', file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f'run_experiment: interrupted; nodes stopped, recordings in {out} (the same '
-              'command resumes it)', file=sys.stderr)
+        print(f'run_experiment: interrupted; nodes stopped, recordings in {out} (a seed '
+              'stopped before its report is marked INCOMPLETE; the same command resumes it)',
+              file=sys.stderr)
         return 130
     print(f"run folder: {out}\nreport: {os.path.join(out, 'report.md')} "
           f"({report['wall_time_s']:.0f} s)")

@@ -12,7 +12,6 @@ from pathlib import Path
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -24,10 +23,11 @@ from rosbags.highlevel import AnyReader
 from metampc_bringup.analysis.retrack import retrack_seed
 from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_config import ConfigError, learner_config, load
+from metampc_bringup.orchestration.lifeline import ENV as LIFELINE
 from metampc_bringup.orchestration.processes import session_pids
 from metampc_bringup.orchestration.procfs import pids_with_env, uptime_s
 from metampc_learner.heldout import target_heldout
-from metampc_testing import read_with_rosbags, SESSION_ENV
+from metampc_testing import free_port, loopback_dask, read_with_rosbags, SESSION_ENV
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CI_CONFIG = os.path.join(ROOT, 'config', 'ci.yaml')
@@ -206,8 +206,17 @@ def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
     assert code == 130, text
     domain = int(re.search(r'ROS_DOMAIN_ID=(\d+)', text).group(1))
     assert _pids_in_domain(domain, ended) == [], 'processes left behind'
-    events, outputs, _, _ = read_with_rosbags(os.path.join(out, 'seed_0', 'recording.mcap'))
+    _assert_interrupted_seed(os.path.join(out, 'seed_0'))
+
+
+def _assert_interrupted_seed(folder: str) -> None:
+    """An interrupted seed's folder: its recording readable up to the interruption, marked
+    INCOMPLETE, no report."""
+    events, outputs, _, _ = read_with_rosbags(os.path.join(folder, 'recording.mcap'))
     assert events[0]['event'] == 'start' and len(outputs) >= 60
+    with open(os.path.join(folder, 'INCOMPLETE')) as f:
+        assert f.read().startswith('interrupted;')
+    assert not os.path.exists(os.path.join(folder, 'report.json'))
 
 
 def test_ctrl_c_while_the_script_imports_is_an_interruption(tmp_path):
@@ -486,30 +495,13 @@ def test_the_same_command_resumes_running_only_the_seeds_without_a_report(
     assert len(other.stdout.strip().splitlines()) == 1, other.stdout
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
-
-
 def test_an_existing_loopback_cluster_gives_the_results_of_the_embedded_one(
         parallel_run, tmp_path):
     """`dask scheduler` and a `dask worker` of two one-slot processes, started here on
     loopback: run_experiment.py --scheduler gives, seed for seed, the embedded cluster's
     results; the seeds ran on that worker (their lines are in its log, not the client's)."""
-    port = _free_port()
-    address = f'tcp://127.0.0.1:{port}'
-    dask = os.path.join(os.path.dirname(sys.executable), 'dask')
     logs = tmp_path / 'worker.log'
-    started = [subprocess.Popen([dask, 'scheduler', '--host', '127.0.0.1', '--port',
-                                 str(port), '--no-dashboard'], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, start_new_session=True)]
-    try:
-        with open(logs, 'w') as log:
-            started.append(subprocess.Popen(
-                [dask, 'worker', address, '--host', '127.0.0.1', '--nworkers', '2',
-                 '--nthreads', '1', '--resources', 'slot=1', '--no-dashboard'],
-                stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
+    with loopback_dask(logs, workers=2) as (address, _):
         out = str(tmp_path / 'run')
         done = _run_to_end(['--out', out, '--scheduler', address, *PARALLEL[:-2]])
         assert done.returncode == 0, done.stdout
@@ -518,35 +510,113 @@ def test_an_existing_loopback_cluster_gives_the_results_of_the_embedded_one(
             len(re.findall(r'seed \d: ROS_DOMAIN_ID', logs.read_text())) == 2
         assert [_results(s) for s in _per_seed(out)] == \
             [_results(s) for s in _per_seed(parallel_run[0])]
-    finally:
-        for proc in reversed(started):
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
+
+
+def test_a_worker_killed_in_the_middle_of_a_seed_runs_it_again_with_the_same_results(
+        parallel_run, tmp_path):
+    """Two seeds on a loopback `dask worker` of two one-slot processes; the worker process of
+    seed 0 SIGKILLed once that seed has collected: the seed's nodes end with it, the scheduler
+    runs seed 0 again, the run ends 0 and the merged report equals the embedded cluster's."""
+    log = tmp_path / 'worker.log'
+    with loopback_dask(log, workers=2) as (address, _):
+        proc = subprocess.Popen(
+            [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+             CI_CONFIG, '--no-progress', '--out', str(tmp_path / 'run'), '--scheduler',
+             address, *PARALLEL[:-2]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, start_new_session=True)
+        try:
+            deadline = time.monotonic() + 300
+            while 'seed 0: collect done' not in log.read_text():
+                assert time.monotonic() < deadline and proc.poll() is None, log.read_text()
+                time.sleep(0.1)
+            domain = int(re.search(r'seed 0: ROS_DOMAIN_ID=(\d+)', log.read_text()).group(1))
+            child, = [p for p in _seed_children(uptime_s()) if _cmdline(p)[-1] == '0']
+            with open(f'/proc/{child}/environ', 'rb') as f:
+                worker, = [int(v[len(LIFELINE) + 1:]) for v in f.read().decode().split('\0')
+                           if v.startswith(f'{LIFELINE}=')]
+            os.kill(worker, signal.SIGKILL)
+            killed = uptime_s()
+            assert _wait_domain_empty(domain, killed, 30.0) == [], 'seed 0 left processes'
+            text = proc.communicate(timeout=600)[0]
+        finally:
+            if proc.poll() is None:
                 for pid in session_pids(proc):
                     os.kill(pid, signal.SIGKILL)
-                proc.wait()
+            proc.stdout.close()
+    assert proc.returncode == 0, text
+    assert len(re.findall(r'seed 0: ROS_DOMAIN_ID', log.read_text())) == 2, log.read_text()
+    assert [_results(s) for s in _per_seed(str(tmp_path / 'run'))] == \
+        [_results(s) for s in _per_seed(parallel_run[0])]
 
 
-def test_ctrl_c_with_jobs_2_stops_every_seed_and_the_same_command_resumes(tmp_path):
-    """Ctrl-C while two seeds run on the embedded cluster: exit 130, no process left in either
-    seed's domain, no half-landed seed folder; the same command again runs both seeds."""
+def test_ctrl_c_with_jobs_2_keeps_both_partial_seeds_and_the_same_command_resumes(tmp_path):
+    """Ctrl-C (SIGINT to the process group, workers included, as a terminal sends it) while
+    two seeds run on the embedded cluster: exit 130 and the interruption line, no traceback,
+    no process left in either seed's domain, both seeds' folders in --out as with one process
+    (recording readable, marked INCOMPLETE); the same command runs both seeds again and keeps
+    the interrupted tries in incomplete/."""
     out = str(tmp_path / 'run')
     args = ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2']
-    code, text = _interrupt_after_collection(args, 2, 180)
+    code, text = _interrupt_after_collection(args, 2, 300)
     ended = uptime_s()
-    assert code == 130, text
+    assert code == 130 and 'Traceback' not in text, text
+    assert f'run_experiment: interrupted; nodes stopped, recordings in {out}' in text, text
     domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
     assert len(domains) == 2, text
     for domain in domains:
         assert _pids_in_domain(domain, ended) == [], f'processes left behind in domain {domain}'
-    assert sorted(os.listdir(out)) == ['config.yaml'], os.listdir(out)
+    assert sorted(os.listdir(out)) == ['config.yaml', 'seed_0', 'seed_1'], os.listdir(out)
+    for seed in (0, 1):
+        _assert_interrupted_seed(os.path.join(out, f'seed_{seed}'))
     done = _run_to_end(args)
     assert done.returncode == 0, done.stdout
     assert f'resuming {out}: 0 of 2 seeds done; running 2: 0, 1' in done.stdout, done.stdout
     assert [s['seed'] for s in _per_seed(out)] == [0, 1]
+    for seed in (0, 1):
+        _assert_interrupted_seed(os.path.join(out, 'incomplete', f'seed_{seed}.1'))
+
+
+def test_the_scheduler_gone_is_one_line_and_the_same_command_resumes(parallel_run, tmp_path):
+    """A loopback `dask scheduler` SIGKILLed once seed 0 of two (one worker slot) has landed:
+    run_experiment.py --scheduler says so in one line and exits 1, no traceback; seed 0 stays
+    done in --out and seed 1's process ends with its worker; with a new scheduler on the same
+    address the same command runs seed 1 alone, and the merged report equals the embedded
+    cluster's."""
+    port = free_port()
+    out = str(tmp_path / 'run')
+    args = [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+            CI_CONFIG, '--no-progress', '--out', out, '--methods', 'maml', '--seeds', '2',
+            '--scheduler', f'tcp://127.0.0.1:{port}']
+    with loopback_dask(tmp_path / 'worker.log', port=port) as (address, (scheduler, worker)):
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True, start_new_session=True)
+        try:
+            lines = []
+            _read_until(proc, r'seed 0: done', lines)
+            os.killpg(scheduler.pid, signal.SIGKILL)
+            text = ''.join(lines) + proc.communicate(timeout=300)[0]
+        finally:
+            if proc.poll() is None:
+                for pid in session_pids(proc):
+                    os.kill(pid, signal.SIGKILL)
+            proc.stdout.close()
+        assert proc.returncode == 1 and 'Traceback' not in text, text
+        after = text[text.index('seed 0: done'):].splitlines()[1:]
+        assert after == [f'run_experiment: lost the scheduler {address}: 1 of 2 seeds '
+                         f'finished in {out}; the same command runs the others'], text
+        worker.wait(120)        # it closes without its scheduler; its seed's nodes end with it
+        domains = re.findall(r'seed 1: ROS_DOMAIN_ID=(\d+)',
+                             (tmp_path / 'worker.log').read_text())
+        ended = uptime_s()
+        for domain in domains:
+            assert _wait_domain_empty(int(domain), ended, 30.0) == [], 'seed 1 left processes'
+    assert os.path.isfile(os.path.join(out, 'seed_0', 'report.json'))
+    with loopback_dask(tmp_path / 'again.log', port=port):
+        done = _run_to_end(args[5:])
+    assert done.returncode == 0, done.stdout
+    assert f'resuming {out}: 1 of 2 seeds done; running 1: 1' in done.stdout, done.stdout
+    assert [_results(s) for s in _per_seed(out)] == \
+        [_results(s) for s in _per_seed(parallel_run[0])]
 
 
 def test_jobs_beyond_the_cores_is_refused(tmp_path):

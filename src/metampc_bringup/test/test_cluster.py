@@ -1,11 +1,14 @@
 """The execution layer (metampc_bringup.orchestration.cluster): which schedulers it refuses
 before connecting, one that does not answer, the lifeline of a job's process when its worker
-is killed, workers that run other code. Tests address loopback only."""
+is killed, workers that run other code, Ctrl-C, the scheduler lost. Tests address loopback
+only."""
+import functools
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import cloudpickle
@@ -13,11 +16,12 @@ import pytest
 
 from metampc_bringup.orchestration import cluster
 from metampc_bringup.orchestration.cluster import (check_address, check_workers, ClusterSpec,
-                                                   connect)
+                                                   connect, job_cancelled, run_batch,
+                                                   SchedulerLost)
 from metampc_bringup.orchestration.lifeline import child_env, ENV
 from metampc_bringup.orchestration.procfs import pids_with_env
 from metampc_bringup.orchestration.seed_jobs import code_fingerprint
-from metampc_testing import alive
+from metampc_testing import alive, loopback_dask
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__)))))
@@ -145,3 +149,49 @@ def test_a_worker_that_runs_other_code_is_refused(monkeypatch):
         with pytest.raises(cluster.ClusterError, match='ModuleNotFoundError'):
             check_workers(client, _missing_probe, 'it')
         check_workers(client, code_fingerprint, 'this version of metampc')
+
+
+def _until_stopped(started: str, item: int) -> str:
+    """On a worker: works (a file `started` says so) until it is asked to stop, then sends
+    back what it holds."""
+    open(started, 'w').close()
+    while not job_cancelled():
+        time.sleep(0.05)
+    return f'partial {item}'
+
+
+def test_ctrl_c_takes_back_what_the_stopped_jobs_hold(tmp_path):
+    """SIGINT to the client and to its embedded worker (a terminal's Ctrl-C reaches both)
+    while the first of two jobs runs: the worker lives on, both jobs are asked to stop and
+    what they send back is handed to `done` before KeyboardInterrupt."""
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    started = tmp_path / 'started'
+    got = {}
+    with connect(ClusterSpec(jobs=1)) as client:
+        worker, = client.run(os.getpid).values()
+
+        def ctrl_c():
+            while not started.exists():
+                time.sleep(0.02)
+            os.kill(worker, signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+        threading.Thread(target=ctrl_c, daemon=True).start()
+        with pytest.raises(KeyboardInterrupt):
+            run_batch(client, functools.partial(_until_stopped, str(started)), [0, 1], 'jobs',
+                      got.__setitem__)
+        assert list(client.run(os.getpid).values()) == [worker]
+    assert got == {0: 'partial 0', 1: 'partial 1'}
+
+
+def test_the_scheduler_lost_is_scheduler_lost_after_the_jobs_done_by_then(tmp_path):
+    """A loopback `dask scheduler` SIGKILLed once the first of two jobs (time.sleep) is done:
+    run_batch raises SchedulerLost naming it, the first job's result handed to `done`."""
+    got = {}
+    with loopback_dask(tmp_path / 'worker.log') as (address, (scheduler, _)):
+        def done(item, result):
+            got[item] = result
+            os.killpg(scheduler.pid, signal.SIGKILL)
+        with connect(ClusterSpec(scheduler=address)) as client:
+            with pytest.raises(SchedulerLost, match=f'lost the scheduler {address}$'):
+                run_batch(client, time.sleep, [0.1, 60.0], 'jobs', done)
+    assert got == {0.1: None}

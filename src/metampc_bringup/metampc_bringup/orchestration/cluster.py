@@ -7,28 +7,36 @@ plain ``tcp://`` one off this machine is refused without ``insecure``, before an
 (a scheduler runs whatever it is sent). Each job holds one worker slot (resource :data:`SLOT`),
 so jobs never crowd a host. A job runs in a worker thread that lives as long as the job, so
 the lifelines (:mod:`.lifeline`) of the processes it forks hold: they die with the worker, and
-the scheduler runs the job again on another.
+the scheduler runs the job again on another. Ctrl-C asks the running jobs to stop and takes
+what they send back (:func:`run_batch`); the scheduler gone is :class:`SchedulerLost`.
 """
 import contextlib
 import dataclasses
 import ipaddress
 import logging
+import signal
 import tempfile
 import time
 import uuid
-from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Set, Tuple
 
 log = logging.getLogger('metampc.cluster')
 
 SLOT = 'slot'               # the worker resource a job holds: one job per slot
 CONNECT_TIMEOUT_S = 10.0    # s for a scheduler to answer, and for a first worker to show up
 STOP_S = 120.0              # s for the processes of a stopped embedded cluster's jobs to end
+DRAIN_S = 180.0             # s for the jobs asked to stop (Ctrl-C) to send back what they have
 LOOPBACK_NAMES = ('localhost',)
 
 
 class ClusterError(Exception):
     """The cluster cannot be used: no answer, no worker with a slot, or (embedded) it did not
     start."""
+
+
+class SchedulerLost(ClusterError):
+    """The client lost its scheduler in the middle of a batch: the jobs done by then were
+    handed to ``done``, the others are lost."""
 
 
 @dataclasses.dataclass
@@ -95,9 +103,20 @@ def connect(spec: ClusterSpec) -> Iterator[Any]:
     except (OSError, TimeoutError) as err:
         raise ClusterError(f'--scheduler {spec.scheduler}: no answer within '
                            f'{CONNECT_TIMEOUT_S:.0f} s ({err.__class__.__name__})') from None
-    with client:
-        _wait_for_slot(client, spec.scheduler)
-        yield client
+    dask_log = logging.getLogger('distributed.client')
+    level = dask_log.level
+    try:
+        with client:
+            _wait_for_slot(client, spec.scheduler)
+            try:
+                yield client
+            except SchedulerLost:
+                # Closing a client that lost its scheduler cancels its reconnection, which dask
+                # logs as a traceback: the error says it in one line.
+                dask_log.setLevel(logging.CRITICAL + 1)
+                raise
+    finally:
+        dask_log.setLevel(level)
 
 
 @contextlib.contextmanager
@@ -114,7 +133,7 @@ def _embedded(jobs: int) -> Iterator[Any]:
             cluster = LocalCluster(
                 n_workers=jobs, threads_per_worker=1, processes=True, host='127.0.0.1',
                 scheduler_port=0, dashboard_address=None, resources={SLOT: 1},
-                local_directory=scratch, silence_logs=logging.ERROR)
+                local_directory=scratch, silence_logs=logging.ERROR, preload=[__name__])
         except (RuntimeError, OSError, TimeoutError) as err:
             raise ClusterError(f'the embedded cluster did not start: {err}') from None
         pids = {nanny.pid for nanny in cluster.workers.values()}
@@ -126,6 +145,12 @@ def _embedded(jobs: int) -> Iterator[Any]:
             pids |= {nanny.pid for nanny in cluster.workers.values()}     # restarted ones
             cluster.close()
             _wait_for_children(pids - {None})
+
+
+def dask_setup(worker) -> None:
+    """An embedded worker (its preload) ignores SIGINT: Ctrl-C reaches the terminal's whole
+    process group, and the client, not the worker, decides what stops (:func:`run_batch`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _wait_for_slot(client, address: str) -> None:
@@ -168,13 +193,24 @@ def check_workers(client, probe: Callable[[], str], what: str) -> None:
                            f'({wrong[0]}: {reason}); install and build this commit there')
 
 
+_STOPPING: Set[str] = set()     # on a worker: keys of the jobs asked to stop (Ctrl-C)
+
+
+def _stop_jobs(keys: Sequence[str]) -> None:
+    """On each worker (client.run): the jobs of `keys` are to stop and send back what they
+    have (:func:`job_cancelled` says so)."""
+    _STOPPING.update(keys)
+
+
 def job_cancelled() -> bool:
-    """In a job on a worker: whether the client no longer wants its result (cancelled, or
-    the client gone): the job should stop what it started and return."""
+    """In a job on a worker: whether it is to stop what it started and return; it was asked
+    to (Ctrl-C: its result is still wanted), or the client no longer wants its result
+    (cancelled, or the client gone)."""
     from distributed import get_worker
     worker = get_worker()
-    task = worker.state.tasks.get(worker.get_current_task())
-    return task is None or task.state not in ('executing', 'long-running')
+    key = worker.get_current_task()
+    task = worker.state.tasks.get(key)
+    return key in _STOPPING or task is None or task.state not in ('executing', 'long-running')
 
 
 def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
@@ -182,19 +218,29 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
               ) -> List[Tuple[Any, BaseException]]:
     """Run ``job(item)`` for every item on `client`'s cluster, one slot each; ``done(item,
     result)`` in this process as each finishes. Returns the (item, exception) of the jobs
-    that raised (the others ran to their end); Ctrl-C cancels what is left and re-raises.
+    that raised (the others ran to their end).
 
-    `name` labels the progress line (tqdm: done, running, failed) when `progress`."""
+    Ctrl-C asks the jobs to stop (:func:`job_cancelled`) and hands what they return within
+    :data:`DRAIN_S` to ``done`` (a second Ctrl-C: at once), cancels the rest and re-raises.
+    `name` labels the progress line (tqdm: done, running, failed) when `progress`.
+
+    Raises:
+        SchedulerLost: the connection to the scheduler is lost (the jobs done by then were
+            handed to ``done``).
+    """
     from distributed import as_completed
     from tqdm import tqdm
     futures: Dict[Any, Any] = {
         client.submit(job, item, key=f'{name}-{item}-{uuid.uuid4().hex[:12]}', pure=False,
                       resources={SLOT: 1}): item for item in items}
+    left = dict(futures)
     failed: List[Tuple[Any, BaseException]] = []
     bar = tqdm(total=len(items), desc=name, unit='job', disable=not progress)
     try:
         for future in as_completed(futures, loop=client.loop):
-            item = futures[future]
+            item = left.pop(future)
+            if future.status == 'cancelled':    # never by this client but on Ctrl-C
+                raise SchedulerLost(f'lost the scheduler {client.scheduler.address}')
             if future.status == 'error':
                 failed.append((item, future.exception()))
             else:
@@ -202,8 +248,24 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
             bar.set_postfix(failed=len(failed), refresh=False)
             bar.update()
     except KeyboardInterrupt:
-        client.cancel(list(futures))
+        _drain(client, left, done)
         raise
     finally:
         bar.close()
     return failed
+
+
+def _drain(client, left: Dict[Any, Any], done: Callable[[Any, Any], None]) -> None:
+    """After Ctrl-C: ask the jobs of `left` (future: item) to stop, hand what they return
+    within :data:`DRAIN_S` to ``done`` and cancel the others."""
+    from distributed import as_completed
+    log.info('stopping %d job(s); what they hold comes back first', len(left))
+    try:
+        client.run(_stop_jobs, [future.key for future in left])
+        for future in as_completed(list(left), loop=client.loop, timeout=DRAIN_S):
+            item = left.pop(future)
+            if future.status == 'finished':
+                done(item, future.result())
+    except (KeyboardInterrupt, TimeoutError, OSError) as err:
+        log.warning('not waiting for the stopped jobs (%s)', err.__class__.__name__)
+    client.cancel(list(left))

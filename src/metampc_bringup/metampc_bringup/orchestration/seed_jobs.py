@@ -6,8 +6,9 @@ metampc_bringup.orchestration.seed_jobs WORK SEED``, :class:`.orchestrator.SeedR
 domain (:mod:`.domain`) and a session of its own, in the worker's scratch space; the child dies
 with the worker (:mod:`.lifeline`). The seed's folder comes back as a tar into the client's run
 folder (no shared filesystem). A lockstep seed's report equals that of ``--jobs 1``. Ctrl-C
-cancels the jobs (each child stops its nodes, recorder last); a failed seed lands with its logs
-while the others run to their end. Measured: docs/speed.md#seeds-in-parallel.
+stops the jobs (each child stops its nodes, recorder last) and their folders land, marked
+incomplete (:mod:`..run_folder`), as does a failed seed's with its logs while the others run
+to their end. Measured: docs/speed.md#seeds-in-parallel.
 """
 import collections
 import dataclasses
@@ -25,9 +26,11 @@ import tempfile
 import threading
 from typing import Callable, Deque, List, Sequence
 
-from metampc_bringup.orchestration.cluster import check_workers, job_cancelled, run_batch
+from metampc_bringup.orchestration.cluster import (check_workers, job_cancelled, run_batch,
+                                                   SchedulerLost)
 from metampc_bringup.orchestration.experiment_client import ExperimentError
 from metampc_bringup.orchestration.lifeline import child_env, hold
+from metampc_bringup.run_folder import mark_incomplete
 
 log = logging.getLogger('metampc.seed_jobs')
 
@@ -84,7 +87,9 @@ def run_seeds(client, out_dir: str, seeds: Sequence[int], landed: Callable[[int]
 
     Raises:
         ExperimentError: a seed failed (the others ran to their end).
-        KeyboardInterrupt: Ctrl-C or SIGTERM (the jobs cancelled, their children stopped).
+        KeyboardInterrupt: Ctrl-C or SIGTERM (the jobs stopped, their children's nodes too;
+            the folders they had made landed, marked incomplete).
+        SchedulerLost: the scheduler is gone (the seeds finished by then landed).
     """
     with open(os.path.join(out_dir, 'config.yaml')) as f:
         config_text = f.read()
@@ -93,7 +98,11 @@ def run_seeds(client, out_dir: str, seeds: Sequence[int], landed: Callable[[int]
 
     def done(seed: int, outcome: SeedOutcome) -> None:
         _unpack(outcome.folder, out_dir, seed)
+        if outcome.status == INTERRUPTED:
+            mark_incomplete(seed_dir(out_dir, seed), 'interrupted')
+            return
         if outcome.status != 0:
+            mark_incomplete(seed_dir(out_dir, seed), f'failed (exit status {outcome.status})')
             failed.append(f'seed {seed} (exit status {outcome.status}; logs in '
                           f'{seed_dir(out_dir, seed)}/logs)')
             log.warning('seed %d failed (exit status %d); its last lines:\n%s', seed,
@@ -103,8 +112,12 @@ def run_seeds(client, out_dir: str, seeds: Sequence[int], landed: Callable[[int]
         finished.append(seed)
         log.info('seed %d: done (%d of %d)', seed, len(finished), len(seeds))
 
-    errors = run_batch(client, functools.partial(run_seed, config_text), seeds, 'seeds', done,
-                       progress)
+    try:
+        errors = run_batch(client, functools.partial(run_seed, config_text), seeds, 'seeds',
+                           done, progress)
+    except SchedulerLost as err:
+        raise SchedulerLost(f'{err}: {len(finished)} of {len(seeds)} seeds finished in '
+                            f'{out_dir}; the same command runs the others') from None
     failed += [f'seed {seed} ({err.__class__.__name__}: {err})' for seed, err in errors]
     if failed:
         raise ExperimentError('failed: ' + ', '.join(failed))
@@ -123,6 +136,8 @@ def _unpack(folder: bytes, out_dir: str, seed: int) -> None:
 def run_seed(config_text: str, seed: int) -> SeedOutcome:
     """The job of one seed, on a worker: its child in a scratch folder, then the folder."""
     from distributed import get_worker
+    if job_cancelled():     # stopped before it started: nothing to send back
+        return SeedOutcome(INTERRUPTED, b'', '')
     with tempfile.TemporaryDirectory(prefix=f'seed_{seed}-',
                                      dir=get_worker().local_directory) as work:
         with open(os.path.join(work, 'config.yaml'), 'w') as f:
