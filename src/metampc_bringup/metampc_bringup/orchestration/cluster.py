@@ -259,7 +259,8 @@ def _drain(client, left: Dict[Any, Any], done: Callable[[Any, Any], None]) -> No
     """After Ctrl-C: ask the jobs of `left` (future: item) to stop, hand what they return
     within :data:`DRAIN_S` to ``done`` and cancel the others."""
     from distributed import as_completed
-    log.info('stopping %d job(s); what they hold comes back first', len(left))
+    log.info('stopping %d job(s) and taking back what they hold (Ctrl-C again: not '
+             'waiting)', len(left))
     try:
         client.run(_stop_jobs, [future.key for future in left])
         for future in as_completed(list(left), loop=client.loop, timeout=DRAIN_S):
