@@ -52,12 +52,12 @@ def test_run_metrics_against_hand_computed_costs():
     nmpc = signals(np.full(n, 0.1), np.zeros(n - 1))
     e2 = squared_errors(sig, [0])
     assert np.allclose(e2, y[1:] ** 2)
-    m = run_metrics(sig, nmpc, 2.0, [0])
+    m = run_metrics(sig, nmpc, 2.0, [0], 0.1)
     assert math.isclose(m['ratio_before'], 1.0) and math.isclose(m['ratio_after'], 9.0)
     assert m['requests'] == [[25, 'triggered']] and m['swaps'] == [35]
     assert m['adaptations'] == 1 and m['compute_s'] == [0.2]
     assert m['recovery_s'] is None      # 9x the NMPC's to the end
-    constant = run_metrics(sig, None, None, [0])
+    constant = run_metrics(sig, None, None, [0], 0.1)
     assert 'ratio_after' not in constant and constant['adaptations'] == 1
 
 
@@ -81,7 +81,7 @@ def test_recovery_uses_a_five_second_window_whatever_the_sample_time(dt, expecte
                           request=np.zeros(n - 1, dtype=bool), trigger=[''] * (n - 1),
                           ref=np.zeros((n - 1, 1)), compute=[])
 
-    m = run_metrics(run(y), run(np.full(n, 0.1)), 2.0, [0])
+    m = run_metrics(run(y), run(np.full(n, 0.1)), 2.0, [0], dt)
     e2, ref = y[1:] ** 2, np.full(n - 1, 0.01)
     times = t_out[1:]
     by_hand = None
@@ -96,3 +96,25 @@ def test_recovery_uses_a_five_second_window_whatever_the_sample_time(dt, expecte
                 break
     assert MOVING_WINDOW_S == 5.0 and by_hand == pytest.approx(expected)
     assert m['recovery_s'] == pytest.approx(expected)
+
+
+def test_identical_runs_started_at_different_stamps_get_identical_metrics():
+    """Two runs with the same outputs, cut out of a recording at starts 90.3 s and 210.5 s (seed
+    0 of the drift run in docs/adaptation.md): their header stamps less the start give sample
+    times 0.1 + 9e-15 and 0.1 - 6e-15, which put the output at t_change = 30 s on opposite
+    sides of the change, so `none` and a `triggered` run that never asked differed by 5 %
+    before the change (cost_before 0.0320 against 0.0336). The split is by the run's dt, so
+    both equal the hand-computed split (the outputs up to and at 30 s before, the rest after)."""
+    n = 601
+    y = np.linspace(0.0, 1.0, n) ** 2
+    got = []
+    for start in (90.3, 210.5):
+        nanoseconds = np.round((start + 0.1 * np.arange(n)) * 1e9).astype(np.int64)
+        stamps = nanoseconds // 10**9 + 1e-9 * (nanoseconds % 10**9)   # as a header's stamp
+        sig = signals(y, np.zeros(n - 1))
+        sig.t = stamps - start
+        got.append(run_metrics(sig, None, 30.0, [0], 0.1))
+    e2 = y[1:] ** 2
+    assert got[0] == got[1]
+    assert got[0]['cost_before'] == pytest.approx(e2[:300].mean())
+    assert got[0]['cost_after'] == pytest.approx(e2[300:].mean())

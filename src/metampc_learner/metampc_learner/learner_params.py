@@ -123,7 +123,8 @@ def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
 
 def resolve_meta_request(request, base: MetaConfig, online_default: bool
                          ) -> Tuple[MetaConfig, bool]:
-    """A MetaTrain request (0 / empty: the parameter) -> (checked MetaConfig, online collection).
+    """A MetaTrain request (0 / empty: the parameter; gamma <= 0 and init_loss_weight < 0 too)
+    -> (checked MetaConfig, online collection).
 
     Raises:
         ValueError: unknown or non-meta method (supervised), negative rates, ...
@@ -135,7 +136,7 @@ def resolve_meta_request(request, base: MetaConfig, online_default: bool
     if method not in META_METHODS:
         raise ValueError(f'unknown method {method!r}; expected one of '
                          f'{", ".join(META_METHODS)}')
-    for name in ('gamma', 'lr_inner', 'lr_outer'):
+    for name in ('gamma', 'lr_inner', 'lr_outer', 'init_loss_weight'):
         if not math.isfinite(getattr(request, name)):
             raise ValueError(f'{name} must be finite, got {getattr(request, name)}')
     for name in ('lr_inner', 'lr_outer'):
@@ -147,7 +148,9 @@ def resolve_meta_request(request, base: MetaConfig, online_default: bool
         inner_steps=request.inner_steps or base.inner_steps,
         gamma=request.gamma if request.gamma > 0 else base.gamma,
         lr_inner=request.lr_inner or base.lr_inner, lr_outer=request.lr_outer or base.lr_outer,
-        cg_steps=request.cg_steps or base.cg_steps, seed=request.seed or base.seed)
+        cg_steps=request.cg_steps or base.cg_steps, seed=request.seed or base.seed,
+        init_loss_weight=(request.init_loss_weight if request.init_loss_weight >= 0
+                          else base.init_loss_weight))
     config.validate()
     return config, bool(request.online_collection) or online_default
 

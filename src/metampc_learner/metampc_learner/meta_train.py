@@ -89,7 +89,7 @@ class MetaConfig:
     windows_per_task: int = param(64, 'windows of D_tr and of D_test per task and step', ge=1)
     init_loss_weight: float = param(0.0, 'w: weight of the meta-model loss before adaptation '
                                          'in the outer objective (0: eq. outer as written)',
-                                    ge=0)
+                                    ge=0, live=True)
     vectorise: bool = True
     backend: str = param('fast', 'meta-gradient code: fast (hand-batched, iMAML with '
                                  'gauss_newton and first-order MAML; the others run eager) or '

@@ -135,12 +135,24 @@ def test_meta_request_zero_means_the_parameter():
     assert resolve_meta_request(MetaTrain.Request(gamma=-1.0), base, False)[0].gamma == 1.0
 
 
+def test_meta_request_anchor_weight_zero_is_no_anchor_and_negative_the_parameter():
+    """w = 0 is a real value (eq. (outer) as written), so 'the parameter' is a negative w, the
+    request's default."""
+    base = replace(MetaConfig(), init_loss_weight=0.1)
+    assert MetaTrain.Request().init_loss_weight < 0
+    assert resolve_meta_request(MetaTrain.Request(), base, False)[0].init_loss_weight == 0.1
+    for w in (0.0, 0.3):
+        config, _ = resolve_meta_request(MetaTrain.Request(init_loss_weight=w), base, False)
+        assert config.init_loss_weight == w
+
+
 @pytest.mark.parametrize('fields,match', [
     ({'method': 'supervised'}, "no meta-training phase: call adapt with method 'supervised'"),
     ({'method': 'reptile'}, "unknown method 'reptile'"),
     ({'lr_inner': -0.1}, 'lr_inner must be >= 0'),
     ({'lr_outer': NAN}, 'lr_outer must be finite'),
     ({'gamma': NAN}, 'gamma must be finite'),
+    ({'init_loss_weight': NAN}, 'init_loss_weight must be finite'),
 ])
 def test_bad_meta_requests(fields, match):
     with pytest.raises(ValueError, match=match):

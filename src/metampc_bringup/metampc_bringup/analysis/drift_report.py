@@ -135,11 +135,17 @@ def moving_cost(e2: np.ndarray, samples: int) -> np.ndarray:
         return sums / counts
 
 
+def _after(t: np.ndarray, t_change: float) -> np.ndarray:
+    """Which output times lie after t_change; one at t_change, to within float error, is
+    before (as n dt against a schedule's time)."""
+    return t > t_change + 1e-9 * max(1.0, abs(t_change))
+
+
 def recovery_time(ratio: np.ndarray, t: np.ndarray, t_change: float,
                   factor: float = RECOVERY_FACTOR) -> Optional[float]:
     """After t_change: 0 if `ratio` never exceeds `factor`; else the first time it is back
     within after it first exceeded, minus t_change; None if it never is."""
-    after = np.flatnonzero(t > t_change)
+    after = np.flatnonzero(_after(t, t_change))
     over = [i for i in after if ratio[i] > factor]
     if not over:
         return 0.0
@@ -154,9 +160,11 @@ def _mean(values: np.ndarray) -> Optional[float]:
 
 
 def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[float],
-                tracked: Sequence[int]) -> Dict[str, Any]:
-    """The metrics of one run (module docstring); `t_change` None: a constant run."""
-    dt = _dt(sig)
+                tracked: Sequence[int], dt: float) -> Dict[str, Any]:
+    """The metrics of one run (module docstring); `t_change` None: a constant run; `dt` the
+    sample time, s (the run's, not one taken from its stamps: their differences carry the
+    float error of the run's start, which moved an output at t_change from one side to the
+    other between identical runs)."""
     e2 = squared_errors(sig, tracked)
     t = (sig.step + 1) * dt     # the time of the output each error is of
     swaps = [int(sig.step[i]) for i in range(1, len(sig.step))
@@ -168,7 +176,8 @@ def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[
         'adaptations': len(swaps)}
     if t_change is None:
         return out
-    before, after = t <= t_change, t > t_change
+    after = _after(t, t_change)
+    before = ~after
     out['cost_before'], out['cost_after'] = _mean(e2[before]), _mean(e2[after])
     if nmpc is not None:
         ref = squared_errors(nmpc, tracked)
@@ -232,15 +241,15 @@ def seed_drift_report(path: str, out_dir: Optional[str] = None, plots: bool = Tr
     n_theta = len(start.theta)
     t_change = min(drift.change_times(n_theta)) if drift.schedule else None
     nmpc = signals.get('nmpc')
+    dt = float(experiment.get('dt') or _dt(next(iter(signals.values()))))
     metrics = {}
     for name, sig in signals.items():
         constant = not runs[name]['schedule']
         metrics[name] = run_metrics(sig, None if name == 'nmpc' else nmpc,
-                                    None if constant else t_change, tracked)
+                                    None if constant else t_change, tracked, dt)
         metrics[name]['escaped'] = runs[name]['diverged']
     figures = []
     if plots:
-        dt = float(experiment.get('dt') or _dt(next(iter(signals.values()))))
         floor = float((experiment.get('controller') or {}).get(
             'error_floor', TriggerConfig().error_floor))
         for method in drift.methods:
