@@ -176,8 +176,10 @@ def _pids_in_domain(domain: int, started_before: float = math.inf):
                          started_before)
 
 
-def _interrupt_after_collection(args, collections: int, timeout: float):
-    """Run run_experiment.py on the CI config with `args`, SIGINT it (as Ctrl-C does) once
+def _interrupt_after_collection(args, collections: int, timeout: float,
+                                signum: int = signal.SIGINT):
+    """Run run_experiment.py on the CI config with `args`, SIGINT its process group (as
+    Ctrl-C does; `signum` SIGTERM: the process alone, as a process manager does) once
     `collections` seeds have collected; (exit status, everything it printed)."""
     proc = subprocess.Popen(
         [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
@@ -189,7 +191,10 @@ def _interrupt_after_collection(args, collections: int, timeout: float):
             lines.append(line)
             if sum('collect done' in x for x in lines) == collections:
                 break
-        os.killpg(proc.pid, signal.SIGINT)
+        if signum == signal.SIGINT:
+            os.killpg(proc.pid, signum)
+        else:
+            os.kill(proc.pid, signum)
         rest, _ = proc.communicate(timeout=timeout)
     finally:
         if proc.poll() is None:
@@ -574,6 +579,24 @@ def test_ctrl_c_with_jobs_2_keeps_both_partial_seeds_and_the_same_command_resume
     assert [s['seed'] for s in _per_seed(out)] == [0, 1]
     for seed in (0, 1):
         _assert_interrupted_seed(os.path.join(out, 'incomplete', f'seed_{seed}.1'))
+
+
+def test_sigterm_with_jobs_2_is_an_interruption_too(tmp_path):
+    """SIGTERM to run_experiment.py alone while two seeds run on the embedded cluster: as
+    Ctrl-C, exit 130, both seeds' partial folders in --out marked INCOMPLETE, no process left
+    in either seed's domain."""
+    out = str(tmp_path / 'run')
+    code, text = _interrupt_after_collection(
+        ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'], 2, 300,
+        signal.SIGTERM)
+    ended = uptime_s()
+    assert code == 130 and 'Traceback' not in text, text
+    domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
+    assert len(domains) == 2, text
+    for domain in domains:
+        assert _wait_domain_empty(domain, ended, 30.0) == [], f'processes left in {domain}'
+    for seed in (0, 1):
+        _assert_interrupted_seed(os.path.join(out, f'seed_{seed}'))
 
 
 def test_the_scheduler_gone_is_one_line_and_the_same_command_resumes(parallel_run, tmp_path):

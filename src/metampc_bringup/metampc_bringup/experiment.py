@@ -51,7 +51,8 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
     ``hosts`` (node names per host, :func:`.orchestration.netns.parse_hosts`) runs each group in
     a network namespace of its own instead, and the orchestration in one more (root only:
     :class:`.orchestration.netns.NetnsError` otherwise), all of them removed on return. Ctrl-C
-    or SIGTERM stops the nodes of the running seed, leaves its recording readable and re-raises
+    or SIGTERM stops the nodes of the running seed (on a cluster: of every running seed), leaves
+    its recording readable in its folder, marked incomplete (:mod:`.run_folder`), and re-raises
     KeyboardInterrupt. ``foxglove_port``: each seed's graph also runs the Foxglove live view
     on that port (not with ``hosts``: it would serve inside the orchestrator's namespace).
     ``cluster`` runs the seeds as jobs of a dask cluster (embedded, or an existing one), each
@@ -82,7 +83,7 @@ def run_experiment(config: ExperimentConfig, out_dir: str, progress: bool = True
 
     started = time.monotonic()
     if cluster is not None:
-        with connect(cluster) as client:
+        with terminate_as_interrupt(), connect(cluster) as client:
             check_workers_run_this_code(client)
             run_seeds(client, out_dir, prepare(out_dir, config.to_dict(), seeds), land,
                       progress)
