@@ -26,6 +26,7 @@ from metampc_bringup.experiment_config import ConfigError, learner_config, load
 from metampc_bringup.orchestration.lifeline import ENV as LIFELINE
 from metampc_bringup.orchestration.processes import session_pids
 from metampc_bringup.orchestration.procfs import pids_with_env, uptime_s
+from metampc_bringup.run_folder import mark_incomplete
 from metampc_learner.heldout import target_heldout
 from metampc_testing import free_port, loopback_dask, read_with_rosbags, SESSION_ENV
 
@@ -164,6 +165,10 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     assert rebuild_report(out)['claims'] == report['claims']
     with open(os.path.join(out, 'report.md')) as f:
         assert 'Wall time: not recorded (report rebuilt from the recordings).' in f.read()
+    # A seed's folder marked incomplete (an interrupted try; here a copy) is no finished seed.
+    shutil.copytree(seed_dir, os.path.join(out, 'seed_7'))
+    mark_incomplete(os.path.join(out, 'seed_7'), 'interrupted')
+    assert [s['seed'] for s in rebuild_report(out)['per_seed']] == [per_seed['seed']]
 
 
 def _pids_in_domain(domain: int, started_before: float = math.inf):
@@ -344,7 +349,8 @@ def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
 
 def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
     """--jobs 2: one seed's child killed by SIGKILL: its nodes end within 5 s; the other seed
-    runs to its end, and the run fails naming the killed seed, with nothing left running."""
+    runs to its end, and the run fails naming the killed seed (its folder marked INCOMPLETE),
+    with nothing left running."""
     out = str(tmp_path / 'run')
     proc = _start_run(['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'])
     lines, domains, killed = [], {}, None
@@ -364,6 +370,8 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
         assert 'seed 0 failed (exit status -9); its last lines:' in text, text
         assert 'seed 1: done' in text, text
         assert _pids_in_domain(domains[1], ended) == [], 'processes left behind'
+        with open(os.path.join(out, 'seed_0', 'INCOMPLETE')) as f:
+            assert f.read().startswith('failed (exit status -9);')
     finally:
         _kill_leftovers(proc, domains.values(), killed if killed is not None else uptime_s())
         proc.stdout.close()
