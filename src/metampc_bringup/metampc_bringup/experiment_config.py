@@ -27,6 +27,7 @@ from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
 from metampc_plant.simulator import PlantConfig
+from metampc_plant.steady_state import steady_output
 from metampc_plant.theta_schedule import ThetaSchedule
 
 PROTOCOLS = ('tuned', 'paper_settings')
@@ -107,6 +108,10 @@ class ExperimentConfig:
         track_duration: tracking run length, s of plant time (the paper reference: 30 s).
         tracked_outputs: output indices with a reference (metrics cover these; None: the
             family's).
+        reference_inputs: constant inputs, one row of n_u values per set-point: the
+            set-points become the tracked outputs of the target's steady state there (per
+            seed's theta*), so the target can hold every one (None: controller.reference_values
+            as given).
         dt, u_min, u_max: sample time (s) and input bounds (a list, one per input, or one
             number for every input), shared by the nodes; None: the family's.
         plant, learner, controller, recorder: ROS parameters of each node.
@@ -130,6 +135,7 @@ class ExperimentConfig:
     track_x0: Optional[List[float]] = None
     track_duration: float = 30.0
     tracked_outputs: Optional[List[int]] = None
+    reference_inputs: Optional[List[List[float]]] = None
     dt: Optional[float] = None
     u_min: Optional[Union[float, List[float]]] = None
     u_max: Optional[Union[float, List[float]]] = None
@@ -196,6 +202,20 @@ class ExperimentConfig:
         rng = np.random.default_rng([seed, 0x7e7a])    # not the stream of any node
         return self.plant_family.sample_theta(rng, 1)[0].tolist()
 
+    def reachable_setpoints(self, seed: int) -> List[float]:
+        """The set-points of ``reference_inputs`` for run `seed`: the tracked outputs of
+        theta*'s steady state at each row, row after row (ConfigError if one has none)."""
+        cfg = self.resolved()
+        theta = cfg.target_theta(seed)
+        values = []
+        for row in cfg.reference_inputs:
+            try:
+                y = steady_output(cfg.plant_family, theta, row)
+            except ValueError as err:
+                raise ConfigError(f'reference_inputs (seed {seed}): {err}') from None
+            values += [float(y[j]) for j in cfg.tracked_outputs]
+        return values
+
     def track_steps(self) -> int:
         """Samples of one tracking run."""
         return int(round(self.track_duration / self.dt))
@@ -208,6 +228,10 @@ class ExperimentConfig:
             fam = cfg.plant_family
             params['q'] = [1.0 if j in cfg.tracked_outputs else 0.0 for j in range(fam.n_y)]
         params.update(getattr(cfg, node))
+        if node == 'controller' and cfg.reference_inputs:
+            params.update(reference='setpoint_sequence', reference_per_output=True,
+                          reference_outputs=list(cfg.tracked_outputs),
+                          reference_values=cfg.reachable_setpoints(seed))
         if node == 'plant':
             params.update(mode='lockstep', theta=cfg.target_theta(seed), seed=seed,
                           x0=list(cfg.collect_x0), input_timeout=0.0)
@@ -291,11 +315,27 @@ class ExperimentConfig:
                               f'{self.scenario!r}')
         if self.scenario == 'drift':
             _check_drift(self, fam, cfg)
+        if self.reference_inputs is not None:
+            _check_reference_inputs(self, fam)
         _check_requests('meta_train', self.meta_train, META_METHODS, _META_FIELDS)
         _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
         for node in _NODE_PARAMS:
             self.node_config(node, self.first_seed)
         return cfg
+
+
+def _check_reference_inputs(config: ExperimentConfig, fam: PlantFamily) -> None:
+    """reference_inputs: rows of n_u numbers, and the controller section leaves the reference
+    to them (the set-points of every seed are computed at its bring-up)."""
+    rows = config.reference_inputs
+    if not rows or any(np.ndim(r) != 1 or len(r) != fam.n_u for r in rows):
+        raise ConfigError(f'reference_inputs must be rows of {fam.n_u} input values (family '
+                          f'{fam.name}), one per set-point; got {rows}')
+    taken = sorted({'reference', 'reference_values', 'reference_outputs',
+                    'reference_per_output'} & set(config.controller))
+    if taken:
+        raise ConfigError(f'reference_inputs sets the reference: leave {", ".join(taken)} out '
+                          f'of the controller section')
 
 
 def _check_drift(config: ExperimentConfig, fam: PlantFamily, cfg: ExperimentConfig) -> None:

@@ -1,4 +1,6 @@
 """The named protocols turn the experiment's requests into the tuned or the paper's set-up."""
+import re
+
 import pytest
 
 from metampc_bringup.experiment_config import ConfigError, from_mapping
@@ -99,3 +101,40 @@ def test_request_fields_take_the_requests_types():
                        ({'online_collection': 1}, 'is not a boolean')):
         with pytest.raises(ConfigError, match=match):
             from_mapping({'meta_train': {'imaml': bad}}).validate()
+
+
+def test_reference_inputs_give_each_seed_the_set_points_its_target_can_hold():
+    """The quadruple tank's set-points from pump voltages: per seed, the levels of theta*'s
+    steady state (closed form: each lower tank's outflow a_i sqrt(2 g h_i) equals its inflow
+    g_i k_i v_i + (1 - g_j) k_j v_j), row after row, on the tracked outputs."""
+    from metampc_plant.families.quadruple_tank import GRAVITY, OUTLET, PUMP, SENSOR
+    rows = [[3.0, 3.0], [2.6, 3.4]]
+    config = from_mapping({'family': 'quadruple_tank', 'reference_inputs': rows})
+    config.validate()
+    for seed in (0, 7):
+        g1, g2 = config.target_theta(seed)
+        want = []
+        for v1, v2 in rows:
+            q = (g1 * PUMP[0] * v1 + (1 - g2) * PUMP[1] * v2,
+                 g2 * PUMP[1] * v2 + (1 - g1) * PUMP[0] * v1)
+            want += [SENSOR * (q[i] / OUTLET[i]) ** 2 / (2 * GRAVITY) for i in (0, 1)]
+        params = config.node_parameters('controller', seed)
+        assert params['reference_values'] == pytest.approx(want, rel=1e-8)
+        assert (params['reference'], params['reference_per_output'],
+                params['reference_outputs']) == ('setpoint_sequence', True, [0, 1])
+        ctrl = config.node_config('controller', seed)
+        assert ctrl.reference_params['setpoints'] == [tuple(params['reference_values'][:2]),
+                                                      tuple(params['reference_values'][2:])]
+
+
+@pytest.mark.parametrize('changes, message', [
+    ({'reference_inputs': [[3.0]]}, 'reference_inputs must be rows of 2 input values'),
+    ({'reference_inputs': [[3.0, 3.0]], 'controller': {'reference_values': [6.0]}},
+     'reference_inputs sets the reference: leave reference_values out'),
+    ({'reference_inputs': [[10.0, 10.0]]}, 'reference_inputs (seed 0): quadruple_tank: no '
+                                           'steady state inside the state box'),
+    ({'reference_inputs': [[-1.0, 3.0]]}, 'is not 2 values inside'),
+])
+def test_bad_reference_inputs_are_one_config_error(changes, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        from_mapping({'family': 'quadruple_tank', **changes}).validate()

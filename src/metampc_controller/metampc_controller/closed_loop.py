@@ -2,14 +2,12 @@
 
 What a lockstep run of the nodes computes, sample for sample: the plant resets to (theta, x0)
 and sends y_0 with u_0 = 0; for k = 0..steps-1 the controller observes (k, u_k, y_k) with
-theta(k dt) (a theta_schedule's value, as y_k carries it) and its
-tick answers u_{k+1} (held over (k, k+1]), which the plant applies (clipped to its bounds) to
-give y_{k+1}. The experiment's tracking cost pairs y_{k+1} with the reference r_{k+1} of the
-tick that answered step k (``metrics.reference_pairs``), summed over the tracked outputs.
-An episode stops at the first diverged sample, as a run bounded by ``stop_at_escape`` does.
-
-Used to score controller settings on recorded or freshly adapted models in seconds instead of
-a ROS graph's minutes (scripts/retrack.py), and by the tests as the loop of the nodes.
+theta(k dt) (as y_k carries it) and its tick answers u_{k+1}, held over (k, k+1] by the plant
+(clipped to its bounds) to give y_{k+1}. The tracking cost pairs y_{k+1} with the reference
+r_{k+1} of the tick that answered step k (``metrics.reference_pairs``) over the tracked outputs.
+It stops at the first diverged sample, as a run bounded by ``stop_at_escape`` does. Used to
+score controller settings in seconds (scripts/retrack.py), by the tests as the loop of the
+nodes, and by Algorithm 1's online collection (warm-up inputs, eq. (ub)'s noise on answers).
 """
 from dataclasses import dataclass
 from typing import List, Optional, Sequence
@@ -27,8 +25,9 @@ class Episode:
     Attributes:
         u: (K + 1, n_u) inputs u_0..u_K (u_0 = 0, before any answer), as the plant held them.
         y: (K + 1, n_y) outputs y_0..y_K.
-        y_ref: (K, n_y) references r_1..r_K (first row of each tick's horizon).
-        ticks: the K TickResults.
+        y_ref: (K, n_y) references r_1..r_K (first row of each tick's horizon; NaN where no
+            tick answered: warm-up).
+        ticks: the TickResults of steps W..K-1 (W warm-up inputs).
         escaped_at: index k of the first diverged y_k, or None.
     """
 
@@ -46,26 +45,41 @@ class Episode:
 
 def run_episode(core: ControllerCore, plant: Plant, steps: int,
                 theta: Optional[Sequence[float]] = None,
-                x0: Optional[Sequence[float]] = None) -> Episode:
+                x0: Optional[Sequence[float]] = None,
+                warmup: Optional[np.ndarray] = None,
+                noise: Optional[np.ndarray] = None) -> Episode:
     """Reset `plant` to (theta, x0) and let `core` answer `steps` samples (module docstring).
 
     The core keeps its model and tuning across episodes; a plant reset is a new episode for it
     (the step index goes back), so its planners start cold, as in the nodes.
+
+    Args:
+        warmup: (W, n_u) inputs u_1..u_W the plant holds before the core answers: the core
+            observes samples 0..W-1 without a tick and answers from step W on.
+        noise: (steps - W, n_u) added to the answers of steps W, W + 1, ... in turn before
+            the plant clips them (eq. (ub)'s exploration).
     """
     y0 = plant.reset(theta, x0)
     n_u = plant.family.n_u
+    n_warm = 0 if warmup is None else len(warmup)
     u = np.zeros((steps + 1, n_u))
     y = np.zeros((steps + 1, len(y0)))
     y[0] = y0
     refs, ticks, escaped = [], [], (0 if plant.diverged else None)
+    no_ref = np.full(len(y0), np.nan)
     k = 0
     theta_k = plant.theta     # theta(k dt), as y_k carries it
     while k < steps and escaped is None:
         core.observe(k, u[k], y[k], theta_k)
-        res = core.tick()
-        ticks.append(res)
-        refs.append(res.y_ref[0] if len(res.y_ref) else np.full(len(y0), np.nan))
-        u[k + 1], _ = plant.saturate(res.u)
+        if k < n_warm:
+            u_next = warmup[k]
+            refs.append(no_ref)
+        else:
+            res = core.tick()
+            ticks.append(res)
+            refs.append(res.y_ref[0] if len(res.y_ref) else no_ref)
+            u_next = res.u if noise is None else res.u + noise[k - n_warm]
+        u[k + 1], _ = plant.saturate(u_next)
         y[k + 1] = plant.step(u[k + 1])
         theta_k = plant.theta
         k += 1

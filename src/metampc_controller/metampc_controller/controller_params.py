@@ -47,6 +47,9 @@ class ReferenceParams:
                                           f'{list(SetpointSequenceConfig.setpoints)}); setpoint: '
                                           'one value (default 0); steps: the value from each '
                                           'time on', item=float, live=True)
+    per_output: bool = param(False, 'setpoint_sequence: values hold one value per output of '
+                                    'reference_outputs for each set-point, row after row',
+                             live=True)
     times: Tuple[float, ...] = param((), 'steps: increasing times, s since the plant reset',
                                      item=float, live=True)
     initial: float = param(0.0, 'steps: value before the first time', live=True)
@@ -63,9 +66,20 @@ class ReferenceParams:
     def resolve(self, n_y: int) -> Dict[str, Any]:
         """The arguments of ``make_reference(kind, ...)`` for a plant with n_y outputs."""
         params: Dict[str, Any] = {'n_y': n_y, 'outputs': self.outputs}
+        if self.per_output and self.kind != 'setpoint_sequence':
+            raise ValueError(f'reference_per_output applies to setpoint_sequence, not '
+                             f'{self.kind}')
         if self.kind == 'setpoint_sequence':
-            params.update(setpoints=self.values or SetpointSequenceConfig.setpoints,
-                          segment=self.segment, start=self.start)
+            setpoints = self.values or SetpointSequenceConfig.setpoints
+            if self.per_output:
+                width = len(self.outputs)
+                if not self.values or len(self.values) % width:
+                    raise ValueError(f'reference_per_output: reference_values must hold '
+                                     f'{width} values (one per reference output) per '
+                                     f'set-point, got {len(self.values)}')
+                setpoints = [tuple(self.values[i:i + width])
+                             for i in range(0, len(self.values), width)]
+            params.update(setpoints=setpoints, segment=self.segment, start=self.start)
         elif self.kind == 'setpoint':
             if len(self.values) > 1:
                 raise ValueError(f'reference setpoint takes one value in reference_values, '

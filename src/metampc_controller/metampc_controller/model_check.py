@@ -30,7 +30,7 @@ class ModelCheckConfig:
                                           'fly: requested (answers to adaptation requests, '
                                           'late ones too), all, off', choices=CHECKED,
                              live=True)
-    model_check_margin: float = param(0.25, 'a new model may predict up to this fraction worse '
+    model_check_margin: float = param(0.0, 'a new model may predict up to this fraction worse '
                                             'than the model in use and still fly', ge=0,
                                       live=True)
     model_check_window: int = param(200, 'latest samples of the episode the check scores', ge=1,

@@ -1,7 +1,8 @@
 """Reference signals r(t) for the MPC's tracked outputs (y_bar of eq. (mpc)).
 
-A reference is a scalar signal of time put on the chosen output columns (default x1, column 0)
-of an (N, n_y) array; the other columns are 0 (they carry weight 0 in the MPC). It is
+A reference is a signal of time put on the chosen output columns (default x1, column 0) of an
+(N, n_y) array, the same value on each, or (set-point rows) one value per column; the other
+columns are 0 (they carry weight 0 in the MPC). It is
 evaluated over the horizon of the tick at time t0, i.e. at the samples t0 + dt, ..., t0 + N dt
 that the MPC predicts (y_{t+1..t+N}). Kinds: 'setpoint', 'steps', 'sine', and
 'setpoint_sequence' (set-points held for equal segments; by default the tracking task of the
@@ -11,7 +12,7 @@ Times are in seconds, values in the units of the outputs.
 from abc import ABC, abstractmethod
 from bisect import bisect_right
 from dataclasses import dataclass, fields
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import numpy as np
 
@@ -79,9 +80,11 @@ class SineConfig(ReferenceConfig):
 @dataclass(frozen=True, kw_only=True)
 class SetpointSequenceConfig(ReferenceConfig):
     """Set-points held in turn (default: the paper's tracking task): each held `segment`
-    seconds from `start` on, the first one before `start`, the last one after the end."""
+    seconds from `start` on, the first one before `start`, the last one after the end. A
+    set-point is a number (every output follows it) or a row of one value per output of
+    `outputs`, in their order (e.g. a tank's two levels, each one that the plant can hold)."""
 
-    setpoints: Sequence[float] = (0.8, -0.5, 0.3, -0.8)
+    setpoints: Sequence[Union[float, Sequence[float]]] = (0.8, -0.5, 0.3, -0.8)
     segment: float = 7.5
     start: float = 0.0
 
@@ -89,6 +92,12 @@ class SetpointSequenceConfig(ReferenceConfig):
         super().__post_init__()
         if not self.setpoints or not self.segment > 0:
             raise ValueError('need at least one set-point and segment > 0')
+        ranks = {np.ndim(v) for v in self.setpoints}
+        widths = {len(v) for v in self.setpoints} if ranks == {1} else set()
+        if ranks != {0} and widths != {len(self.outputs)}:
+            raise ValueError(f'set-points must be all numbers or all rows of '
+                             f'{len(self.outputs)} values (one per output), got '
+                             f'{[list(np.atleast_1d(v)) for v in self.setpoints]}')
 
     @property
     def duration(self) -> float:
@@ -97,7 +106,7 @@ class SetpointSequenceConfig(ReferenceConfig):
 
 
 class Reference(ABC):
-    """A scalar signal on chosen outputs; evaluate() gives the MPC's (N, n_y) reference."""
+    """A signal on chosen outputs; evaluate() gives the MPC's (N, n_y) reference."""
 
     def __init__(self, config: ReferenceConfig):
         self.config = config
@@ -108,31 +117,32 @@ class Reference(ABC):
 
     @abstractmethod
     def signal(self, t: np.ndarray) -> np.ndarray:
-        """Signal values (len(t),) at times t (s)."""
+        """Signal values (len(t),), or (len(t), n_outputs) for rows, at times t (s)."""
 
     def constant(self, t_first: float, t_last: float) -> Optional[float]:
-        """The signal's value if it is the same at all times in [t_first, t_last] (as
-        signal() computes it), else None (then evaluate() calls signal())."""
+        """The signal's value (a number, or a row (n_outputs,)) if it is the same at all times
+        in [t_first, t_last] (as signal() computes it), else None (then evaluate() calls
+        signal())."""
         return None
 
     def evaluate(self, t0: float, dt: float, N: int) -> np.ndarray:
         """References (N, n_y) at the samples t0 + dt, ..., t0 + N dt (computed as
         dt * k + t0: the same float64 operations whichever path below runs)."""
         out = np.zeros((N, self.config.n_y))
-        column = self._column
-        value = None if column is None else self.constant(dt + t0, dt * N + t0)
+        columns = self._outputs if self._column is None else self._column
+        value = self.constant(dt + t0, dt * N + t0)
         if value is not None:       # the whole horizon on one set-point (most ticks)
-            out[:, column] = value
+            out[:, columns] = value
             return out
         steps = self._steps
         if len(steps) != N:
             steps = self._steps = np.arange(1, N + 1)
         t = dt * steps
         t += t0
-        if column is not None:
-            out[:, column] = self.signal(t)
-        else:
-            out[:, self._outputs] = self.signal(t)[:, None]
+        signal = self.signal(t)
+        if self._column is None and signal.ndim == 1:      # one value for every output
+            signal = signal[:, None]
+        out[:, columns] = signal
         return out
 
 
@@ -187,6 +197,8 @@ class SetpointSequence(Steps):
     @staticmethod
     def _table(config: SetpointSequenceConfig) -> tuple:
         values = np.array([config.setpoints[0], *config.setpoints], dtype=float)
+        if values.ndim == 2 and values.shape[1] == 1:   # rows of one output: numbers
+            values = values[:, 0]
         times = config.start + config.segment * np.arange(len(config.setpoints))
         return times, values
 

@@ -456,6 +456,48 @@ def test_run_episode_is_the_lockstep_loop_replayed_exactly():
     assert escaped.escaped_at is not None and len(escaped.y) == escaped.escaped_at + 1
 
 
+def test_run_episode_warmup_noise_and_reference_table():
+    """Online collection's hooks (closed_loop.run_episode, ControllerCore.set_references),
+    against a replay of the episode: the plant holds the W warm-up inputs while the core only
+    observes; then each input is the tick's answer plus its noise row, clipped by the plant;
+    every later tick plans from the input the plant held (u_prev: the MPC's plan is
+    recomputed on a fresh planner with the clipped inputs and must be the tick's), towards
+    rows t + 1..t + N of the table (an override wins over it)."""
+    mpc = MpcConfig(horizon=4, time_limit=NO_TIME_LIMIT)
+    core = ControllerCore(ControllerConfig(mpc=mpc))
+    bundle = manual_bundle(theta=0.5, history=3, mpc=mpc)
+    core.offer_model(bundle)
+    rng = np.random.default_rng(1)
+    table = np.column_stack([rng.uniform(-0.8, 0.8, 50), np.zeros(50)])
+    core.set_references(table)
+    warmup, noise = rng.uniform(-1.0, 1.0, (3, 1)), rng.normal(0.0, 0.7, (37, 1))
+    episode = run_episode(core, Plant(PlantConfig(theta=(0.5,))), 40, (0.5,), (0.5, 0.0),
+                          warmup, noise)
+    assert episode.escaped_at is None and len(episode.ticks) == 37
+    np.testing.assert_array_equal(episode.u[1:4], warmup)
+    assert np.all(np.isnan(episode.y_ref[:3]))
+    clipped = np.clip([t.u + e for t, e in zip(episode.ticks, noise)], -1.0, 1.0)
+    np.testing.assert_array_equal(episode.u[4:], clipped)
+    assert np.any(np.abs(clipped) == 1.0) and np.any(np.abs(clipped) < 1.0)   # both cases
+    replay = manual_bundle(theta=0.5, history=3, mpc=mpc)
+    u, y = episode.u, episode.y
+    for i, tick in enumerate(episode.ticks):
+        t = 3 + i
+        np.testing.assert_array_equal(tick.y_ref, table[t + 1:t + 5])
+        z = replay.predictor.encode(u[t - 2:t + 1], y[t - 2:t + 1])
+        plan = replay.mpc.solve(z, u[t], table[t + 1:t + 5], y[t], t)
+        np.testing.assert_array_equal(tick.u_plan, plan.u_plan)
+    assert core.set_override([0.25, 0.0]) == ''
+    assert core.references(5).tolist() == [[0.25, 0.0]] * 4
+    assert core.set_override([]) == '' and np.array_equal(core.references(5), table[6:10])
+    with pytest.raises(ValueError, match='step 46 needs rows up to 50'):
+        core.references(46)
+    with pytest.raises(ValueError, match='finite'):
+        core.set_references(np.zeros((10, 3)))
+    core.set_references(None)
+    assert core.references(0)[0, 0] == 0.8      # the tuning's reference again
+
+
 def test_history_rows_are_the_samples_of_the_episode():
     rng = np.random.default_rng(0)
     for capacity in (1, 2, 7):

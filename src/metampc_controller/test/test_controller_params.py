@@ -51,6 +51,9 @@ def test_values_are_converted_and_combined():
     setpoint = parse_params(values(reference='setpoint', reference_values=[-0.3]))
     assert setpoint.reference_params['value'] == -0.3
     assert parse_params(values(reference='setpoint')).reference_params['value'] == 0.0
+    rows = parse_params(values(reference_per_output=True, reference_outputs=[1, 0],
+                               reference_values=[6.0, 6.5, 5.0, 7.25]))
+    assert rows.reference_params['setpoints'] == [(6.0, 6.5), (5.0, 7.25)]
 
 
 BAD = {
@@ -75,6 +78,11 @@ BAD = {
     'steps order': ({'reference': 'steps', 'reference_times': [2.0, 1.0],
                      'reference_values': [1.0, 2.0]}, 'increasing times'),
     'sine period': ({'reference': 'sine', 'reference_period': 0.0}, 'period must be > 0'),
+    'rows width': ({'reference_per_output': True, 'reference_outputs': [0, 1],
+                    'reference_values': [1.0, 2.0, 3.0]},
+                   'reference_values must hold 2 values (one per reference output) per'),
+    'rows kind': ({'reference_per_output': True, 'reference': 'sine'},
+                  'reference_per_output applies to setpoint_sequence, not sine'),
     'sequence segment': ({'reference_segment': -1.0}, 'reference_segment must be > 0'),
     'pre-model': ({'pre_model_input': 'noise'}, 'pre_model_input must be one of'),
     'excitation kind': ({'excitation_kind': 'multisine'}, 'excitation_kind must be one of'),

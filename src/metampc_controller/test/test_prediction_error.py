@@ -8,7 +8,8 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from metampc_controller.controller_core import build_model, ControllerCore
+from metampc_controller.adaptation_trigger import TriggerConfig
+from metampc_controller.controller_core import build_model, ControllerCore, ModelBundle
 from metampc_controller.controller_params import ControllerConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
@@ -87,3 +88,32 @@ def test_the_tick_reports_the_errors_of_the_model_in_use():
     assert np.isnan(same[0]).all() and np.isnan(same[:horizon, 1]).all()
     assert np.isfinite(same[1:, 0]).all() and np.isfinite(same[horizon:, 1]).all()
     assert np.nanmean(other[:, 1]) > 10 * np.nanmean(same[:, 1])
+
+
+def test_a_model_without_monitor_measures_nothing_asks_nothing_and_controls_alike():
+    """ModelBundle.of(monitor=False) (online collection's): the ticks report no errors and
+    make no adaptation request even under a periodic trigger, and answer with the same inputs
+    bit for bit as the monitored model (monitoring never changes control)."""
+    decoded = DecodedWeights(*linearised_vdp_nssm(0.5, 0.1, 10))
+    mpc = MpcConfig(time_limit=30.0)
+    periodic = TriggerConfig(adaptation='periodic', adapt_period=1.0)
+    config = ControllerConfig(mpc=mpc, trigger=periodic)
+    runs = []
+    for bundle in (build_model(decoded, 1, 'manual', 'adapted', mpc, 1, 2),
+                   ModelBundle.of(NssmPredictor(decoded.config, decoded.norm, decoded.params),
+                                  1, 'manual', 'adapted', mpc, monitor=False)):
+        core = ControllerCore(config)
+        core.offer_model(bundle)
+        plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
+        y, u, ticks = plant.output(), 0.0, []
+        for k in range(40):
+            core.observe(k, [u], y)
+            ticks.append(core.tick())
+            u = float(ticks[-1].u[0])
+            y = plant.step([u])
+        runs.append(ticks)
+    monitored, unmonitored = runs
+    assert np.isfinite(monitored[-1].prediction_errors).all()
+    assert any(t.request is not None for t in monitored)
+    assert all(np.isnan(t.prediction_errors).all() and t.request is None for t in unmonitored)
+    assert [t.u.tolist() for t in monitored] == [t.u.tolist() for t in unmonitored]

@@ -77,3 +77,22 @@ def test_references_equal_the_signal_at_the_sample_times(kind, params):
                 got = ref.evaluate(t0, dt, n)
                 assert got.dtype == np.float64
                 np.testing.assert_array_equal(got, expected)
+
+
+def test_setpoint_rows_give_each_output_its_own_value_on_both_paths():
+    """Rows (y2, y1) on outputs (1, 0) of three outputs: written by hand for a horizon inside
+    one segment (the constant path) and for one across the switch at 2 s (the signal path)."""
+    ref = make_reference('setpoint_sequence', n_y=3, outputs=(1, 0),
+                         setpoints=[(6.0, 6.5), (5.0, 7.25)], segment=2.0)
+    np.testing.assert_array_equal(ref.evaluate(0.0, 0.5, 2), [[6.5, 6.0, 0.0]] * 2)
+    np.testing.assert_array_equal(ref.evaluate(1.0, 0.5, 3),     # 1.5 s; 2 s and 2.5 s
+                                  [[6.5, 6.0, 0.0], [7.25, 5.0, 0.0], [7.25, 5.0, 0.0]])
+    np.testing.assert_array_equal(ref.evaluate(9.0, 0.5, 1), [[7.25, 5.0, 0.0]])
+    single = make_reference('setpoint_sequence', setpoints=[(0.3,), (-0.2,)], segment=1.0)
+    np.testing.assert_array_equal(single.evaluate(0.0, 0.5, 2)[:, 0], [0.3, -0.2])  # 0.5, 1 s
+
+
+@pytest.mark.parametrize('setpoints', [[(1.0, 2.0), 3.0], [(1.0, 2.0, 3.0)], [(1.0,)]])
+def test_setpoint_rows_must_be_all_rows_of_one_value_per_output(setpoints):
+    with pytest.raises(ValueError, match='all numbers or all rows of 2 values'):
+        SetpointSequenceConfig(outputs=(0, 1), setpoints=setpoints)

@@ -1,14 +1,14 @@
 """Algorithm 1's online collection: closed-loop source data from the latent MPC, eq. (ub).
 
 After the inner loop of task b (eq. (inner_imaml)) the meta-training core calls the collector with
-(task, theta_b, omega_b); it turns omega_b into the latent model of eq. (SSM), runs the latent MPC
-of eq. (mpc) on the source system theta_b (the plant core) for bounded episodes with exploration
-noise, u^b = clip(u^b_* + u^b_0, u_min, u_max), u^b_0 ~ N(0, noise_std^2 I), and returns the
-trajectories (u^b, y^b) (:class:`~metampc_learner.data.Trajectory`, index convention of
-:mod:`metampc_model.nssm`) that the core adds to D_source. An episode ends at the first sample that
-leaves the state box (only the finite samples before it are returned); a model the MPC cannot use
-gives no data. Seeded per (seed, task, call, episode). Pure numpy/torch/osqp, no rclpy. Episodes in
-full: docs/learner.md.
+(task, theta_b, omega_b); it drives the source system theta_b (the plant core) with the
+controller's own tick (:class:`~metampc_controller.controller_core.ControllerCore` on the latent
+MPC of eq. (mpc), offset-free tracking and fallbacks included, in
+:func:`~metampc_controller.closed_loop.run_episode`) for bounded episodes with exploration noise,
+u^b = clip(u^b_* + u^b_0, u_min, u_max), u^b_0 ~ N(0, noise_std^2 I), and returns the trajectories
+(u^b, y^b) (:class:`~metampc_learner.data.Trajectory`) that the core adds to D_source. An episode
+ends at the first sample that leaves the state box (the finite samples before it are returned); a
+model the MPC cannot use gives no data. Seeded per (seed, task, call, episode): docs/learner.md.
 """
 import dataclasses
 from dataclasses import dataclass, field
@@ -19,7 +19,10 @@ import torch
 
 from metampc_common.params import check_fields, param
 from metampc_common.excitation import excitation
-from metampc_controller.mpc import LatentMpc, MpcConfig
+from metampc_controller.closed_loop import run_episode
+from metampc_controller.controller_core import ControllerCore, ModelBundle
+from metampc_controller.controller_params import ControllerConfig
+from metampc_controller.mpc import MpcConfig
 from metampc_model.nssm import Nssm, Params
 from metampc_model.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig, Trajectory
@@ -71,7 +74,7 @@ class CollectionStats:
         samples: samples returned.
         escaped: episodes cut short because the state left the box.
         model_failures: calls without data because the MPC rejected the model.
-        mpc_fallbacks: ticks whose input was the MPC's fallback (shifted previous plan).
+        mpc_fallbacks: ticks whose answer was a fallback (the MPC's shifted previous plan).
     """
 
     calls: int = 0
@@ -119,60 +122,48 @@ class OnlineCollector:
         theta is its parameter vector (n_theta,) (a number: one component)."""
         call = self.stats.calls
         self.stats.calls += 1
-        mpc = LatentMpc(self._mpc_config)
         try:
             if not all(bool(torch.isfinite(v).all()) for v in params.values()):
                 raise ValueError('weights are not finite')
             predictor = NssmPredictor(self.model.config, self.model.norm, params)
-            mpc.set_model(predictor.latent)
+            bundle = ModelBundle.of(predictor, call, 'online_collection', 'adapted',
+                                    self._mpc_config, monitor=False)
         except (ValueError, np.linalg.LinAlgError):
             self.stats.model_failures += 1
             return []
+        core = ControllerCore(ControllerConfig(
+            rate_hz=1.0 / self.source.dt, mpc=self._mpc_config, n_y=self.family.n_y,
+            n_u=self.family.n_u))
+        core.offer_model(bundle)
         out = []
         for episode in range(self.config.episodes):
             rng = np.random.default_rng((self.config.seed, task, call, episode))
-            mpc.reset()
-            traj = self._episode(theta, predictor, mpc, rng)
+            traj = self._episode(core, tuple(np.atleast_1d(theta)), rng)
             self.stats.episodes += 1
             if traj is not None:
                 self.stats.samples += len(traj)
                 out.append(traj)
         return out
 
-    def _episode(self, theta: np.ndarray, predictor, mpc: LatentMpc,
-                 rng: np.random.Generator):
-        """One bounded episode; the finite samples 1..K as a Trajectory (None if none)."""
+    def _episode(self, core: ControllerCore, theta: tuple, rng: np.random.Generator):
+        """One bounded episode of `core` on the source system; the finite samples 1..K as a
+        Trajectory (None if none). Draws x0, the warm-up's seed, the set-points, the noise."""
         cfg, src, n_h, fam = self.config, self.source, self.model.config.history, self.family
-        n_total = n_h + cfg.episode_samples
+        steps = n_h + cfg.episode_samples
         x0 = tuple(rng.uniform(fam.x0_low, fam.x0_high, fam.n_x))
-        plant = Plant(dataclasses.replace(src.plant_config(), theta=tuple(np.atleast_1d(theta)),
-                                          x0=x0))
+        plant = Plant(dataclasses.replace(src.plant_config(), theta=theta, x0=x0))
         warmup = excitation(src.excitation, 1, n_h, src.dt, int(rng.integers(2**31)))[0]
-        ref = self._reference(n_total + cfg.horizon, rng)
-        n_y = self.model.config.n_y
-        u = np.zeros((n_total + 1, fam.n_u))   # row k: u_k (row 0 unused: no input yet)
-        y = np.zeros((n_total + 1, n_y))
-        y[0] = plant.output()
-        n = 0
-        for k in range(1, n_total + 1):         # choose u_k from data up to k - 1, step
-            if k <= n_h:
-                u_k = warmup[k - 1]
-            else:
-                t = k - 1
-                z = predictor.encode(u[t - n_h + 1:t + 1], y[t - n_h + 1:t + 1])
-                result = mpc.solve(z, u[t], ref[t + 1:t + 1 + cfg.horizon], y[t], t)
-                self.stats.mpc_fallbacks += int(result.fallback)
-                u_k = result.u + cfg.noise_std * rng.standard_normal(fam.n_u)  # eq. (ub)
-            u_k, _ = plant.saturate(u_k)
-            y_k = plant.step(u_k)
-            if plant.diverged:
-                self.stats.escaped += 1
-                break
-            u[k], y[k] = u_k, y_k
-            n = k
+        core.set_references(self._reference(steps + cfg.horizon, rng))
+        noise = cfg.noise_std * rng.standard_normal((cfg.episode_samples, fam.n_u))
+        episode = run_episode(core, plant, steps, theta, x0, warmup, noise)
+        self.stats.mpc_fallbacks += sum(tick.fallback for tick in episode.ticks)
+        n = len(episode.y) - 1
+        if episode.escaped_at is not None:
+            self.stats.escaped += 1
+            n = episode.escaped_at - 1
         if n == 0:
             return None
-        return Trajectory(np.arange(1, n + 1), u[1:n + 1], y[1:n + 1])
+        return Trajectory(np.arange(1, n + 1), episode.u[1:n + 1], episode.y[1:n + 1])
 
     def _reference(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """References r_0..r_{n-1}, shape (n, n_y): piecewise-constant set-points of the

@@ -2,17 +2,20 @@
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
+from metampc_common.excitation import excitation
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_model.normalisation import Normalisation
 from metampc_model.nssm import init_params, Nssm
 from metampc_model.nssm_config import NssmConfig
 from metampc_model.predictor import NssmPredictor
-from metampc_learner.data import SourceConfig
+from metampc_learner.data import SourceConfig, Trajectory
 from metampc_learner.online_collection import OnlineCollectionConfig, OnlineCollector
 from metampc_plant.integrate import rk4_components
 from metampc_plant.registry import get_family
+from metampc_plant.simulator import Plant
 
 TINY = NssmConfig(history=3, loss_horizon=3, hidden=(16,), n_z=3)
 NORM = Normalisation([0.0], [0.6], [0.0, 0.0], [3.0, 3.0])
@@ -92,3 +95,87 @@ def test_an_unusable_model_gives_no_data():
     params['A'] = torch.full_like(params['A'], float('nan'))
     collector, trajs = _collect(params=params)
     assert trajs == [] and collector.stats.model_failures == 1 and collector.stats.episodes == 0
+
+
+def _reference_old_tick_loop(collector, task, theta, params, call):
+    """REFERENCE IMPLEMENTATION, kept only to check the collector against: the collector's own
+    tick loop as it was before it ran the controller's tick (commit 71227dd), copied here.
+    Returns (trajectories, MPC fallbacks, escapes) of call `call` for source system `task`."""
+    cfg, src, fam = collector.config, collector.source, collector.family
+    n_h, n_y = collector.model.config.history, collector.model.config.n_y
+    predictor = NssmPredictor(collector.model.config, collector.model.norm, params)
+    mpc = LatentMpc(collector._mpc_config)
+    mpc.set_model(predictor.latent)
+    out, fallbacks, escapes = [], 0, 0
+    for episode in range(cfg.episodes):
+        rng = np.random.default_rng((cfg.seed, task, call, episode))
+        mpc.reset()
+        n_total = n_h + cfg.episode_samples
+        x0 = tuple(rng.uniform(fam.x0_low, fam.x0_high, fam.n_x))
+        plant = Plant(replace(src.plant_config(), theta=tuple(np.atleast_1d(theta)), x0=x0))
+        warmup = excitation(src.excitation, 1, n_h, src.dt, int(rng.integers(2**31)))[0]
+        n_ref = n_total + cfg.horizon
+        hold = max(1, int(round(cfg.ref_hold_s / src.dt)))
+        tracked = list(fam.tracked)
+        centre = np.asarray(fam.reference)[tracked]
+        levels = rng.uniform(centre - cfg.ref_bound, centre + cfg.ref_bound,
+                             size=(-(-n_ref // hold), len(tracked)))
+        ref = np.tile(np.asarray(fam.reference, dtype=float), (n_ref, 1))
+        ref[:, tracked] = np.repeat(levels, hold, axis=0)[:n_ref]
+        u = np.zeros((n_total + 1, fam.n_u))
+        y = np.zeros((n_total + 1, n_y))
+        y[0] = plant.output()
+        n = 0
+        for k in range(1, n_total + 1):
+            if k <= n_h:
+                u_k = warmup[k - 1]
+            else:
+                t = k - 1
+                z = predictor.encode(u[t - n_h + 1:t + 1], y[t - n_h + 1:t + 1])
+                result = mpc.solve(z, u[t], ref[t + 1:t + 1 + cfg.horizon], y[t], t)
+                fallbacks += int(result.fallback)
+                u_k = result.u + cfg.noise_std * rng.standard_normal(fam.n_u)
+            u_k, _ = plant.saturate(u_k)
+            y_k = plant.step(u_k)
+            if plant.diverged:
+                escapes += 1
+                break
+            u[k], y[k] = u_k, y_k
+            n = k
+        if n:
+            out.append(Trajectory(np.arange(1, n + 1), u[1:n + 1], y[1:n + 1]))
+    return out, fallbacks, escapes
+
+
+TANK_MODEL = NssmConfig(n_u=2, n_y=2, history=3, loss_horizon=3, hidden=(16,), n_z=4)
+TANK_NORM = Normalisation([5.0, 5.0], [3.0, 3.0], [6.0, 6.0], [2.0, 2.0])
+
+
+@pytest.mark.parametrize('case', ['vanderpol', 'escapes', 'quadruple_tank'])
+def test_the_data_are_those_of_the_old_tick_loop_bit_for_bit(case):
+    """The collector runs the controller's tick (closed_loop.run_episode on a ControllerCore);
+    its data must stay those of its own former tick loop, bit for bit, over calls (the seed
+    of each episode), escapes, two inputs and two tracked outputs, so that no meta-training
+    result changes. Offset-free tracking is on (the MpcConfig default) in both."""
+    model, norm, source, theta, config = TINY, NORM, SOURCE, 0.5, CONFIG
+    if case == 'escapes':
+        source, theta = replace(SOURCE, state_bound=1.5), 1.0
+    elif case == 'quadruple_tank':
+        model, norm, theta = TANK_MODEL, TANK_NORM, (0.4, 0.7)
+        source = SourceConfig(family='quadruple_tank')
+        config = replace(CONFIG, ref_bound=2.0, ref_hold_s=20.0)
+    collector = OnlineCollector(Nssm(model, norm), config, source)
+    collector._mpc_config = replace(collector._mpc_config, time_limit=NO_TIME_LIMIT)
+    fallbacks = escapes = 0
+    for call, task in enumerate((3, 3, 1)):
+        params = init_params(model, call)
+        trajs = collector(task, theta, params)
+        ref, f, e = _reference_old_tick_loop(collector, task, theta, params, call)
+        fallbacks, escapes = fallbacks + f, escapes + e
+        assert len(trajs) == len(ref) > 0
+        for a, b in zip(trajs, ref):
+            assert np.array_equal(a.steps, b.steps)
+            assert np.array_equal(a.u, b.u) and np.array_equal(a.y, b.y)
+    stats = collector.stats
+    assert (stats.mpc_fallbacks, stats.escaped) == (fallbacks, escapes)
+    assert (escapes > 0) == (case == 'escapes')
