@@ -5,6 +5,8 @@ Examples:
     python scripts/run_experiment.py                          # defaults: 1 seed, all methods
     python scripts/run_experiment.py --seeds 10               # the paper's comparison
     python scripts/run_experiment.py --seeds 10 --jobs 2      # two seeds at a time
+    python scripts/run_experiment.py --seeds 10 --out runs/ten   # again after Ctrl-C: resumes
+    python scripts/run_experiment.py --seeds 10 --scheduler tcp://127.0.0.1:8786   # a cluster
     python scripts/run_experiment.py --seeds 5 --protocol paper_settings   # Algorithm 1 as written
     python scripts/run_experiment.py --report runs/<time>     # recompute its reports
     python scripts/run_experiment.py --config config/ci.yaml --methods imaml,maml --theta 0.5
@@ -17,8 +19,10 @@ Examples:
 The defaults are config/default.yaml (tuned hyperparameters, see docs/experiments.md);
 with --family F and no --config, config/F.yaml when it exists (docs/families.md); with
 --scenario drift and no --config, config/drift.yaml (docs/adaptation.md).
-Exit status: 0 done, 1 a phase failed (the message names it), 2 bad arguments or
-configuration, 130 interrupted (the nodes are stopped, the recording stays readable).
+Exit status: 0 done, 1 a phase failed (the message names it) or the scheduler was lost, 2 bad
+arguments or configuration, a cluster refused or not answering, or an --out of another
+configuration, 130 interrupted (the nodes are stopped, the recordings stay readable, an
+unfinished seed's folder is marked INCOMPLETE).
 """
 import argparse
 import datetime
@@ -69,8 +73,15 @@ def main(argv=None) -> int:
     parser.add_argument('--seeds', type=int, help='number of seeds')
     parser.add_argument('--first-seed', type=int, help='seed of the first run')
     parser.add_argument('--jobs', type=int, default=1,
-                        help='seeds run at once, each in a ROS domain of its own (default 1; '
+                        help='seeds run at once on an embedded cluster, each in a ROS domain '
+                             'of its own (default 1: one after the other in this process; '
                              'jobs x learner.torch_threads <= cores)')
+    parser.add_argument('--scheduler', metavar='ADDRESS',
+                        help='run the seeds on an existing dask cluster, tcp://HOST:PORT '
+                             '(docs/experiments.md#on-a-cluster)')
+    parser.add_argument('--insecure', action='store_true',
+                        help='allow a --scheduler tcp:// address off this machine (anyone who '
+                             'reaches that scheduler can run code on its workers)')
     parser.add_argument('--theta', help="target theta*, comma-separated values of the family's "
                                         'components (default: drawn per seed)')
     parser.add_argument('--protocol', help="'tuned' (default) or 'paper_settings': the paper's "
@@ -80,7 +91,9 @@ def main(argv=None) -> int:
                                            "method; or 'drift': theta* changes while each "
                                            'method tracks, with and without adaptation in the '
                                            'loop (docs/adaptation.md; config/drift.yaml)')
-    parser.add_argument('--out', help='run folder to create (default: runs/<time>)')
+    parser.add_argument('--out', help='run folder to create, or to resume: the same command '
+                                      'runs only its seeds without a report (default: '
+                                      'runs/<time>)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bars')
     parser.add_argument('--report', metavar='RUN_DIR',
                         help='only recompute the reports of an existing run folder from its '
@@ -101,6 +114,8 @@ def main(argv=None) -> int:
         from metampc_recording.foxglove_params import DEFAULT_PORT, FoxgloveConfig
         from metampc_bringup.orchestration.netns import NetnsError, parse_hosts
         from metampc_bringup.orchestration.cpu_budget import check_jobs
+        from metampc_bringup.orchestration.cluster import (check_address, ClusterError,
+                                                           ClusterSpec, SchedulerLost)
     except KeyboardInterrupt:
         print('run_experiment: interrupted before it started; nothing written', file=sys.stderr)
         return 130
@@ -122,9 +137,16 @@ def main(argv=None) -> int:
         hosts = parse_hosts(args.hosts) if args.hosts else None
         check_jobs(args.jobs, config.node_config('learner', config.first_seed).torch_threads,
                    'learner.torch_threads')
-        if args.jobs > 1 and (hosts or args.foxglove is not None):
-            raise ValueError('--jobs > 1 runs each seed in a ROS domain of its own on this '
-                             'host: not with --hosts or --foxglove')
+        if args.scheduler is not None:
+            check_address(args.scheduler, args.insecure)
+            if args.jobs > 1:
+                raise ValueError("--jobs sets the embedded cluster's workers: not with "
+                                 "--scheduler (the cluster's workers run the seeds)")
+        cluster = (ClusterSpec(args.jobs, args.scheduler, args.insecure)
+                   if args.jobs > 1 or args.scheduler is not None else None)
+        if cluster and (hosts or args.foxglove is not None):
+            raise ValueError('--jobs > 1 and --scheduler run each seed in a ROS domain of its '
+                             'own on a worker: not with --hosts or --foxglove')
         foxglove = None if args.foxglove is None else port(args.foxglove, DEFAULT_PORT)
         if foxglove is not None:
             FoxgloveConfig(port=foxglove).validate()
@@ -138,15 +160,19 @@ def main(argv=None) -> int:
         ROOT, 'runs', datetime.datetime.now().strftime('%Y%m%d-%H%M%S'))
     try:
         report = run_experiment(config, out, progress=not args.no_progress, hosts=hosts,
-                                foxglove_port=foxglove, jobs=args.jobs)
-    except (FileExistsError, NetnsError) as err:
+                                foxglove_port=foxglove, cluster=cluster)
+    except SchedulerLost as err:
+        print(f'run_experiment: {err}', file=sys.stderr)
+        return 1
+    except (FileExistsError, NetnsError, ClusterError) as err:
         print(f'run_experiment: {err}', file=sys.stderr)
         return 2
     except ExperimentError as err:
         print(f'run_experiment: failed: {err}\nrun folder: {out}', file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f'run_experiment: interrupted; nodes stopped, recordings in {out}',
+        print(f'run_experiment: interrupted; nodes stopped, recordings in {out} (a seed '
+              'stopped before its report is marked INCOMPLETE; the same command resumes it)',
               file=sys.stderr)
         return 130
     print(f"run folder: {out}\nreport: {os.path.join(out, 'report.md')} "

@@ -4,8 +4,14 @@ Every process is started through `ros2 run` (the shim or a real ros2) in the tes
 isolated domain (see conftest.py) and is stopped by the test that started it: use the ``procs``
 fixture (a metampc_bringup.orchestration.processes.ProcessGroup).
 """
+import contextlib
 import json
+import os
 from pathlib import Path
+import signal
+import socket
+import subprocess
+import sys
 
 from metampc_bringup.orchestration.processes import ProcessGroup, session_pids  # noqa: F401
 from metampc_bringup.orchestration.spun_node import SpunNode
@@ -34,6 +40,44 @@ def own_lines(text: str) -> list:
     not a line of ours."""
     return [line for line in text.splitlines() if line.strip()
             and not ('RTPS_TRANSPORT_SHM' in line and 'Failed init_port' in line)]
+
+
+def free_port() -> int:
+    """A loopback TCP port free now."""
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def loopback_dask(log: Path, workers: int = 1, port: int = 0):
+    """`dask scheduler` on 127.0.0.1:`port` (0: a free one) and a `dask worker` of `workers`
+    one-slot processes (its output in `log`, its scratch space beside it), each in a session of
+    its own, stopped on return if still running; yields (address, [scheduler, worker] Popens)."""
+    port = port or free_port()
+    address = f'tcp://127.0.0.1:{port}'
+    dask = os.path.join(os.path.dirname(sys.executable), 'dask')
+    started = [subprocess.Popen([dask, 'scheduler', '--host', '127.0.0.1', '--port', str(port),
+                                 '--no-dashboard'], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)]
+    try:
+        with open(log, 'w') as f:
+            started.append(subprocess.Popen(
+                [dask, 'worker', address, '--host', '127.0.0.1', '--nworkers', str(workers),
+                 '--nthreads', '1', '--resources', 'slot=1', '--no-dashboard',
+                 '--local-directory', str(log.with_suffix('.scratch'))],
+                stdout=f, stderr=subprocess.STDOUT, start_new_session=True))
+        yield address, started
+    finally:
+        for proc in reversed(started):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                for pid in session_pids(proc):
+                    os.kill(pid, signal.SIGKILL)
+                proc.wait()
 
 
 class TestNode(SpunNode):

@@ -10,6 +10,7 @@ import math
 import os
 from pathlib import Path
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -22,10 +23,12 @@ from rosbags.highlevel import AnyReader
 from metampc_bringup.analysis.retrack import retrack_seed
 from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_config import ConfigError, learner_config, load
+from metampc_bringup.orchestration.lifeline import ENV as LIFELINE
 from metampc_bringup.orchestration.processes import session_pids
 from metampc_bringup.orchestration.procfs import pids_with_env, uptime_s
+from metampc_bringup.run_folder import mark_incomplete
 from metampc_learner.heldout import target_heldout
-from metampc_testing import read_with_rosbags, SESSION_ENV
+from metampc_testing import free_port, loopback_dask, read_with_rosbags, SESSION_ENV
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CI_CONFIG = os.path.join(ROOT, 'config', 'ci.yaml')
@@ -162,6 +165,10 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     assert rebuild_report(out)['claims'] == report['claims']
     with open(os.path.join(out, 'report.md')) as f:
         assert 'Wall time: not recorded (report rebuilt from the recordings).' in f.read()
+    # A seed's folder marked incomplete (an interrupted try; here a copy) is no finished seed.
+    shutil.copytree(seed_dir, os.path.join(out, 'seed_7'))
+    mark_incomplete(os.path.join(out, 'seed_7'), 'interrupted')
+    assert [s['seed'] for s in rebuild_report(out)['per_seed']] == [per_seed['seed']]
 
 
 def _pids_in_domain(domain: int, started_before: float = math.inf):
@@ -174,8 +181,10 @@ def _pids_in_domain(domain: int, started_before: float = math.inf):
                          started_before)
 
 
-def _interrupt_after_collection(args, collections: int, timeout: float):
-    """Run run_experiment.py on the CI config with `args`, SIGINT it (as Ctrl-C does) once
+def _interrupt_after_collection(args, collections: int, timeout: float,
+                                signum: int = signal.SIGINT):
+    """Run run_experiment.py on the CI config with `args`, SIGINT its process group (as
+    Ctrl-C does; `signum` SIGTERM: the process alone, as a process manager does) once
     `collections` seeds have collected; (exit status, everything it printed)."""
     proc = subprocess.Popen(
         [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
@@ -187,7 +196,10 @@ def _interrupt_after_collection(args, collections: int, timeout: float):
             lines.append(line)
             if sum('collect done' in x for x in lines) == collections:
                 break
-        os.killpg(proc.pid, signal.SIGINT)
+        if signum == signal.SIGINT:
+            os.killpg(proc.pid, signum)
+        else:
+            os.kill(proc.pid, signum)
         rest, _ = proc.communicate(timeout=timeout)
     finally:
         if proc.poll() is None:
@@ -204,8 +216,17 @@ def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):
     assert code == 130, text
     domain = int(re.search(r'ROS_DOMAIN_ID=(\d+)', text).group(1))
     assert _pids_in_domain(domain, ended) == [], 'processes left behind'
-    events, outputs, _, _ = read_with_rosbags(os.path.join(out, 'seed_0', 'recording.mcap'))
+    _assert_interrupted_seed(os.path.join(out, 'seed_0'))
+
+
+def _assert_interrupted_seed(folder: str) -> None:
+    """An interrupted seed's folder: its recording readable up to the interruption, marked
+    INCOMPLETE, no report."""
+    events, outputs, _, _ = read_with_rosbags(os.path.join(folder, 'recording.mcap'))
     assert events[0]['event'] == 'start' and len(outputs) >= 60
+    with open(os.path.join(folder, 'INCOMPLETE')) as f:
+        assert f.read().startswith('interrupted;')
+    assert not os.path.exists(os.path.join(folder, 'report.json'))
 
 
 def test_ctrl_c_while_the_script_imports_is_an_interruption(tmp_path):
@@ -290,7 +311,7 @@ def _wait_domain_empty(domain: int, killed: float, timeout: float = 5.0) -> list
     return _pids_in_domain(domain, killed)
 
 
-def _kill_leftovers(proc: subprocess.Popen, domains, out: str, killed: float) -> None:
+def _kill_leftovers(proc: subprocess.Popen, domains, killed: float) -> None:
     """After a failed assertion: nothing of the run may outlive the test (its session, its
     domains' nodes, its seed children: their ROS_DOMAIN_ID is not in their /proc environ).
 
@@ -298,8 +319,7 @@ def _kill_leftovers(proc: subprocess.Popen, domains, out: str, killed: float) ->
     came): until then the run held its domains, so nobody else's process can be in them; once
     its nodes are gone another test session may claim a domain, and its processes are not
     ours to kill (measured: a recorder of a second suite SIGKILLed at start-up)."""
-    children = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
-                if out in _cmdline(pid)]
+    children = _seed_children(killed)
     nodes = [p for d in domains for p in _pids_in_domain(d, killed)]
     for pid in session_pids(proc) + children + nodes:
         with contextlib.suppress(ProcessLookupError):
@@ -323,13 +343,14 @@ def test_sigkill_during_meta_training_leaves_no_process(tmp_path):
         proc.wait()
         assert _wait_domain_empty(domains[0], killed) == [], 'processes left behind'
     finally:
-        _kill_leftovers(proc, domains, out, killed if killed is not None else uptime_s())
+        _kill_leftovers(proc, domains, killed if killed is not None else uptime_s())
         proc.stdout.close()
 
 
 def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
     """--jobs 2: one seed's child killed by SIGKILL: its nodes end within 5 s; the other seed
-    runs to its end, and the run fails naming the killed seed, with nothing left running."""
+    runs to its end, and the run fails naming the killed seed (its folder marked INCOMPLETE),
+    with nothing left running."""
     out = str(tmp_path / 'run')
     proc = _start_run(['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'])
     lines, domains, killed = [], {}, None
@@ -338,8 +359,7 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
             found = _read_until(proc, r'seed (\d): ROS_DOMAIN_ID=(\d+)', lines)
             domains[int(found.group(1))] = int(found.group(2))
         _read_until(proc, r'seed 0: collect done', lines)
-        child = [pid for pid in map(int, filter(str.isdigit, os.listdir('/proc')))
-                 if _cmdline(pid)[-3:] == ['metampc_bringup.orchestration.seed_jobs', out, '0']]
+        child = [pid for pid in _seed_children(killed=uptime_s()) if _cmdline(pid)[-1] == '0']
         assert len(child) == 1, child
         os.kill(child[0], signal.SIGKILL)
         killed = uptime_s()
@@ -347,12 +367,21 @@ def test_sigkill_of_a_seed_child_leaves_no_process_of_its_seed(tmp_path):
         text = ''.join(lines) + proc.communicate(timeout=300)[0]
         ended = uptime_s()
         assert proc.returncode == 1 and 'seed 0 (exit status -9' in text, text
+        assert 'seed 0 failed (exit status -9); its last lines:' in text, text
         assert 'seed 1: done' in text, text
         assert _pids_in_domain(domains[1], ended) == [], 'processes left behind'
+        with open(os.path.join(out, 'seed_0', 'INCOMPLETE')) as f:
+            assert f.read().startswith('failed (exit status -9);')
     finally:
-        _kill_leftovers(proc, domains.values(), out,
-                        killed if killed is not None else uptime_s())
+        _kill_leftovers(proc, domains.values(), killed if killed is not None else uptime_s())
         proc.stdout.close()
+
+
+def _seed_children(killed: float) -> list:
+    """This session's seed children that started before `killed` (s since boot): the test's
+    own, since a session runs one test at a time."""
+    return [pid for pid in pids_with_env({SESSION_ENV: os.environ[SESSION_ENV]}, killed)
+            if 'metampc_bringup.orchestration.seed_jobs' in _cmdline(pid)]
 
 
 def _cmdline(pid: int) -> list:
@@ -411,47 +440,214 @@ def _results(report: dict):
     return report
 
 
-def test_jobs_2_gives_the_per_seed_results_of_jobs_1(tmp_path):
-    """Two seeds at once (run_experiment.py --jobs 2, a child process and a ROS domain per
-    seed) give, seed for seed, the results of the one-process run (lockstep is deterministic);
-    the merged report covers both seeds."""
-    out = str(tmp_path / 'parallel')
-    done = subprocess.run(
+PARALLEL = ['--methods', 'maml', '--seeds', '2', '--jobs', '2']
+
+
+def _run_to_end(args, timeout: float = 400) -> subprocess.CompletedProcess:
+    """run_experiment.py on the CI config with `args`, to its end."""
+    return subprocess.run(
         [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
-         CI_CONFIG, '--out', out, '--no-progress', '--methods', 'maml', '--seeds', '2',
-         '--jobs', '2'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        timeout=400)
+         CI_CONFIG, '--no-progress', *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True, timeout=timeout)
+
+
+@pytest.fixture(scope='module')
+def parallel_run(tmp_path_factory):
+    """Two seeds at once on the embedded cluster (--jobs 2); (run folder, its output)."""
+    out = str(tmp_path_factory.mktemp('parallel') / 'run')
+    done = _run_to_end(['--out', out, *PARALLEL])
     assert done.returncode == 0, done.stdout
-    domains = set(re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', done.stdout))
-    assert len(domains) == 2, done.stdout
+    return out, done.stdout
+
+
+def _per_seed(out: str) -> list:
+    with open(os.path.join(out, 'report.json')) as f:
+        return json.load(f)['per_seed']
+
+
+def test_jobs_2_gives_the_per_seed_results_of_jobs_1(parallel_run, tmp_path):
+    """Two seeds at once (run_experiment.py --jobs 2: an embedded dask cluster of two workers
+    on loopback, a child process and a ROS domain per seed, the seed folders sent back) give,
+    seed for seed, the results of the one-process run (lockstep is deterministic); the merged
+    report covers both seeds."""
+    out, text = parallel_run
+    assert 'embedded cluster: 2 worker(s) on 127.0.0.1' in text, text
+    domains = set(re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text))
+    assert len(domains) == 2, text
     serial = run_experiment(load(CI_CONFIG, {'methods': ['maml'], 'first_seed': 1}),
                             str(tmp_path / 'serial'), progress=False)
-    with open(os.path.join(out, 'report.json')) as f:
-        merged = json.load(f)
-    assert [s['seed'] for s in merged['per_seed']] == [0, 1]
-    parallel_1 = _results(merged['per_seed'][1])
+    merged = _per_seed(out)
+    assert [s['seed'] for s in merged] == [0, 1]
+    assert merged[1]['recording'] == os.path.join(out, 'seed_1', 'recording.mcap')
+    parallel_1 = _results(merged[1])
     assert parallel_1 == _results(serial['per_seed'][0])
-    for run in (merged['per_seed'][1], serial['per_seed'][0]):
+    for run in (merged[1], serial['per_seed'][0]):
         assert (run['buffering']['kept'], run['buffering']['lost']) == (120, 0), run['buffering']
     assert parallel_1['methods']['maml']['tracking']['tracking']['rmse'] > 0
 
 
-def test_ctrl_c_with_jobs_2_stops_every_seed(tmp_path):
-    """Ctrl-C while two seeds run: exit 130, no process left in either seed's domain, both
-    recordings readable."""
+def test_the_same_command_resumes_running_only_the_seeds_without_a_report(
+        parallel_run, tmp_path):
+    """A copy of the two-seed run with seed 0's report gone (as if stopped before it landed):
+    the same command runs seed 0 alone, leaves seed 1's folder untouched, and the merged
+    report equals the uninterrupted one; a command of another configuration is refused."""
     out = str(tmp_path / 'run')
-    code, text = _interrupt_after_collection(
-        ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'], 2, 120)
+    shutil.copytree(parallel_run[0], out)
+    os.remove(os.path.join(out, 'seed_0', 'report.json'))
+    kept = os.stat(os.path.join(out, 'seed_1', 'recording.mcap'))
+    done = _run_to_end(['--out', out, *PARALLEL])
+    assert done.returncode == 0, done.stdout
+    assert f'resuming {out}: 1 of 2 seeds done; running 1: 0' in done.stdout, done.stdout
+    assert re.findall(r'seed (\d): ROS_DOMAIN_ID', done.stdout) == ['0'], done.stdout
+    now = os.stat(os.path.join(out, 'seed_1', 'recording.mcap'))
+    assert (now.st_ino, now.st_mtime_ns) == (kept.st_ino, kept.st_mtime_ns)
+    assert [_results(s) for s in _per_seed(out)] == \
+        [_results(s) for s in _per_seed(parallel_run[0])]
+    other = _run_to_end(['--out', out, '--methods', 'maml', '--seeds', '3', '--jobs', '2'])
+    assert other.returncode == 2 and 'another configuration' in other.stdout, other.stdout
+    assert len(other.stdout.strip().splitlines()) == 1, other.stdout
+
+
+def test_an_existing_loopback_cluster_gives_the_results_of_the_embedded_one(
+        parallel_run, tmp_path):
+    """`dask scheduler` and a `dask worker` of two one-slot processes, started here on
+    loopback: run_experiment.py --scheduler gives, seed for seed, the embedded cluster's
+    results; the seeds ran on that worker (their lines are in its log, not the client's)."""
+    logs = tmp_path / 'worker.log'
+    with loopback_dask(logs, workers=2) as (address, _):
+        out = str(tmp_path / 'run')
+        done = _run_to_end(['--out', out, '--scheduler', address, *PARALLEL[:-2]])
+        assert done.returncode == 0, done.stdout
+        assert f'cluster {address}: 2 worker(s), 2 slot(s)' in done.stdout, done.stdout
+        assert 'ROS_DOMAIN_ID' not in done.stdout and \
+            len(re.findall(r'seed \d: ROS_DOMAIN_ID', logs.read_text())) == 2
+        assert [_results(s) for s in _per_seed(out)] == \
+            [_results(s) for s in _per_seed(parallel_run[0])]
+
+
+def test_a_worker_killed_in_the_middle_of_a_seed_runs_it_again_with_the_same_results(
+        parallel_run, tmp_path):
+    """Two seeds on a loopback `dask worker` of two one-slot processes; the worker process of
+    seed 0 SIGKILLed once that seed has collected: the seed's nodes end with it, the scheduler
+    runs seed 0 again, the run ends 0 and the merged report equals the embedded cluster's."""
+    log = tmp_path / 'worker.log'
+    with loopback_dask(log, workers=2) as (address, _):
+        proc = subprocess.Popen(
+            [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+             CI_CONFIG, '--no-progress', '--out', str(tmp_path / 'run'), '--scheduler',
+             address, *PARALLEL[:-2]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, start_new_session=True)
+        try:
+            deadline = time.monotonic() + 300
+            while 'seed 0: collect done' not in log.read_text():
+                assert time.monotonic() < deadline and proc.poll() is None, log.read_text()
+                time.sleep(0.1)
+            domain = int(re.search(r'seed 0: ROS_DOMAIN_ID=(\d+)', log.read_text()).group(1))
+            child, = [p for p in _seed_children(uptime_s()) if _cmdline(p)[-1] == '0']
+            with open(f'/proc/{child}/environ', 'rb') as f:
+                worker, = [int(v[len(LIFELINE) + 1:]) for v in f.read().decode().split('\0')
+                           if v.startswith(f'{LIFELINE}=')]
+            os.kill(worker, signal.SIGKILL)
+            killed = uptime_s()
+            assert _wait_domain_empty(domain, killed, 30.0) == [], 'seed 0 left processes'
+            text = proc.communicate(timeout=600)[0]
+        finally:
+            if proc.poll() is None:
+                for pid in session_pids(proc):
+                    os.kill(pid, signal.SIGKILL)
+            proc.stdout.close()
+    assert proc.returncode == 0, text
+    assert len(re.findall(r'seed 0: ROS_DOMAIN_ID', log.read_text())) == 2, log.read_text()
+    assert [_results(s) for s in _per_seed(str(tmp_path / 'run'))] == \
+        [_results(s) for s in _per_seed(parallel_run[0])]
+
+
+def test_ctrl_c_with_jobs_2_keeps_both_partial_seeds_and_the_same_command_resumes(tmp_path):
+    """Ctrl-C (SIGINT to the process group, workers included, as a terminal sends it) while
+    two seeds run on the embedded cluster: exit 130 and the interruption line, no traceback,
+    no process left in either seed's domain, both seeds' folders in --out as with one process
+    (recording readable, marked INCOMPLETE); the same command runs both seeds again and keeps
+    the interrupted tries in incomplete/."""
+    out = str(tmp_path / 'run')
+    args = ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2']
+    code, text = _interrupt_after_collection(args, 2, 300)
     ended = uptime_s()
-    assert code == 130, text
+    assert code == 130 and 'Traceback' not in text, text
+    assert f'run_experiment: interrupted; nodes stopped, recordings in {out}' in text, text
     domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
     assert len(domains) == 2, text
     for domain in domains:
         assert _pids_in_domain(domain, ended) == [], f'processes left behind in domain {domain}'
+    assert sorted(os.listdir(out)) == ['config.yaml', 'seed_0', 'seed_1'], os.listdir(out)
     for seed in (0, 1):
-        events, outputs, _, _ = read_with_rosbags(
-            os.path.join(out, f'seed_{seed}', 'recording.mcap'))
-        assert events[0]['event'] == 'start' and len(outputs) >= 60
+        _assert_interrupted_seed(os.path.join(out, f'seed_{seed}'))
+    done = _run_to_end(args)
+    assert done.returncode == 0, done.stdout
+    assert f'resuming {out}: 0 of 2 seeds done; running 2: 0, 1' in done.stdout, done.stdout
+    assert [s['seed'] for s in _per_seed(out)] == [0, 1]
+    for seed in (0, 1):
+        _assert_interrupted_seed(os.path.join(out, 'incomplete', f'seed_{seed}.1'))
+
+
+def test_sigterm_with_jobs_2_is_an_interruption_too(tmp_path):
+    """SIGTERM to run_experiment.py alone while two seeds run on the embedded cluster: as
+    Ctrl-C, exit 130, both seeds' partial folders in --out marked INCOMPLETE, no process left
+    in either seed's domain."""
+    out = str(tmp_path / 'run')
+    code, text = _interrupt_after_collection(
+        ['--out', out, '--methods', 'imaml', '--seeds', '2', '--jobs', '2'], 2, 300,
+        signal.SIGTERM)
+    ended = uptime_s()
+    assert code == 130 and 'Traceback' not in text, text
+    domains = [int(d) for d in re.findall(r'seed \d: ROS_DOMAIN_ID=(\d+)', text)]
+    assert len(domains) == 2, text
+    for domain in domains:
+        assert _wait_domain_empty(domain, ended, 30.0) == [], f'processes left in {domain}'
+    for seed in (0, 1):
+        _assert_interrupted_seed(os.path.join(out, f'seed_{seed}'))
+
+
+def test_the_scheduler_gone_is_one_line_and_the_same_command_resumes(parallel_run, tmp_path):
+    """A loopback `dask scheduler` SIGKILLed once seed 0 of two (one worker slot) has landed:
+    run_experiment.py --scheduler says so in one line and exits 1, no traceback; seed 0 stays
+    done in --out and seed 1's process ends with its worker; with a new scheduler on the same
+    address the same command runs seed 1 alone, and the merged report equals the embedded
+    cluster's."""
+    port = free_port()
+    out = str(tmp_path / 'run')
+    args = [sys.executable, os.path.join(ROOT, 'scripts', 'run_experiment.py'), '--config',
+            CI_CONFIG, '--no-progress', '--out', out, '--methods', 'maml', '--seeds', '2',
+            '--scheduler', f'tcp://127.0.0.1:{port}']
+    with loopback_dask(tmp_path / 'worker.log', port=port) as (address, (scheduler, worker)):
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True, start_new_session=True)
+        try:
+            lines = []
+            _read_until(proc, r'seed 0: done', lines)
+            os.killpg(scheduler.pid, signal.SIGKILL)
+            text = ''.join(lines) + proc.communicate(timeout=300)[0]
+        finally:
+            if proc.poll() is None:
+                for pid in session_pids(proc):
+                    os.kill(pid, signal.SIGKILL)
+            proc.stdout.close()
+        assert proc.returncode == 1 and 'Traceback' not in text, text
+        after = text[text.index('seed 0: done'):].splitlines()[1:]
+        assert after == [f'run_experiment: lost the scheduler {address}: 1 of 2 seeds '
+                         f'finished in {out}; the same command runs the others'], text
+        worker.wait(120)        # it closes without its scheduler; its seed's nodes end with it
+        domains = re.findall(r'seed 1: ROS_DOMAIN_ID=(\d+)',
+                             (tmp_path / 'worker.log').read_text())
+        ended = uptime_s()
+        for domain in domains:
+            assert _wait_domain_empty(int(domain), ended, 30.0) == [], 'seed 1 left processes'
+    assert os.path.isfile(os.path.join(out, 'seed_0', 'report.json'))
+    with loopback_dask(tmp_path / 'again.log', port=port):
+        done = _run_to_end(args[5:])
+    assert done.returncode == 0, done.stdout
+    assert f'resuming {out}: 1 of 2 seeds done; running 1: 1' in done.stdout, done.stdout
+    assert [_results(s) for s in _per_seed(out)] == \
+        [_results(s) for s in _per_seed(parallel_run[0])]
 
 
 def test_jobs_beyond_the_cores_is_refused(tmp_path):

@@ -49,7 +49,8 @@ TESTED_ELSEWHERE: Dict[str, Tuple[str, str]] = {
     'metampc_bringup.orchestration.orchestrator': (
         _SYSTEM, 'the orchestrator end to end, its report against the recording read by rosbags'),
     'metampc_bringup.orchestration.seed_jobs': (
-        _SYSTEM, '--jobs 2 against --jobs 1 and Ctrl-C of both seeds: processes end to end'),
+        _SYSTEM, '--jobs 2 (the embedded cluster) against --jobs 1, resume, Ctrl-C of both '
+        'seeds: processes end to end'),
     'metampc_bringup.analysis.experiment_report': (
         _SYSTEM, 'the report of a real experiment against the recording read by rosbags'),
     'metampc_bringup.analysis.retrack': (
