@@ -22,7 +22,7 @@ from metampc_common.excitation import excitation
 from metampc_controller.closed_loop import run_episode
 from metampc_controller.controller_core import ControllerCore, ModelBundle
 from metampc_controller.controller_params import ControllerConfig
-from metampc_controller.mpc import MpcConfig
+from metampc_controller.mpc import MpcConfig, NO_TIME_LIMIT
 from metampc_model.nssm import Nssm, Params
 from metampc_model.predictor import NssmPredictor
 from metampc_learner.data import SourceConfig, Trajectory
@@ -114,8 +114,11 @@ class OnlineCollector:
         exc = self.source.excitation
         q = np.zeros(n_y)
         q[list(self.family.tracked)] = self.config.q
+        # No wall-clock cap: a simulated episode waits for nothing, and a cap that trips on a
+        # loaded machine would change the source data of a seeded meta-training.
         self._mpc_config = MpcConfig(horizon=self.config.horizon, q=tuple(q), r=self.config.r,
-                                     u_min=exc.u_min, u_max=exc.u_max)
+                                     u_min=exc.u_min, u_max=exc.u_max,
+                                     time_limit=NO_TIME_LIMIT)
 
     def __call__(self, task: int, theta: np.ndarray, params: Params) -> List[Trajectory]:
         """Run `episodes` closed-loop episodes of source system `task` with omega_b = params;
