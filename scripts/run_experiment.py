@@ -62,6 +62,18 @@ def port(text: str, default: int) -> int:
         raise ValueError(f'--foxglove needs a port number, got {text!r}') from None
 
 
+def tls_files(args):
+    """The --tls-* files as a cluster.TlsFiles (all three, or None for none; ValueError
+    otherwise)."""
+    from metampc_bringup.orchestration.cluster import TlsFiles
+    given = (args.tls_ca_file, args.tls_cert, args.tls_key)
+    if not any(given):
+        return None
+    if not all(given):
+        raise ValueError('--tls-ca-file, --tls-cert and --tls-key go together')
+    return TlsFiles(*given)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--config', help='YAML file with every hyperparameter (default: '
@@ -82,6 +94,10 @@ def main(argv=None) -> int:
     parser.add_argument('--insecure', action='store_true',
                         help='allow a --scheduler tcp:// address off this machine (anyone who '
                              'reaches that scheduler can run code on its workers)')
+    for name, what in (('ca-file', "the CA that signed the cluster's certificates"),
+                       ('cert', "this client's certificate"), ('key', "this client's key")):
+        parser.add_argument(f'--tls-{name}', metavar='PEM',
+                            help=f'a tls:// --scheduler: {what} (docs/security.md)')
     parser.add_argument('--theta', help="target theta*, comma-separated values of the family's "
                                         'components (default: drawn per seed)')
     parser.add_argument('--protocol', help="'tuned' (default) or 'paper_settings': the paper's "
@@ -137,12 +153,13 @@ def main(argv=None) -> int:
         hosts = parse_hosts(args.hosts) if args.hosts else None
         check_jobs(args.jobs, config.node_config('learner', config.first_seed).torch_threads,
                    'learner.torch_threads')
+        tls = tls_files(args)
         if args.scheduler is not None:
-            check_address(args.scheduler, args.insecure)
+            check_address(args.scheduler, args.insecure, tls is not None)
             if args.jobs > 1:
                 raise ValueError("--jobs sets the embedded cluster's workers: not with "
                                  "--scheduler (the cluster's workers run the seeds)")
-        cluster = (ClusterSpec(args.jobs, args.scheduler, args.insecure)
+        cluster = (ClusterSpec(args.jobs, args.scheduler, args.insecure, tls)
                    if args.jobs > 1 or args.scheduler is not None else None)
         if cluster and (hosts or args.foxglove is not None):
             raise ValueError('--jobs > 1 and --scheduler run each seed in a ROS domain of its '

@@ -50,22 +50,27 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def loopback_dask(log: Path, workers: int = 1, port: int = 0):
+def loopback_dask(log: Path, workers: int = 1, port: int = 0, tls=None):
     """`dask scheduler` on 127.0.0.1:`port` (0: a free one) and a `dask worker` of `workers`
     one-slot processes (its output in `log`, its scratch space beside it), each in a session of
-    its own, stopped on return if still running; yields (address, [scheduler, worker] Popens)."""
+    its own, stopped on return if still running; yields (address, [scheduler, worker] Popens).
+    `tls`: (CA, certificate, key) PEM paths for both, on tls:// (else tcp://)."""
     port = port or free_port()
-    address = f'tcp://127.0.0.1:{port}'
+    address = f'{"tls" if tls else "tcp"}://127.0.0.1:{port}'
+    secure = [] if not tls else ['--tls-ca-file', str(tls[0]), '--tls-cert', str(tls[1]),
+                                 '--tls-key', str(tls[2])]
     dask = os.path.join(os.path.dirname(sys.executable), 'dask')
     started = [subprocess.Popen([dask, 'scheduler', '--host', '127.0.0.1', '--port', str(port),
-                                 '--no-dashboard'], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, start_new_session=True)]
+                                 '--no-dashboard', *secure]
+                                + (['--protocol', 'tls'] if tls else []),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True)]
     try:
         with open(log, 'w') as f:
             started.append(subprocess.Popen(
                 [dask, 'worker', address, '--host', '127.0.0.1', '--nworkers', str(workers),
                  '--nthreads', '1', '--resources', 'slot=1', '--no-dashboard',
-                 '--local-directory', str(log.with_suffix('.scratch'))],
+                 '--local-directory', str(log.with_suffix('.scratch')), *secure],
                 stdout=f, stderr=subprocess.STDOUT, start_new_session=True))
         yield address, started
     finally:
@@ -78,6 +83,23 @@ def loopback_dask(log: Path, workers: int = 1, port: int = 0):
                 for pid in session_pids(proc):
                     os.kill(pid, signal.SIGKILL)
                 proc.wait()
+
+
+def make_certificates(folder: Path, name: str = 'ca'):
+    """A CA of its own (`name`) and a certificate and key for 127.0.0.1 signed by it, made by
+    the openssl command in `folder`, valid one day: (CA, certificate, key) PEM paths."""
+    ca, ca_key = folder / f'{name}.pem', folder / f'{name}.key'
+    cert, key, csr = folder / f'{name}-node.pem', folder / f'{name}-node.key', folder / 'req.csr'
+    san = folder / 'san.ext'
+    san.write_text('subjectAltName=IP:127.0.0.1\n')
+    for args in (['req', '-x509', '-newkey', 'rsa:2048', '-nodes', '-keyout', ca_key, '-out', ca,
+                  '-days', '1', '-subj', f'/CN=metampc test {name}'],
+                 ['req', '-newkey', 'rsa:2048', '-nodes', '-keyout', key, '-out', csr, '-subj',
+                  '/CN=127.0.0.1'],
+                 ['x509', '-req', '-in', csr, '-CA', ca, '-CAkey', ca_key, '-CAcreateserial',
+                  '-out', cert, '-days', '1', '-extfile', san]):
+        subprocess.run(['openssl', *map(str, args)], check=True, capture_output=True)
+    return ca, cert, key
 
 
 class TestNode(SpunNode):

@@ -15,13 +15,13 @@ import cloudpickle
 import pytest
 
 from metampc_bringup.orchestration import cluster
-from metampc_bringup.orchestration.cluster import (check_address, check_workers, ClusterSpec,
-                                                   connect, job_cancelled, run_batch,
-                                                   SchedulerLost)
+from metampc_bringup.orchestration.cluster import (check_address, check_workers, ClusterError,
+                                                   ClusterSpec, connect, job_cancelled,
+                                                   run_batch, SchedulerLost, TlsFiles)
 from metampc_bringup.orchestration.lifeline import child_env, ENV
 from metampc_bringup.orchestration.procfs import pids_with_env
 from metampc_bringup.orchestration.seed_jobs import code_fingerprint
-from metampc_testing import alive, loopback_dask
+from metampc_testing import alive, loopback_dask, make_certificates
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__)))))
@@ -53,8 +53,11 @@ def test_a_plain_tcp_scheduler_off_this_machine_is_refused_before_any_connection
             with connect(ClusterSpec(scheduler=address)):
                 pass
         check_address(address, insecure=True)       # the user's explicit choice
-    with pytest.raises(ValueError, match='tls:// is not supported yet'):
-        check_address('tls://127.0.0.1:8786')
+    with pytest.raises(ValueError, match='tls:// needs --tls-ca-file, --tls-cert and --tls-key'):
+        check_address('tls://192.0.2.7:8786')
+    with pytest.raises(ValueError, match='the --tls-\\* files are for a tls:// scheduler'):
+        check_address('tcp://127.0.0.1:8786', tls=True)
+    check_address('tls://192.0.2.7:8786', tls=True)     # certificates: any host
     for address in ('tcp://127.0.0.1:8786', 'tcp://localhost:8786', 'tcp://[::1]:8786',
                     '127.0.0.2:8786'):
         check_address(address)
@@ -195,3 +198,24 @@ def test_the_scheduler_lost_is_scheduler_lost_after_the_jobs_done_by_then(tmp_pa
             with pytest.raises(SchedulerLost, match=f'lost the scheduler {address}$'):
                 run_batch(client, time.sleep, [0.1, 60.0], 'jobs', done)
     assert got == {0.1: None}
+
+
+def test_a_tls_scheduler_takes_a_client_of_its_ca_and_no_other(tmp_path):
+    """A loopback `dask scheduler` and worker on tls:// with certificates of a CA made here: a
+    client with a certificate of that CA runs a job there; one of another CA gets no
+    connection (the handshake fails: one ClusterError line); unreadable files are refused
+    before any connection."""
+    files = make_certificates(tmp_path, 'ca')
+    mine = TlsFiles(*map(str, files))
+    other = TlsFiles(*map(str, make_certificates(tmp_path, 'other')))
+    with loopback_dask(tmp_path / 'worker.log', tls=files) as (address, _):
+        with connect(ClusterSpec(scheduler=address, tls=mine)) as client:
+            assert client.submit(sum, [40, 2], resources={'slot': 1}).result(60) == 42
+        with pytest.raises(ClusterError, match=f'--scheduler {address}: the connection was '
+                                               'refused .*TLS certificate does not match'):
+            with connect(ClusterSpec(scheduler=address, tls=other)):
+                pass
+    unreadable = TlsFiles(mine.ca_file, mine.cert, '/nonexistent.key')
+    with pytest.raises(ValueError, match='--tls-key /nonexistent.key: cannot be read'):
+        with connect(ClusterSpec(scheduler=address, tls=unreadable)):
+            pass

@@ -2,9 +2,10 @@
 
 Embedded (:func:`connect` without an address): a LocalCluster of ``jobs`` single-threaded
 worker processes on 127.0.0.1, no dashboard, stopped on return. An address: an existing cluster
-(``dask scheduler`` / ``dask worker``, dask-jobqueue; docs/experiments.md#on-a-cluster); a
-plain ``tcp://`` one off this machine is refused without ``insecure``, before any connection
-(a scheduler runs whatever it is sent). Each job holds one worker slot (resource :data:`SLOT`),
+(``dask scheduler`` / ``dask worker``, dask-jobqueue; docs/experiments.md#on-a-cluster): a
+``tls://`` one with certificates (:class:`TlsFiles`), anywhere; a plain ``tcp://`` one off this
+machine is refused without ``insecure``, before any connection (a scheduler runs whatever it
+is sent; docs/security.md). Each job holds one worker slot (resource :data:`SLOT`),
 so jobs never crowd a host. A job runs in a worker thread that lives as long as the job, so
 the lifelines (:mod:`.lifeline`) of the processes it forks hold: they die with the worker, and
 the scheduler runs the job again on another. Ctrl-C asks the running jobs to stop and takes
@@ -14,6 +15,7 @@ import contextlib
 import dataclasses
 import ipaddress
 import logging
+import os
 import signal
 import tempfile
 import time
@@ -39,35 +41,61 @@ class SchedulerLost(ClusterError):
     handed to ``done``, the others are lost."""
 
 
+@dataclasses.dataclass(frozen=True)
+class TlsFiles:
+    """PEM files of a TLS connection to a scheduler: the CA that signed the cluster's
+    certificates, and this client's certificate and key (dask's Security, encryption
+    required; the scheduler and workers take the same options, docs/security.md)."""
+
+    ca_file: str
+    cert: str
+    key: str
+
+    def security(self) -> Any:
+        """The dask Security of these files (ValueError naming one that cannot be read)."""
+        for name, path in dataclasses.asdict(self).items():
+            if not os.access(path, os.R_OK):
+                raise ValueError(f'--tls-{name.replace("_", "-")} {path}: cannot be read')
+        from distributed.security import Security
+        return Security(tls_ca_file=self.ca_file, tls_client_cert=self.cert,
+                        tls_client_key=self.key, require_encryption=True)
+
+
 @dataclasses.dataclass
 class ClusterSpec:
     """Where a batch runs.
 
     Attributes:
         jobs: workers of the embedded cluster (jobs at once); unused with ``scheduler``.
-        scheduler: address of an existing scheduler (``tcp://host:port``); None: embedded.
+        scheduler: address of an existing scheduler (``tcp://`` or ``tls://host:port``);
+            None: embedded.
         insecure: allow a plain ``tcp://`` scheduler that is not on loopback.
+        tls: the certificates of a ``tls://`` scheduler.
     """
     jobs: int = 1
     scheduler: Optional[str] = None
     insecure: bool = False
+    tls: Optional[TlsFiles] = None
 
 
-def check_address(address: str, insecure: bool = False) -> None:
+def check_address(address: str, insecure: bool = False, tls: bool = False) -> None:
     """ValueError unless `address` is a scheduler address this layer may connect to: a
-    ``tcp://`` address on loopback, or anywhere with `insecure`. Nothing is resolved or
-    connected: a host name other than localhost counts as another machine."""
+    ``tls://`` address with certificates (`tls`), a ``tcp://`` address on loopback, or anywhere
+    with `insecure`. Nothing is resolved or connected: a host name other than localhost
+    counts as another machine."""
     scheme, sep, rest = address.partition('://')
     if not sep:
         scheme, rest = 'tcp', address
     host = rest.rsplit(':', 1)[0] if ':' in rest else rest
     host = host.strip('[]')
+    if scheme not in ('tcp', 'tls') or not host:
+        raise ValueError(f'--scheduler {address}: expected tcp://HOST:PORT or tls://HOST:PORT')
+    if (scheme == 'tls') != tls:
+        raise ValueError(f'--scheduler {address}: ' + (
+            'tls:// needs --tls-ca-file, --tls-cert and --tls-key (docs/security.md)'
+            if scheme == 'tls' else 'the --tls-* files are for a tls:// scheduler'))
     if scheme == 'tls':
-        raise ValueError(f'--scheduler {address}: tls:// is not supported yet; use a '
-                         'loopback tcp:// address (e.g. through an ssh tunnel) or --insecure '
-                         'on a network you trust')
-    if scheme != 'tcp' or not host:
-        raise ValueError(f'--scheduler {address}: expected tcp://HOST:PORT')
+        return
     if not (insecure or _loopback(host)):
         raise ValueError(f'--scheduler {address}: a plain tcp:// scheduler off this machine '
                          'runs whatever anyone who reaches it sends; refused without '
@@ -96,10 +124,16 @@ def connect(spec: ClusterSpec) -> Iterator[Any]:
         with _embedded(spec.jobs) as client:
             yield client
         return
-    check_address(spec.scheduler, spec.insecure)
+    check_address(spec.scheduler, spec.insecure, spec.tls is not None)
+    security = spec.tls.security() if spec.tls is not None else None
     from distributed import Client
+    from distributed.comm.core import FatalCommClosedError
     try:
-        client = Client(spec.scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+        client = Client(spec.scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False,
+                        security=security)
+    except FatalCommClosedError as err:     # e.g. a certificate of another CA
+        raise ClusterError(f'--scheduler {spec.scheduler}: the connection was refused '
+                           f'({err})') from None
     except (OSError, TimeoutError) as err:
         raise ClusterError(f'--scheduler {spec.scheduler}: no answer within '
                            f'{CONNECT_TIMEOUT_S:.0f} s ({err.__class__.__name__})') from None
