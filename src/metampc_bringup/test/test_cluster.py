@@ -67,11 +67,15 @@ def test_a_plain_tcp_scheduler_off_this_machine_is_refused_before_any_connection
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     out = tmp_path / 'run'
-    assert script.main(['--config', CI_CONFIG, '--out', str(out), '--seeds', '2',
-                        '--scheduler', OFF_HOST[0]]) == 2
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and '--insecure' in err, err
-    assert not out.exists()
+    for extra, said in ((['--scheduler', OFF_HOST[0]], '--insecure'),
+                        (['--scheduler', 'tls://192.0.2.7:8786'], 'tls:// needs --tls-ca-file'),
+                        (['--scheduler', 'tls://192.0.2.7:8786', '--tls-ca-file', 'ca.pem'],
+                         '--tls-ca-file, --tls-cert and --tls-key go together')):
+        assert script.main(['--config', CI_CONFIG, '--out', str(out), '--seeds', '2',
+                            *extra]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and said in err, err
+        assert not out.exists()
 
 
 def test_a_scheduler_that_does_not_answer_is_one_line_and_exit_2(tmp_path):
