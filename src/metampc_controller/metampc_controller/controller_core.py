@@ -22,7 +22,7 @@ from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
 from metampc_controller.model_swap import ModelSwap
-from metampc_controller.mpc import LatentMpc, MpcConfig, NO_TIME_LIMIT
+from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.planner import Planner, PlanResult
 from metampc_controller.planner_registry import latent_mpc, planner_kind, TrueModel
@@ -394,7 +394,6 @@ class ControllerCore:
         self._true_planner: Optional[Planner] = None
         self._theta: Tuple[float, ...] = ()     # the newest sample's theta (nmpc; (): untold)
         self.nmpc_problem = ''      # why the nmpc planner has no model of the plant, or ''
-        self._declared = config     # as given; the tuning's may lift the time limit
         self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
         self._setup_lock = threading.Lock()     # the builder thread and a queued swap
         self.trigger = AdaptationTrigger(config.trigger)
@@ -499,8 +498,6 @@ class ControllerCore:
         milliseconds, while the ticks go on with the tuning before), then swaps it in; the
         new planner starts cold, as on a new model. ValueError if the model does not fit
         (check_tuning first)."""
-        self._declared = config
-        config = self._for_clock(config)
         with self._setup_lock:
             setup = self._setup
             model = setup.model
@@ -513,14 +510,6 @@ class ControllerCore:
                 answer, mpc=latent_mpc(config.mpc, answer.predictor.latent)))
             self._setup = setup._replace(tuning=tuning, model=model)
         self.trigger.config = config.trigger
-
-    def _for_clock(self, config: ControllerConfig) -> ControllerConfig:
-        """`config` for the plant's clock: under a lockstep plant OSQP has no wall-clock cap
-        (nothing waits for the input, and a cap that trips on a loaded machine turns a solve
-        into a fallback, so a seeded run would depend on the machine's load)."""
-        if self.plant is None or not self.plant.lockstep:
-            return config
-        return replace(config, mpc=replace(config.mpc, time_limit=NO_TIME_LIMIT))
 
     @property
     def dt(self) -> float:
@@ -569,9 +558,6 @@ class ControllerCore:
                             f'{1.0 / plant.dt}: steps will wait for input timeouts')
         known = self.plant
         self.plant = plant
-        if (known is not None and known.lockstep) != plant.lockstep:
-            self.retune(self._declared, tuning.version)     # its time limit (once per plant)
-            tuning = self.tuning
         if known is None or (known.family, known.dt) != (plant.family, plant.dt):
             error = self._build_true_planner(tuning)
             if error:

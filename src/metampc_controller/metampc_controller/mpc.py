@@ -55,9 +55,8 @@ class MpcConfig(PlannerConfig):
         terminal_reg: eps of Qbar = Cbar'QCbar + eps I, relative to ||Cbar'QCbar||_2.
         max_iter: OSQP iteration cap; a capped solve is a failure (fallback), not a result.
         time_limit: OSQP run-time cap, s (wall clock): it should trip only when the machine
-            stalls the process, when the input would be late anyway. Real time only: under a
-            lockstep plant the controller core lifts it (NO_TIME_LIMIT), since nothing waits
-            and a cap that trips on a loaded machine would change a seeded run.
+            stalls the process, when the input would be late anyway (online collection,
+            which waits for nothing, runs without one: NO_TIME_LIMIT).
         eps_abs, eps_rel: OSQP termination tolerances.
         warm_start: start OSQP from the shifted previous plan (its duals stay OSQP's own).
         polish: OSQP polishing (an extra reduced KKT solve for an active-set-exact answer;
@@ -84,8 +83,7 @@ class MpcConfig(PlannerConfig):
                                      'violation (slack), per step', gt=0, live=True)
     terminal_reg: float = 1e-6
     max_iter: int = param(500, 'OSQP iteration cap', ge=1)
-    time_limit: float = param(0.05, 'OSQP wall-time cap per solve, s (real-time plants; '
-                                    'none under a lockstep plant)', gt=0)
+    time_limit: float = param(0.05, 'OSQP wall-time cap per solve, s', gt=0)
     eps_abs: float = param(1e-4, 'OSQP absolute tolerance', gt=0)
     eps_rel: float = param(1e-4, 'OSQP relative tolerance', ge=0)
     warm_start: bool = True
