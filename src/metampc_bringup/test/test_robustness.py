@@ -2,10 +2,13 @@
 from the cache, and one error line with exit status 2 on bad arguments."""
 import importlib.util
 import json
+import math
 import os
 from pathlib import Path
 
 import pytest
+
+from metampc_bringup.studies.robustness import robustness_summary
 
 ROOT = Path(__file__).resolve().parents[3]
 # The shared tiny experiment (conftest), with short meta-training and MAML's adaptation.
@@ -60,3 +63,18 @@ def test_bad_set_exits_2_with_one_line(tmp_path, capsys, setting, tiny_config):
     assert _script().main(['--config', str(config), '--out', str(out), '--set', setting]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not os.path.exists(out)
+
+
+def test_divergence_by_each_loss_against_its_own_median():
+    """Five hand-made runs: the final loss of seed 3 is 12x the median (1.0), seed 4's is
+    not finite; by the returned loss only seed 2 (11x); by the common adapted score only seed 1
+    (10.5x the median 0.1), seed 0 at exactly 10x is not above it."""
+    def run(seed, final, returned, score):
+        return {'method': 'maml', 'source_seed': seed, 'meta_final_loss': final,
+                'meta_returned_loss': returned, 'adapt': [{'lr': 0.2}], 'score': score}
+    runs = [run(0, 1.0, 1.0, 1.0), run(1, 1.0, 1.0, 1.05), run(2, 1.0, 11.0, 0.1),
+            run(3, 12.0, 1.0, 0.1), run(4, math.inf, 1.0, 0.1)]
+    summary = robustness_summary(runs)['maml']
+    assert summary['diverged'] == [3, 4] and summary['diverged_returned'] == [2]
+    assert summary['median_score'] == 0.1 and summary['diverged_score'] == [1]
+    assert summary['n_diverged_score'] == 1

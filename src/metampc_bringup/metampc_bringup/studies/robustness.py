@@ -43,7 +43,8 @@ def robustness_summary(results: Sequence[dict]) -> Dict[str, Any]:
     or a final loss above DIVERGED_FACTOR x the median); the same for the loss of the weights
     returned (`returned_loss`: the best checkpoint's validation loss under the divergence
     guard) and the guard's rollbacks per run; A's largest spectral radius, and when every run
-    was adapted, their scores (held-out loss after adaptation) and mean."""
+    was adapted, their scores (held-out loss after adaptation on the same validation targets
+    for every run), mean, median and the runs above DIVERGED_FACTOR x it."""
     out: Dict[str, Any] = {}
     for method in dict.fromkeys(r['method'] for r in results):
         runs = [r for r in results if r['method'] == method]
@@ -65,6 +66,11 @@ def robustness_summary(results: Sequence[dict]) -> Dict[str, Any]:
             'max_a_radius': max(r.get('a_radius', math.nan) for r in runs),
             'meta_seconds': [r.get('meta_seconds') for r in runs]}
         if all(r.get('adapt') for r in runs):
-            scores = [r['score'] for r in runs]
-            out[method].update(score=scores, mean_score=float(np.mean(scores)))
+            # The one loss that every run is scored on alike: the same validation targets
+            # (a run's returned loss is on held-out tasks of its own source set).
+            scores = [float(r['score']) for r in runs]
+            median_score, diverged_score = _diverged(runs, scores)
+            out[method].update(score=scores, mean_score=float(np.mean(scores)),
+                               median_score=median_score, diverged_score=diverged_score,
+                               n_diverged_score=len(diverged_score))
     return out
