@@ -19,6 +19,7 @@ from metampc_testing import read_with_rosbags
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(ROOT, 'config', 'ci_drift.yaml')
 SWAP_DELAY = 10     # the controller's default
+TRIAL = 20          # controller.model_check_trial of ci_drift
 
 
 def runs_of(mcap_path: str):
@@ -71,15 +72,15 @@ def test_requests_swaps_and_theta_steps_are_where_the_rules_put_them(two_runs):
         if name == 'nmpc' or name.endswith('/none'):
             assert requests == [] and swaps == [], name
             continue
-        # Each request answered at exactly request + swap_delay (within the run), or its model
-        # refused by the model check (model_check 'requested': the model in use stays and
-        # model_status says why from then on, the refused request ended at once).
+        # Each request's answer tried from exactly request + swap_delay and in use after its
+        # trial (within the run), or refused by the model check at its trial's end or at
+        # arrival (the model in use stays and model_status says why from then on).
         status = {m.step: m.model_status for m in run['mpc_status']}
-        answered = [k + SWAP_DELAY for k in requests if k + SWAP_DELAY < n]
+        answered = [k + SWAP_DELAY + TRIAL for k in requests if k + SWAP_DELAY + TRIAL < n]
         assert set(swaps) <= set(answered), name
         for k in set(answered) - set(swaps):
-            assert any(status[j].startswith('rejected: check:') for j in range(k - SWAP_DELAY, n)
-                       if j in status), (name, k)
+            assert any(status[j].startswith('rejected: check:')
+                       for j in range(k - SWAP_DELAY - TRIAL, n) if j in status), (name, k)
         if name.endswith('/periodic'):
             period = int(round(4.0 / config.dt))     # controller.adapt_period of ci_drift
             assert requests == list(range(period, n, period)), name

@@ -5,8 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from metampc_bringup.analysis.drift_report import (MOVING_WINDOW_S, moving_cost, RECOVERY_FACTOR,
-                                                   recovery_time, run_metrics, RunSignals,
+from metampc_bringup.analysis.drift_report import (drift_experiment_report, MOVING_WINDOW_S,
+                                                   moving_cost, RECOVERY_FACTOR, recovery_time,
+                                                   refusals, run_metrics, RunSignals,
                                                    squared_errors)
 
 
@@ -118,3 +119,32 @@ def test_identical_runs_started_at_different_stamps_get_identical_metrics():
     assert got[0] == got[1]
     assert got[0]['cost_before'] == pytest.approx(e2[:300].mean())
     assert got[0]['cost_after'] == pytest.approx(e2[300:].mean())
+
+
+def test_refusals_are_the_statuses_that_turn_to_a_new_rejection():
+    sig = signals(np.zeros(8), np.zeros(7))
+    sig.model_status = ['ok', 'rejected: check: a', 'rejected: check: a', 'ok',
+                        'rejected: bad weights: nan', 'rejected: check: b', 'rejected: check: b']
+    assert refusals(sig) == [[1, 'check: a'], [4, 'bad weights: nan'], [5, 'check: b']]
+    assert run_metrics(sig, None, None, [0], 0.1)['refusals'] == refusals(sig)
+
+
+def test_each_adapting_mode_is_paired_with_none_by_seed(tmp_path):
+    """Two seeds: periodic costs 0.5x and 2x none's after the change (worse on 1 of 2, worst
+    2, geometric mean 1); the refusals are counted by kind."""
+    def seed(k, none, periodic, refused):
+        return {'seed': k, 'theta': [0.0], 'runs': {
+            'imaml/none': {'cost_after': none},
+            'imaml/periodic': {'cost_after': periodic, 'refusals': refused}}}
+    reports = [seed(0, 2.0, 1.0, [[40, 'check: x']]),
+               seed(1, 1.0, 2.0, [[40, 'check: y'], [90, 'bad weights: z']])]
+    config = {'drift': {'modes': ['none', 'periodic'], 'methods': ['imaml'],
+                        'constant_check': False}}
+    report = drift_experiment_report(reports, str(tmp_path), config, 1.0)
+    row = report['table']['imaml/periodic']
+    assert row['vs_none']['values'] == [0.5, 2.0] and row['vs_none']['worse'] == 1
+    assert row['vs_none']['worst'] == 2.0 and row['vs_none']['geomean'] == pytest.approx(1.0)
+    assert row['refusals'] == [1, 2] and row['refusal_kinds'] == {'check': 2, 'bad weights': 1}
+    assert report['table']['imaml/none']['vs_none'] is None
+    md = (tmp_path / 'report.md').read_text()
+    assert '| 1 of 2, 2, 1 |' in md and '3 (bad weights 1, check 2)' in md

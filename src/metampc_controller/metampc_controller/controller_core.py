@@ -22,7 +22,7 @@ from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check
 from metampc_controller.model_swap import ModelSwap
-from metampc_controller.mpc import LatentMpc, MpcConfig
+from metampc_controller.mpc import LatentMpc, MpcConfig, NO_TIME_LIMIT
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.planner import Planner, PlanResult
 from metampc_controller.planner_registry import latent_mpc, planner_kind, TrueModel
@@ -328,6 +328,8 @@ class TickResult:
     request: the adaptation request this tick made (:mod:`adaptation_trigger`), if any.
     disturbance: the latent MPC's offset-free disturbance estimate (empty otherwise);
     slack: its largest planned violation of the soft output bounds.
+    verdict: the check's line on an answer whose trial this tick ended ('' if none): it
+        flies from this tick (``check passed``) or was refused (model_status says so too).
     config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
 
@@ -351,10 +353,15 @@ class TickResult:
     request: Optional[Request] = None
     disturbance: np.ndarray = field(default_factory=lambda: np.zeros(0))
     slack: float = 0.0
+    verdict: str = ''
 
 
 # No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
 NO_ERRORS = (math.nan, math.nan, math.nan)
+
+
+class ModelRefused(ValueError):
+    """A new model the check refused (the reason is the message); the model in use stays."""
 
 
 def nmpc_unavailable(reason: str) -> str:
@@ -427,27 +434,50 @@ class ControllerCore:
         return self._setup.model_status
 
     def offer_model(self, bundle: ModelBundle, request_step: int = 0) -> Optional[int]:
-        """Use this model (built for :attr:`tuning`) as the swap rules say (builder thread,
-        :mod:`~metampc_controller.model_swap`): the answer to the pending adaptation request
-        (`request_step` its step) is queued, and its step is returned (0: the next tick);
-        any other model is used from the next tick on (None)."""
-        start = self.swap.offer(bundle, request_step)
+        """Use this model (built for :attr:`tuning`, :meth:`vet` passed) as the swap rules say
+        (builder thread, :mod:`~metampc_controller.model_swap`): the answer to the pending
+        adaptation request (`request_step` its step) is queued, and its step is returned (0:
+        the next tick), where it flies or, if :meth:`tried` says so, starts its trial; any
+        other model is used from the next tick on (None). ModelRefused: a model left to a
+        trial whose request ended meanwhile failed the check at arrival."""
+        trial = self.tried(request_step)
+        with self._setup_lock:      # not between set_plant's clock rule and the offer
+            bundle.mpc.set_time_limit(self._time_limit())
+            start = self.swap.offer(bundle, request_step, trial)
+        if start is None and trial:
+            # Its request ended (given up) since vet() left it to a trial: a late answer now,
+            # checked at arrival like one.
+            reason = self.vet(bundle, request_step)
+            if reason:
+                raise ModelRefused(reason)
         if start is None:
             with self._setup_lock:
                 self._setup = self._setup._replace(model=bundle, model_status='ok')
         return start
+
+    def _time_limit(self, config: Optional[ControllerConfig] = None) -> float:
+        """OSQP's wall-clock cap per solve for the planners (of `config`, default the
+        tuning's): none under a lockstep plant, which waits for every answer (a cap that
+        trips on a stalled machine only turns a seeded run into another), else
+        ``time_limit``. Set in place (warm starts kept), so a plan never depends on when
+        plant_info came."""
+        plant = self.plant
+        if plant is not None and plant.lockstep:
+            return NO_TIME_LIMIT
+        return (config or self.config).mpc.time_limit
 
     def vet(self, bundle: ModelBundle, request_step: int = 0) -> str:
         """The check a new model must pass before :meth:`offer_model` (builder thread): ''
         to fly it, else the reason (:mod:`model_check`), and the model in use stays. Under
         ``requested`` every model naming a request is checked, late ones included; a refused
         answer to the pending adaptation request ends that request, so that the loop goes on
-        with the model in use at once. The yardstick is the model in use when `bundle` is of
-        its method (an update of it), persistence otherwise."""
+        with the model in use at once. The answer to the pending request is not checked here
+        when it is to be tried (:meth:`tried`): its trial decides. The yardstick is the model
+        in use when `bundle` is of its method (an update of it), persistence otherwise."""
         config = self.tuning.config
         # Any answer to one of our requests, also a late one (its request given up or
         # forgotten by a reset), which is then used from the next tick like any model.
-        if not applies(config.model_check, bool(request_step)):
+        if not applies(config.model_check, bool(request_step)) or self.tried(request_step):
             return ''
         u, y = self.history.snapshot()
         current = self.model
@@ -458,6 +488,28 @@ class ControllerCore:
             return ''
         self.swap.refused(request_step)
         return verdict.reason
+
+    def tried(self, request_step: int) -> int:
+        """Samples the answer naming `request_step` is tried on before it flies (0: none; it is
+        checked at arrival, if at all): ``model_check_trial`` for the answer to the pending
+        request when the check applies and a model is in use to go on meanwhile."""
+        config = self.tuning.config
+        if (not applies(config.model_check, bool(request_step)) or self.model is None
+                or not self.swap.answers(request_step)):
+            return 0
+        return config.model_check.model_check_trial
+
+    def _judge(self, step: int, first: int, bundle: ModelBundle) -> Tuple[bool, str]:
+        """The verdict on `bundle`, tried from the tick of `first` to that of `step`: scored
+        on samples first..step (the history before them as history), against the model in
+        use (:meth:`vet`'s yardstick)."""
+        u, y = self.history.snapshot()
+        current = self.model
+        same = current is not None and current.method == bundle.method
+        verdict = check(bundle.predictor, current.predictor if same else None, u, y,
+                        self.config.mpc.horizon, self.config.model_check, step - first + 1,
+                        f'its trial from step {first}, unseen by its adaptation')
+        return verdict.ok, verdict.reason
 
     def reject_model(self, reason: str) -> None:
         """Report rejected weights; the previous model stays in use (builder thread)."""
@@ -498,16 +550,21 @@ class ControllerCore:
         milliseconds, while the ticks go on with the tuning before), then swaps it in; the
         new planner starts cold, as on a new model. ValueError if the model does not fit
         (check_tuning first)."""
+        def rebuilt(bundle: ModelBundle) -> ModelBundle:
+            mpc = latent_mpc(config.mpc, bundle.predictor.latent)
+            mpc.set_time_limit(limit)
+            return replace(bundle, mpc=mpc)
+
         with self._setup_lock:
             setup = self._setup
+            limit = self._time_limit(config)
             model = setup.model
             if model is not None:
-                model = replace(model, mpc=latent_mpc(config.mpc, model.predictor.latent))
+                model = rebuilt(model)
             tuning = Tuning.of(config, version, self.n_u)
             if self._true_planner is not None:
                 self._build_true_planner(tuning)    # here, never in the tick
-            self.swap.retune(lambda answer: replace(
-                answer, mpc=latent_mpc(config.mpc, answer.predictor.latent)))
+            self.swap.retune(rebuilt)
             self._setup = setup._replace(tuning=tuning, model=model)
         self.trigger.config = config.trigger
 
@@ -558,11 +615,26 @@ class ControllerCore:
                             f'{1.0 / plant.dt}: steps will wait for input timeouts')
         known = self.plant
         self.plant = plant
+        if known is None or known.lockstep != plant.lockstep:
+            self._apply_time_limit()
         if known is None or (known.family, known.dt) != (plant.family, plant.dt):
             error = self._build_true_planner(tuning)
             if error:
                 warnings.append(nmpc_unavailable(error))
         return warnings
+
+    def _apply_time_limit(self) -> None:
+        """The clock rule (:meth:`_time_limit`) on the model in use and a queued or tried
+        answer, in place (executor thread, between ticks)."""
+        def limited(bundle: ModelBundle) -> ModelBundle:
+            bundle.mpc.set_time_limit(limit)
+            return bundle
+
+        with self._setup_lock:
+            limit = self._time_limit()
+            if self.model is not None:
+                limited(self.model)
+            self.swap.retune(limited)
 
     def set_override(self, values: Sequence[float]) -> str:
         """Set-points per output overriding the reference ([] clears); returns an error or ''."""
@@ -668,6 +740,7 @@ class ControllerCore:
             answer = self.swap.due(step)
             if answer is not None:
                 self._setup = self._setup._replace(model=answer, model_status='ok')
+            verdict = self._end_trial(step)
         tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)
@@ -691,12 +764,26 @@ class ControllerCore:
                 (0, self.n_u)), y_pred=np.zeros((0, self.n_y)), cost=math.nan,
                 status=self.kind.waiting, iterations=-1, solve_time=0.0)
         return self._answer(step, tuning, model_status, y_ref, u_prev, res, version, errors,
-                            request)
+                            request, verdict)
+
+    def _end_trial(self, step: int) -> str:
+        """Judge the answer whose trial the tick of `step` ends (under the set-up lock): it
+        flies from this tick, or the model in use stays with the reason in model_status.
+        Returns the verdict's line ('' if no trial ended)."""
+        tried = self.swap.trial_over(step)
+        if tried is None:
+            return ''
+        first, bundle = tried
+        ok, verdict = self._judge(step, first, bundle)
+        self.swap.judged(bundle, ok)
+        self._setup = self._setup._replace(model=bundle, model_status='ok') if ok else \
+            self._setup._replace(model_status=f'rejected: {verdict}')
+        return verdict
 
     @staticmethod
     def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,
                 u_prev: np.ndarray, res: PlanResult, version: int, errors: tuple,
-                request: Optional[Request]) -> TickResult:
+                request: Optional[Request], verdict: str = '') -> TickResult:
         """The tick's result from any planner's plan, with u checked: finite (else u_prev, or
         0, and `fallback`) and clipped into the tuning's bounds (the planners promise both;
         the plant must get it)."""
@@ -713,4 +800,5 @@ class ControllerCore:
                           solver_status=res.status, cost=float(res.cost),
                           iterations=int(res.iterations), solve_time=res.solve_time,
                           u_plan=res.u_plan, y_pred=res.y_pred, prediction_errors=errors,
-                          request=request, disturbance=res.disturbance, slack=res.slack)
+                          request=request, disturbance=res.disturbance, slack=res.slack,
+                          verdict=verdict)

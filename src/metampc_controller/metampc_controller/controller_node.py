@@ -36,7 +36,7 @@ from std_msgs.msg import Float64MultiArray
 
 from metampc_controller.adaptation_trigger import Request
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
-                                                TickResult)
+                                                ModelRefused, TickResult)
 from metampc_controller.controller_params import ControllerConfig, PARAMETERS, parse_params
 from metampc_model.weights_codec import fields_of, weights_from_fields, WeightsError
 from metampc_plant.plant_description import PlantDescription
@@ -175,9 +175,22 @@ class ControllerNode(Node):
             self._stopped_by_itself(f'answered step {res.step}')
         tick_time = time.perf_counter() - start
         self._publish_status(res, tick_time)
+        if res.verdict:
+            self._end_of_trial(res)
         self._counts['answered'] += 1
         self._counts['pre_model'] += res.iterations < 0
         self._counts['fallbacks'] += res.fallback
+
+    def _end_of_trial(self, res: TickResult) -> None:
+        """Say what the tick that ended a requested model's trial decided."""
+        if res.model_status.startswith('rejected:'):
+            self._counts['refused_models'] += 1
+            self._counts['rejected_weights'] += 1
+            self.get_logger().error(f'refused the model tried until step {res.step}: '
+                                    f'{res.verdict}; model in use: {res.model_version}')
+        else:
+            self.get_logger().info(f'model version {res.model_version} in use from step '
+                                   f'{res.step}: {res.verdict}')
 
     def _publish_status(self, res: TickResult, tick_time: float) -> None:
         status = self._status_msg
@@ -360,20 +373,29 @@ class ControllerNode(Node):
         except Exception as err:    # a bug, not bad weights: say so, never lose it silently
             self._reject(msg, f'{type(err).__name__}: {err}')
             return
-        refused = core.vet(bundle, msg.request_step)
+        trial = core.tried(msg.request_step)
+        try:
+            refused = core.vet(bundle, msg.request_step)
+            requested = None if refused else core.offer_model(bundle, msg.request_step)
+        except ModelRefused as err:
+            refused = str(err)
         if refused:
             self._counts['refused_models'] += 1
             self._reject(msg, refused)
             return
-        requested = core.offer_model(bundle, msg.request_step)
         self._counts['models'] += 1
         term = bundle.mpc.terminal
         cfg = bundle.predictor.config
+        if requested is None:
+            when = 'in use from the next tick'
+        else:
+            where = f'step {requested}' if requested else 'the next tick'
+            when = (f'tried from {where} for {trial} samples, in use after if it passes the '
+                    f'check' if trial else f'in use from {where}')
+            when += f' (it answers the request of step {msg.request_step})'
         self.get_logger().info(
             f'model version {msg.version} ({msg.method}, {msg.stage}; H={cfg.history}, '
-            f'n_z={cfg.n_z}, encoder {list(cfg.hidden)}) in use from '
-            + (f'step {requested} (it answers the request of step {msg.request_step})'
-               if requested is not None else 'the next tick')
+            f'n_z={cfg.n_z}, encoder {list(cfg.hidden)}) {when}'
             + (f'; terminal cost fallback: {term.reason}' if term.fallback else '')
             + f'; offset-free {bundle.mpc.describe_offset_free()}')
 

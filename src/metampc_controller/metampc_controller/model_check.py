@@ -1,14 +1,16 @@
 """The check a new model must pass before the controller flies it.
 
-Scores the N-step prediction of the plant under the inputs really applied, on the latest
-samples of the episode (u (K, n_u), y (K, n_y)): from every ``stride``-th start t, z_t by
-eq. (z) from H samples, y_hat rolled by eqs. (z_next), (haty) under u_{t+1..t+N}, and
-E = mean ((y - y_hat) / s_i)^2 with s_i the std of output i over the samples scored. The
-candidate passes when E_candidate <= (1 + margin) E_reference, the reference being the model in
-use when the candidate updates it, else persistence (y_hat = y_t). Fewer than H + N + 1
-samples pass unchecked and say so. Which models are checked (``model_check``: requested /
-all / off) is the controller's. Pure numpy (no rclpy); run on the builder thread, outside the
-tick. Why and what it refused: docs/mpc.md#the-check-before-a-model-flies.
+Scores the N-step prediction of the plant under the inputs really applied, on samples of the
+episode (u (K, n_u), y (K, n_y)): from every ``stride``-th start t, z_t by eq. (z) from H
+samples, y_hat rolled by eqs. (z_next), (haty) under u_{t+1..t+N}, and E = mean ((y - y_hat) /
+s_i)^2 with s_i the std of output i over the samples scored. The candidate passes when
+E_candidate <= (1 + margin) E_reference, the reference being the model in use when the
+candidate updates it, else persistence (y_hat = y_t). Which samples: an answer to the pending
+adaptation request is tried on the ``model_check_trial`` samples after its swap step, which
+its adaptation never saw (the model in use controls meanwhile); any other model on the latest
+``model_check_window`` at its arrival. Too few samples pass unchecked and say so. Which models
+are checked (``model_check``: requested / all / off) is the controller's. Pure numpy (no
+rclpy). Why and what it refused: docs/mpc.md#the-check-before-a-model-flies.
 """
 from dataclasses import dataclass
 import math
@@ -30,11 +32,17 @@ class ModelCheckConfig:
                                           'fly: requested (answers to adaptation requests, '
                                           'late ones too), all, off', choices=CHECKED,
                              live=True)
-    model_check_margin: float = param(0.0, 'a new model may predict up to this fraction worse '
-                                           'than the model in use and still fly', ge=0,
-                                      live=True)
-    model_check_window: int = param(200, 'latest samples of the episode the check scores', ge=1,
-                                    le=900, live=True)
+    model_check_margin: float = param(0.0, 'a new model flies if its error is at most (1 + '
+                                           'margin) times the yardstick\'s: > 0 lets a '
+                                           'slightly worse one fly, < 0 asks for a clear gain',
+                                      gt=-1, live=True)
+    model_check_window: int = param(200, 'latest samples of the episode the check scores at a '
+                                         'model\'s arrival', ge=1, le=900, live=True)
+    model_check_trial: int = param(50, 'samples an answer to an adaptation request is tried on '
+                                       'before it flies, the model in use going on meanwhile '
+                                       '(scored on them alone: its adaptation never saw them); '
+                                       '0: checked at arrival like any model; else at least '
+                                       'the horizon', ge=0, le=900, live=True)
     model_check_stride: int = param(5, 'samples between the starts of the scored predictions',
                                     ge=1, live=True)
 
@@ -85,12 +93,15 @@ def _persistence(u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray) -
 
 
 def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndarray,
-          y: np.ndarray, horizon: int, config: ModelCheckConfig) -> Verdict:
-    """Verdict on `candidate` against `current` (None: persistence) on the latest samples
-    u (K, n_u), y (K, n_y) of the episode (module docstring); which models to check is the
-    caller's (:func:`applies`)."""
+          y: np.ndarray, horizon: int, config: ModelCheckConfig, scored: Optional[int] = None,
+          where: str = 'the latest of the episode') -> Verdict:
+    """Verdict on `candidate` against `current` (None: persistence) on the last `scored`
+    samples (default ``model_check_window``) of the episode's u (K, n_u), y (K, n_y), the H
+    before them as history (module docstring); `where` names them in the reason. Which
+    models to check is the caller's (:func:`applies`)."""
     h = max(candidate.config.history, current.config.history if current is not None else 1)
-    u, y = u[-(config.model_check_window + h):], y[-(config.model_check_window + h):]
+    scored = config.model_check_window if scored is None else scored
+    u, y = u[-(scored + h):], y[-(scored + h):]
     if len(y) < h + horizon + 1:
         return Verdict(True, f'unchecked: {len(y)} samples in the episode, the check needs '
                              f'{h + horizon + 1}')
@@ -103,8 +114,9 @@ def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndar
     limit = (1.0 + config.model_check_margin) * ref
     if not math.isfinite(new) or new > limit:
         margin = config.model_check_margin
-        return Verdict(False, f'check: its {horizon}-step prediction error {new:.4g} on the '
-                              f'latest {len(y)} samples exceeds (1 + {margin:g}) x {ref:.4g} '
-                              f'of {what}', new, ref)
-    return Verdict(True, f'check passed: {horizon}-step prediction error {new:.4g} against '
-                         f'{ref:.4g} of {what}', new, ref)
+        return Verdict(False, f'check: its {horizon}-step prediction error {new:.4g} on '
+                              f'{len(y) - h} samples ({where}) exceeds {1 + margin:g} x '
+                              f'{ref:.4g} of {what}', new, ref)
+    return Verdict(True, f'check passed: {horizon}-step prediction error {new:.4g} on '
+                         f'{len(y) - h} samples ({where}) against {ref:.4g} of {what}', new,
+                   ref)

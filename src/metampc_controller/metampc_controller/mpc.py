@@ -10,7 +10,7 @@ set_model` builds the QP and its OSQP factorisation once per (model, config); pe
 out-of-bounds input (a failed solve: the previous plan shifted, ``fallback``). Derivation,
 settings and measurements: docs/mpc.md.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 import time
 from typing import Optional, Sequence, Tuple
@@ -308,6 +308,13 @@ class LatentMpc:
             pb.set_solver(_setup_solver(pb.P, pb.A, *pb.osqp_bounds(), self._config))
             if pb.estimator is not None:
                 pb.estimator.reset()
+
+    def set_time_limit(self, seconds: float) -> None:
+        """OSQP's wall-clock cap from the next solve on, in place: the solver keeps its warm
+        start and adapted rho (a rebuilt one starts cold), and a reset keeps the cap."""
+        self._config = replace(self._config, time_limit=seconds)
+        if self._problem is not None:
+            self._problem.solver.update_settings(time_limit=seconds)
 
     def set_model(self, model: LatentModel) -> None:
         """Build the condensed QP, the terminal cost and the offset-free estimator for a model

@@ -70,6 +70,9 @@ class Nmpc:
         self._plan = None
         self._x = None
 
+    def set_time_limit(self, seconds: float) -> None:
+        """L-BFGS-B runs without a wall-clock cap (``maxiter`` bounds it): nothing to set."""
+
     def rollout(self, x0: np.ndarray, plans: np.ndarray) -> np.ndarray:
         """Outputs y_{t+1..t+N} for a batch of input plans (P, N, n_u); returns (P, N, n_y)."""
         cfg, fam = self.config, self.family

@@ -137,5 +137,9 @@ class Planner(Protocol):
     def reset(self) -> None:
         """Start cold, as freshly built: a new plant episode."""
 
+    def set_time_limit(self, seconds: float) -> None:
+        """The solver's wall-clock cap per solve from the next solve on, in place (warm start
+        kept): the controller lifts it under a lockstep plant, which waits for every answer."""
+
 
 __all__ = ['Weights', 'PlannerConfig', 'PlanResult', 'Planner']

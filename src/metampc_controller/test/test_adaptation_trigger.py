@@ -9,6 +9,7 @@ import pytest
 from metampc_controller.adaptation_trigger import AdaptationTrigger, TriggerConfig
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
+from metampc_controller.model_check import ModelCheckConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
 from metampc_model.weights_codec import DecodedWeights
@@ -104,7 +105,8 @@ def test_the_core_swaps_a_requested_model_exactly_at_the_swap_step_under_lockste
     it and the trigger counts it answered."""
     bundle = build_model(DecodedWeights(*linearised_vdp_nssm(0.5, DT, 10)), 1, 'manual',
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
-    config = ControllerConfig(trigger=TriggerConfig(adaptation='periodic', adapt_period=2.0))
+    config = ControllerConfig(trigger=TriggerConfig(adaptation='periodic', adapt_period=2.0),
+                              model_check=ModelCheckConfig(model_check_trial=0))
     core = ControllerCore(config)
     core.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
     core.offer_model(bundle)

@@ -514,3 +514,42 @@ def test_history_rows_are_the_samples_of_the_episode():
                 u_win, y_win = hist.window(h)
                 assert u_win.tolist() == [r[0] for r in rows]
                 assert y_win.tolist() == [r[1] for r in rows]
+
+
+def _capped_loop(cap: float, plant_at: int, lockstep: bool, reset_at: int = -1, steps=30):
+    """A core (OSQP time_limit `cap` s) on the plant core, told plant_info (lockstep or real
+    time) before the tick of `plant_at` (0: before the model's first tick), the plant reset at
+    `reset_at`; the tick results."""
+    mpc = MpcConfig(time_limit=cap)
+    core = ControllerCore(ControllerConfig(reference_kind='setpoint', mpc=mpc,
+                                           reference_params={'value': 0.5}))
+    core.offer_model(manual_bundle(mpc=mpc))
+    plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
+    y, u, out, k = plant.output(), 0.0, [], 0
+    for i in range(steps):
+        if i == plant_at:
+            core.set_plant(vdp_plant(lockstep=lockstep))
+        if i == reset_at:
+            y, u, k = plant.reset(), 0.0, 0
+        core.observe(k, [u], y)
+        res = core.tick()
+        out.append(res)
+        u = float(res.u[0])
+        y, k = plant.step([u]), k + 1
+    return out
+
+
+def test_a_lockstep_plant_lifts_osqp_s_wall_clock_cap_in_place():
+    """A cap of 1 ns trips every solve of a real-time plant (the fallback); told that the
+    plant is lockstep, before the first tick or after five, the controller solves every tick
+    from then on, a plant reset (a cold planner) included, since the cap is lifted in the
+    planner itself. Under the default cap, plans are the same bit for bit whether plant_info
+    came before the model's first tick or after it (a rebuilt planner would start cold)."""
+    capped = _capped_loop(1e-9, 0, lockstep=False)
+    assert all(r.fallback and r.solver_status != 'solved' for r in capped)
+    for plant_at in (0, 5):
+        lifted = _capped_loop(1e-9, plant_at, lockstep=True, reset_at=20)
+        assert all(r.fallback for r in lifted[:plant_at])
+        assert all(r.solver_status == 'solved' and not r.fallback for r in lifted[plant_at:])
+    before, after = (_capped_loop(NO_TIME_LIMIT, at, lockstep=True) for at in (0, 1))
+    assert all(np.array_equal(a.u_plan, b.u_plan) for a, b in zip(before, after))

@@ -114,3 +114,13 @@ def test_reference_paper_is_the_setpoint_sequence_with_one_warning(monkeypatch, 
     assert capsys.readouterr().err == ("warning: reference: 'paper' is renamed "
                                        "'setpoint_sequence'; the old value will be removed in "
                                        'the next release\n')
+
+
+def test_a_trial_shorter_than_the_horizon_is_refused():
+    """model_check_trial: 0 (no trial) or at least N samples, else its check scores nothing."""
+    with pytest.raises(ParameterError, match='model_check_trial must be 0 or at least horizon'):
+        parse_params(values(model_check_trial=10, horizon=20))
+    assert parse_params(values(model_check_trial=20, horizon=20)).model_check.model_check_trial \
+        == 20
+    assert parse_params(values(model_check_trial=0, horizon=20)).model_check.model_check_trial \
+        == 0

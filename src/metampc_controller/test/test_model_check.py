@@ -9,13 +9,15 @@ import math
 import numpy as np
 import pytest
 
-from metampc_controller.controller_core import build_model, ControllerCore
+from metampc_controller.adaptation_trigger import TriggerConfig
+from metampc_controller.controller_core import build_model, ControllerCore, TickResult
 from metampc_controller.controller_params import ControllerConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.model_check import applies, check, ModelCheckConfig, n_step_error
 from metampc_controller.mpc import MpcConfig
 from metampc_model.predictor import NssmPredictor
 from metampc_model.weights_codec import DecodedWeights
+from metampc_plant.plant_description import PlantDescription
 from metampc_plant.simulator import Plant, PlantConfig
 
 MPC = MpcConfig(time_limit=30.0)
@@ -130,3 +132,58 @@ def test_history_snapshot_is_the_episode_oldest_first():
     assert u[:, 0].tolist() == [0, 1, 2, 3, 4] and y[:, 1].tolist() == [0, -1, -2, -3, -4]
     core.observe(0, [9.0], [9, 9])            # a plant reset: a new episode
     assert core.history.snapshot()[0].tolist() == [[9.0]]
+
+
+def _tried_run(trial: int, candidate: DecodedWeights, flip_at: int = 10 ** 9):
+    """A lockstep core on the plant (theta 0.5) with the good model in use, periodic requests
+    every 4 s (step 40, swap step 50), `candidate` answering the first one at step 45, and the
+    plant's input negated from step `flip_at` on (a plant that changed at once: the flipped
+    model is then the right one). Returns the tick results of steps 0..99, the answer's vet
+    or offer_model result before that of step 45."""
+    config = ControllerConfig(reference_kind='setpoint', reference_params={'value': 0.5},
+                              mpc=MPC, trigger=TriggerConfig(adaptation='periodic',
+                                                             adapt_period=4.0),
+                              model_check=ModelCheckConfig(model_check_trial=trial))
+    core = ControllerCore(config)
+    core.set_plant(PlantDescription('vanderpol', 0.1, (-1.0,), (1.0,), 2, True))
+    core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
+    plant = Plant(PlantConfig(theta=(0.5,)))
+    y, u, results = plant.output(), 0.0, []
+    for k in range(100):
+        core.observe(k, [u], y)
+        if k == 45:
+            bundle = build_model(candidate, 2, 'manual', 'adapted', MPC, 1, 2)
+            reason = core.vet(bundle, 40)
+            results.append(reason or core.offer_model(bundle, 40))
+        res = core.tick()
+        results.append(res)
+        u = float(res.u[0])
+        y = plant.step([-u if k + 1 >= flip_at else u])
+    return results
+
+
+def test_a_requested_answer_is_judged_on_its_trial_samples_alone():
+    """The plant changes at the swap step (50) to the flipped model's: on the samples before,
+    which the arrival check scores, the flipped model is wrong and is refused; on the trial's
+    samples after the swap step it is right and flies at step 50 + trial exactly."""
+    at_arrival = _tried_run(0, manual(flip=True), flip_at=50)
+    assert at_arrival[45].startswith('check: its 20-step prediction error')
+    tried = _tried_run(25, manual(flip=True), flip_at=50)
+    assert tried[45] == 50      # queued for its trial: nothing refused at arrival
+    ticks = [r for r in tried if isinstance(r, TickResult)]
+    assert [r.model_version for r in ticks] == [1] * 75 + [2] * 25
+    assert ticks[75].verdict.startswith('check passed') and 'its trial from step 50' in (
+        ticks[75].verdict) and '26 samples' in ticks[75].verdict
+    assert [r.step for r in ticks if r.verdict] == [75] and ticks[75].model_status == 'ok'
+    assert [r.request.step for r in ticks if r.request] == [40, 80]
+
+
+def test_a_tried_answer_that_predicts_worse_is_refused_and_the_loop_goes_on():
+    """A bad answer (flipped) on an unchanged plant: the model in use controls through the
+    trial and after it, model_status says why, and the trigger asks again later."""
+    ticks = [r for r in _tried_run(25, manual(flip=True)) if isinstance(r, TickResult)]
+    assert {r.model_version for r in ticks} == {1}
+    assert all(r.solver_status == 'solved' for r in ticks)
+    assert ticks[75].verdict.startswith('check: its 20-step prediction error')
+    assert all(r.model_status.startswith('rejected: check:') for r in ticks[75:])
+    assert [r.request.step for r in ticks if r.request] == [40, 80]

@@ -10,6 +10,7 @@ from typing import NamedTuple
 from metampc_controller.adaptation_trigger import AdaptationTrigger, TriggerConfig
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
+from metampc_controller.model_check import ModelCheckConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import MpcConfig
@@ -113,13 +114,49 @@ def test_a_retune_rebuilds_the_queued_answer():
     assert swap.due(30) == Model(12)
 
 
+def test_an_answer_with_a_trial_is_tried_from_its_swap_step_then_judged():
+    """Trial of 5 samples: the tick of 30 starts it (the model in use goes on, nothing
+    waits), the tick of 35 ends it; a pass answers the request, a refusal ends it."""
+    for ok in (True, False):
+        swap = asked(lockstep=True)
+        assert swap.offer(Model(2), 20, trial=5) == 30
+        ticks = run(swap, range(25, 40))
+        assert not any(w or used for w, used in ticks.values())
+        assert swap.trigger.pending is not None         # not answered while tried
+        assert [swap.trial_over(k) for k in (33, 34)] == [None, None]
+        assert swap.trial_over(35) == (30, Model(2)) and swap.trial_over(36) is None
+        swap.judged(Model(2), ok)
+        assert swap.trigger.pending is None
+        assert swap.trigger._version == (2 if ok else 1)     # whose baseline is measured
+
+
+def test_in_real_time_a_trial_starts_at_the_next_tick():
+    swap = asked(lockstep=False)
+    run(swap, range(21, 40), offers={37: (Model(3), 20, 4)})
+    assert swap.trial_over(40) is None and swap.trial_over(41) == (37, Model(3))
+
+
+def test_a_new_episode_forgets_the_tried_answer_and_a_retune_rebuilds_it():
+    swap = asked(lockstep=True)
+    swap.offer(Model(2), 20, trial=5)
+    swap.due(30)
+    swap.retune(lambda m: Model(m.version + 10))
+    assert swap.trial_over(35) == (30, Model(12))
+    swap = asked(lockstep=True)
+    swap.offer(Model(2), 20, trial=5)
+    swap.due(30)
+    swap.trigger.new_episode()
+    swap.new_episode()
+    assert swap.trial_over(35) is None and not swap.waits(30)
+
+
 def test_a_live_change_between_queue_and_swap_step_applies_to_the_answer():
     """A change of the horizon (20 -> 10) accepted while the answer waits for its swap step:
     the tick of step 30 uses the answer with the new horizon; before, the answer kept the QP
     of the old one and that tick raised (y_ref of 10 rows for a QP of 20)."""
     bundle = build_model(DecodedWeights(*linearised_vdp_nssm(0.5, DT, 10)), 1, 'manual',
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
-    config = ControllerConfig(trigger=TRIGGER)
+    config = ControllerConfig(trigger=TRIGGER, model_check=ModelCheckConfig(model_check_trial=0))
     core = ControllerCore(config)
     core.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
     core.offer_model(bundle)

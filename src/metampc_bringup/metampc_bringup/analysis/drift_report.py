@@ -5,14 +5,16 @@ and 'constant'; the NMPC's ``nmpc``), from the outputs and statuses stamped with
 the tracking cost before and after the first theta change, as a ratio to the NMPC's on the
 same samples; the time to recover (the 5-s moving cost over the NMPC's back within
 :data:`RECOVERY_FACTOR` after the change); the adaptation requests, swaps and their compute
-times; the detector's error over time (plotted). :func:`drift_experiment_report` gathers the
-seeds into report.json and report.md (median and worst seed per method and mode, the spurious
-adaptations of the constant runs). No rclpy here.
+times, and the models the controller refused (model_status 'rejected: ...', with the reason);
+the detector's error over time (plotted). :func:`drift_experiment_report` gathers the seeds
+into report.json and report.md (median and worst seed per method and mode; each adapting mode
+against 'none' of the same method, paired by seed; the spurious adaptations of the constant
+runs). No rclpy here.
 """
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence
 
 import matplotlib
@@ -43,7 +45,7 @@ class RunSignals:
     error_t [m] (T-step prediction error), change_t [m] (the outputs' T-step change),
     request [m] (bool), trigger [m], ref [m, n_y]
     (reference of the output of step k + 1); compute [a] s: the training time of each online
-    model the run used."""
+    model the run used; model_status [m]."""
 
     t: np.ndarray
     y: np.ndarray
@@ -56,6 +58,7 @@ class RunSignals:
     trigger: List[str]
     ref: np.ndarray
     compute: List[float]
+    model_status: List[str] = field(default_factory=list)
 
 
 def drift_runs(events: List[ExperimentEvent]) -> Dict[str, Dict[str, Any]]:
@@ -105,7 +108,8 @@ def run_signals(recording, runs: Dict[str, Dict[str, Any]]) -> Dict[str, RunSign
             trigger=[m.adapt_trigger for _, m in stats],
             ref=np.array([list(m.y_ref[:n_y]) for _, m in stats], dtype=float
                          ).reshape(len(stats), n_y),
-            compute=[trained[v] for v in versions if v in trained])
+            compute=[trained[v] for v in versions if v in trained],
+            model_status=[m.model_status for _, m in stats])
     return out
 
 
@@ -159,6 +163,22 @@ def _mean(values: np.ndarray) -> Optional[float]:
     return float(finite.mean()) if finite.size else None
 
 
+def refusals(sig: RunSignals) -> List[List[Any]]:
+    """[step, reason] of each model the controller refused: a status whose model_status turns
+    to a new 'rejected: <reason>'."""
+    out, last = [], ''
+    for step, status in zip(sig.step, sig.model_status):
+        if status.startswith('rejected: ') and status != last:
+            out.append([int(step), status[len('rejected: '):]])
+        last = status
+    return out
+
+
+def refusal_kind(reason: str) -> str:
+    """'check' for the model check's refusals, else the reason's first words (bad weights)."""
+    return 'check' if reason.startswith('check:') else reason.split(':')[0][:40]
+
+
 def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[float],
                 tracked: Sequence[int], dt: float) -> Dict[str, Any]:
     """The metrics of one run (module docstring); `t_change` None: a constant run; `dt` the
@@ -173,7 +193,7 @@ def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[
         'steps': int(len(sig.step)), 'cost': _mean(e2),
         'requests': [[int(k), tr] for k, r, tr in zip(sig.step, sig.request, sig.trigger) if r],
         'swaps': swaps, 'compute_s': sig.compute,
-        'adaptations': len(swaps)}
+        'adaptations': len(swaps), 'refusals': refusals(sig)}
     if t_change is None:
         return out
     after = _after(t, t_change)
@@ -285,7 +305,15 @@ def drift_experiment_report(seed_reports: List[Dict], out_dir: str, config: Dict
         for mode in [*drift.modes, *(['constant'] if drift.constant_check else [])]:
             name = f'{method}/{mode}'
             per = [r['runs'].get(name, {}) for r in seed_reports]
+            kinds: Dict[str, int] = {}
+            for p in per:
+                for _, reason in p.get('refusals', []):
+                    kinds[refusal_kind(reason)] = kinds.get(refusal_kind(reason), 0) + 1
             table[name] = {
+                'refusals': [len(p.get('refusals', [])) for p in per], 'refusal_kinds': kinds,
+                'vs_none': _paired(per, [r['runs'].get(f'{method}/none', {})
+                                         for r in seed_reports])
+                if mode not in ('none', 'constant') and 'none' in drift.modes else None,
                 'recovery_s': _stats([p.get('recovery_s') for p in per]),
                 'ratio_after': _stats([p.get('ratio_after') for p in per]),
                 'ratio_before': _stats([p.get('ratio_before') for p in per]),
@@ -303,6 +331,19 @@ def drift_experiment_report(seed_reports: List[Dict], out_dir: str, config: Dict
     return report
 
 
+def _paired(runs: List[Dict], none: List[Dict]) -> Dict[str, Any]:
+    """Per seed, the cost after the change of an adapting run over that of the same method's
+    'none' run (the same seed, plant and reference): values, how many are above 1 (worse),
+    the worst, and their geometric mean."""
+    values = [a['cost_after'] / b['cost_after']
+              if a.get('cost_after') is not None and b.get('cost_after') else None
+              for a, b in zip(runs, none)]
+    finite = [v for v in values if v is not None and math.isfinite(v) and v > 0]
+    return {'values': values, 'worse': sum(v > 1.0 for v in finite),
+            'worst': max(finite) if finite else None,
+            'geomean': float(np.exp(np.mean(np.log(finite)))) if finite else None}
+
+
 def _fmt(v: Optional[float], unit: str = '', none: str = 'never') -> str:
     return none if v is None else f'{v:.3g}{unit}'
 
@@ -315,25 +356,34 @@ def drift_markdown(report: Dict[str, Any], drift: DriftConfig) -> str:
              f'{drift.duration:g} s; recovery: the 5-s moving tracking cost back within '
              f'{RECOVERY_FACTOR}x the true-model NMPC\'s (told theta at every step).', '',
              '| method / mode | recovery, median (worst) | cost after / NMPC, median (worst) '
-             '| cost before / NMPC, median | adaptations per run | compute per adaptation, '
-             'median | escapes |', '|---|---|---|---|---|---|---|']
+             '| cost before / NMPC, median | after / none (paired): worse on, worst, geomean '
+             '| adaptations per run | models refused (by kind) | compute per adaptation, '
+             'median | escapes |', '|---|---|---|---|---|---|---|---|---|']
     for name, row in report['table'].items():
         rec, after, before = row['recovery_s'], row['ratio_after'], row['ratio_before']
         counts = [c for c in row['adaptations'] if c is not None]
         compute = _fmt(np.median(row['compute_s']) if row['compute_s'] else None, ' s', '-')
+        kinds = row.get('refusal_kinds') or {}
+        refused = f'{sum(row.get("refusals") or [])}' + (
+            ' (' + ', '.join(f'{k} {v}' for k, v in sorted(kinds.items())) + ')' if kinds else '')
         if name.endswith('/constant'):
-            lines.append(f'| {name} (constant theta: spurious) | | | | {sum(counts)} in '
-                         f'{len(counts)} runs | {compute} | {row["escapes"]} |')
+            lines.append(f'| {name} (constant theta: spurious) | | | | | {sum(counts)} in '
+                         f'{len(counts)} runs | {refused} | {compute} | {row["escapes"]} |')
             continue
+        paired = row.get('vs_none')
+        vs = '-' if not paired else (
+            f'{paired["worse"]} of {len([v for v in paired["values"] if v is not None])}, '
+            f'{_fmt(paired["worst"], none="-")}, {_fmt(paired["geomean"], none="-")}')
         lines.append(
             f'| {name} | {_fmt(rec["median"], " s")} ({_fmt(rec["worst"], " s")}) | '
             f'{_fmt(after["median"], none="-")} ({_fmt(after["worst"], none="escaped")}) | '
-            f'{_fmt(before["median"], none="-")} | '
-            f'{np.median(counts) if counts else "-"} | {compute} | {row["escapes"]} |')
+            f'{_fmt(before["median"], none="-")} | {vs} | '
+            f'{np.median(counts) if counts else "-"} | {refused} | {compute} | '
+            f'{row["escapes"]} |')
     lines += ['', 'Figures per seed: `seed_<s>/drift_<method>.png`.', '']
     return '\n'.join(lines)
 
 
 __all__ = ['RunSignals', 'drift_runs', 'run_signals', 'squared_errors', 'moving_cost',
-           'recovery_time', 'run_metrics', 'seed_drift_report', 'drift_experiment_report',
-           'MOVING_WINDOW_S', 'RECOVERY_FACTOR']
+           'recovery_time', 'refusals', 'run_metrics', 'seed_drift_report',
+           'drift_experiment_report', 'MOVING_WINDOW_S', 'RECOVERY_FACTOR']
