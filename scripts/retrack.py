@@ -13,8 +13,10 @@ are cached per (seed, variant) in RUN_DIR/retrack/, so a stopped run resumes.
         --variant state:offset_free=state --variant input:offset_free=input --jobs 2
 
 A variant is NAME:key=value,key=value with controller parameter names (docs/controller.md);
-values are YAML (``0.3``, ``none``, ``[1.0, 0.0]``; YAML reads ``off`` as false). A bad name
-or value is one error line, exit 2.
+values are YAML (``0.3``, ``none``, ``[1.0, 0.0]``; YAML reads ``off`` as false). ``--nmpc
+key=value,...`` sets the yardstick's own parameters (e.g. ``nmpc_tail=20``: then the NMPC runs
+again instead of its recorded cost being taken, and every ratio is against it). A bad name or
+value is one error line, exit 2.
 """
 import argparse
 import hashlib
@@ -80,6 +82,9 @@ def main(argv=None) -> int:
     parser.add_argument('--variant', action='append', default=[], metavar='NAME:k=v,...',
                         help='controller settings to compare (repeatable; default: the '
                              "recorded settings, as 'recorded')")
+    parser.add_argument('--nmpc', default='', metavar='k=v,...',
+                        help="the NMPC yardstick's controller settings (e.g. nmpc_tail=20); "
+                             'default: the recorded ones')
     parser.add_argument('--jobs', type=int, default=1, help='seeds at once (processes)')
     parser.add_argument('--recompute-nmpc', action='store_true',
                         help="run the NMPC again instead of taking its recorded tracking cost "
@@ -95,6 +100,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         variants = [parse_variant(v) for v in args.variant] or [('recorded', {})]
+        yardstick = parse_variant(f'yardstick:{args.nmpc}')[1]
     except ValueError as err:
         parser.error(str(err))
     from metampc_bringup.experiment_config import ConfigError, load
@@ -109,7 +115,7 @@ def main(argv=None) -> int:
         experiment = load(os.path.join(args.run_dir, 'config.yaml'))
     except ConfigError as err:
         parser.error(f'{args.run_dir}: {err}')
-    for name, overrides in variants:
+    for name, overrides in variants + [('--nmpc', yardstick)]:
         try:
             controller_config(experiment, experiment.first_seed, overrides)
         except (ParameterError, ValueError) as err:
@@ -124,7 +130,7 @@ def main(argv=None) -> int:
         digest = hashlib.sha1(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:12]
         return os.path.join(cache_dir, f'seed_{seed}_{name}_{digest}.json')
 
-    recorded = {} if args.recompute_nmpc else recorded_nmpc(args.run_dir)
+    recorded = {} if args.recompute_nmpc or yardstick else recorded_nmpc(args.run_dir)
     for seed, episode in recorded.items():
         path = cached(seed, 'nmpc', {})
         if seed in recordings and not os.path.exists(path):
@@ -132,7 +138,7 @@ def main(argv=None) -> int:
                 json.dump({'nmpc': episode}, f)
     todo = []       # the NMPC once per seed (the yardstick), then every variant
     for seed, rec in recordings.items():
-        for name, overrides in [('nmpc', {})] + variants:
+        for name, overrides in [('nmpc', yardstick)] + variants:
             path = cached(seed, name, overrides)
             if not os.path.exists(path):
                 todo.append((seed, rec, overrides, name == 'nmpc', path))
@@ -149,7 +155,7 @@ def main(argv=None) -> int:
 
     per_seed = {}
     for seed in recordings:
-        nmpc = json.load(open(cached(seed, 'nmpc', {})))['nmpc']
+        nmpc = json.load(open(cached(seed, 'nmpc', yardstick)))['nmpc']
         per_seed[seed] = {name: {**json.load(open(cached(seed, name, overrides))), 'nmpc': nmpc}
                           for name, overrides in variants}
     summary = summarise(per_seed)

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from metampc_bringup.analysis.retrack import retrack_seed
+from metampc_bringup.analysis.retrack import controller_values, fly, retrack_seed
 from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_config import ConfigError, learner_config, load
 from metampc_bringup.orchestration.lifeline import ENV as LIFELINE
@@ -152,6 +152,21 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     for method, result in again.items():
         recorded = per_seed['methods'][method]['tracking']['tracking']['cost']
         assert result.cost == pytest.approx(recorded, rel=1e-9, abs=1e-12), method
+    # scripts/retrack.py with the yardstick's own settings (--nmpc): every ratio is against
+    # that NMPC, flown again (not the recorded one), here with a tail of 3 samples.
+    subprocess.run([sys.executable, os.path.join(ROOT, 'scripts', 'retrack.py'), out, '--nmpc',
+                    'nmpc_tail=3', '--variant', 'a:'], check=True, timeout=300)
+    with open(os.path.join(out, 'retrack.json')) as f:
+        table = json.load(f)['summary']['a']
+    cfg = config.resolved()
+    seed = per_seed['seed']
+    tailed = fly(controller_values(cfg, seed, {'nmpc_tail': 3}),
+                 cfg.node_parameters('plant', seed), cfg.target_theta(seed), cfg.track_x0,
+                 cfg.track_steps()).tracking_cost(list(cfg.tracked_outputs))
+    assert tailed != again['nmpc'].cost
+    for method in config.meta_methods():
+        assert table[method]['ratios'][str(seed)] == pytest.approx(
+            again[method].cost / tailed, rel=1e-9), method
     with open(os.path.join(out, 'report.md')) as f:
         text = f.read()
     assert '(a) final meta-training loss' in text and 'fig2_meta_training.png' in text

@@ -133,6 +133,7 @@ class ControllerConfig:
         n_u: plant inputs (= the length of mpc's bounds and r; one value stands for every
             input, so 1 when all are single values).
         planner: a name of :data:`~metampc_controller.planner_registry.REGISTRY`.
+        nmpc_tail: the NMPC's tail (:class:`~metampc_controller.nmpc.NmpcConfig`), samples.
         reference_kind, reference_params: arguments of references.make_reference.
         pre_model_input: 'zero' or 'excitation'.
         excitation: the pre-model excitation (kind, bounds = [u_min, u_max] within the
@@ -152,6 +153,9 @@ class ControllerConfig:
     n_u: int = 1
     planner: str = param('latent_mpc', 'latent_mpc is eq. mpc on the NSSM, nmpc the true-model '
                                        'yardstick (theta from every y)', choices=PLANNERS)
+    nmpc_tail: int = param(0, 'planner nmpc: samples predicted past the horizon with the last '
+                              'input held, scored against the last reference (its terminal '
+                              'cost; 0: none)', ge=0, le=1000, live=True)
     reference_kind: str = 'setpoint_sequence'
     reference_params: Dict[str, Any] = field(default_factory=dict)
     pre_model_input: str = param('zero', 'input before a model (excitation: seeded, within the '

@@ -35,12 +35,17 @@ class NmpcConfig(PlannerConfig):
             Planners).
         max_iter: L-BFGS-B iteration cap per solve.
         fd_step: forward-difference step on u.
+        tail: samples predicted past N with the last planned input held, each output scored
+            against the last reference with Q (no Delta-u: the input is held): a terminal
+            cost on the true model that stands for the cost-to-go, as the DARE's does for the
+            latent MPC (0: none, eq. (mpc) over N alone).
     """
 
     dt: float = 0.1
     substeps: int = 2
     max_iter: int = 50
     fd_step: float = 1e-6
+    tail: int = 0
 
 
 class Nmpc:
@@ -88,9 +93,14 @@ class Nmpc:
 
     def costs(self, x0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
               plans: np.ndarray) -> np.ndarray:
-        """J for each plan of a batch (P, N n_u); non-finite predictions cost +inf."""
+        """J for each plan of a batch (P, N n_u), its tail included; non-finite predictions
+        cost +inf."""
         n_p, n_u = plans.shape[0], self.family.n_u
         plans = plans.reshape(n_p, -1, n_u)
+        tail = self.config.tail
+        if tail:    # the last input held, the last reference kept (Delta-u 0 over the tail)
+            plans = np.concatenate([plans, np.repeat(plans[:, -1:], tail, axis=1)], axis=1)
+            y_ref = np.concatenate([y_ref, np.repeat(y_ref[-1:], tail, axis=0)])
         err = self.rollout(x0, plans) - y_ref[None]
         track = np.einsum('pkj,j,pkj->p', err, self.q, err)
         du = np.diff(np.concatenate([np.broadcast_to(u_prev, (n_p, 1, n_u)), plans], axis=1),

@@ -1,7 +1,8 @@
 """The controller's planners by name: the `planner` parameter's choices and their factories.
 
 A :class:`PlannerKind` says how a planner is built (outside the tick) from the controller's
-:class:`~metampc_controller.mpc.MpcConfig` and the model it predicts with, and which model
+config (:class:`~metampc_controller.controller_params.ControllerConfig`: its ``mpc`` section,
+and the NMPC's ``nmpc_tail``) and the model it predicts with, and which model
 that is: the learned NSSM (weights from the learner) or the plant's own equations (plant_info's
 family and dt, the samples' theta). The controller looks its kind up once, at start.
 """
@@ -29,7 +30,8 @@ class PlannerKind:
     """One planner of the registry.
 
     Attributes:
-        build: (config, model) -> a planner (ValueError if the model does not fit). model: a
+        build: (controller config, model) -> a planner (ValueError if the model does not
+            fit). model: a
             :class:`~metampc_model.latent_model.LatentModel` where `learned`, else a
             :class:`TrueModel`.
         learned: plans on the NSSM the learner sends (the controller subscribes to its
@@ -39,7 +41,7 @@ class PlannerKind:
             answers).
     """
 
-    build: Callable[[MpcConfig, Any], Planner]
+    build: Callable[[Any, Any], Planner]
     learned: bool
     waiting: str
 
@@ -52,15 +54,18 @@ def latent_mpc(config: MpcConfig, model: LatentModel) -> LatentMpc:
     return mpc
 
 
-def nmpc(config: MpcConfig, model: TrueModel) -> Nmpc:
-    """The NMPC of `config`'s horizon, weights and bounds on the plant's equations (no set-up:
-    cheap). ValueError if theta does not fit the family."""
-    return Nmpc(NmpcConfig(**config.shared(), dt=model.dt), model.family, model.theta)
+def nmpc(config: MpcConfig, model: TrueModel, tail: int = 0) -> Nmpc:
+    """The NMPC of `config`'s horizon, weights and bounds and a `tail` (samples) on the plant's
+    equations (no set-up: cheap). ValueError if theta does not fit the family."""
+    return Nmpc(NmpcConfig(**config.shared(), dt=model.dt, tail=tail), model.family,
+                model.theta)
 
 
 REGISTRY: Dict[str, PlannerKind] = {
-    'latent_mpc': PlannerKind(latent_mpc, learned=True, waiting='no_model'),
-    'nmpc': PlannerKind(nmpc, learned=False, waiting='no_plant_info'),
+    'latent_mpc': PlannerKind(lambda config, model: latent_mpc(config.mpc, model),
+                              learned=True, waiting='no_model'),
+    'nmpc': PlannerKind(lambda config, model: nmpc(config.mpc, model, config.nmpc_tail),
+                        learned=False, waiting='no_plant_info'),
 }
 
 

@@ -1,4 +1,6 @@
 """The nonlinear MPC yardstick, checked where the answer is known independently."""
+from dataclasses import replace
+
 import numpy as np
 from scipy.linalg import expm
 from scipy.optimize import lsq_linear
@@ -86,3 +88,27 @@ def test_two_inputs_and_unmeasured_states_on_the_quadruple_tank():
     assert np.abs(y - target).max() < 0.02, (y, target)
     # The estimate of the unmeasured levels converged to the plant's.
     assert np.abs(ctrl._x - plant.x).max() < 1e-3
+
+
+def test_the_tail_costs_the_plan_held_past_the_horizon():
+    """tail T: J of a plan equals, with the tail off, J over N + T of the plan with its last
+    input held T more samples against the reference with its last row kept (the same costs
+    without the tail's own code), on the tank's two inputs and outputs."""
+    tank = get_family('quadruple_tank')
+    theta = (0.7, 0.6)
+    short = NmpcConfig(horizon=6, q=(1.0, 0.5), r=(0.01, 0.02), u_min=0.0, u_max=10.0,
+                       dt=tank.dt, tail=4)
+    long_ = NmpcConfig(horizon=10, q=(1.0, 0.5), r=(0.01, 0.02), u_min=0.0, u_max=10.0,
+                       dt=tank.dt)
+    rng = np.random.default_rng(3)
+    plans = rng.uniform(1.0, 6.0, (5, 6, 2))
+    y_ref = rng.uniform(2.0, 8.0, (6, 2))
+    x0, u_prev = np.array([6.0, 5.0, 2.0, 1.5]), np.array([3.0, 3.0])
+    got = Nmpc(short, tank, theta).costs(x0, u_prev, y_ref, plans.reshape(5, -1))
+    held = np.concatenate([plans, np.repeat(plans[:, -1:], 4, axis=1)], axis=1)
+    ref = np.concatenate([y_ref, np.repeat(y_ref[-1:], 4, axis=0)])
+    want = Nmpc(long_, tank, theta).costs(x0, u_prev, ref, held.reshape(5, -1))
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    untailed = Nmpc(replace(short, tail=0), tank, theta).costs(
+        x0, u_prev, y_ref, plans.reshape(5, -1))
+    assert np.all(got > untailed)

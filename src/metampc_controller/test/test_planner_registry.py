@@ -51,7 +51,7 @@ def _check_filled(res: PlanResult, n_u: int, n_y: int) -> None:
 def test_the_latent_mpc_by_name_answers_a_plan_result_of_its_model():
     """y_pred is the model's own rollout of u_plan from z_t (eq. (mpc)'s prediction)."""
     model = _latent_model()
-    planner = REGISTRY['latent_mpc'].build(CONFIG, model)
+    planner = REGISTRY['latent_mpc'].build(ControllerConfig(mpc=CONFIG), model)
     z, u = np.array([0.3, -0.2, 0.1]), np.array([0.1])
     res = planner.solve(z, u, Y_REF, model.C @ z + model.d, 0)
     _check_filled(res, 1, 2)
@@ -64,13 +64,17 @@ def test_the_latent_mpc_by_name_answers_a_plan_result_of_its_model():
 
 def test_the_nmpc_by_name_answers_a_plan_result_of_the_plant():
     """Built from the controller's MpcConfig: its horizon, weights and bounds (one
-    declaration) and plant_info's dt. y_pred is the plant simulator's response to u_plan (same
-    RK4, 2 substeps), the cost J of eq. (mpc) with Q on all N outputs recomputed from it."""
+    declaration), plant_info's dt and the controller's nmpc_tail. y_pred is the plant
+    simulator's response to u_plan (same RK4, 2 substeps), the cost J of eq. (mpc) with Q on
+    all N outputs recomputed from it (no tail)."""
     family = get_family('vanderpol')
-    planner = REGISTRY['nmpc'].build(CONFIG, TrueModel(family, (0.5,), 0.1))
+    model = TrueModel(family, (0.5,), 0.1)
+    planner = REGISTRY['nmpc'].build(ControllerConfig(mpc=CONFIG), model)
     cfg = planner.config
-    assert (cfg.horizon, cfg.q, cfg.r, cfg.u_min, cfg.u_max, cfg.dt) == (
-        N, CONFIG.q, CONFIG.r, CONFIG.u_min, CONFIG.u_max, 0.1)
+    assert (cfg.horizon, cfg.q, cfg.r, cfg.u_min, cfg.u_max, cfg.dt, cfg.tail) == (
+        N, CONFIG.q, CONFIG.r, CONFIG.u_min, CONFIG.u_max, 0.1, 0)
+    tailed = REGISTRY['nmpc'].build(ControllerConfig(mpc=CONFIG, nmpc_tail=3), model)
+    assert tailed.config.tail == 3      # the controller's nmpc_tail
     y, u = np.array([0.2, -0.1]), np.array([0.1])
     res = planner.solve(None, u, Y_REF, y, 0)        # the state from y (y = x here)
     _check_filled(res, 1, 2)
