@@ -194,12 +194,18 @@ def _wait_for_slot(client, address: str) -> None:
     except TimeoutError:
         raise ClusterError(f'--scheduler {address}: no worker joined within '
                            f'{CONNECT_TIMEOUT_S:.0f} s') from None
-    workers = client.scheduler_info()['workers'].values()
-    slots = sum(w.get('resources', {}).get(SLOT, 0) for w in workers)
-    if not slots:
+    have = slots(client)
+    if not have:
         raise ClusterError(f'--scheduler {address}: no worker has a {SLOT} (start each with '
                            f'`dask worker {address} --nthreads 1 --resources {SLOT}=1`)')
-    log.info('cluster %s: %d worker(s), %d slot(s)', address, len(workers), slots)
+    log.info('cluster %s: %d worker(s), %d slot(s)', address,
+             len(client.scheduler_info()['workers']), have)
+
+
+def slots(client) -> int:
+    """The slots of `client`'s workers now: how many jobs run at once."""
+    workers = client.scheduler_info()['workers'].values()
+    return int(sum(w.get('resources', {}).get(SLOT, 0) for w in workers))
 
 
 def _wait_for_children(worker_pids: Iterable[int]) -> None:
