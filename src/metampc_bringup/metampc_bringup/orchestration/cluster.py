@@ -167,7 +167,10 @@ def _embedded(jobs: int) -> Iterator[Any]:
             cluster = LocalCluster(
                 n_workers=jobs, threads_per_worker=1, processes=True, host='127.0.0.1',
                 scheduler_port=0, dashboard_address=None, resources={SLOT: 1},
-                local_directory=scratch, silence_logs=logging.ERROR, preload=[__name__])
+                local_directory=scratch, silence_logs=logging.ERROR, preload=[__name__],
+                # Its HTTP server (health, no dashboard) on a free loopback port: dask's default,
+                # 8787, is another cluster's when two run, and dask warns on stderr.
+                scheduler_kwargs={'dashboard_address': '127.0.0.1:0'})
         except (RuntimeError, OSError, TimeoutError) as err:
             raise ClusterError(f'the embedded cluster did not start: {err}') from None
         pids = {nanny.pid for nanny in cluster.workers.values()}
