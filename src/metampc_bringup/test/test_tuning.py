@@ -4,18 +4,21 @@ Pure functions on job lists and hand-made results; no training runs here (script
 runs them, docs/tuning.md has the measured search).
 """
 import importlib.util
+import json
 import math
 import os
 from pathlib import Path
 
+import optuna
 import pytest
 
 from metampc_bringup.experiment_config import load
 
 from metampc_bringup.studies import tuning
-from metampc_bringup.studies.tuning import (best_of, CALIBRATION, CG_STEPS, draw_jobs, GAMMA_GRID,
-                                            request_fields, robust_jobs, robust_scores,
-                                            SHARED_GRID, TuneConfig)
+from metampc_bringup.studies.offline import Job, settings_from
+from metampc_bringup.studies.tuning import (ADAPT_LRS, best_of, CALIBRATION, CG_STEPS, CURVATURE,
+                                            draw_jobs, GAMMA_GRID, request_fields, robust_jobs,
+                                            robust_scores, SHARED_GRID, TuneConfig)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__)))))
@@ -120,22 +123,70 @@ def test_incumbents_are_the_experiments_requests():
     assert got['imaml']['cg_steps'] == requests['imaml']['cg_steps']
 
 
-@pytest.mark.parametrize('args', [['--out', 'EXISTING'], ['--out', 'NEW', '--k', '0'],
-                                  ['--out', 'NEW', '--jobs', '0']])
-def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path, capsys, args):
-    """scripts/tune.py: exit 2, one line, nothing written (config/tuning.json, the committed
-    record, was its old default --out and got overwritten without a word)."""
+def _script():
     spec = importlib.util.spec_from_file_location(
         'tune', Path(__file__).resolve().parents[3] / 'scripts' / 'tune.py')
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
+    return script
+
+
+@pytest.mark.parametrize('args', [['--out', 'EXISTING'], ['--out', 'NEW', '--k', '0'],
+                                  ['--out', 'NEW', '--jobs', '0'],
+                                  ['--out', 'NEW', '--scheduler', 'tcp://10.0.0.5:8786']])
+def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path, capsys, args):
+    """scripts/tune.py: exit 2, one line, nothing written (config/tuning.json, the committed
+    record, was its old default --out and got overwritten without a word)."""
+    script = _script()
     existing = tmp_path / 'tuning.json'
     existing.write_text('{"an": "earlier record"}')
     paths = {'EXISTING': str(existing), 'NEW': str(tmp_path / 'new.json')}
     assert script.main([paths.get(a, a) for a in args]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert existing.read_text() == '{"an": "earlier record"}'
-    assert not (tmp_path / 'new.json').exists()
+    assert not (tmp_path / 'new.json').exists() and not (tmp_path / 'new.study').exists()
+
+
+TINY_SEARCH = ['--k', '2', '--refine', '2', '--per-round', '1', '--iterations', '2',
+               '--batch-size', '2', '--finalists', '0', '--thetas', '1', '--adapt-steps', '2',
+               '--score', 'prediction']
+
+
+def test_tune_on_two_workers_reports_optunas_best_and_the_same_command_resumes(
+        tmp_path, capsys, tiny_config, direct, untimed):
+    """Its configurations are those of direct calls (the process pool's before); each
+    method's winner is its study's best trial; the same command again runs nothing, and
+    with another seed it is refused."""
+    out = tmp_path / 'tuning.json'
+    args = ['--config', str(tiny_config), *TINY_SEARCH, '--jobs', '2', '--out', str(out)]
+    assert _script().main(args) == 0
+    report = json.loads(out.read_text())
+    folder = tmp_path / 'tuning.study'
+    assert report['protocol']['per_round'] == 1 and report['jobs'] == 2
+    stages = [(r['method'], r['stage']) for r in report['configurations']]
+    assert stages == [(m, s) for m in ('imaml', 'maml') for s in ('search',) * 2 + ('refine',) * 2
+                      ] + [('supervised', 'search')]
+    for method in ('imaml', 'maml'):
+        best = optuna.load_study(study_name=method,
+                                 storage=f'sqlite:///{folder / "study.db"}').best_trial
+        winner = report['winners'][method]
+        assert (winner['index'], winner['score']) == (best.number, best.value)
+        assert {n: winner['meta_train'][n] for n in best.params} == best.params
+    settings = settings_from(str(tiny_config), 1, 2, {'batch_size': 2, 'curvature': CURVATURE})
+    jobs = [Job(r['method'], r['index'], r['hyper'], r['iterations'], ADAPT_LRS, r['stage'])
+            for r in report['configurations']]
+    assert [untimed(r) for r in report['configurations']] == [
+        direct(settings, job) for job in jobs]
+
+    cached = {p: p.stat().st_mtime_ns for p in (folder / 'cache').iterdir()}
+    out.unlink()
+    assert _script().main(args) == 0
+    assert {p: p.stat().st_mtime_ns for p in (folder / 'cache').iterdir()} == cached
+    assert json.loads(out.read_text())['configurations'] == report['configurations']
+    out.unlink()
+    capsys.readouterr()
+    assert _script().main([*args[:-2], '--seed', '1', '--out', str(out)]) == 2
+    assert 'holds a search with other settings (seed)' in capsys.readouterr().err
 
 
 def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models(monkeypatch):
