@@ -131,8 +131,8 @@ class RefusingClient:
         raise AssertionError('a cached run was started again')
 
 
-def test_tiny_sweep_on_two_workers_then_resumes_without_running_anything(tmp_path, tiny_config,
-                                                                        direct, untimed):
+def test_tiny_sweep_on_two_workers_then_resumes_without_running_anything(
+        tmp_path, tiny_config, direct, untimed):
     """Its runs are those of direct calls (the process pool's before), each in a fresh
     process of its own (its peak RSS)."""
     config = tiny_config
