@@ -1,17 +1,14 @@
 """Stages 1 and 2 of the tuning (:mod:`.tuning`) as Optuna studies, asked and told by the
 client while the trials run on the cluster (:mod:`.study_jobs`).
 
-One study per method (named after it) in one SQLite file (``optuna-dashboard
-sqlite:///PATH`` shows it), over the method's grid (categorical parameters). Stage 1 is the
-given configurations, enqueued (the tuning's calibration and paired draws); stage 2 asks
-Optuna's TPE sampler (its random start-up: the stage-1 trials) for ``refine`` more, in
-rounds of ``per_round`` trials asked at once and told as they land. The sampler of each ask
-is seeded from (seed, method, trial number); with the trials told so far, which the storage
-holds, that fixes what is asked: the same seed gives the same trials, and a search stopped
-anywhere goes on with the trials an uninterrupted one asks (the asked and untold trials,
-RUNNING in the storage, make up the round first). A configuration tried already is not run
-again: its trial is told failed and the sampler asked again; after :data:`DUPLICATE_ASKS`,
-a seeded draw among the untried configurations. No rclpy, no torch here.
+One study per method in one SQLite file (optuna-dashboard reads it), over the method's grid
+(categorical parameters). Stage 1: the given configurations, enqueued; stage 2: ``refine``
+trials of the TPE sampler (start-up: stage 1), ``per_round`` asked at once per method. Each
+ask's sampler is seeded from (seed, method, trial number): with the trials told so far (the
+storage holds them) that fixes what is asked, so the same seed gives the same trials and a
+stopped search resumes with those of an uninterrupted one (its asked, untold trials first).
+A configuration tried already is told failed and asked again, never run twice (after
+:data:`DUPLICATE_ASKS`: a seeded draw among the untried). No rclpy, no torch here.
 """
 import dataclasses
 import itertools

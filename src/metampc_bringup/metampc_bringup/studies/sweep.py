@@ -5,13 +5,11 @@ unrolled MAML (eqs. (inner_maml), (outer_maml); M <= :data:`UNROLLED_MAX_M`) at 
 count M on the learning cores without ROS (:mod:`metampc_bringup.studies.offline`): each
 (method, M) tuned on validation data with the same budget (:data:`GRIDS`, :data:`ADAPT_LRS`),
 then tested on the experiment's seeds; iMAML and first-order MAML compared paired by seed
-(:func:`metampc_bringup.analysis.paired_stats.paired_claim`). The runs are jobs of the
-cluster layer (:mod:`metampc_bringup.studies.study_jobs`), each in a fresh process. In: the
-sweep's settings and the experiment's config; out: ``OUT/`` (report.md, sweep.json, plots;
-finished runs cached in ``OUT/cache/``, so a stopped sweep resumes). Refuses
-(:class:`SweepError`) a folder holding a sweep of other settings. Cost model:
-:data:`COST_PER_STEP`, :func:`estimate_cpu_s`. Protocol, budget and measured costs:
-docs/sweep.md. No rclpy here.
+(:func:`metampc_bringup.analysis.paired_stats.paired_claim`). Runs: jobs of
+:mod:`.study_jobs`, each in a fresh process. Out: ``OUT/`` (report.md, sweep.json, plots;
+runs cached in ``OUT/cache/``: a stopped sweep resumes); a folder of a sweep of other settings
+is refused (:class:`SweepError`). Cost model: :data:`COST_PER_STEP`, :func:`estimate_cpu_s`.
+Protocol, budget and measured costs: docs/sweep.md. No rclpy here.
 """
 import hashlib
 import json

@@ -4,13 +4,12 @@ The logic of ``scripts/tune.py``: every method gets the same budget of meta-trai
 on validation systems only (source set 1000.., validation thetas from rng([1000 + i, 0x5a1]),
 never the experiment's test targets); each model is adapted by eq. (infer) with every step size
 of :data:`ADAPT_LRS` and scored by closed-loop tracking against the true-model NMPC
-(``score`` 'control') or by held-out loss ('prediction'); stages 1 and 2 are an Optuna study
-per meta method (:mod:`.search`: the paired draws, then TPE), stage 3 re-runs the finalists
-and the incumbent on ``robust_seeds`` source sets. The jobs run on the cluster layer
-(:mod:`.study_jobs`), their results and the studies kept in the search's folder, so that a
-stopped search resumes. Jobs are seeded, so the scores are reproducible at the same thread
-count. :func:`tune` returns the report (configurations with scores, robustness runs, winners,
-wall and CPU time, load). Protocol and results: docs/tuning.md.
+(``score`` 'control') or by held-out loss ('prediction'); stages 1-2 are an Optuna study per
+meta method (:mod:`.search`: the paired draws, then TPE), stage 3 re-runs the finalists and
+the incumbent on ``robust_seeds`` source sets. Jobs (seeded: the scores are reproducible at
+the same thread count) run on the cluster layer (:mod:`.study_jobs`); the studies and results
+stay in the search's folder, so a stopped search resumes. :func:`tune` returns the report.
+Protocol and results: docs/tuning.md.
 """
 import hashlib
 import itertools
