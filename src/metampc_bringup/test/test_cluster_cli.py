@@ -48,8 +48,8 @@ def test_refused_before_any_connection(argv, message):
 
 
 @pytest.mark.parametrize('script', ['run_experiment', 'robustness', 'sweep_inner_steps', 'tune'])
-def test_every_command_with_jobs_takes_the_clusters_arguments_from_the_helper(script,
-                                                                             monkeypatch):
+def test_every_command_with_jobs_takes_the_clusters_arguments_from_the_helper(
+        script, monkeypatch):
     spec = importlib.util.spec_from_file_location(script, ROOT / 'scripts' / f'{script}.py')
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
