@@ -163,8 +163,12 @@ def run_study(prog: str, spec: ClusterSpec, work: Callable[[Any], T]
     try:
         with study_cluster(spec) as client:
             return 0, work(client)
-    except (StudyError, SchedulerLost) as err:
+    except StudyError as err:
         print(f'{prog}: {err}', file=sys.stderr)
+        return 1, None
+    except SchedulerLost as err:
+        print(f'{prog}: {err}; the finished jobs are cached: the same command runs the others',
+              file=sys.stderr)
         return 1, None
     except (ClusterError, ValueError) as err:
         print(f'{prog}: {err}', file=sys.stderr)
