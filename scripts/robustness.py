@@ -9,28 +9,33 @@ above 10x the method's median) and the largest spectral radius of A. ``--set NAM
 overrides a MetaConfig field of every run (e.g. ``--set lr_schedule=constant``); ``--adapt``
 also scores each meta-model by the held-out loss of the validation targets after 20 adaptation
 steps at the experiment's step size of its method (the tuning's criterion: use it with the
-validation source sets, ``--first-seed 1000``, when choosing a setting). Each finished run is
-cached in ``OUT/cache/``: run the same command again to resume.
+validation source sets, ``--first-seed 1000``, when choosing a setting). The runs are jobs of
+an embedded dask cluster (``--jobs``) or of ``--scheduler ADDRESS``
+(docs/experiments.md#on-a-cluster); each finished run is cached in ``OUT/cache/`` on this
+machine: run the same command again to resume.
 
 Usage: python scripts/robustness.py --out runs/robustness [--seeds 20] [--jobs 2]
        [--methods imaml,maml] [--free-latent] [--rho-max 1.0] [--set NAME=VALUE ...]
-       [--adapt]
-Writes OUT/robustness.json and prints it as one JSON line. Exit 2 on bad arguments.
+       [--adapt] [--scheduler tcp://127.0.0.1:8786]
+Writes OUT/robustness.json and prints it as one JSON line. Exit status: 0 done, 1 runs raised
+(the others are cached) or the scheduler was lost, 2 bad arguments or a cluster refused, 130
+interrupted.
 """
 import argparse
-import concurrent.futures as futures
 import dataclasses
 import json
-import multiprocessing
+import logging
 import os
 import sys
 import time
 
 from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.experiment_config import ConfigError, load
-from metampc_bringup.orchestration.cpu_budget import check_jobs
-from metampc_bringup.studies.offline import init_worker, run_jobs, settings_from
+from metampc_bringup.orchestration.cluster import slots
+from metampc_bringup.orchestration.cluster_cli import add_arguments, cluster_spec
+from metampc_bringup.studies.offline import settings_from
 from metampc_bringup.studies.robustness import robustness_jobs, robustness_summary
+from metampc_bringup.studies.study_jobs import ResultCache, run_jobs, run_study
 from metampc_bringup.studies.tuning import TuneConfig
 from metampc_learner.meta_train import META_METHODS, MetaConfig
 FIXED = ('method', 'iterations', 'seed')  # set by the job, not by --set
@@ -61,8 +66,9 @@ def main(argv=None) -> int:
     parser.add_argument('--methods', default='imaml,maml')
     parser.add_argument('--seeds', type=int, default=20)
     parser.add_argument('--first-seed', type=int, default=0)
-    parser.add_argument('--jobs', type=int, default=2, help='worker processes')
-    parser.add_argument('--threads', type=int, default=1, help='torch threads per worker')
+    add_arguments(parser, 'runs at once on an embedded cluster (default 2; jobs x threads '
+                          '<= cores)')
+    parser.add_argument('--threads', type=int, default=1, help='torch threads per job')
     parser.add_argument('--free-latent', action='store_true',
                         help='A unconstrained (stable_latent false), as before')
     parser.add_argument('--rho-max', type=float, help='bound of the spectral norm of A')
@@ -78,7 +84,7 @@ def main(argv=None) -> int:
         if bad or args.seeds < 1 or args.first_seed < 0:
             raise ConfigError(f'need meta methods out of {", ".join(META_METHODS)} (got '
                               f'{", ".join(bad) or "them"}), seeds >= 1, first seed >= 0')
-        check_jobs(args.jobs, args.threads)
+        cluster = cluster_spec(args, 2, args.threads)
         if args.rho_max is not None and not args.rho_max > 0:
             raise ConfigError(f'--rho-max must be > 0, got {args.rho_max}')
         if os.path.exists(args.out) and not os.path.isdir(args.out):
@@ -99,16 +105,21 @@ def main(argv=None) -> int:
                 else settings_from(args.config, 0, 0))
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     jobs = robustness_jobs(experiment, methods, seeds, nssm, overrides, args.adapt)
-    context = multiprocessing.get_context('spawn')
-    with futures.ProcessPoolExecutor(args.jobs, context, init_worker,
-                                     (settings, args.threads)) as pool:
-        runs = run_jobs(pool, jobs, 'robustness', settings, os.path.join(args.out, 'cache'))
+    cache = ResultCache(os.path.join(args.out, 'cache'), settings)
+    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
+                        datefmt='%H:%M:%S')
+    status, ran = run_study('robustness', cluster, lambda client: (
+        run_jobs(client, jobs, 'robustness', settings, cache, threads=args.threads),
+        slots(client)))
+    if status:
+        return status
+    runs, jobs_at_once = ran
     report = json_safe({
         'config': args.config, 'nssm': nssm, 'overrides': overrides, 'seeds': list(seeds),
         'summary': robustness_summary(runs), 'runs': runs,
         'wall_s': round(time.monotonic() - start, 1),
         'cpu_s': round(sum(r['cpu_seconds'] for r in runs), 1),
-        'jobs': args.jobs, 'threads_per_job': args.threads,
+        'jobs': jobs_at_once, 'threads_per_job': args.threads, 'scheduler': args.scheduler,
         'load_avg_start': [round(v, 2) for v in load_start],
         'load_avg_end': [round(v, 2) for v in os.getloadavg()]})
     with open(os.path.join(args.out, 'robustness.json'), 'w') as f:

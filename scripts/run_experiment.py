@@ -31,6 +31,8 @@ import os
 import signal
 import sys
 
+from metampc_bringup.orchestration.cluster_cli import add_arguments
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_CONFIG = os.path.join(ROOT, 'config', 'default.yaml')
 
@@ -62,18 +64,6 @@ def port(text: str, default: int) -> int:
         raise ValueError(f'--foxglove needs a port number, got {text!r}') from None
 
 
-def tls_files(args):
-    """The --tls-* files as a cluster.TlsFiles (all three, or None for none; ValueError
-    otherwise)."""
-    from metampc_bringup.orchestration.cluster import TlsFiles
-    given = (args.tls_ca_file, args.tls_cert, args.tls_key)
-    if not any(given):
-        return None
-    if not all(given):
-        raise ValueError('--tls-ca-file, --tls-cert and --tls-key go together')
-    return TlsFiles(*given)
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--config', help='YAML file with every hyperparameter (default: '
@@ -84,20 +74,9 @@ def main(argv=None) -> int:
                                           'supervised,oracle,nmpc')
     parser.add_argument('--seeds', type=int, help='number of seeds')
     parser.add_argument('--first-seed', type=int, help='seed of the first run')
-    parser.add_argument('--jobs', type=int, default=1,
-                        help='seeds run at once on an embedded cluster, each in a ROS domain '
-                             'of its own (default 1: one after the other in this process; '
-                             'jobs x learner.torch_threads <= cores)')
-    parser.add_argument('--scheduler', metavar='ADDRESS',
-                        help='run the seeds on an existing dask cluster, tcp://HOST:PORT '
-                             '(docs/experiments.md#on-a-cluster)')
-    parser.add_argument('--insecure', action='store_true',
-                        help='allow a --scheduler tcp:// address off this machine (anyone who '
-                             'reaches that scheduler can run code on its workers)')
-    for name, what in (('ca-file', "the CA that signed the cluster's certificates"),
-                       ('cert', "this client's certificate"), ('key', "this client's key")):
-        parser.add_argument(f'--tls-{name}', metavar='PEM',
-                            help=f'a tls:// --scheduler: {what} (docs/security.md)')
+    add_arguments(parser, 'seeds run at once on an embedded cluster, each in a ROS domain of '
+                          'its own (default 1: one after the other in this process; jobs x '
+                          'learner.torch_threads <= cores)')
     parser.add_argument('--theta', help="target theta*, comma-separated values of the family's "
                                         'components (default: drawn per seed)')
     parser.add_argument('--protocol', help="'tuned' (default) or 'paper_settings': the paper's "
@@ -129,9 +108,8 @@ def main(argv=None) -> int:
         from metampc_bringup.experiment_config import ConfigError, load
         from metampc_recording.foxglove_params import DEFAULT_PORT, FoxgloveConfig
         from metampc_bringup.orchestration.netns import NetnsError, parse_hosts
-        from metampc_bringup.orchestration.cpu_budget import check_jobs
-        from metampc_bringup.orchestration.cluster import (check_address, ClusterError,
-                                                           ClusterSpec, SchedulerLost)
+        from metampc_bringup.orchestration.cluster import ClusterError, SchedulerLost
+        from metampc_bringup.orchestration.cluster_cli import cluster_spec
     except KeyboardInterrupt:
         print('run_experiment: interrupted before it started; nothing written', file=sys.stderr)
         return 130
@@ -151,16 +129,9 @@ def main(argv=None) -> int:
             'seeds': args.seeds, 'first_seed': args.first_seed, 'theta': numbers(args.theta),
             'protocol': args.protocol, 'family': args.family, 'scenario': args.scenario})
         hosts = parse_hosts(args.hosts) if args.hosts else None
-        check_jobs(args.jobs, config.node_config('learner', config.first_seed).torch_threads,
-                   'learner.torch_threads')
-        tls = tls_files(args)
-        if args.scheduler is not None:
-            check_address(args.scheduler, args.insecure, tls is not None)
-            if args.jobs > 1:
-                raise ValueError("--jobs sets the embedded cluster's workers: not with "
-                                 "--scheduler (the cluster's workers run the seeds)")
-        cluster = (ClusterSpec(args.jobs, args.scheduler, args.insecure, tls)
-                   if args.jobs > 1 or args.scheduler is not None else None)
+        spec = cluster_spec(args, 1, config.node_config('learner', config.first_seed)
+                            .torch_threads, 'learner.torch_threads')
+        cluster = spec if spec.jobs > 1 or spec.scheduler is not None else None
         if cluster and (hosts or args.foxglove is not None):
             raise ValueError('--jobs > 1 and --scheduler run each seed in a ROS domain of its '
                              'own on a worker: not with --hosts or --foxglove')

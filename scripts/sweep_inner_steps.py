@@ -5,20 +5,25 @@ Each (method, M) is tuned with the same small budget on validation data, then it
 meta-trained on the experiment's source set of every test seed and adapted to that seed's
 target: held-out loss after K in {0, 1, 5, 20} steps, meta-training wall time per outer step
 and peak RSS per run (the logic: ``metampc_bringup.studies.sweep``). Protocol, budget, its
-measured cost and resuming: docs/sweep.md.
+measured cost and resuming: docs/sweep.md. The runs are jobs of an embedded dask cluster
+(``--jobs``) or of ``--scheduler ADDRESS`` (docs/experiments.md#on-a-cluster).
 
 Usage: python scripts/sweep_inner_steps.py --out runs/sweep [--ms 1,5,10,25,50]
        [--methods imaml,maml,maml_unrolled] [--seeds 5] [--iterations 300]
-       [--tune-iterations 100] [--jobs 2]
+       [--tune-iterations 100] [--jobs 2] [--scheduler tcp://127.0.0.1:8786]
 Writes OUT/sweep.json, OUT/report.md, OUT/loss_vs_M.png, OUT/memory_vs_M.png and prints one
-JSON line; run the same command again to resume. Exit 2 on bad arguments.
+JSON line; run the same command again to resume. Exit status: 0 done, 1 runs raised (the others
+are cached) or the scheduler was lost, 2 bad arguments or a cluster refused, 130 interrupted.
 """
 import argparse
 import json
+import logging
 import sys
 
-from metampc_bringup.experiment_config import ConfigError
-from metampc_bringup.studies.sweep import DEFAULT_MS, main as run_sweep, Plan, SweepError
+from metampc_bringup.orchestration.cluster import slots
+from metampc_bringup.orchestration.cluster_cli import add_arguments, cluster_spec
+from metampc_bringup.studies.study_jobs import run_study
+from metampc_bringup.studies.sweep import check, DEFAULT_MS, Plan, summary_line, sweep
 from metampc_learner.meta_train import META_METHODS
 
 
@@ -38,8 +43,9 @@ def main(argv=None) -> int:
     parser.add_argument('--adapt-steps', type=int, default=20)
     parser.add_argument('--heldout-samples', type=int, default=2000,
                         help='held-out samples of each test target')
-    parser.add_argument('--jobs', type=int, default=2, help='worker processes')
-    parser.add_argument('--threads', type=int, default=1, help='torch threads per worker')
+    add_arguments(parser, 'runs at once on an embedded cluster (default 2; jobs x threads '
+                          '<= cores)')
+    parser.add_argument('--threads', type=int, default=1, help='torch threads per run')
     args = parser.parse_args(argv)
     try:
         ms = tuple(int(v) for v in args.ms.split(','))
@@ -52,11 +58,18 @@ def main(argv=None) -> int:
                 args.iterations, args.tune_iterations, args.thetas, args.adapt_steps,
                 args.heldout_samples)
     try:
-        line = run_sweep(args.config, plan, args.out, args.jobs, args.threads)
-    except (SweepError, ConfigError) as err:    # raised before any run starts
+        cluster = cluster_spec(args, 2, args.threads)
+        check(args.config, plan, args.out)
+    except ValueError as err:    # SweepError, ConfigError: before any run starts
         print(f'sweep_inner_steps: {err}', file=sys.stderr)
         return 2
-    print(json.dumps(line))
+    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(message)s',
+                        datefmt='%H:%M:%S')
+    status, report = run_study('sweep_inner_steps', cluster, lambda client: sweep(
+        client, args.config, plan, args.out, slots(client), args.threads))
+    if status:
+        return status
+    print(json.dumps(summary_line(report, args.out)))
     return 0
 
 

@@ -22,3 +22,33 @@ def tiny_config(tmp_path) -> Path:
     path = tmp_path / 'tiny.yaml'
     path.write_text(TINY_EXPERIMENT)
     return path
+
+
+# What a study's job measures of its run (time, memory), not what it computes.
+MEASURED = ('cpu_seconds', 'meta_seconds', 'adapt_seconds', 'job_wall_s', 's_per_step',
+            'peak_rss_mb', 'rss_before_meta_mb')
+
+
+@pytest.fixture
+def untimed():
+    """A study job's result without what it measures of its run (:data:`MEASURED`)."""
+    return lambda result: {k: v for k, v in result.items() if k not in MEASURED}
+
+
+@pytest.fixture
+def direct(monkeypatch, untimed):
+    """``direct(settings, job, fn=run_job)``: a study's job run in this process as the
+    process pool's workers ran it before the cluster layer (1 torch thread, the settings
+    set), untimed; this process's torch threads and job state are restored after."""
+    import torch
+    from metampc_bringup.studies import offline
+    monkeypatch.setattr(offline, '_VALIDATIONS', {})
+    monkeypatch.setattr(offline, '_SETTINGS', None)
+    threads = torch.get_num_threads()
+
+    def run(settings, job, fn=offline.run_job):
+        offline.use(settings, 1)
+        return untimed(fn(job))
+
+    yield run
+    torch.set_num_threads(threads)

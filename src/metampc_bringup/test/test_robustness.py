@@ -1,5 +1,7 @@
-"""scripts/robustness.py: MetaConfig overrides (--set), adaptation scores (--adapt), resuming
-from the cache, and one error line with exit status 2 on bad arguments."""
+"""scripts/robustness.py: MetaConfig overrides (--set), adaptation scores (--adapt), the runs of
+the process pool before (direct calls) on the embedded cluster (--jobs 2) and on a loopback
+scheduler (--scheduler), resuming from the cache, and one error line with exit status 2 on bad
+arguments."""
 import importlib.util
 import json
 import math
@@ -8,7 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from metampc_bringup.studies.robustness import robustness_summary
+from metampc_bringup.experiment_config import load
+from metampc_bringup.studies.offline import settings_from
+from metampc_bringup.studies.robustness import robustness_jobs, robustness_summary
+from metampc_bringup.studies.tuning import TuneConfig
+from metampc_testing import loopback_dask
 
 ROOT = Path(__file__).resolve().parents[3]
 # The shared tiny experiment (conftest), with short meta-training and MAML's adaptation.
@@ -29,14 +35,25 @@ def _script():
     return module
 
 
-def test_override_adapt_and_resume(tmp_path, capsys, tiny_config):
+def _direct_runs(config, overrides, direct):
+    """The runs of 'maml' on seeds 0, 1 with --adapt, called directly (the old pool's)."""
+    tuning = TuneConfig()
+    settings = settings_from(str(config), tuning.thetas, tuning.adapt_steps)
+    jobs = robustness_jobs(load(str(config)), ['maml'], [0, 1], {}, overrides, adapt=True)
+    return [direct(settings, job) for job in jobs]
+
+
+def test_override_adapt_and_resume(tmp_path, capsys, tiny_config, direct, untimed):
     config = tiny_config
     config.write_text(config.read_text().split('meta_train:')[0] + SHORT)
     out = tmp_path / 'out'
     args = ['--config', str(config), '--out', str(out), '--methods', 'maml', '--seeds', '2',
-            '--jobs', '1', '--adapt', '--set', 'lr_schedule=cosine', '--set', 'lr_inner=0.03']
+            '--jobs', '2', '--adapt', '--set', 'lr_schedule=cosine', '--set', 'lr_inner=0.03']
     assert _script().main(args) == 0
     first = json.loads((out / 'robustness.json').read_text())
+    assert first['jobs'] == 2
+    assert [untimed(r) for r in first['runs']] == _direct_runs(
+        config, {'lr_schedule': 'cosine', 'lr_inner': 0.03}, direct)
     assert first['overrides'] == {'lr_schedule': 'cosine', 'lr_inner': 0.03}
     runs = first['runs']
     assert [r['source_seed'] for r in runs] == [0, 1]
@@ -53,6 +70,19 @@ def test_override_adapt_and_resume(tmp_path, capsys, tiny_config):
     assert {p: p.stat().st_mtime_ns for p in (out / 'cache').iterdir()} == cached
     again = json.loads((out / 'robustness.json').read_text())
     assert again['runs'] == runs
+
+
+def test_runs_on_a_loopback_scheduler_are_those_of_direct_calls(tmp_path, tiny_config, direct,
+                                                                untimed):
+    config = tiny_config
+    config.write_text(config.read_text().split('meta_train:')[0] + SHORT)
+    out = tmp_path / 'out'
+    with loopback_dask(tmp_path / 'worker.log') as (address, _):
+        assert _script().main(['--config', str(config), '--out', str(out), '--methods', 'maml',
+                               '--seeds', '2', '--adapt', '--scheduler', address]) == 0
+    report = json.loads((out / 'robustness.json').read_text())
+    assert report['scheduler'] == address and report['jobs'] == 1
+    assert [untimed(r) for r in report['runs']] == _direct_runs(config, {}, direct)
 
 
 @pytest.mark.parametrize('setting', ['foo=1', 'lr_schedule=linear', 'vectorise=maybe',

@@ -1,7 +1,6 @@
 """The inner-steps sweep (metampc_bringup.studies.sweep, scripts/sweep_inner_steps.py): the
 same budget for every (method, M), resuming from the cache without running anything again, the
 summary statistics against hand computations, and exit status 2 on bad arguments."""
-import concurrent.futures as futures
 from dataclasses import asdict, replace
 import hashlib
 import importlib.util
@@ -13,11 +12,13 @@ from pathlib import Path
 import pytest
 
 from metampc_bringup.experiment_config import load
-from metampc_bringup.studies.offline import init_worker, Job, settings_from, TEST_HELDOUT_SAMPLES
+from metampc_bringup.orchestration.cluster import ClusterSpec
+from metampc_bringup.studies.offline import Job, settings_from, TEST_HELDOUT_SAMPLES
+from metampc_bringup.studies.study_jobs import study_cluster
 from metampc_bringup.analysis.paired_stats import median_ci
 from metampc_bringup.studies.sweep import (ADAPT_LRS, estimate_cpu_s, evaluation_jobs, GRIDS,
-                                           paired, Plan, summarise, sweep, SweepError, tune_jobs,
-                                           UNROLLED_MAX_M, winners)
+                                           measured_run, paired, Plan, summarise, sweep,
+                                           SweepError, tune_jobs, UNROLLED_MAX_M, winners)
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -123,35 +124,43 @@ def test_summary_and_paired_comparison_by_hand():
     assert k20['median_ratio'] == pytest.approx(0.25)
 
 
-class RefusingPool(futures.Executor):
-    """A pool that fails the test if anything is submitted."""
+class RefusingClient:
+    """A dask client that fails the test if anything is submitted."""
 
-    def submit(self, fn, *args, **kwargs):
+    def submit(self, *args, **kwargs):
         raise AssertionError('a cached run was started again')
 
 
-def test_tiny_sweep_runs_then_resumes_without_running_anything(tmp_path, tiny_config):
+def test_tiny_sweep_on_two_workers_then_resumes_without_running_anything(
+        tmp_path, tiny_config, direct, untimed):
+    """Its runs are those of direct calls (the process pool's before), each in a fresh
+    process of its own (its peak RSS)."""
     config = tiny_config
     out = str(tmp_path / 'out')
-    plan = Plan(('imaml', 'maml'), (1,), (0,), iterations=2, tune_iterations=2, thetas=1,
+    plan = Plan(('maml',), (1,), (0,), iterations=2, tune_iterations=2, thetas=1,
                 adapt_steps=5, heldout_samples=100)
-    settings = settings_from(str(config), plan.thetas, plan.adapt_steps)
-    with futures.ThreadPoolExecutor(1, initializer=init_worker,
-                                    initargs=(settings, 1)) as pool:
-        first = sweep(pool, str(config), plan, out)
-    assert len(first['tune_runs']) == 8 and len(first['test_runs']) == 2
-    assert len(os.listdir(os.path.join(out, 'cache'))) == 10
+    with study_cluster(ClusterSpec(2)) as client:
+        first = sweep(client, str(config), plan, out, 2)
+    assert len(first['tune_runs']) == 4 and len(first['test_runs']) == 1
+    assert len(os.listdir(os.path.join(out, 'cache'))) == 5
     for run in first['test_runs']:
         assert run['heldout_samples'] == 100 and run['peak_rss_mb'] > 0
         assert set(run['adapt'][0]['heldout_at']) == {'0', '1', '5'}
     for name in ('sweep.json', 'report.md', 'loss_vs_M.png', 'memory_vs_M.png'):
         assert os.path.getsize(os.path.join(out, name)) > 0
+    experiment, settings = load(str(config)), settings_from(str(config), 1, 5)
+    tuned = tune_jobs(experiment, plan)
+    assert [untimed(r) for r in first['tune_runs']] == [
+        direct(settings, job, measured_run) for job in tuned]
+    tested = evaluation_jobs(experiment, plan, winners(first['tune_runs']))
+    assert [untimed(r) for r in first['test_runs']] == [
+        direct(settings, job, measured_run) for job in tested]
 
-    again = sweep(RefusingPool(), str(config), plan, out)
+    again = sweep(RefusingClient(), str(config), plan, out)
     assert again['summary'] == first['summary'] and again['sessions'][-1]['runs_done'] == 0
     assert len(again['sessions']) == 2
     with pytest.raises(SweepError, match='other settings'):
-        sweep(RefusingPool(), str(config), replace(plan, iterations=3), out)
+        sweep(RefusingClient(), str(config), replace(plan, iterations=3), out)
 
 
 def _script():

@@ -1,20 +1,23 @@
-"""The search's bookkeeping (metampc_bringup.studies.tuning): draws, neighbours, stages, scores.
+"""The search's bookkeeping (metampc_bringup.studies.tuning): draws, stages, scores.
 
 Pure functions on job lists and hand-made results; no training runs here (scripts/tune.py
 runs them, docs/tuning.md has the measured search).
 """
 import importlib.util
+import json
 import math
 import os
 from pathlib import Path
 
+import optuna
 import pytest
 
 from metampc_bringup.experiment_config import load
 
 from metampc_bringup.studies import tuning
-from metampc_bringup.studies.tuning import (best_of, CALIBRATION, CG_STEPS, draw_jobs, GAMMA_GRID,
-                                            neighbours, refine_jobs, request_fields, robust_jobs,
+from metampc_bringup.studies.offline import Job, settings_from
+from metampc_bringup.studies.tuning import (ADAPT_LRS, best_of, CALIBRATION, CG_STEPS, CURVATURE,
+                                            draw_jobs, GAMMA_GRID, request_fields, robust_jobs,
                                             robust_scores, SHARED_GRID, TuneConfig)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
@@ -56,42 +59,6 @@ def test_imaml_gets_the_cg_steps_of_its_gamma():
     assert steps == sorted(steps, reverse=True)
 
 
-def test_neighbours_move_one_axis_one_grid_step():
-    centre = {'inner_steps': 10, 'lr_inner': 0.02, 'lr_outer': 1e-2, 'gamma': 0.1,
-              'cg_steps': CG_STEPS[0.1]}
-    got = neighbours('imaml', centre)
-    # inner_steps 5/20, lr_inner 0.05 (0.02 is the grid's first), lr_outer 5e-3 (1e-2 last),
-    # gamma 0.03 / 0.3
-    assert len(got) == 2 + 1 + 1 + 2
-    for h in got:
-        changed = [n for n in ('inner_steps', 'lr_inner', 'lr_outer', 'gamma')
-                   if h[n] != centre[n]]
-        assert len(changed) == 1
-        axis = {**SHARED_GRID, 'gamma': GAMMA_GRID}[changed[0]]
-        assert abs(axis.index(h[changed[0]]) - axis.index(centre[changed[0]])) == 1
-        assert h['cg_steps'] == CG_STEPS[h['gamma']]
-    assert all('gamma' not in h for h in neighbours('maml', {
-        'inner_steps': 10, 'lr_inner': 0.02, 'lr_outer': 1e-2}))
-
-
-def test_refinement_takes_untried_neighbours_of_the_best_first():
-    best = {'inner_steps': 5, 'lr_inner': 0.02, 'lr_outer': 1e-3}    # a grid corner: 3 left
-    tried_neighbour = {**best, 'inner_steps': 10}
-    second = {'inner_steps': 20, 'lr_inner': 0.2, 'lr_outer': 1e-2}
-    results = [_result('maml', 0, best, 0.1), _result('maml', 1, tried_neighbour, 0.3),
-               _result('maml', 2, second, 0.2),
-               _result('imaml', 0, {**best, 'gamma': 1.0, 'cg_steps': 5}, 0.1)]
-    jobs = [j for j in refine_jobs(results, 4, 150, seed=0) if j.method == 'maml']
-    hypers = [j.hyper for j in jobs]
-    assert len(hypers) == 4
-    own = [h for h in neighbours('maml', best) if h != tried_neighbour]
-    assert len(own) == 2 and all(h in hypers for h in own)   # all the best's untried first
-    rest = [h for h in hypers if h not in own]
-    assert all(h in neighbours('maml', second) for h in rest)   # then the next best's
-    assert all(h not in [r['hyper'] for r in results] for h in hypers)
-    assert [j.index for j in jobs] == [3, 4, 5, 6]
-
-
 def test_robust_stage_and_scores():
     results = [_result('imaml', i, {'gamma': 1.0}, s) for i, s in enumerate([0.3, 0.1, 0.2])]
     results.append(_result('imaml', 3, {'gamma': 3.0}, math.inf))
@@ -121,8 +88,8 @@ def test_winner_fields_are_request_fields():
     assert 'meta_train' not in sup
 
 
-@pytest.mark.parametrize('name, value', [('k', 0), ('jobs', 0), ('refine', -1),
-                                         ('robust_seeds', 0)])
+@pytest.mark.parametrize('name, value', [('k', 0), ('per_round', 0), ('refine', -1),
+                                         ('robust_seeds', 0), ('k', 45)])
 def test_bad_settings_are_refused(name, value):
     with pytest.raises(ValueError, match=name):
         TuneConfig(**{name: value}).validate()
@@ -156,22 +123,70 @@ def test_incumbents_are_the_experiments_requests():
     assert got['imaml']['cg_steps'] == requests['imaml']['cg_steps']
 
 
-@pytest.mark.parametrize('args', [['--out', 'EXISTING'], ['--out', 'NEW', '--k', '0'],
-                                  ['--out', 'NEW', '--jobs', '0']])
-def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path, capsys, args):
-    """scripts/tune.py: exit 2, one line, nothing written (config/tuning.json, the committed
-    record, was its old default --out and got overwritten without a word)."""
+def _script():
     spec = importlib.util.spec_from_file_location(
         'tune', Path(__file__).resolve().parents[3] / 'scripts' / 'tune.py')
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
+    return script
+
+
+@pytest.mark.parametrize('args', [['--out', 'EXISTING'], ['--out', 'NEW', '--k', '0'],
+                                  ['--out', 'NEW', '--jobs', '0'],
+                                  ['--out', 'NEW', '--scheduler', 'tcp://10.0.0.5:8786']])
+def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path, capsys, args):
+    """scripts/tune.py: exit 2, one line, nothing written (config/tuning.json, the committed
+    record, was its old default --out and got overwritten without a word)."""
+    script = _script()
     existing = tmp_path / 'tuning.json'
     existing.write_text('{"an": "earlier record"}')
     paths = {'EXISTING': str(existing), 'NEW': str(tmp_path / 'new.json')}
     assert script.main([paths.get(a, a) for a in args]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert existing.read_text() == '{"an": "earlier record"}'
-    assert not (tmp_path / 'new.json').exists()
+    assert not (tmp_path / 'new.json').exists() and not (tmp_path / 'new.study').exists()
+
+
+TINY_SEARCH = ['--k', '2', '--refine', '2', '--per-round', '1', '--iterations', '2',
+               '--batch-size', '2', '--finalists', '0', '--thetas', '1', '--adapt-steps', '2',
+               '--score', 'prediction']
+
+
+def test_tune_on_two_workers_reports_optunas_best_and_the_same_command_resumes(
+        tmp_path, capsys, tiny_config, direct, untimed):
+    """Its configurations are those of direct calls (the process pool's before); each
+    method's winner is its study's best trial; the same command again runs nothing, and
+    with another seed it is refused."""
+    out = tmp_path / 'tuning.json'
+    args = ['--config', str(tiny_config), *TINY_SEARCH, '--jobs', '2', '--out', str(out)]
+    assert _script().main(args) == 0
+    report = json.loads(out.read_text())
+    folder = tmp_path / 'tuning.study'
+    assert report['protocol']['per_round'] == 1 and report['jobs'] == 2
+    stages = [(r['method'], r['stage']) for r in report['configurations']]
+    assert stages == [(m, s) for m in ('imaml', 'maml') for s in ('search',) * 2 + ('refine',) * 2
+                      ] + [('supervised', 'search')]
+    for method in ('imaml', 'maml'):
+        best = optuna.load_study(study_name=method,
+                                 storage=f'sqlite:///{folder / "study.db"}').best_trial
+        winner = report['winners'][method]
+        assert (winner['index'], winner['score']) == (best.number, best.value)
+        assert {n: winner['meta_train'][n] for n in best.params} == best.params
+    settings = settings_from(str(tiny_config), 1, 2, {'batch_size': 2, 'curvature': CURVATURE})
+    jobs = [Job(r['method'], r['index'], r['hyper'], r['iterations'], ADAPT_LRS, r['stage'])
+            for r in report['configurations']]
+    assert [untimed(r) for r in report['configurations']] == [
+        direct(settings, job) for job in jobs]
+
+    cached = {p: p.stat().st_mtime_ns for p in (folder / 'cache').iterdir()}
+    out.unlink()
+    assert _script().main(args) == 0
+    assert {p: p.stat().st_mtime_ns for p in (folder / 'cache').iterdir()} == cached
+    assert json.loads(out.read_text())['configurations'] == report['configurations']
+    out.unlink()
+    capsys.readouterr()
+    assert _script().main([*args[:-2], '--seed', '1', '--out', str(out)]) == 2
+    assert 'holds a search with other settings (seed)' in capsys.readouterr().err
 
 
 def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models(monkeypatch):
@@ -190,7 +205,7 @@ def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models(monkeyp
     # This process's worker state (other tests' settings and validation sets) set aside.
     monkeypatch.setattr(offline, '_VALIDATIONS', {})
     monkeypatch.setattr(offline, '_SETTINGS', None)
-    offline.init_worker(settings, 1)
+    offline.use(settings, 1)
     job = offline.Job('maml', 0, {'inner_steps': 2}, 3, (0.05,), 'search')
     out = offline.run_job(job)
     entry = out['adapt'][0]

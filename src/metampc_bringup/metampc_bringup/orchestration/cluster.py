@@ -167,7 +167,10 @@ def _embedded(jobs: int) -> Iterator[Any]:
             cluster = LocalCluster(
                 n_workers=jobs, threads_per_worker=1, processes=True, host='127.0.0.1',
                 scheduler_port=0, dashboard_address=None, resources={SLOT: 1},
-                local_directory=scratch, silence_logs=logging.ERROR, preload=[__name__])
+                local_directory=scratch, silence_logs=logging.ERROR, preload=[__name__],
+                # Its HTTP server (health, no dashboard) on a free loopback port: dask's default,
+                # 8787, is another cluster's when two run, and dask warns on stderr.
+                scheduler_kwargs={'dashboard_address': '127.0.0.1:0'})
         except (RuntimeError, OSError, TimeoutError) as err:
             raise ClusterError(f'the embedded cluster did not start: {err}') from None
         pids = {nanny.pid for nanny in cluster.workers.values()}
@@ -194,12 +197,18 @@ def _wait_for_slot(client, address: str) -> None:
     except TimeoutError:
         raise ClusterError(f'--scheduler {address}: no worker joined within '
                            f'{CONNECT_TIMEOUT_S:.0f} s') from None
-    workers = client.scheduler_info()['workers'].values()
-    slots = sum(w.get('resources', {}).get(SLOT, 0) for w in workers)
-    if not slots:
+    have = slots(client)
+    if not have:
         raise ClusterError(f'--scheduler {address}: no worker has a {SLOT} (start each with '
                            f'`dask worker {address} --nthreads 1 --resources {SLOT}=1`)')
-    log.info('cluster %s: %d worker(s), %d slot(s)', address, len(workers), slots)
+    log.info('cluster %s: %d worker(s), %d slot(s)', address,
+             len(client.scheduler_info()['workers']), have)
+
+
+def slots(client) -> int:
+    """The slots of `client`'s workers now: how many jobs run at once."""
+    workers = client.scheduler_info()['workers'].values()
+    return int(sum(w.get('resources', {}).get(SLOT, 0) for w in workers))
 
 
 def _wait_for_children(worker_pids: Iterable[int]) -> None:

@@ -5,26 +5,23 @@ the learner configuration an experiment gives a seed (:func:`settings_from`), va
 targets that are never the experiment's test targets (theta_i from ``rng([1000 + i, 0x5a1])``,
 with ``target_samples`` adaptation samples and :data:`HELDOUT_SAMPLES` held out; the test
 targets come from ``rng([s, 0x7e7a])``), a job on one test target (``target_theta``, data seeded
-by :func:`target_data_seeds`), and a job runner (:func:`run_jobs`: worker processes, one torch
-thread count each, results cached on disk so that a long run stopped half-way resumes).
-Protocols: docs/tuning.md, docs/sweep.md. No rclpy here.
+by :func:`target_data_seeds`), and a job (:func:`run_job`) in a process set up by :func:`use`;
+the jobs run on the cluster layer with their results cached on disk
+(:mod:`metampc_bringup.studies.study_jobs`). Protocols: docs/tuning.md, docs/sweep.md. No rclpy
+here.
 """
-import concurrent.futures as futures
 import hashlib
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.experiment_config import ExperimentConfig, learner_config, load
-from metampc_bringup.orchestration.lifeline import hold_in_worker
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   SourceSet, Windows)
@@ -142,6 +139,10 @@ class Job:
         per_step = 1.5 if self.method == 'imaml' else 1.0
         return self.iterations * per_step * (4 + self.hyper.get('inner_steps', 10))
 
+    def __str__(self) -> str:
+        """A short name (progress, errors, the job's key on the cluster)."""
+        return f'{self.method}-{self.stage}-{self.index}-seed{self.source_seed}'
+
     def key(self, settings: Settings) -> str:
         """A name for the cached result: a hash of the job and of the settings."""
         fields = {k: v for k, v in asdict(self).items()
@@ -240,19 +241,22 @@ _SETTINGS: Optional[Settings] = None
 _VALIDATIONS: Dict[str, Validation] = {}
 
 
-def init_worker(settings: Settings, threads: int) -> None:
-    """Worker process start: a lifeline to the pool's maker, torch threads and the settings."""
+def use(settings: Settings, threads: int) -> None:
+    """In a process that runs jobs, before each: its torch threads and the job's settings;
+    the set-ups built for other settings are dropped (a worker of a long-lived cluster serves
+    one study after another)."""
     global _SETTINGS
-    hold_in_worker()
     torch.set_num_threads(threads)
-    _SETTINGS = settings
+    if settings != _SETTINGS:
+        _SETTINGS = settings
+        _VALIDATIONS.clear()
 
 
 def validation(source_seed: int, nssm: Dict[str, Any],
                target_theta: Optional[Sequence[float]] = None,
                heldout_samples: int = HELDOUT_SAMPLES) -> Validation:
     """The set-up of a source seed, NSSM and targets (see :func:`build_validation`), built
-    once per worker."""
+    once per process and settings (:func:`use`)."""
     key = json.dumps([source_seed, nssm, target_theta, heldout_samples], sort_keys=True)
     if key not in _VALIDATIONS:
         _VALIDATIONS[key] = build_validation(_SETTINGS, source_seed, nssm, target_theta,
@@ -358,44 +362,7 @@ def run_job(job: Job) -> dict:
     return out
 
 
-def run_jobs(pool: futures.Executor, jobs: Sequence[Job], what: str,
-             settings: Settings, cache_dir: Optional[str] = None,
-             fn: Callable[[Job], dict] = run_job) -> List[dict]:
-    """Run jobs (``fn(job)`` in the pool, default :func:`run_job`) longest first with a
-    progress bar; results in the order of `jobs`.
-
-    With `cache_dir`, each finished job's result is written there (``<key>.json``, see
-    :meth:`Job.key`) as soon as it finishes and a job whose result is there is not run again:
-    a run stopped half-way resumes where it stopped.
-    """
-    results: List[Optional[dict]] = [None] * len(jobs)
-    todo = []
-    for i, job in enumerate(jobs):
-        path = os.path.join(cache_dir, f'{job.key(settings)}.json') if cache_dir else None
-        if path and os.path.exists(path):
-            with open(path) as f:
-                results[i] = json.load(f)
-        else:
-            todo.append(i)
-    if cache_dir:
-        os.makedirs(cache_dir, exist_ok=True)
-    order = sorted(todo, key=lambda i: -jobs[i].cost())
-    pending = {pool.submit(fn, jobs[i]): i for i in order}
-    with tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=what, unit='job') as bar:
-        for done in futures.as_completed(pending):
-            i = pending[done]
-            results[i] = done.result()
-            if cache_dir:     # Python's json keeps inf and nan (scores of failed runs)
-                path = os.path.join(cache_dir, f'{jobs[i].key(settings)}.json')
-                with open(path + '.tmp', 'w') as f:
-                    json.dump(results[i], f)
-                os.replace(path + '.tmp', path)     # a kill never leaves half a result
-            bar.update()
-    return results
-
-
 __all__ = ['VALIDATION_SEED', 'THETA_STREAM', 'HELDOUT_SAMPLES', 'TEST_HELDOUT_SAMPLES',
            'TEST_DATA_STREAM', 'CURVE_STEPS', 'Settings', 'Validation', 'Job',
            'request_meta_config', 'target_data_seeds', 'validation_thetas', 'settings_from',
-           'build_validation', 'init_worker', 'validation', 'meta_config',
-           'run_job', 'run_jobs']
+           'build_validation', 'use', 'validation', 'meta_config', 'run_job']

@@ -5,17 +5,15 @@ unrolled MAML (eqs. (inner_maml), (outer_maml); M <= :data:`UNROLLED_MAX_M`) at 
 count M on the learning cores without ROS (:mod:`metampc_bringup.studies.offline`): each
 (method, M) tuned on validation data with the same budget (:data:`GRIDS`, :data:`ADAPT_LRS`),
 then tested on the experiment's seeds; iMAML and first-order MAML compared paired by seed
-(:func:`metampc_bringup.analysis.paired_stats.paired_claim`). In: the sweep's settings and the
-experiment's config; out: ``OUT/`` (report.md, sweep.json, plots; finished runs cached in
-``OUT/cache/``, so a stopped sweep resumes). Refuses (:class:`SweepError`) a folder holding a
-sweep of other settings. Cost model: :data:`COST_PER_STEP`, :func:`estimate_cpu_s`. Protocol,
-budget and measured costs: docs/sweep.md. No rclpy here.
+(:func:`metampc_bringup.analysis.paired_stats.paired_claim`). Runs: jobs of
+:mod:`.study_jobs`, each in a fresh process. Out: ``OUT/`` (report.md, sweep.json, plots;
+runs cached in ``OUT/cache/``: a stopped sweep resumes); a folder of a sweep of other settings
+is refused (:class:`SweepError`). Cost model: :data:`COST_PER_STEP`, :func:`estimate_cpu_s`.
+Protocol, budget and measured costs: docs/sweep.md. No rclpy here.
 """
-import concurrent.futures as futures
 import hashlib
 import json
 import math
-import multiprocessing
 import os
 import resource
 import time
@@ -27,10 +25,10 @@ import numpy as np
 from metampc_bringup.analysis.paired_stats import claim_cells, median_ci, paired_claim
 from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.experiment_config import ExperimentConfig, load
-from metampc_bringup.orchestration.cpu_budget import check_jobs
-from metampc_bringup.studies.offline import (CURVE_STEPS, init_worker, Job, request_meta_config,
-                                             run_job, run_jobs, Settings, settings_from,
-                                             TEST_HELDOUT_SAMPLES, validation, VALIDATION_SEED)
+from metampc_bringup.studies.offline import (CURVE_STEPS, Job, request_meta_config, run_job,
+                                             Settings, settings_from, TEST_HELDOUT_SAMPLES,
+                                             validation, VALIDATION_SEED)
+from metampc_bringup.studies.study_jobs import ResultCache, run_jobs
 from metampc_learner.meta_train import META_METHODS
 
 NAMES = {'imaml': 'iMAML', 'maml': 'first-order MAML', 'maml_unrolled': 'unrolled MAML'}
@@ -402,13 +400,16 @@ def protocol(config: str, settings: Settings, experiment: ExperimentConfig, plan
         'settings_sha': hashlib.sha256(repr(settings).encode()).hexdigest()[:16]}))
 
 
-def sweep(pool: futures.Executor, config: str, plan: Plan, out: str, jobs: int = 1,
+def sweep(client, config: str, plan: Plan, out: str, jobs: int = 1,
           threads: int = 1) -> Dict[str, Any]:
-    """Run (or resume) the sweep in `pool` (its workers set up by offline.init_worker with
-    :func:`settings`), write OUT/sweep.json, report.md and the figures; return the report.
+    """Run (or resume) the sweep on `client`'s cluster (`jobs` at once, `threads` torch
+    threads each, every run in a fresh process: its peak RSS is its own), write
+    OUT/sweep.json, report.md and the figures; return the report.
 
     Raises:
         SweepError: OUT/sweep.json holds a sweep with another protocol.
+        StudyError, SchedulerLost: runs raised, the scheduler was lost (the finished runs are
+            cached).
     """
     start, load_start = time.monotonic(), os.getloadavg()
     started = time.strftime('%Y-%m-%dT%H:%M:%S', time.localtime())
@@ -416,16 +417,16 @@ def sweep(pool: futures.Executor, config: str, plan: Plan, out: str, jobs: int =
     proto = protocol(config, settings, experiment, plan)
     report_path = os.path.join(out, 'sweep.json')
     check_out(out, proto)
-    cache = os.path.join(out, 'cache')
-    cached_before = len(os.listdir(cache)) if os.path.isdir(cache) else 0
-    tune_runs = run_jobs(pool, tune_jobs(experiment, plan), 'tune', settings, cache,
-                         measured_run)
+    cache = ResultCache(os.path.join(out, 'cache'), settings)
+    cached_before = len(os.listdir(cache.folder))
+    tune_runs = run_jobs(client, tune_jobs(experiment, plan), 'tune', settings, cache,
+                         measured_run, threads, fresh=True)
     best = winners(tune_runs)
-    test_runs = run_jobs(pool, evaluation_jobs(experiment, plan, best), 'test', settings, cache,
-                         measured_run)
+    test_runs = run_jobs(client, evaluation_jobs(experiment, plan, best), 'test', settings,
+                         cache, measured_run, threads, fresh=True)
     session = {'started': started, 'wall_s': round(time.monotonic() - start, 1),
                'jobs': jobs, 'threads': threads,
-               'runs_done': len(os.listdir(cache)) - cached_before,
+               'runs_done': len(os.listdir(cache.folder)) - cached_before,
                'load_avg_start': [round(v, 2) for v in load_start],
                'load_avg_end': [round(v, 2) for v in os.getloadavg()]}
     with open(os.path.join(out, 'sessions.jsonl'), 'a') as f:
@@ -498,24 +499,15 @@ def _short(c: dict) -> str:
     return f"{c['a']} < {c['b']} M{c['M']} K{c['K']}: {holds}, ratio {estimate}, p {p}, {verdict}"
 
 
-def main(config: str, plan: Plan, out: str, jobs: int, threads: int) -> Dict[str, Any]:
-    """Check the plan, then run the sweep in `jobs` fresh-per-run worker processes with
-    `threads` torch threads each (peak RSS per run needs a fresh process); the JSON line."""
+def check(config: str, plan: Plan, out: str) -> None:
+    """Before the cluster starts: SweepError for a bad plan or an `out` of another sweep
+    (:func:`check_out`, which creates `out`)."""
     plan.check()
-    try:
-        check_jobs(jobs, threads)
-    except ValueError as err:
-        raise SweepError(str(err)) from None
-    settings = settings_for(config, plan)
-    context = multiprocessing.get_context('spawn')
-    with futures.ProcessPoolExecutor(jobs, context, init_worker, (settings, threads),
-                                     max_tasks_per_child=1) as pool:
-        report = sweep(pool, config, plan, out, jobs, threads)
-    return summary_line(report, out)
+    check_out(out, protocol(config, settings_for(config, plan), load(config), plan))
 
 
 __all__ = ['DEFAULT_MS', 'UNROLLED_MAX_M', 'GRIDS', 'ADAPT_LRS', 'COST_PER_STEP',
            'SweepError', 'Plan', 'base_hyper', 'tune_jobs', 'winners', 'evaluation_jobs',
            'estimate_cpu_s', 'measured_run', 'heldout_at', 'summarise', 'paired',
            'plain_words', 'plot_loss', 'plot_memory', 'markdown', 'protocol', 'sweep',
-           'settings_for', 'check_out', 'summary_line', 'main']
+           'settings_for', 'check_out', 'summary_line', 'check']

@@ -4,28 +4,31 @@ The logic of ``scripts/tune.py``: every method gets the same budget of meta-trai
 on validation systems only (source set 1000.., validation thetas from rng([1000 + i, 0x5a1]),
 never the experiment's test targets); each model is adapted by eq. (infer) with every step size
 of :data:`ADAPT_LRS` and scored by closed-loop tracking against the true-model NMPC
-(``score`` 'control') or by held-out loss ('prediction'); stage 2 refines around the winner,
-stage 3 re-runs the finalists and the incumbent on ``robust_seeds`` source sets. Jobs are
-seeded, so the scores are reproducible at the same thread count. :func:`tune` returns the
-report (configurations with scores, robustness runs, winners, wall and CPU time, load).
+(``score`` 'control') or by held-out loss ('prediction'); stages 1-2 are an Optuna study per
+meta method (:mod:`.search`: the paired draws, then TPE), stage 3 re-runs the finalists and
+the incumbent on ``robust_seeds`` source sets. Jobs (seeded: the scores are reproducible at
+the same thread count) run on the cluster layer (:mod:`.study_jobs`); the studies and results
+stay in the search's folder, so a stopped search resumes. :func:`tune` returns the report.
 Protocol and results: docs/tuning.md.
 """
-import concurrent.futures as futures
+import hashlib
 import itertools
+import json
 import math
-import multiprocessing
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.experiment_config import load
-from metampc_bringup.orchestration.cpu_budget import check_jobs
-from metampc_bringup.studies.offline import (HELDOUT_SAMPLES, init_worker, Job, run_jobs,
-                                             settings_from, THETA_STREAM, VALIDATION_SEED)
+from metampc_bringup.orchestration.cluster import slots
+from metampc_bringup.studies.offline import (HELDOUT_SAMPLES, Job, settings_from, THETA_STREAM,
+                                             VALIDATION_SEED)
+from metampc_bringup.studies.search import Search, Trial
+from metampc_bringup.studies.study_jobs import ResultCache, run_jobs
 from metampc_learner.meta_train import MetaConfig
 
 DRAW_STREAM = 0xd7a          # configuration draws: rng([--seed, DRAW_STREAM])
@@ -43,6 +46,10 @@ AXES = {'imaml': {**SHARED_GRID, 'gamma': GAMMA_GRID}, 'maml': SHARED_GRID}
 ADAPT_LRS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
 TUNED_METHODS = ('imaml', 'maml')
 INCUMBENT = -1               # index of the configuration in use in stage 3
+STUDY_FILE = 'study.db'      # the Optuna studies (SQLite) in the search's folder
+SEARCH = ('stage 1: the k paired draws, enqueued; stage 2: refine trials of the Optuna TPE '
+          'sampler (start-up: stage 1), per_round asked at once per method, seeded per '
+          'trial from draw_seed; one Optuna study per meta method in study')
 
 
 def draw_jobs(k: int, iterations: int, seed: int) -> List[Job]:
@@ -69,38 +76,6 @@ def draw_jobs(k: int, iterations: int, seed: int) -> List[Job]:
 def with_cg(method: str, hyper: Dict[str, float]) -> Dict[str, float]:
     """iMAML's configuration with the CG steps its gamma needs (:data:`CG_STEPS`)."""
     return {**hyper, 'cg_steps': CG_STEPS[hyper['gamma']]} if method == 'imaml' else hyper
-
-
-def neighbours(method: str, hyper: Dict[str, float]) -> List[Dict[str, float]]:
-    """The configurations one grid step away from `hyper` along one axis of the method."""
-    out = []
-    for name, axis in AXES[method].items():
-        at = axis.index(hyper[name])
-        out.extend(with_cg(method, {**hyper, name: axis[j]})
-                   for j in (at - 1, at + 1) if 0 <= j < len(axis))
-    return out
-
-
-def refine_jobs(results: Sequence[dict], r: int, iterations: int, seed: int) -> List[Job]:
-    """Stage 2: per meta method, r untried neighbours drawn at random (seeded) among those of
-    its best configuration; when that one has fewer, all of them and the rest from the next
-    best configurations' neighbours, so every method gets the same r."""
-    jobs = []
-    for m, method in enumerate(TUNED_METHODS):
-        mine = sorted((x for x in results if x['method'] == method), key=lambda x: x['score'])
-        tried = [x['hyper'] for x in mine]
-        rng = np.random.default_rng([seed, DRAW_STREAM, 1 + m])
-        picked: List[Dict[str, float]] = []
-        for centre in mine:
-            fresh = [h for h in neighbours(method, centre['hyper'])
-                     if h not in tried and h not in picked]
-            need = min(r - len(picked), len(fresh))
-            picked.extend(fresh[p] for p in sorted(rng.choice(len(fresh), need, replace=False)))
-            if len(picked) == r:
-                break
-        jobs.extend(Job(method, len(mine) + i, h, iterations, ADAPT_LRS, 'refine')
-                    for i, h in enumerate(picked))
-    return jobs
 
 
 def robust_jobs(results: Sequence[dict], finalists: int, iterations: int,
@@ -195,14 +170,14 @@ class TuneConfig:
     adapt_steps: int = 20
     thetas: int = 6
     seed: int = 0
-    jobs: int = 2
     threads: int = 1
     score: str = 'control'
+    per_round: int = 2
 
     def validate(self) -> None:
         """ValueError naming the first setting out of range."""
-        for name in ('k', 'iterations', 'full_iterations', 'batch_size', 'thetas', 'jobs',
-                     'threads'):
+        for name in ('k', 'iterations', 'full_iterations', 'batch_size', 'thetas', 'threads',
+                     'per_round'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
         for name in ('refine', 'finalists', 'robust_seeds', 'adapt_steps', 'seed'):
@@ -212,29 +187,83 @@ class TuneConfig:
             raise ValueError(f'score must be one of {", ".join(SCORES)}, got {self.score!r}')
         if self.finalists and not self.robust_seeds:
             raise ValueError('robust_seeds must be >= 1 when finalists > 0')
-        check_jobs(self.jobs, self.threads)
+        grid = math.prod(len(axis) for axis in SHARED_GRID.values())
+        if self.k + self.refine > grid:
+            raise ValueError(f'k + refine = {self.k + self.refine} exceeds the grid '
+                             f'({grid} configurations)')
 
 
-def tune(cfg: TuneConfig) -> dict:
-    """Run the three stages in worker processes; the report (JSON-safe)."""
+def study_folder(out: str) -> str:
+    """Where the search of the report `out` keeps its studies and results: ``runs/t.json``
+    -> ``runs/t.study``."""
+    return os.path.splitext(out)[0] + '.study'
+
+
+def check_folder(folder: str, cfg: TuneConfig) -> None:
+    """ValueError if `folder` holds a search of another configuration or experiment (it is
+    resumed only by the same command); else it is created, with the search's fingerprint."""
+    with open(cfg.config, 'rb') as f:
+        mine = {**asdict(cfg), 'config_sha256': hashlib.sha256(f.read()).hexdigest()}
+    path = os.path.join(folder, 'search.json')
+    if os.path.exists(path):
+        with open(path) as f:
+            theirs = json.load(f)
+        if theirs != mine:
+            diff = sorted(k for k in set(theirs) | set(mine) if theirs.get(k) != mine.get(k))
+            raise ValueError(f'{folder} holds a search with other settings ({", ".join(diff)})'
+                             '; pick another --out')
+        return
+    os.makedirs(folder, exist_ok=True)
+    with open(path, 'w') as f:
+        json.dump(mine, f, indent=1)
+
+
+def searched(job: Job) -> Dict[str, float]:
+    """A search job's configuration as its study's parameters (iMAML's CG steps follow from
+    gamma)."""
+    return {n: job.hyper[n] for n in AXES[job.method]}
+
+
+def tune(cfg: TuneConfig, client, folder: str, progress: bool = True) -> dict:
+    """Run (or resume) the three stages on `client`'s cluster, the studies and results kept
+    in `folder` (:func:`check_folder` first); the report (JSON-safe)."""
     cfg.validate()
     start, load_start = time.monotonic(), os.getloadavg()
     settings = settings_from(cfg.config, cfg.thetas, cfg.adapt_steps,
                              {'batch_size': cfg.batch_size, 'curvature': CURVATURE},
                              control=cfg.score == 'control')
-    jobs = draw_jobs(cfg.k, cfg.iterations, cfg.seed)
-    context = multiprocessing.get_context('spawn')
-    with futures.ProcessPoolExecutor(cfg.jobs, context, init_worker,
-                                     (settings, cfg.threads)) as pool:
-        results = run_jobs(pool, jobs, 'search', settings)
-        if cfg.refine:
-            results += run_jobs(pool, refine_jobs(results, cfg.refine, cfg.iterations,
-                                                  cfg.seed), 'refine', settings)
-        search_s = time.monotonic() - start
-        seeds = [VALIDATION_SEED + j for j in range(cfg.robust_seeds)]
-        finalists = robust_jobs(results, cfg.finalists, cfg.full_iterations, seeds,
-                                incumbents(cfg.config))
-        robust_runs = run_jobs(pool, finalists, 'robust', settings) if cfg.finalists else []
+    cache = ResultCache(os.path.join(folder, 'cache'), settings)
+    drawn = draw_jobs(cfg.k, cfg.iterations, cfg.seed)
+    search = Search(os.path.join(folder, STUDY_FILE), {m: AXES[m] for m in TUNED_METHODS},
+                    {m: [searched(j) for j in drawn if j.method == m] for m in TUNED_METHODS},
+                    cfg.refine, cfg.per_round, cfg.seed)
+
+    def job(trial: Trial) -> Job:
+        return Job(trial.method, trial.number, with_cg(trial.method, trial.params),
+                   cfg.iterations, ADAPT_LRS, trial.stage)
+
+    def told(done: Job, result: dict) -> None:
+        if done.method in TUNED_METHODS:
+            search.tell(done.method, done.index, result['score'])
+
+    supervised = [j for j in drawn if j.method == 'supervised']
+    extra = supervised      # with the first round (cached once run)
+    while True:
+        trials = search.next_round()
+        if not trials and not extra:
+            break
+        stage = 'refine' if any(t.stage == 'refine' for t in trials) else 'search'
+        run_jobs(client, extra + [job(t) for t in trials], stage, settings, cache,
+                 threads=cfg.threads, landed=told, progress=progress)
+        extra = []
+    results = run_jobs(client, [job(t) for t in search.completed()] + supervised, 'search',
+                       settings, cache, threads=cfg.threads, progress=progress)
+    search_s = time.monotonic() - start
+    seeds = [VALIDATION_SEED + j for j in range(cfg.robust_seeds)]
+    finalists = robust_jobs(results, cfg.finalists, cfg.full_iterations, seeds,
+                            incumbents(cfg.config))
+    robust_runs = run_jobs(client, finalists, 'robust', settings, cache, threads=cfg.threads,
+                           progress=progress)
     robust = robust_scores(robust_runs)
     best = {m: best_of(m, robust or results) for m in TUNED_METHODS}
     best['supervised'] = best_of('supervised', results)
@@ -252,7 +281,7 @@ def tune(cfg: TuneConfig) -> dict:
             'windows_per_task': settings.learner.meta.windows_per_task,
             'n_systems': settings.learner.source.n_systems,
             'hidden': list(settings.learner.nssm.hidden), 'draw_seed': cfg.seed,
-            'score': SCORES[cfg.score],
+            'score': SCORES[cfg.score], 'search': SEARCH, 'per_round': cfg.per_round,
             'nmpc_costs': list(settings.control.nmpc) if settings.control else None,
             'robust_score': 'mean of the score over the robust_seeds source sets at '
                             'full_iterations outer steps, best adaptation step size'},
@@ -267,6 +296,7 @@ def tune(cfg: TuneConfig) -> dict:
         'winners': winners,
         'search_wall_s': round(search_s, 1), 'wall_s': round(time.monotonic() - start, 1),
         'cpu_s': round(sum(r['cpu_seconds'] for r in results + robust_runs), 1),
-        'jobs': cfg.jobs, 'threads_per_job': cfg.threads,
+        'study': os.path.join(folder, STUDY_FILE),
+        'jobs': slots(client), 'threads_per_job': cfg.threads,
         'load_avg_start': [round(v, 2) for v in load_start],
         'load_avg_end': [round(v, 2) for v in os.getloadavg()]})

@@ -1,0 +1,159 @@
+"""Stages 1 and 2 of the tuning (:mod:`.tuning`) as Optuna studies, asked and told by the
+client while the trials run on the cluster (:mod:`.study_jobs`).
+
+One study per method in one SQLite file (optuna-dashboard reads it), over the method's grid
+(categorical parameters). Stage 1: the given configurations, enqueued; stage 2: ``refine``
+trials of the TPE sampler (start-up: stage 1), ``per_round`` asked at once per method. Each
+ask's sampler is seeded from (seed, method, trial number): with the trials told so far (the
+storage holds them) that fixes what is asked, so the same seed gives the same trials and a
+stopped search resumes with those of an uninterrupted one (its asked, untold trials first).
+A configuration tried already is told failed and asked again, never run twice (after
+:data:`DUPLICATE_ASKS`: a seeded draw among the untried). No rclpy, no torch here.
+"""
+import dataclasses
+import itertools
+import os
+from typing import Any, Dict, List, Sequence, Set, Tuple
+
+import numpy as np
+import optuna
+from optuna.distributions import CategoricalDistribution
+from optuna.trial import TrialState
+
+SEED_STREAM = 0x79e      # sampler seeds: SeedSequence([seed, SEED_STREAM, method, number])
+DUPLICATE_ASKS = 20      # asks for an untried configuration before a draw among them
+
+
+@dataclasses.dataclass(frozen=True)
+class Trial:
+    """A trial to evaluate, or evaluated: its study (method), number, configuration and
+    stage ('search': stage 1, 'refine': stage 2)."""
+
+    method: str
+    number: int
+    params: Dict[str, Any]
+    stage: str
+
+
+def _key(params: Dict[str, Any]) -> Tuple:
+    return tuple(sorted(params.items()))
+
+
+class Search:
+    """The studies of a search in the SQLite file `path` (created, or resumed).
+
+    Args:
+        path: the SQLite file.
+        spaces: per method, each parameter's values (the grid).
+        first: per method, the stage-1 configurations (distinct, inside the grid).
+        refine: stage-2 trials per method.
+        per_round: stage-2 trials asked at once per method.
+        seed: the search's seed.
+    """
+
+    def __init__(self, path: str, spaces: Dict[str, Dict[str, Sequence[Any]]],
+                 first: Dict[str, List[Dict[str, Any]]], refine: int, per_round: int,
+                 seed: int):
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        self.spaces = spaces
+        self.k = {m: len(first[m]) for m in spaces}
+        self.refine, self.per_round, self.seed = refine, per_round, seed
+        self._distributions = {m: {n: CategoricalDistribution(tuple(v)) for n, v in s.items()}
+                               for m, s in spaces.items()}
+        storage = optuna.storages.RDBStorage(f'sqlite:///{os.path.abspath(path)}')
+        self.studies = {}
+        for method in spaces:
+            study = optuna.create_study(storage=storage, study_name=method,
+                                        direction='minimize', load_if_exists=True)
+            for params in first[method]:    # none again on resuming
+                study.enqueue_trial(params, skip_if_exists=True)
+            self.studies[method] = study
+
+    def next_round(self) -> List[Trial]:
+        """The trials to evaluate next, per method: those of an interrupted round, and new
+        ones asked up to the round's end; none when every method's budget is told."""
+        return [t for method in self.spaces for t in self._round(method)]
+
+    def tell(self, method: str, number: int, value: float) -> None:
+        """The score of a trial (NaN counts as inf: a failed run)."""
+        self.studies[method].tell(number, value if not np.isnan(value) else np.inf)
+
+    def completed(self) -> List[Trial]:
+        """The told trials (no duplicates), per method in the order asked."""
+        out = []
+        for method in self.spaces:
+            told = self._told(method)
+            out += [t for t in self._trials(method) if t.number in told]
+        return out
+
+    def best(self, method: str) -> Trial:
+        """Optuna's best trial of the method's study."""
+        best = self.studies[method].best_trial
+        return next(t for t in self._trials(method) if t.number == best.number)
+
+    def _told(self, method: str) -> Set[int]:
+        return {t.number for t in self.studies[method].get_trials(
+            deepcopy=False, states=(TrialState.COMPLETE,))}
+
+    def _trials(self, method: str) -> List[Trial]:
+        """The method's asked trials that are not duplicates, in the order asked; a RUNNING
+        duplicate (a stop between asking and telling it) is told failed here."""
+        study = self.studies[method]
+        out, seen = [], set()
+        for t in sorted(study.get_trials(deepcopy=False), key=lambda t: t.number):
+            if t.state not in (TrialState.COMPLETE, TrialState.RUNNING):
+                continue
+            if _key(t.params) in seen:
+                study.tell(t.number, state=TrialState.FAIL)
+                continue
+            seen.add(_key(t.params))
+            out.append(Trial(method, t.number, dict(t.params), self._stage(method, len(out))))
+        return out
+
+    def _stage(self, method: str, slot: int) -> str:
+        return 'search' if slot < self.k[method] else 'refine'
+
+    def _round_end(self, method: str, slot: int) -> int:
+        """The end (exclusive) of the round of the trial slot `slot` (0: the first asked)."""
+        k = self.k[method]
+        if slot < k:
+            return k
+        return min(k + ((slot - k) // self.per_round + 1) * self.per_round, k + self.refine)
+
+    def _round(self, method: str) -> List[Trial]:
+        trials = self._trials(method)
+        told = self._told(method)
+        running = [t for t in trials if t.number not in told]
+        slot = len(trials)
+        if not running and slot >= self.k[method] + self.refine:
+            return []
+        end = self._round_end(method, slot - 1 if running else slot)
+        tried = {_key(t.params) for t in trials}
+        while slot < end:
+            asked = self._ask_untried(method, tried)
+            tried.add(_key(asked.params))
+            running.append(Trial(method, asked.number, dict(asked.params),
+                                 self._stage(method, slot)))
+            slot += 1
+        return running
+
+    def _ask_untried(self, method: str, tried: Set[Tuple]) -> optuna.Trial:
+        """A new trial of a configuration not in `tried` (the enqueued ones first)."""
+        study, m = self.studies[method], list(self.spaces).index(method)
+        for _ in range(DUPLICATE_ASKS):
+            number = len(study.trials)
+            seed = int(np.random.SeedSequence([self.seed, SEED_STREAM, m, number])
+                       .generate_state(1)[0])
+            study.sampler = optuna.samplers.TPESampler(
+                seed=seed, n_startup_trials=self.k[method])
+            trial = study.ask(self._distributions[method])
+            if _key(trial.params) not in tried:
+                return trial
+            study.tell(trial, state=TrialState.FAIL)
+        space = self.spaces[method]
+        untried = [p for p in (dict(zip(space, values))
+                               for values in itertools.product(*space.values()))
+                   if _key(p) not in tried]
+        rng = np.random.default_rng([self.seed, SEED_STREAM, m, len(study.trials)])
+        study.enqueue_trial(untried[int(rng.integers(len(untried)))])
+        return study.ask(self._distributions[method])
