@@ -364,11 +364,6 @@ class ModelRefused(ValueError):
     """A new model the check refused (the reason is the message); the model in use stays."""
 
 
-# Samples a model that comes into use mid-episode runs its disturbance estimator over: with the
-# default gain 0.5 the estimate converges to 1e-6 of its start in 20 updates.
-PRIME_SAMPLES = 20
-
-
 def nmpc_unavailable(reason: str) -> str:
     """The line that says the nmpc planner has no model of the plant, and why."""
     return (f'planner nmpc: the plant\'s model is not available ({reason}); answering with the '
@@ -410,7 +405,6 @@ class ControllerCore:
         self._setup_lock = threading.Lock()     # the builder thread and a queued swap
         self.trigger = AdaptationTrigger(config.trigger)
         self.swap: ModelSwap[ModelBundle] = ModelSwap(self.trigger)
-        self._flown: Optional[ModelBundle] = None     # the model (and planner) of the last tick
 
     # --- inputs from other callbacks ----------------------------------------------------
 
@@ -748,9 +742,6 @@ class ControllerCore:
                 self._setup = self._setup._replace(model=answer, model_status='ok')
             verdict = self._end_trial(step)
         tuning, model, model_status = self._setup
-        if None not in (model, self._flown) and model.version != self._flown.version:
-            self._prime(model)      # a swap mid-run (a retune's planner starts cold)
-        self._flown = model
         u_prev = history.u
         y_ref = self.references(step, tuning)
         errors, request, version, state = NO_ERRORS, None, 0, None
@@ -774,27 +765,6 @@ class ControllerCore:
                 status=self.kind.waiting, iterations=-1, solve_time=0.0)
         return self._answer(step, tuning, model_status, y_ref, u_prev, res, version, errors,
                             request, verdict)
-
-    def _prime(self, bundle: ModelBundle) -> None:
-        """A model that replaces the one in use: its offset-free estimator is
-        run over the latest PRIME_SAMPLES samples before this tick (:meth:`LatentMpc.prime`),
-        so that a swap does not restart the estimate at p = 0, far from the plant's (a learned
-        model's one-step latent residual is large, docs/mpc.md). Deterministic: the samples
-        alone decide."""
-        u, y = self.history.snapshot()
-        n = len(y) - 1      # the samples before this tick's
-        if n < 1 or not bundle.mpc.estimates_disturbance:
-            return
-        h = bundle.history
-        first = max(0, n - PRIME_SAMPLES)
-        # Windows ending at rows first..n-1, the episode's first sample repeated before it
-        # (History.window's padding).
-        u_pad = np.concatenate([np.repeat(u[:1], h - 1, axis=0), u])
-        y_pad = np.concatenate([np.repeat(y[:1], h - 1, axis=0), y])
-        zs = np.array([bundle.predictor.encode(u_pad[k:k + h], y_pad[k:k + h])
-                       for k in range(first, n)])
-        step0 = self.history.step - n       # the step of row 0
-        bundle.mpc.prime(zs, u[first:n], y[first:n], range(step0 + first, step0 + n))
 
     def _end_trial(self, step: int) -> str:
         """Judge the answer whose trial the tick of `step` ends (under the set-up lock): it

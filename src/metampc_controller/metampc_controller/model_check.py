@@ -2,15 +2,13 @@
 
 Scores the N-step prediction of the plant under the inputs really applied, on samples of the
 episode (u (K, n_u), y (K, n_y)): from every ``stride``-th start t, z_t by eq. (z) from H
-samples, y_hat rolled by eqs. (z_next), (haty) under u_{t+1..t+N}, and E = mean ((y - y_hat) /
-s_i)^2 with s_i the std of output i over the samples scored. The candidate passes when
-E_candidate <= (1 + margin) E_reference, the reference being the model in use when the
-candidate updates it, else persistence (y_hat = y_t). Which samples: an answer to the pending
-adaptation request is tried on the ``model_check_trial`` samples after its swap step, which
-its adaptation never saw (the model in use controls meanwhile); any other model on the latest
-``model_check_window`` at its arrival. Too few samples pass unchecked and say so. Which models
-are checked (``model_check``: requested / all / off) is the controller's. Pure numpy (no
-rclpy). Why and what it refused: docs/mpc.md#the-check-before-a-model-flies.
+samples, y_hat by eqs. (z_next), (haty) under u_{t+1..t+N}; E = mean ((y - y_hat) / s_i)^2,
+s_i the std of output i. It passes when E_candidate <= (1 + margin) E_reference: the model in
+use when the candidate updates it, else persistence (y_hat = y_t). An answer to the pending
+adaptation request is scored on the ``model_check_trial`` samples after its swap step (unseen
+by its adaptation; the model in use controls meanwhile), any other model at arrival on the
+latest ``model_check_window``. Too few samples: unchecked. Pure numpy (no rclpy); why and what
+it refused: docs/mpc.md#the-check-before-a-model-flies.
 """
 from dataclasses import dataclass
 import math

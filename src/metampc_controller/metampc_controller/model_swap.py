@@ -1,16 +1,14 @@
 """When a new model applies in the controller: the swap rules, without rclpy or threads.
 
-A model built on the node's builder thread is used from the next tick, except the answer to
-the pending adaptation request (``request_step`` r): under a lockstep plant it applies from
-the tick of step r + swap_delay exactly (queued until then; that tick waits for it,
-:meth:`ModelSwap.waits`), in real time from the next tick; an answer offered with a trial of P
-samples is tried from that tick instead (the model in use goes on) and judged at the tick P
-samples later (:meth:`ModelSwap.trial_over`), where it flies or is refused. A model the check
-refuses (:mod:`~metampc_controller.model_check`, ``model_check``: requested / all / off) is
-never used; a refused answer or a request given up after ``adapt_timeout`` ends the wait at
+A model built on the builder thread is used from the next tick, except the answer to the
+pending adaptation request (``request_step`` r): under a lockstep plant it applies from the
+tick of step r + swap_delay exactly (queued until then; that tick waits for it), in real time
+from the next tick; offered with a trial of P samples it is tried from that tick instead (the
+model in use goes on) and judged P samples later (:meth:`ModelSwap.trial_over`). A refused
+model is never used; a refusal or a request given up after ``adapt_timeout`` ends the wait at
 once. A live change rebuilds a queued or tried answer's QP; a plant reset forgets it. Threads:
-:meth:`offer`, :meth:`answers`, :meth:`refused`, :meth:`retune` on the builder thread, the
-rest on the executor thread; the queued answer is handed over under a lock.
+:meth:`offer`, :meth:`answers`, :meth:`refused`, :meth:`retune` on the builder thread, the rest
+on the executor thread; the queued answer is handed over under a lock.
 """
 import threading
 from typing import Callable, Generic, Optional, Protocol, Tuple, TypeVar

@@ -279,11 +279,6 @@ class LatentMpc:
         """Terminal cost of the current model (P, DARE residual, fallback flag), or None."""
         return None if self._problem is None else self._problem.terminal
 
-    @property
-    def estimates_disturbance(self) -> bool:
-        """Offset-free tracking is on for the current model (an estimator runs)."""
-        return self._problem is not None and self._problem.estimator is not None
-
     def describe_offset_free(self) -> str:
         """One line: the offset-free form in use for the model and why it may be (its rank)."""
         pb = self._problem
@@ -313,18 +308,6 @@ class LatentMpc:
             pb.set_solver(_setup_solver(pb.P, pb.A, *pb.osqp_bounds(), self._config))
             if pb.estimator is not None:
                 pb.estimator.reset()
-
-    def prime(self, zs: np.ndarray, us: np.ndarray, ys: np.ndarray,
-              steps: Sequence[int]) -> None:
-        """Run the offset-free estimator over earlier samples of the episode, oldest first:
-        z_k (K, n_z), the applied u_k (K, n_u), y_k (K, n_y) and their steps, as the ticks'
-        updates would have, so that a model that comes into use mid-episode starts with the
-        estimate it would hold had it been in use (not p = 0). Nothing else changes."""
-        est = None if self._problem is None else self._problem.estimator
-        if est is None:
-            return
-        for z, u, y, k in zip(zs, us, ys, steps):
-            est.update(z, u, y, int(k))
 
     def set_time_limit(self, seconds: float) -> None:
         """OSQP's wall-clock cap from the next solve on, in place: the solver keeps its warm
