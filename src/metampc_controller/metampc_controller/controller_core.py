@@ -20,7 +20,7 @@ import numpy as np
 from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_common.excitation import excitation, ExcitationConfig
-from metampc_controller.model_check import applies, check
+from metampc_controller.model_check import applies, check, Verdict
 from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import LatentMpc, MpcConfig, NO_TIME_LIMIT
 from metampc_controller.offset_free import disturbance_model
@@ -479,11 +479,7 @@ class ControllerCore:
         # forgotten by a reset), which is then used from the next tick like any model.
         if not applies(config.model_check, bool(request_step)) or self.tried(request_step):
             return ''
-        u, y = self.history.snapshot()
-        current = self.model
-        same = current is not None and current.method == bundle.method
-        verdict = check(bundle.predictor, current.predictor if same else None, u, y,
-                        config.mpc.horizon, config.model_check)
+        verdict = self._verdict(bundle)
         if verdict.ok:
             return ''
         self.swap.refused(request_step)
@@ -499,17 +495,15 @@ class ControllerCore:
             return 0
         return config.model_check.model_check_trial
 
-    def _judge(self, step: int, first: int, bundle: ModelBundle) -> Tuple[bool, str]:
-        """The verdict on `bundle`, tried from the tick of `first` to that of `step`: scored
-        on samples first..step (the history before them as history), against the model in
-        use (:meth:`vet`'s yardstick)."""
+    def _verdict(self, bundle: ModelBundle, **samples) -> Verdict:
+        """:func:`model_check.check` of `bundle` on the episode's samples (`samples`: check's
+        `scored` and `where`; default the latest window) against the model in use when
+        `bundle` is of its method, persistence otherwise."""
         u, y = self.history.snapshot()
-        current = self.model
+        current, config = self.model, self.config
         same = current is not None and current.method == bundle.method
-        verdict = check(bundle.predictor, current.predictor if same else None, u, y,
-                        self.config.mpc.horizon, self.config.model_check, step - first + 1,
-                        f'its trial from step {first}, unseen by its adaptation')
-        return verdict.ok, verdict.reason
+        return check(bundle.predictor, current.predictor if same else None, u, y,
+                     config.mpc.horizon, config.model_check, **samples)
 
     def reject_model(self, reason: str) -> None:
         """Report rejected weights; the previous model stays in use (builder thread)."""
@@ -774,11 +768,13 @@ class ControllerCore:
         if tried is None:
             return ''
         first, bundle = tried
-        ok, verdict = self._judge(step, first, bundle)
-        self.swap.judged(bundle, ok)
-        self._setup = self._setup._replace(model=bundle, model_status='ok') if ok else \
-            self._setup._replace(model_status=f'rejected: {verdict}')
-        return verdict
+        # Scored on samples first..step (the H before them as history).
+        verdict = self._verdict(bundle, scored=step - first + 1,
+                                where=f'its trial from step {first}, unseen by its adaptation')
+        self.swap.judged(bundle, verdict.ok)
+        self._setup = self._setup._replace(model=bundle, model_status='ok') if verdict.ok \
+            else self._setup._replace(model_status=f'rejected: {verdict.reason}')
+        return verdict.reason
 
     @staticmethod
     def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,
