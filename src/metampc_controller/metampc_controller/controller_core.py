@@ -502,8 +502,11 @@ class ControllerCore:
         u, y = self.history.snapshot()
         current, config = self.model, self.config
         same = current is not None and current.method == bundle.method
+        planned = config.model_check.model_check_as_planned
         return check(bundle.predictor, current.predictor if same else None, u, y,
-                     config.mpc.horizon, config.model_check, **samples)
+                     config.mpc.horizon, config.model_check,
+                     offset_free=config.mpc.offset_free if planned else 'none',
+                     disturbance_gain=config.mpc.disturbance_gain, **samples)
 
     def reject_model(self, reason: str) -> None:
         """Report rejected weights; the previous model stays in use (builder thread)."""

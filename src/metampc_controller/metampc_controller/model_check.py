@@ -17,6 +17,7 @@ from typing import Optional
 import numpy as np
 
 from metampc_common.params import param
+from metampc_controller.offset_free import DisturbanceEstimator, disturbance_model
 from metampc_model.predictor import NssmPredictor
 
 CHECKED = ('requested', 'all', 'off')
@@ -43,6 +44,9 @@ class ModelCheckConfig:
                                        'the horizon', ge=0, le=900, live=True)
     model_check_stride: int = param(5, 'samples between the starts of the scored predictions',
                                     ge=1, live=True)
+    model_check_as_planned: bool = param(False, 'score each model as the MPC plans with it: '
+                                                'corrected by its own offset-free disturbance '
+                                                'estimate (when offset_free is on)', live=True)
 
 
 @dataclass
@@ -66,55 +70,102 @@ def applies(config: ModelCheckConfig, requested: bool) -> bool:
     return config.model_check == 'all' or (config.model_check == 'requested' and requested)
 
 
-def n_step_error(predict, u: np.ndarray, y: np.ndarray, history: int, horizon: int,
-                 stride: int, scale: np.ndarray) -> float:
-    """E of a predictor over the samples (u (K, n_u), y (K, n_y); row k of u produced row k
-    of y): predict(u_hist (H, n_u), y_hist (H, n_y), u_future (N, n_u)) -> (N, n_y)."""
+def n_step_error(predict, y: np.ndarray, first: int, horizon: int, stride: int,
+                 scale: np.ndarray) -> float:
+    """E over the starts t = first, first + stride, ... with t + N < K of y (K, n_y):
+    predict(t) -> (N, n_y) the prediction of y_{t+1..t+N} made at t."""
     total, count = 0.0, 0
-    for t in range(history - 1, len(y) - horizon, stride):
-        lo = t - history + 1
-        pred = predict(u[lo:t + 1], y[lo:t + 1], u[t + 1:t + 1 + horizon])
-        err = (y[t + 1:t + 1 + horizon] - pred) / scale
+    for t in range(first, len(y) - horizon, stride):
+        err = (y[t + 1:t + 1 + horizon] - predict(t)) / scale
         total += float(np.sum(err * err))
         count += err.size
     return total / count if count else math.nan
 
 
-def _own_history(model: NssmPredictor):
-    """The model's predict, given the latest of (possibly more) history rows."""
+def _plain(model: NssmPredictor, u: np.ndarray, y: np.ndarray, horizon: int):
+    """The model's prediction from its own H latest rows, under the inputs really applied."""
     h = model.config.history
-    return lambda u_hist, y_hist, u_future: model.predict(u_hist[-h:], y_hist[-h:], u_future)
+    return lambda t: model.predict(u[t - h + 1:t + 1], y[t - h + 1:t + 1],
+                                   u[t + 1:t + 1 + horizon])
 
 
-def _persistence(u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray) -> np.ndarray:
-    return np.repeat(y_hist[-1:], len(u_future), axis=0)
+def _persistence(y: np.ndarray, horizon: int):
+    return lambda t: np.repeat(y[t:t + 1], horizon, axis=0)
+
+
+def warmup(gain: float) -> int:
+    """Samples after which the offset-free estimate has forgotten its start to 1e-3:
+    the least W with (1 - g)^W <= 1e-3 (10 at the default g = 0.5)."""
+    return 1 if gain >= 1.0 else math.ceil(math.log(1e-3) / math.log(1.0 - gain))
+
+
+def _corrected(model: NssmPredictor, u: np.ndarray, y: np.ndarray, horizon: int, first: int,
+               form: str, gain: float):
+    """The prediction the MPC plans with when offset-free: the model's disturbance estimate p_t
+    (offset_free.DisturbanceEstimator run over every sample from the H-th on) shifts its
+    constants e, d for the N steps after t. Raises ValueError (the rank test) for a model
+    whose disturbance is not detectable."""
+    latent, h = model.latent, model.config.history
+    est = DisturbanceEstimator(latent, disturbance_model(latent, form), gain)
+    n_z, const, start = latent.n_z, np.empty(latent.n_z + latent.n_y), {}
+    for t in range(h - 1, len(y) - horizon):
+        z = model.encode(u[t - h + 1:t + 1], y[t - h + 1:t + 1])
+        est.update(z, u[t], y[t])
+        if t >= first:
+            start[t] = (z, est.constants(const).copy())
+
+    def predict(t: int) -> np.ndarray:
+        z, c = start[t]
+        out = np.empty((horizon, latent.n_y))
+        for k in range(horizon):
+            z = latent.A @ z + latent.B @ u[t + 1 + k] + c[:n_z]
+            out[k] = latent.C @ z + c[n_z:]
+        return out
+    return predict
 
 
 def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndarray,
           y: np.ndarray, horizon: int, config: ModelCheckConfig, scored: Optional[int] = None,
-          where: str = 'the latest of the episode') -> Verdict:
+          where: str = 'the latest of the episode', offset_free: str = 'none',
+          disturbance_gain: float = 0.5) -> Verdict:
     """Verdict on `candidate` against `current` (None: persistence) on the last `scored`
     samples (default ``model_check_window``) of the episode's u (K, n_u), y (K, n_y), the H
-    before them as history (module docstring); `where` names them in the reason. Which
-    models to check is the caller's (:func:`applies`)."""
+    before them as history (module docstring); `where` names them in the reason. With an
+    `offset_free` form each model is scored as the MPC plans with it: corrected by its own
+    disturbance estimate (gain `disturbance_gain`), run from up to :func:`warmup` samples
+    before the scored ones. Which models to check is the caller's (:func:`applies`)."""
     h = max(candidate.config.history, current.config.history if current is not None else 1)
     scored = config.model_check_window if scored is None else scored
-    u, y = u[-(scored + h):], y[-(scored + h):]
-    if len(y) < h + horizon + 1:
-        return Verdict(True, f'unchecked: {len(y)} samples in the episode, the check needs '
-                             f'{h + horizon + 1}')
-    scale = np.std(y, axis=0)
+    if min(len(y), scored + h) < h + horizon + 1:
+        return Verdict(True, f'unchecked: {min(len(y), scored + h)} samples in the episode, '
+                             f'the check needs {h + horizon + 1}')
+    corrected = offset_free != 'none'
+    rows = scored + h + (warmup(disturbance_gain) if corrected else 0)
+    u, y = u[-rows:], y[-rows:]
+    first = max(h, len(y) - scored) - 1      # y_{first+1} is the first scored sample
+    scale = np.std(y[first + 1 - h:], axis=0)      # the scored samples and their history
     scale = np.where(scale > 1e-9, scale, 1.0)
-    args = (u, y, h, horizon, config.model_check_stride, scale)
-    new = n_step_error(_own_history(candidate), *args)
-    ref = n_step_error(_own_history(current) if current is not None else _persistence, *args)
+
+    def scorer(model: Optional[NssmPredictor]):
+        if model is None:
+            return _persistence(y, horizon)
+        if corrected:
+            return _corrected(model, u, y, horizon, first, offset_free, disturbance_gain)
+        return _plain(model, u, y, horizon)
+    args = (y, first, horizon, config.model_check_stride, scale)
+    try:
+        new = n_step_error(scorer(candidate), *args)
+    except ValueError as err:          # its disturbance is not detectable: it cannot fly
+        return Verdict(False, f'check: {err}')
+    ref = n_step_error(scorer(current), *args)
     what = 'the model in use' if current is not None else 'persistence (y stays)'
+    kind = f'{horizon}-step prediction error' + (
+        f' (offset-free {offset_free}, as planned)' if corrected else '')
+    n = len(y) - first - 1
     limit = (1.0 + config.model_check_margin) * ref
     if not math.isfinite(new) or new > limit:
         margin = config.model_check_margin
-        return Verdict(False, f'check: its {horizon}-step prediction error {new:.4g} on '
-                              f'{len(y) - h} samples ({where}) exceeds {1 + margin:g} x '
-                              f'{ref:.4g} of {what}', new, ref)
-    return Verdict(True, f'check passed: {horizon}-step prediction error {new:.4g} on '
-                         f'{len(y) - h} samples ({where}) against {ref:.4g} of {what}', new,
-                   ref)
+        return Verdict(False, f'check: its {kind} {new:.4g} on {n} samples ({where}) exceeds '
+                              f'{1 + margin:g} x {ref:.4g} of {what}', new, ref)
+    return Verdict(True, f'check passed: {kind} {new:.4g} on {n} samples ({where}) against '
+                         f'{ref:.4g} of {what}', new, ref)

@@ -13,7 +13,8 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_controller.controller_core import build_model, ControllerCore, TickResult
 from metampc_controller.controller_params import ControllerConfig
 from metampc_model.manual_model import linearised_vdp_nssm
-from metampc_controller.model_check import applies, check, ModelCheckConfig, n_step_error
+from metampc_controller.model_check import (applies, check, ModelCheckConfig, n_step_error,
+                                            warmup)
 from metampc_controller.mpc import MpcConfig
 from metampc_model.predictor import NssmPredictor
 from metampc_model.weights_codec import DecodedWeights
@@ -51,7 +52,7 @@ def plant_data(steps=200, seed=0):
 def test_n_step_error_of_persistence_by_hand():
     u, y = plant_data(60)
     scale = np.std(y, axis=0)
-    e = n_step_error(lambda uh, yh, uf: np.repeat(yh[-1:], len(uf), 0), u, y, 10, 5, 7, scale)
+    e = n_step_error(lambda t: np.repeat(y[t:t + 1], 5, 0), y, 9, 5, 7, scale)
     starts = range(9, 60 - 5, 7)
     by_hand = np.mean([((y[t + k] - y[t]) / scale) ** 2 for t in starts for k in range(1, 6)])
     assert e == pytest.approx(by_hand, rel=1e-12)
@@ -187,3 +188,73 @@ def test_a_tried_answer_that_predicts_worse_is_refused_and_the_loop_goes_on():
     assert ticks[75].verdict.startswith('check: its 20-step prediction error')
     assert all(r.model_status.startswith('rejected: check:') for r in ticks[75:])
     assert [r.request.step for r in ticks if r.request] == [40, 80]
+
+
+def linear_data(model: NssmPredictor, bias, steps=200, seed=0):
+    """Samples of the manual model's own linear latent system (z_t = x_t, y = x) under a random
+    input held 0.5 s, each y offset by the constant `bias` (n_y,): a sensor offset."""
+    rng = np.random.default_rng(seed)
+    latent = model.latent
+    u = np.repeat(rng.uniform(-0.8, 0.8, steps // 5 + 1), 5)[:steps, None]
+    u[0] = 0.0
+    x = np.empty((steps, latent.n_z))
+    x[0] = 0.0
+    for k in range(1, steps):
+        x[k] = latent.step(x[k - 1], u[k])
+    return u, x @ latent.C.T + latent.d + np.asarray(bias)
+
+
+def test_with_offset_free_each_model_is_scored_as_the_mpc_plans_with_it():
+    """A sensor offset on a plant that the candidate models exactly otherwise, against a model
+    in use that knows the offset but has its input gain 20 % off. Scored plainly the offset
+    dominates and the candidate is refused; scored as the offset-free MPC plans (the 'state'
+    disturbance: the one-step residual is constant, so the estimate converges to it at rate
+    1 - g and the corrected prediction is exact), its error vanishes and it flies."""
+    exact = predictor(theta=0.0)
+    u, y = linear_data(exact, [0.3, -0.2])
+    d = manual(theta=0.0)
+    knows_offset = dict(d.params, B=1.2 * d.params['B'])
+    in_use = NssmPredictor(d.config, d.norm, knows_offset)
+    in_use.latent.d = in_use.latent.d + np.array([0.3, -0.2])
+    cfg = ModelCheckConfig(model_check_window=150)      # the estimate starts 10 before
+    plain = check(exact, in_use, u, y, 20, cfg)
+    assert not plain.ok and plain.candidate > plain.reference
+    corrected = check(exact, in_use, u, y, 20, cfg, offset_free='state', disturbance_gain=0.5)
+    assert corrected.ok and 'offset-free state, as planned' in corrected.reason
+    # The estimate starts warmup(g) samples before the scored ones, (1 - g)^W <= 1e-3: the
+    # squared error left is at most ~1e-6 of the uncorrected offset's.
+    assert corrected.candidate < 1e-6 * plain.candidate
+    assert corrected.reference > 0.05 * plain.reference     # the gain error stays
+    assert [warmup(g) for g in (1.0, 0.5, 0.1)] == [1, 10, 66]
+
+
+def test_a_candidate_whose_disturbance_is_not_detectable_is_refused_by_the_check():
+    """The output disturbance with an eigenvalue of A at 1 (the rank condition fails): the
+    offset-free MPC could not use the model, so the check refuses it with the rank."""
+    d = manual(theta=0.0)
+    a = d.params['A'].numpy().astype(np.float64)
+    a[1, :], a[1, 1] = 0.0, 1.0          # the second latent state integrates: eigenvalue 1
+    integrating = NssmPredictor(d.config, d.norm, dict(d.params, A=a))
+    u, y = plant_data()
+    verdict = check(integrating, predictor(), u, y, 20, ModelCheckConfig(),
+                    offset_free='output')
+    assert not verdict.ok and 'not detectable' in verdict.reason and 'eigenvalue at 1' in (
+        verdict.reason)
+
+
+def test_the_controller_scores_as_planned_when_asked():
+    """model_check_as_planned: the core hands the check its MPC's offset-free form and gain."""
+    for planned in (False, True):
+        core = ControllerCore(ControllerConfig(
+            reference_kind='setpoint', reference_params={'value': 0.5}, mpc=MPC,
+            model_check=ModelCheckConfig(model_check='all', model_check_as_planned=planned)))
+        core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
+        plant = Plant(PlantConfig(theta=(0.5,)))
+        y, u = plant.output(), 0.0
+        for k in range(60):
+            core.observe(k, [u], y)
+            u = float(core.tick().u[0])
+            y = plant.step([u])
+        reason = core.vet(build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2))
+        assert reason.startswith('check: its 20-step prediction error') and (
+            ('(offset-free state, as planned)' in reason) == planned), reason
