@@ -188,12 +188,41 @@ def test_a_worker_sigkilled_in_the_middle_of_a_seed_changes_nothing_but_the_time
           f'{cluster.get("undisturbed_s", float("nan")):.1f} s')
 
 
+PROBE = """
+import socket, ssl, sys
+ca, host, port, *mine = sys.argv[1:]
+ctx = ssl.create_default_context(cafile=ca)
+ctx.check_hostname = False      # as dask: the cluster's CA, not host names
+if mine:
+    ctx.load_cert_chain(*mine)
+with socket.create_connection((host, int(port)), 30) as raw:
+    try:
+        with ctx.wrap_socket(raw) as tls:
+            tls.settimeout(5.0)
+            print('refused' if tls.recv(1) == b'' else 'open')
+    except (ssl.SSLError, ConnectionError):     # its alert, or the connection closed
+        print('refused')
+    except TimeoutError:                        # taken: waiting for the client to speak
+        print('open')
+"""
+
+
+def _probe(namespace: str, *args: str) -> str:
+    """A TLS connection from `namespace` to the scheduler by Python's ssl module, not dask:
+    'refused' (the scheduler's alert, or it closed the connection) or 'open' (taken, the
+    scheduler waits for the client's first message); args: CA, host, port[, cert, key]."""
+    done = subprocess.run(['ip', 'netns', 'exec', namespace, sys.executable, '-c', PROBE,
+                           *args], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip()
+
+
 def test_a_client_without_the_clusters_certificate_is_refused_by_the_scheduler(
         cluster, tmp_path):
     """From the client's namespace: run_experiment.py with a certificate of another CA gets
     one line and exit 2 (the scheduler's handshake refuses it), nothing written; a TLS client
-    that trusts the cluster's CA but has no certificate of its own is refused by the scheduler
-    (Python's ssl module, not dask: the scheduler's alert)."""
+    that trusts the cluster's CA but has no certificate of its own is refused by the
+    scheduler, and the same client with the cluster's certificate is taken."""
     net, address = cluster['net'], cluster['address']
     other = make_certificates(tmp_path, 'other')
     out = tmp_path / 'run'
@@ -206,15 +235,6 @@ def test_a_client_without_the_clusters_certificate_is_refused_by_the_scheduler(
                            'refused') and 'certificate' in line.lower(), line
     assert not out.exists()
     host, port = address[len('tls://'):].rsplit(':', 1)
-    probe = subprocess.run(
-        ['ip', 'netns', 'exec', net.orchestrator, sys.executable, '-c',
-         'import socket, ssl, sys\n'
-         'ctx = ssl.create_default_context(cafile=sys.argv[1])\n'
-         'ctx.check_hostname = False\n'
-         'with socket.create_connection((sys.argv[2], int(sys.argv[3])), 30) as raw:\n'
-         '    with ctx.wrap_socket(raw) as tls:\n'
-         '        tls.sendall(b"x")\n'
-         '        print("read", tls.recv(1))\n', str(cluster['files'][0]), host, port],
-        capture_output=True, text=True, timeout=120)
-    assert probe.returncode != 0 and 'CERTIFICATE_REQUIRED' in probe.stderr.upper(), \
-        probe.stdout + probe.stderr
+    ca, cert, key = map(str, cluster['files'])
+    assert _probe(net.orchestrator, ca, host, port) == 'refused', 'taken without a certificate'
+    assert _probe(net.orchestrator, ca, host, port, cert, key) == 'open'
