@@ -99,22 +99,21 @@ def test_four_seeds_on_a_tls_cluster_of_two_hosts_give_the_reports_of_jobs_1(
     assert received > 100_000, 'the seed folders did not come over the client\'s link'
 
 
-def _cmdline(pid: int) -> str:
+def _cmdline(pid: int) -> list:
+    """The arguments of process `pid` (none if it is gone)."""
     with contextlib.suppress(OSError):
         with open(f'/proc/{pid}/cmdline', 'rb') as f:
-            return f.read().replace(b'\0', b' ').decode()
-    return ''
+            return f.read().decode().split('\0')[:-1]
+    return []
 
 
 def _seed_child(namespace: str, seed: int) -> int:
     """The pid of `seed`'s child process (seed_jobs) in `namespace`, 0 if none."""
     for pid in subprocess.run(['ip', 'netns', 'pids', namespace], capture_output=True,
                               text=True).stdout.split():
-        with contextlib.suppress(OSError):
-            with open(f'/proc/{pid}/cmdline', 'rb') as f:
-                args = f.read().decode().split('\0')[:-1]
-            if 'metampc_bringup.orchestration.seed_jobs' in args and args[-1] == str(seed):
-                return int(pid)
+        args = _cmdline(int(pid))
+        if 'metampc_bringup.orchestration.seed_jobs' in args and args[-1] == str(seed):
+            return int(pid)
     return 0
 
 
@@ -166,7 +165,7 @@ def test_a_worker_sigkilled_in_the_middle_of_a_seed_changes_nothing_but_the_time
         with open(f'/proc/{child}/environ', 'rb') as f:
             worker, = [int(v[len(LIFELINE) + 1:]) for v in f.read().decode().split('\0')
                        if v.startswith(f'{LIFELINE}=')]
-        doomed = {pid: _cmdline(pid) for pid in _descendants(worker)}
+        doomed = {pid: ' '.join(_cmdline(pid)) for pid in _descendants(worker)}
         assert child in doomed, doomed
         os.kill(worker, signal.SIGKILL)
         deadline = time.monotonic() + 30.0    # the seed's child stops its nodes (recorder last)
