@@ -9,8 +9,8 @@ meta method (:mod:`.search`: the paired draws, then TPE; hopeless trials stopped
 pruner, :mod:`.pruning`), stage 3 re-runs the finalists and the incumbent on
 ``robust_seeds`` source sets. Jobs (seeded: the scores are reproducible at the same thread
 count) run on the cluster layer (:mod:`.study_jobs`); the results stay in the search's folder
-and the studies in its journal file (or a shared ``storage``), so a stopped search resumes. :func:`tune` returns the report.
-Protocol and results: docs/tuning.md.
+and the studies in its journal file (or a shared ``storage``), so a stopped search resumes.
+:func:`tune` returns the report. Protocol and results: docs/tuning.md.
 """
 import hashlib
 import itertools
