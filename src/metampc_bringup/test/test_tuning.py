@@ -136,16 +136,19 @@ def _script():
 @pytest.mark.parametrize('args', [['--out', 'EXISTING'], ['--out', 'NEW', '--k', '0'],
                                   ['--out', 'NEW', '--jobs', '0'],
                                   ['--out', 'NEW', '--scheduler', 'tcp://10.0.0.5:8786'],
-                                  ['--out', 'NEW', '--storage', 'mysql://nobody@127.0.0.1:1/x']])
+                                  ['--out', 'NEW', '--storage',
+                                   'mysql://nobody:hunter2@127.0.0.1:1/x']])
 def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path, capsys, args):
     """scripts/tune.py: exit 2, one line, nothing written (config/tuning.json, the committed
-    record, was its old default --out and got overwritten without a word)."""
+    record, was its old default --out and got overwritten without a word); a storage URL's
+    password is not shown."""
     script = _script()
     existing = tmp_path / 'tuning.json'
     existing.write_text('{"an": "earlier record"}')
     paths = {'EXISTING': str(existing), 'NEW': str(tmp_path / 'new.json')}
     assert script.main([paths.get(a, a) for a in args]) == 2
-    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and 'hunter2' not in err, err
     assert existing.read_text() == '{"an": "earlier record"}'
     assert not (tmp_path / 'new.json').exists() and not (tmp_path / 'new.study').exists()
 

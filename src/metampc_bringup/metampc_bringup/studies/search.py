@@ -16,6 +16,7 @@ and told with its reports, COMPLETE or PRUNED. No rclpy, no torch here.
 import dataclasses
 import itertools
 import os
+import re
 from typing import Any, Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
@@ -42,8 +43,13 @@ def open_storage(where: str) -> optuna.storages.BaseStorage:
         from optuna.storages.journal import JournalFileBackend, JournalStorage
         return JournalStorage(JournalFileBackend(os.path.abspath(where)))
     except Exception as err:    # a driver missing, a server not answering, a bad URL: say it
-        raise ValueError(f'--storage {where}: {err.__class__.__name__}: '
+        raise ValueError(f'--storage {without_password(where)}: {err.__class__.__name__}: '
                          f'{str(err).splitlines()[0] if str(err) else ""}') from None
+
+
+def without_password(url: str) -> str:
+    """A storage URL as reports and errors show it: ``postgresql://user:***@host/db``."""
+    return re.sub(r'^([a-z0-9+]+://[^:/@]*):[^@/]*@', r'\1:***@', url)
 
 
 @dataclasses.dataclass(frozen=True)

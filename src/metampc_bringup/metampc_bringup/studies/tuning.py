@@ -29,7 +29,7 @@ from metampc_bringup.orchestration.cluster import slots
 from metampc_bringup.studies.offline import (HELDOUT_SAMPLES, Job, settings_from, THETA_STREAM,
                                              VALIDATION_SEED)
 from metampc_bringup.studies.pruning import MedianRule
-from metampc_bringup.studies.search import Search, Trial
+from metampc_bringup.studies.search import Search, Trial, without_password
 from metampc_bringup.studies.study_jobs import ResultCache, run_jobs
 from metampc_learner.meta_train import MetaConfig
 
@@ -327,7 +327,7 @@ def tune(cfg: TuneConfig, client, folder: str, progress: bool = True,
         'winners': winners,
         'search_wall_s': round(search_s, 1), 'wall_s': round(time.monotonic() - start, 1),
         'cpu_s': round(sum(r['cpu_seconds'] for r in results + robust_runs), 1),
-        'study': {'storage': storage, 'names': search.names},
+        'study': {'storage': without_password(storage), 'names': search.names},
         'pruned': sorted([r['method'], r['index'], r['pruned_at']] for r in results
                          if 'pruned_at' in r),
         'jobs': slots(client), 'threads_per_job': cfg.threads,
