@@ -52,26 +52,38 @@ def free_port() -> int:
 @contextlib.contextmanager
 def loopback_dask(log: Path, workers: int = 1, port: int = 0, tls=None):
     """`dask scheduler` on 127.0.0.1:`port` (0: a free one) and a `dask worker` of `workers`
-    one-slot processes (its output in `log`, its scratch space beside it), each in a session of
-    its own, stopped on return if still running; yields (address, [scheduler, worker] Popens).
-    `tls`: (CA, certificate, key) PEM paths for both, on tls:// (else tcp://)."""
-    port = port or free_port()
-    address = f'{"tls" if tls else "tcp"}://127.0.0.1:{port}'
+    one-slot processes (its output in `log`, its scratch space beside it) (:func:`dask_cluster`);
+    yields (address, [scheduler, worker] Popens)."""
+    with dask_cluster('127.0.0.1', port or free_port(), [([], '127.0.0.1', log, workers)],
+                      tls) as cluster:
+        yield cluster
+
+
+@contextlib.contextmanager
+def dask_cluster(host: str, port: int, workers, tls=None, prefix=()):
+    """`dask scheduler` on `host`:`port` (its command after `prefix`, e.g. ``ip netns exec
+    NS``) and one `dask worker` per (prefix, host, log, processes) of `workers`: `processes`
+    one-slot processes, output in `log`, scratch space beside it. Each runs in a session of
+    its own and is stopped on return if still running (SIGTERM, then SIGKILL after 60 s);
+    yields (address, [scheduler, *worker] Popens). `tls`: (CA, certificate, key) PEM paths for
+    all, on tls:// (else tcp://)."""
+    address = f'{"tls" if tls else "tcp"}://{host}:{port}'
     secure = [] if not tls else ['--tls-ca-file', str(tls[0]), '--tls-cert', str(tls[1]),
                                  '--tls-key', str(tls[2])]
     dask = os.path.join(os.path.dirname(sys.executable), 'dask')
-    started = [subprocess.Popen([dask, 'scheduler', '--host', '127.0.0.1', '--port', str(port),
+    started = [subprocess.Popen([*prefix, dask, 'scheduler', '--host', host, '--port', str(port),
                                  '--no-dashboard', *secure]
                                 + (['--protocol', 'tls'] if tls else []),
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                 start_new_session=True)]
     try:
-        with open(log, 'w') as f:
-            started.append(subprocess.Popen(
-                [dask, 'worker', address, '--host', '127.0.0.1', '--nworkers', str(workers),
-                 '--nthreads', '1', '--resources', 'slot=1', '--no-dashboard',
-                 '--local-directory', str(log.with_suffix('.scratch')), *secure],
-                stdout=f, stderr=subprocess.STDOUT, start_new_session=True))
+        for worker_prefix, worker_host, log, processes in workers:
+            with open(log, 'w') as f:
+                started.append(subprocess.Popen(
+                    [*worker_prefix, dask, 'worker', address, '--host', worker_host,
+                     '--nworkers', str(processes), '--nthreads', '1', '--resources', 'slot=1',
+                     '--no-dashboard', '--local-directory', str(log.with_suffix('.scratch')),
+                     *secure], stdout=f, stderr=subprocess.STDOUT, start_new_session=True))
         yield address, started
     finally:
         for proc in reversed(started):
@@ -100,6 +112,28 @@ def make_certificates(folder: Path, name: str = 'ca'):
                   '-out', cert, '-days', '1', '-extfile', san]):
         subprocess.run(['openssl', *map(str, args)], check=True, capture_output=True)
     return ca, cert, key
+
+
+def timing_free(report: dict):
+    """A seed report without what depends on timing: wall-clock stamps and durations, the
+    solve and tick times, and how many samples the plant ran on while the collection was
+    being stopped (the learner keeps the first target_samples of them whatever the count);
+    and the run's configuration (seeds and first seed differ by design); the learner's count
+    of skipped step-0 samples (whether the plant's start-up y_0 reached it after buffering
+    began depends on timing; kept and lost are compared by the caller)."""
+    timing = ('wall_time', 'tick_time', 'solve_time', 'timings', 'elapsed_s', 'recording',
+              'message', 'collect', 'config', 'buffering')
+    if isinstance(report, dict):
+        return {k: timing_free(v) for k, v in report.items() if k not in timing}
+    if isinstance(report, list):
+        return [timing_free(v) for v in report]
+    return report
+
+
+def per_seed_reports(out: str) -> list:
+    """The per-seed reports of run folder `out` (its report.json)."""
+    with open(os.path.join(out, 'report.json')) as f:
+        return json.load(f)['per_seed']
 
 
 class TestNode(SpunNode):

@@ -28,7 +28,8 @@ from metampc_bringup.orchestration.processes import session_pids
 from metampc_bringup.orchestration.procfs import pids_with_env, uptime_s
 from metampc_bringup.run_folder import mark_incomplete
 from metampc_learner.heldout import target_heldout
-from metampc_testing import free_port, loopback_dask, read_with_rosbags, SESSION_ENV
+from metampc_testing import (free_port, loopback_dask, per_seed_reports, read_with_rosbags,
+                             SESSION_ENV, timing_free)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CI_CONFIG = os.path.join(ROOT, 'config', 'ci.yaml')
@@ -439,22 +440,6 @@ def test_config_errors_name_the_key(tmp_path):
     assert thetas == [tuple(load(None).target_theta(s)) for s in (5, 6, 7)]   # seeded
 
 
-def _results(report: dict):
-    """A seed report without what depends on timing: wall-clock stamps and durations, the
-    solve and tick times, and how many samples the plant ran on while the collection was
-    being stopped (the learner keeps the first target_samples of them whatever the count);
-    and the run's configuration (seeds and first seed differ by design); the learner's count
-    of skipped step-0 samples (whether the plant's start-up y_0 reached it after buffering
-    began depends on timing; kept and lost are compared by the caller)."""
-    timing = ('wall_time', 'tick_time', 'solve_time', 'timings', 'elapsed_s', 'recording',
-              'message', 'collect', 'config', 'buffering')
-    if isinstance(report, dict):
-        return {k: _results(v) for k, v in report.items() if k not in timing}
-    if isinstance(report, list):
-        return [_results(v) for v in report]
-    return report
-
-
 PARALLEL = ['--methods', 'maml', '--seeds', '2', '--jobs', '2']
 
 
@@ -475,11 +460,6 @@ def parallel_run(tmp_path_factory):
     return out, done.stdout
 
 
-def _per_seed(out: str) -> list:
-    with open(os.path.join(out, 'report.json')) as f:
-        return json.load(f)['per_seed']
-
-
 def test_jobs_2_gives_the_per_seed_results_of_jobs_1(parallel_run, tmp_path):
     """Two seeds at once (run_experiment.py --jobs 2: an embedded dask cluster of two workers
     on loopback, a child process and a ROS domain per seed, the seed folders sent back) give,
@@ -491,11 +471,11 @@ def test_jobs_2_gives_the_per_seed_results_of_jobs_1(parallel_run, tmp_path):
     assert len(domains) == 2, text
     serial = run_experiment(load(CI_CONFIG, {'methods': ['maml'], 'first_seed': 1}),
                             str(tmp_path / 'serial'), progress=False)
-    merged = _per_seed(out)
+    merged = per_seed_reports(out)
     assert [s['seed'] for s in merged] == [0, 1]
     assert merged[1]['recording'] == os.path.join(out, 'seed_1', 'recording.mcap')
-    parallel_1 = _results(merged[1])
-    assert parallel_1 == _results(serial['per_seed'][0])
+    parallel_1 = timing_free(merged[1])
+    assert parallel_1 == timing_free(serial['per_seed'][0])
     for run in (merged[1], serial['per_seed'][0]):
         assert (run['buffering']['kept'], run['buffering']['lost']) == (120, 0), run['buffering']
     assert parallel_1['methods']['maml']['tracking']['tracking']['rmse'] > 0
@@ -516,8 +496,8 @@ def test_the_same_command_resumes_running_only_the_seeds_without_a_report(
     assert re.findall(r'seed (\d): ROS_DOMAIN_ID', done.stdout) == ['0'], done.stdout
     now = os.stat(os.path.join(out, 'seed_1', 'recording.mcap'))
     assert (now.st_ino, now.st_mtime_ns) == (kept.st_ino, kept.st_mtime_ns)
-    assert [_results(s) for s in _per_seed(out)] == \
-        [_results(s) for s in _per_seed(parallel_run[0])]
+    assert [timing_free(s) for s in per_seed_reports(out)] == \
+        [timing_free(s) for s in per_seed_reports(parallel_run[0])]
     other = _run_to_end(['--out', out, '--methods', 'maml', '--seeds', '3', '--jobs', '2'])
     assert other.returncode == 2 and 'another configuration' in other.stdout, other.stdout
     assert len(other.stdout.strip().splitlines()) == 1, other.stdout
@@ -536,8 +516,8 @@ def test_an_existing_loopback_cluster_gives_the_results_of_the_embedded_one(
         assert f'cluster {address}: 2 worker(s), 2 slot(s)' in done.stdout, done.stdout
         assert 'ROS_DOMAIN_ID' not in done.stdout and \
             len(re.findall(r'seed \d: ROS_DOMAIN_ID', logs.read_text())) == 2
-        assert [_results(s) for s in _per_seed(out)] == \
-            [_results(s) for s in _per_seed(parallel_run[0])]
+        assert [timing_free(s) for s in per_seed_reports(out)] == \
+            [timing_free(s) for s in per_seed_reports(parallel_run[0])]
 
 
 def test_a_worker_killed_in_the_middle_of_a_seed_runs_it_again_with_the_same_results(
@@ -573,8 +553,8 @@ def test_a_worker_killed_in_the_middle_of_a_seed_runs_it_again_with_the_same_res
             proc.stdout.close()
     assert proc.returncode == 0, text
     assert len(re.findall(r'seed 0: ROS_DOMAIN_ID', log.read_text())) == 2, log.read_text()
-    assert [_results(s) for s in _per_seed(str(tmp_path / 'run'))] == \
-        [_results(s) for s in _per_seed(parallel_run[0])]
+    assert [timing_free(s) for s in per_seed_reports(str(tmp_path / 'run'))] == \
+        [timing_free(s) for s in per_seed_reports(parallel_run[0])]
 
 
 def test_ctrl_c_with_jobs_2_keeps_both_partial_seeds_and_the_same_command_resumes(tmp_path):
@@ -599,7 +579,7 @@ def test_ctrl_c_with_jobs_2_keeps_both_partial_seeds_and_the_same_command_resume
     done = _run_to_end(args)
     assert done.returncode == 0, done.stdout
     assert f'resuming {out}: 0 of 2 seeds done; running 2: 0, 1' in done.stdout, done.stdout
-    assert [s['seed'] for s in _per_seed(out)] == [0, 1]
+    assert [s['seed'] for s in per_seed_reports(out)] == [0, 1]
     for seed in (0, 1):
         _assert_interrupted_seed(os.path.join(out, 'incomplete', f'seed_{seed}.1'))
 
@@ -661,8 +641,8 @@ def test_the_scheduler_gone_is_one_line_and_the_same_command_resumes(parallel_ru
         done = _run_to_end(args[5:])
     assert done.returncode == 0, done.stdout
     assert f'resuming {out}: 1 of 2 seeds done; running 1: 1' in done.stdout, done.stdout
-    assert [_results(s) for s in _per_seed(out)] == \
-        [_results(s) for s in _per_seed(parallel_run[0])]
+    assert [timing_free(s) for s in per_seed_reports(out)] == \
+        [timing_free(s) for s in per_seed_reports(parallel_run[0])]
 
 
 def test_jobs_beyond_the_cores_is_refused(tmp_path):

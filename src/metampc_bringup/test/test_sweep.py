@@ -73,10 +73,11 @@ def test_old_jobs_keep_their_cache_key():
     settings = settings_from(str(ROOT / 'config' / 'default.yaml'), 2, 20)
     job = Job('imaml', 3, {'inner_steps': 5}, 150, (0.1, 0.2), 'search')
     fields = {k: v for k, v in asdict(job).items()
-              if k not in ('target_theta', 'heldout_samples')}
+              if k not in ('target_theta', 'heldout_samples', 'prune_above')}
     blob = json.dumps([fields, repr(settings)], sort_keys=True, default=str)
     assert job.key(settings) == hashlib.sha256(blob.encode()).hexdigest()[:20]
     assert replace(job, target_theta=0.1).key(settings) != job.key(settings)
+    assert replace(job, prune_above=(math.nan, 0.2)).key(settings) != job.key(settings)
 
 
 def test_median_and_bootstrap_interval_by_hand():

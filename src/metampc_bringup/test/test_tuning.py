@@ -8,6 +8,7 @@ import json
 import math
 import os
 from pathlib import Path
+import re
 
 import optuna
 import pytest
@@ -16,6 +17,7 @@ from metampc_bringup.experiment_config import load
 
 from metampc_bringup.studies import tuning
 from metampc_bringup.studies.offline import Job, settings_from
+from metampc_bringup.studies.search import open_storage
 from metampc_bringup.studies.tuning import (ADAPT_LRS, best_of, CALIBRATION, CG_STEPS, CURVATURE,
                                             draw_jobs, GAMMA_GRID, request_fields, robust_jobs,
                                             robust_scores, SHARED_GRID, TuneConfig)
@@ -133,16 +135,20 @@ def _script():
 
 @pytest.mark.parametrize('args', [['--out', 'EXISTING'], ['--out', 'NEW', '--k', '0'],
                                   ['--out', 'NEW', '--jobs', '0'],
-                                  ['--out', 'NEW', '--scheduler', 'tcp://10.0.0.5:8786']])
+                                  ['--out', 'NEW', '--scheduler', 'tcp://10.0.0.5:8786'],
+                                  ['--out', 'NEW', '--storage',
+                                   'mysql://nobody:hunter2@127.0.0.1:1/x']])
 def test_script_refuses_bad_arguments_and_an_existing_out_with_one_line(tmp_path, capsys, args):
     """scripts/tune.py: exit 2, one line, nothing written (config/tuning.json, the committed
-    record, was its old default --out and got overwritten without a word)."""
+    record, was its old default --out and got overwritten without a word); a storage URL's
+    password is not shown."""
     script = _script()
     existing = tmp_path / 'tuning.json'
     existing.write_text('{"an": "earlier record"}')
     paths = {'EXISTING': str(existing), 'NEW': str(tmp_path / 'new.json')}
     assert script.main([paths.get(a, a) for a in args]) == 2
-    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and 'hunter2' not in err, err
     assert existing.read_text() == '{"an": "earlier record"}'
     assert not (tmp_path / 'new.json').exists() and not (tmp_path / 'new.study').exists()
 
@@ -166,9 +172,10 @@ def test_tune_on_two_workers_reports_optunas_best_and_the_same_command_resumes(
     stages = [(r['method'], r['stage']) for r in report['configurations']]
     assert stages == [(m, s) for m in ('imaml', 'maml') for s in ('search',) * 2 + ('refine',) * 2
                       ] + [('supervised', 'search')]
+    assert report['study']['storage'] == str(folder / 'study.journal')
     for method in ('imaml', 'maml'):
-        best = optuna.load_study(study_name=method,
-                                 storage=f'sqlite:///{folder / "study.db"}').best_trial
+        best = optuna.load_study(study_name=report['study']['names'][method],
+                                 storage=open_storage(str(folder / 'study.journal'))).best_trial
         winner = report['winners'][method]
         assert (winner['index'], winner['score']) == (best.number, best.value)
         assert {n: winner['meta_train'][n] for n in best.params} == best.params
@@ -214,3 +221,79 @@ def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models(monkeyp
     assert entry['score'] == pytest.approx(float(np.exp(np.mean(np.log(
         entry['control_ratios'])))))
     assert out['score'] == entry['score']
+
+
+def test_a_job_above_its_pruning_threshold_stops_there_and_says_so(tiny_config, direct):
+    """run_job with the median pruner's thresholds (Job.prune_above): the reports are the
+    means of every 10 losses of the same meta-training run by hand (seeded); a threshold just
+    below the best of the first two reports stops meta-training at step 20 (two reports, no
+    adaptation, score inf, pruned_at 20); one just above lets the job run to its end with
+    the results of the job without thresholds."""
+    import numpy as np
+    from dataclasses import replace
+    from metampc_bringup.studies import offline
+    from metampc_learner.meta_train import meta_train
+    settings = settings_from(str(tiny_config), 1, 2, {'batch_size': 2, 'curvature': CURVATURE})
+    job = Job('maml', 0, {'inner_steps': 2}, 30, (0.05,), 'search')
+    full = direct(settings, job)
+    val = offline.validation(job.source_seed, job.nssm)
+    losses = meta_train(val.model, val.source, offline.meta_config(job, settings)).losses
+    assert full['meta_loss_reports'] == pytest.approx(
+        [float(np.mean(losses[i:i + 10])) for i in (0, 10, 20)], rel=1e-12)
+    best = min(full['meta_loss_reports'][:2])
+    stopped = direct(settings, replace(job, prune_above=(math.nan, best * (1 - 1e-9), 0.0)))
+    assert stopped['pruned_at'] == 20 and stopped['score'] == math.inf
+    assert stopped['meta_loss_reports'] == full['meta_loss_reports'][:2]
+    assert stopped['adapt'] == [] and 'meta_final_loss' not in stopped
+    kept = direct(settings, replace(job, prune_above=(math.nan, best * (1 + 1e-9), math.inf)))
+    assert kept == full
+
+
+def test_tune_stopped_by_ctrl_c_resumes_without_running_the_finished_trials_again(
+        tmp_path, tiny_config):
+    """scripts/tune.py as a user runs it, SIGINT to its process group once two jobs have
+    landed: exit 130 and one line; the same command then runs only the jobs that were not
+    finished (its log's counts), leaves the finished ones' results as they were, keeps the
+    told trials of the studies as they were, and ends 0 with every trial told."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / 'tuning.json'
+    command = [sys.executable, str(Path(ROOT) / 'scripts' / 'tune.py'), '--config',
+               str(tiny_config), *TINY_SEARCH, '--jobs', '1', '--out', str(out)]
+    cache = tmp_path / 'tuning.study' / 'cache'
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not (cache.is_dir() and len(list(cache.glob('*.json'))) >= 2):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)      # a terminal's Ctrl-C
+        stdout, stderr = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, stderr
+    assert stderr.strip().splitlines()[-1] == \
+        'tune: interrupted; the finished jobs are cached: the same command resumes', stderr
+    finished = {p.name: p.stat().st_mtime_ns for p in cache.glob('*.json')}
+    storage = open_storage(str(tmp_path / 'tuning.study' / 'study.journal'))
+
+    def told():
+        return {(s.study_name, t.number): (t.state, t.value, t.datetime_complete)
+                for s in optuna.get_all_study_summaries(storage)
+                for t in optuna.load_study(study_name=s.study_name, storage=storage)
+                .get_trials(states=(optuna.trial.TrialState.COMPLETE,))}
+    before = told()
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    ran = sum(int(n) for n in re.findall(r': (\d+) job\(s\) to run', done.stderr))
+    everything = {p.name for p in cache.glob('*.json')}
+    assert len(everything) == 9 and ran == 9 - len(finished) > 0, done.stderr
+    assert {n: (cache / n).stat().st_mtime_ns for n in finished} == finished
+    after = told()
+    assert {k: after[k] for k in before} == before
+    assert len(after) == 2 * (2 + 2)     # every trial of both studies told

@@ -128,7 +128,8 @@ class HostNetwork:
     """The namespaces of one split: per host its namespace and address, the orchestrator's.
 
     Attributes:
-        hosts: node names per host, in order. namespaces: the namespace of each host.
+        hosts: node names per host, in order (none: :func:`linked_hosts`). namespaces: the
+            namespace of each host.
         orchestrator: the orchestrator's namespace. bridge: the bridge's namespace.
     """
 
@@ -171,6 +172,21 @@ def _add_host(bridge: str, name: str, port: str, address: str) -> None:
 def host_network(hosts: Sequence[Sequence[str]]) -> Iterator[HostNetwork]:
     """Create the namespaces, links and bridge for `hosts`; delete all of them on exit."""
     check_hosts(hosts)
+    with _linked(hosts) as net:
+        yield net
+
+
+@contextlib.contextmanager
+def linked_hosts(count: int) -> Iterator[HostNetwork]:
+    """`count` empty hosts and the orchestrator's namespace (e.g. a dask scheduler, workers
+    and their client: test_cluster_netns), linked as by :func:`host_network`, deleted on exit
+    with whatever still runs inside."""
+    with _linked([[] for _ in range(count)]) as net:
+        yield net
+
+
+@contextlib.contextmanager
+def _linked(hosts: Sequence[Sequence[str]]) -> Iterator[HostNetwork]:
     check_can_create()
     for name in remove_stale():
         log.warning('removed namespace %s left by a process that was killed', name)

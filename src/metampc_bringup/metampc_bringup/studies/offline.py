@@ -22,11 +22,13 @@ import torch
 
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.experiment_config import ExperimentConfig, learner_config, load
+from metampc_bringup.studies.pruning import pruned_at, REPORT_EVERY, reports
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   SourceSet, Windows)
 from metampc_learner.learner_params import LearnerNodeConfig
 from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
+from metampc_learner.progress import Progress
 from metampc_model.nssm import Nssm
 from metampc_model.weights_codec import DecodedWeights, WeightsError
 from metampc_plant.family import PlantFamily
@@ -119,6 +121,8 @@ class Job:
         target_theta: None: scored on the validation targets of the settings; else on this
             one target (the test target of the run whose seed is `source_seed`).
         heldout_samples: held-out samples per target.
+        prune_above: the median pruner's thresholds at each report step of meta-training
+            (:mod:`.pruning`); None: never pruned.
     """
 
     method: str
@@ -131,6 +135,7 @@ class Job:
     nssm: Dict[str, Any] = field(default_factory=dict)
     target_theta: Optional[Tuple[float, ...]] = None
     heldout_samples: int = HELDOUT_SAMPLES
+    prune_above: Optional[Tuple[float, ...]] = None
 
     def cost(self) -> float:
         """Rough relative cost, to start the long jobs first."""
@@ -152,7 +157,8 @@ class Job:
 
 
 # Fields added after results were cached: hashed only when set, so those keep their names.
-_LATER_FIELDS = {'target_theta': None, 'heldout_samples': HELDOUT_SAMPLES}
+_LATER_FIELDS = {'target_theta': None, 'heldout_samples': HELDOUT_SAMPLES,
+                 'prune_above': None}
 
 
 def target_data_seeds(source_seed: int) -> Tuple[int, int]:
@@ -285,14 +291,38 @@ def _spectrum(params) -> Dict[str, float]:
             'a_norm': float(torch.linalg.matrix_norm(a, ord=2))}
 
 
+class Pruned(Exception):
+    """Meta-training stopped by the median pruner at outer step `step`."""
+
+    def __init__(self, step: int):
+        super().__init__(f'pruned at step {step}')
+        self.step = step
+
+
+def _pruning(thresholds: Optional[Sequence[float]], losses: List[float]):
+    """A meta-training progress callback that keeps the losses in `losses` and raises
+    :class:`Pruned` where the median pruner's `thresholds` stop the trial; None without."""
+    if thresholds is None:
+        return None
+
+    def check(progress: Progress) -> None:
+        losses.append(progress.loss)
+        if progress.iteration % REPORT_EVERY == 0 and \
+                pruned_at(reports(losses), thresholds) == progress.iteration:
+            raise Pruned(progress.iteration)
+    return check
+
+
 def run_job(job: Job) -> dict:
     """Meta-train (meta methods), then score every step size; a failure scores inf.
 
-    The result holds the meta-training curve (every 10th step), its final loss (mean of the
-    last 10 steps), the largest loss, the spectral radius and norm of the meta-model's A,
+    The result holds the meta-training curve (every 10th step; the pruner's reports, means
+    of every 10 steps: :mod:`.pruning`), its final loss (mean of the last 10 steps), the
+    largest loss, the spectral radius and norm of the meta-model's A,
     and per step size the held-out loss of every validation target after ``CURVE_STEPS``
     steps; ``score`` is the mean held-out loss after the last step at the best step size
-    (the final meta loss when no step size is scored).
+    (the final meta loss when no step size is scored). A job stopped by its median pruner
+    (``prune_above``) holds where (``pruned_at``), its reports and an inf score.
     """
     settings = _SETTINGS
     val = validation(job.source_seed, job.nssm, job.target_theta, job.heldout_samples)
@@ -305,14 +335,21 @@ def run_job(job: Job) -> dict:
         out.update(target_theta=job.target_theta, heldout_samples=job.heldout_samples)
     params = None
     if job.method != 'supervised':
+        losses_so_far: List[float] = []
         try:
-            result = meta_train(val.model, val.source, meta_config(job, settings))
+            result = meta_train(val.model, val.source, meta_config(job, settings),
+                                _pruning(job.prune_above, losses_so_far))
         except MetaTrainingError as err:
             return {**out, 'error': str(err), 'score': math.inf, 'adapt': [],
+                    'cpu_seconds': round(time.process_time() - cpu, 1)}
+        except Pruned as stop:
+            return {**out, 'pruned_at': stop.step, 'meta_loss_reports': reports(losses_so_far),
+                    'score': math.inf, 'adapt': [],
                     'cpu_seconds': round(time.process_time() - cpu, 1)}
         params = result.params
         losses = np.array(result.losses)
         out.update(meta_final_loss=float(np.mean(losses[-10:])),
+                   meta_loss_reports=reports(result.losses),
                    meta_max_loss=float(np.max(losses)) if np.all(np.isfinite(losses))
                    else math.inf,
                    meta_loss_every_10=[float(v) for v in losses[9::10]],

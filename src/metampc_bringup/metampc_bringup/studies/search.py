@@ -1,38 +1,67 @@
 """Stages 1 and 2 of the tuning (:mod:`.tuning`) as Optuna studies, asked and told by the
 client while the trials run on the cluster (:mod:`.study_jobs`).
 
-One study per method in one SQLite file (optuna-dashboard reads it), over the method's grid
+One study per method in one Optuna storage (:func:`open_storage`: a journal file, or a
+database URL shared by several clients; optuna-dashboard reads either), over the method's grid
 (categorical parameters). Stage 1: the given configurations, enqueued; stage 2: ``refine``
 trials of the TPE sampler (start-up: stage 1), ``per_round`` asked at once per method. Each
 ask's sampler is seeded from (seed, method, trial number): with the trials told so far (the
 storage holds them) that fixes what is asked, so the same seed gives the same trials and a
 stopped search resumes with those of an uninterrupted one (its asked, untold trials first).
 A configuration tried already is told failed and asked again, never run twice (after
-:data:`DUPLICATE_ASKS`: a seeded draw among the untried). No rclpy, no torch here.
+:data:`DUPLICATE_ASKS`: a seeded draw among the untried). With a :class:`.pruning.MedianRule`
+each trial is asked with its pruning thresholds (a user attribute, kept for a resumed round)
+and told with its reports, COMPLETE or PRUNED. No rclpy, no torch here.
 """
 import dataclasses
 import itertools
 import os
-from typing import Any, Dict, List, Sequence, Set, Tuple
+import re
+from typing import Any, Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import optuna
 from optuna.distributions import CategoricalDistribution
 from optuna.trial import TrialState
 
+from metampc_bringup.studies.pruning import MedianRule, REPORT_EVERY
+
 SEED_STREAM = 0x79e      # sampler seeds: SeedSequence([seed, SEED_STREAM, method, number])
 DUPLICATE_ASKS = 20      # asks for an untried configuration before a draw among them
+TOLD = (TrialState.COMPLETE, TrialState.PRUNED)
+THRESHOLDS = 'prune_above'   # the user attribute of a trial's pruning thresholds
+
+
+def open_storage(where: str) -> optuna.storages.BaseStorage:
+    """The Optuna storage at `where`: a database URL (``sqlite:///path``,
+    ``postgresql://user@host/db``, anything with ``://``: Optuna's RDBStorage), else the path
+    of a journal file (JournalFileBackend: appends, safe for several processes on one file
+    system). ValueError naming `where` if Optuna cannot open it."""
+    try:
+        if '://' in where:
+            return optuna.storages.RDBStorage(where)
+        from optuna.storages.journal import JournalFileBackend, JournalStorage
+        return JournalStorage(JournalFileBackend(os.path.abspath(where)))
+    except Exception as err:    # a driver missing, a server not answering, a bad URL: say it
+        raise ValueError(f'--storage {without_password(where)}: {err.__class__.__name__}: '
+                         f'{str(err).splitlines()[0] if str(err) else ""}') from None
+
+
+def without_password(url: str) -> str:
+    """A storage URL as reports and errors show it: ``postgresql://user:***@host/db``."""
+    return re.sub(r'^([a-z0-9+]+://[^:/@]*):[^@/]*@', r'\1:***@', url)
 
 
 @dataclasses.dataclass(frozen=True)
 class Trial:
-    """A trial to evaluate, or evaluated: its study (method), number, configuration and
-    stage ('search': stage 1, 'refine': stage 2)."""
+    """A trial to evaluate, or evaluated: its study (method), number, configuration, stage
+    ('search': stage 1, 'refine': stage 2) and pruning thresholds (None: not pruned)."""
 
     method: str
     number: int
     params: Dict[str, Any]
     stage: str
+    prune_above: Optional[Tuple[float, ...]] = None
 
 
 def _key(params: Dict[str, Any]) -> Tuple:
@@ -40,31 +69,37 @@ def _key(params: Dict[str, Any]) -> Tuple:
 
 
 class Search:
-    """The studies of a search in the SQLite file `path` (created, or resumed).
+    """The studies of a search in an Optuna storage (created, or resumed).
 
     Args:
-        path: the SQLite file.
+        storage: where the studies are (:func:`open_storage`).
         spaces: per method, each parameter's values (the grid).
         first: per method, the stage-1 configurations (distinct, inside the grid).
         refine: stage-2 trials per method.
         per_round: stage-2 trials asked at once per method.
         seed: the search's seed.
+        rule: the median pruner on the trials' reports (None: no pruning).
+        tag: appended to the study names (``<method>-<tag>``): one search's studies in a
+            storage that holds others.
     """
 
-    def __init__(self, path: str, spaces: Dict[str, Dict[str, Sequence[Any]]],
+    def __init__(self, storage: str, spaces: Dict[str, Dict[str, Sequence[Any]]],
                  first: Dict[str, List[Dict[str, Any]]], refine: int, per_round: int,
-                 seed: int):
+                 seed: int, rule: Optional[MedianRule] = None, tag: str = ''):
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         self.spaces = spaces
         self.k = {m: len(first[m]) for m in spaces}
-        self.refine, self.per_round, self.seed = refine, per_round, seed
+        self.refine, self.per_round, self.seed, self.rule = refine, per_round, seed, rule
         self._distributions = {m: {n: CategoricalDistribution(tuple(v)) for n, v in s.items()}
                                for m, s in spaces.items()}
-        storage = optuna.storages.RDBStorage(f'sqlite:///{os.path.abspath(path)}')
+        opened = open_storage(storage)
+        self.names = {m: f'{m}-{tag}' if tag else m for m in spaces}
         self.studies = {}
         for method in spaces:
-            study = optuna.create_study(storage=storage, study_name=method,
-                                        direction='minimize', load_if_exists=True)
+            study = optuna.create_study(
+                storage=opened, study_name=self.names[method], direction='minimize',
+                load_if_exists=True,
+                pruner=rule.pruner() if rule else optuna.pruners.NopPruner())
             for params in first[method]:    # none again on resuming
                 study.enqueue_trial(params, skip_if_exists=True)
             self.studies[method] = study
@@ -74,12 +109,33 @@ class Search:
         ones asked up to the round's end; none when every method's budget is told."""
         return [t for method in self.spaces for t in self._round(method)]
 
-    def tell(self, method: str, number: int, value: float) -> None:
-        """The score of a trial (NaN counts as inf: a failed run)."""
+    def tell(self, method: str, number: int, value: float,
+             reports: Sequence[float] = ()) -> None:
+        """The score of a trial (NaN counts as inf: a failed run) and its reports."""
+        self._report(method, number, reports)
         self.studies[method].tell(number, value if not np.isnan(value) else np.inf)
 
+    def prune(self, method: str, number: int, reports: Sequence[float]) -> None:
+        """A trial stopped by its pruner after `reports`: told PRUNED."""
+        self._report(method, number, reports)
+        self.studies[method].tell(number, state=TrialState.PRUNED)
+
+    def _report(self, method: str, number: int, reports: Sequence[float]) -> None:
+        """A trial's reports (at REPORT_EVERY, 2 REPORT_EVERY, ... steps) as its intermediate
+        values. Optuna reports to a Trial object only, made here from the trial's id (none
+        survives a resumed round)."""
+        if not reports:
+            return
+        study = self.studies[method]
+        trial_id, = [t._trial_id for t in study.get_trials(deepcopy=False)
+                     if t.number == number]
+        trial = optuna.trial.Trial(study, trial_id)
+        for i, value in enumerate(reports):
+            trial.report(value, (i + 1) * REPORT_EVERY)
+
     def completed(self) -> List[Trial]:
-        """The told trials (no duplicates), per method in the order asked."""
+        """The told trials (COMPLETE or PRUNED, no duplicates), per method in the order
+        asked."""
         out = []
         for method in self.spaces:
             told = self._told(method)
@@ -92,8 +148,7 @@ class Search:
         return next(t for t in self._trials(method) if t.number == best.number)
 
     def _told(self, method: str) -> Set[int]:
-        return {t.number for t in self.studies[method].get_trials(
-            deepcopy=False, states=(TrialState.COMPLETE,))}
+        return {t.number for t in self.studies[method].get_trials(deepcopy=False, states=TOLD)}
 
     def _trials(self, method: str) -> List[Trial]:
         """The method's asked trials that are not duplicates, in the order asked; a RUNNING
@@ -101,13 +156,15 @@ class Search:
         study = self.studies[method]
         out, seen = [], set()
         for t in sorted(study.get_trials(deepcopy=False), key=lambda t: t.number):
-            if t.state not in (TrialState.COMPLETE, TrialState.RUNNING):
+            if t.state not in (*TOLD, TrialState.RUNNING):
                 continue
             if _key(t.params) in seen:
                 study.tell(t.number, state=TrialState.FAIL)
                 continue
             seen.add(_key(t.params))
-            out.append(Trial(method, t.number, dict(t.params), self._stage(method, len(out))))
+            thresholds = t.user_attrs.get(THRESHOLDS)
+            out.append(Trial(method, t.number, dict(t.params), self._stage(method, len(out)),
+                             None if thresholds is None else tuple(thresholds)))
         return out
 
     def _stage(self, method: str, slot: int) -> str:
@@ -132,8 +189,11 @@ class Search:
         while slot < end:
             asked = self._ask_untried(method, tried)
             tried.add(_key(asked.params))
+            thresholds = self.rule and self.rule.thresholds(self.studies[method])
+            if thresholds is not None:
+                asked.set_user_attr(THRESHOLDS, list(thresholds))
             running.append(Trial(method, asked.number, dict(asked.params),
-                                 self._stage(method, slot)))
+                                 self._stage(method, slot), thresholds))
             slot += 1
         return running
 

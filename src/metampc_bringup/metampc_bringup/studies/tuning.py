@@ -5,11 +5,12 @@ on validation systems only (source set 1000.., validation thetas from rng([1000 
 never the experiment's test targets); each model is adapted by eq. (infer) with every step size
 of :data:`ADAPT_LRS` and scored by closed-loop tracking against the true-model NMPC
 (``score`` 'control') or by held-out loss ('prediction'); stages 1-2 are an Optuna study per
-meta method (:mod:`.search`: the paired draws, then TPE), stage 3 re-runs the finalists and
-the incumbent on ``robust_seeds`` source sets. Jobs (seeded: the scores are reproducible at
-the same thread count) run on the cluster layer (:mod:`.study_jobs`); the studies and results
-stay in the search's folder, so a stopped search resumes. :func:`tune` returns the report.
-Protocol and results: docs/tuning.md.
+meta method (:mod:`.search`: the paired draws, then TPE; hopeless trials stopped by the median
+pruner, :mod:`.pruning`), stage 3 re-runs the finalists and the incumbent on
+``robust_seeds`` source sets. Jobs (seeded: the scores are reproducible at the same thread
+count) run on the cluster layer (:mod:`.study_jobs`); the results stay in the search's folder
+and the studies in its journal file (or a shared ``storage``), so a stopped search resumes.
+:func:`tune` returns the report. Protocol and results: docs/tuning.md.
 """
 import hashlib
 import itertools
@@ -27,7 +28,8 @@ from metampc_bringup.experiment_config import load
 from metampc_bringup.orchestration.cluster import slots
 from metampc_bringup.studies.offline import (HELDOUT_SAMPLES, Job, settings_from, THETA_STREAM,
                                              VALIDATION_SEED)
-from metampc_bringup.studies.search import Search, Trial
+from metampc_bringup.studies.pruning import MedianRule
+from metampc_bringup.studies.search import Search, Trial, without_password
 from metampc_bringup.studies.study_jobs import ResultCache, run_jobs
 from metampc_learner.meta_train import MetaConfig
 
@@ -46,10 +48,16 @@ AXES = {'imaml': {**SHARED_GRID, 'gamma': GAMMA_GRID}, 'maml': SHARED_GRID}
 ADAPT_LRS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
 TUNED_METHODS = ('imaml', 'maml')
 INCUMBENT = -1               # index of the configuration in use in stage 3
-STUDY_FILE = 'study.db'      # the Optuna studies (SQLite) in the search's folder
+STUDY_FILE = 'study.journal'     # the Optuna studies' default storage in the search's folder
 SEARCH = ('stage 1: the k paired draws, enqueued; stage 2: refine trials of the Optuna TPE '
           'sampler (start-up: stage 1), per_round asked at once per method, seeded per '
           'trial from draw_seed; one Optuna study per meta method in study')
+PRUNERS = {
+    'median': "Optuna's MedianPruner (5 start-up trials, warm-up a third of the iterations) "
+              'on the meta-training loss (mean of every 10 outer steps), the same for every '
+              'meta method; thresholds from the trials told before a trial was asked '
+              '(metampc_bringup.studies.pruning)',
+    'none': 'no pruning: every trial meta-trains all its iterations'}
 
 
 def draw_jobs(k: int, iterations: int, seed: int) -> List[Job]:
@@ -173,6 +181,12 @@ class TuneConfig:
     threads: int = 1
     score: str = 'control'
     per_round: int = 2
+    pruner: str = 'median'
+
+    def rule(self) -> Optional[MedianRule]:
+        """The pruning rule of the search's trials (None: --pruner none)."""
+        return (MedianRule(self.iterations, warmup_steps=self.iterations // 3)
+                if self.pruner == 'median' else None)
 
     def validate(self) -> None:
         """ValueError naming the first setting out of range."""
@@ -185,6 +199,9 @@ class TuneConfig:
                 raise ValueError(f'{name} must be >= 0, got {getattr(self, name)}')
         if self.score not in SCORES:
             raise ValueError(f'score must be one of {", ".join(SCORES)}, got {self.score!r}')
+        if self.pruner not in PRUNERS:
+            raise ValueError(f'pruner must be one of {", ".join(PRUNERS)}, got '
+                             f'{self.pruner!r}')
         if self.finalists and not self.robust_seeds:
             raise ValueError('robust_seeds must be >= 1 when finalists > 0')
         grid = math.prod(len(axis) for axis in SHARED_GRID.values())
@@ -199,9 +216,11 @@ def study_folder(out: str) -> str:
     return os.path.splitext(out)[0] + '.study'
 
 
-def check_folder(folder: str, cfg: TuneConfig) -> None:
+def check_folder(folder: str, cfg: TuneConfig) -> str:
     """ValueError if `folder` holds a search of another configuration or experiment (it is
-    resumed only by the same command); else it is created, with the search's fingerprint."""
+    resumed only by the same command); else it is created, with the search's fingerprint.
+    Returns the search's id (12 hex digits of the fingerprint's sha256): its studies' tag in
+    a storage shared by several searches."""
     with open(cfg.config, 'rb') as f:
         mine = {**asdict(cfg), 'config_sha256': hashlib.sha256(f.read()).hexdigest()}
     path = os.path.join(folder, 'search.json')
@@ -212,10 +231,11 @@ def check_folder(folder: str, cfg: TuneConfig) -> None:
             diff = sorted(k for k in set(theirs) | set(mine) if theirs.get(k) != mine.get(k))
             raise ValueError(f'{folder} holds a search with other settings ({", ".join(diff)})'
                              '; pick another --out')
-        return
-    os.makedirs(folder, exist_ok=True)
-    with open(path, 'w') as f:
-        json.dump(mine, f, indent=1)
+    else:
+        os.makedirs(folder, exist_ok=True)
+        with open(path, 'w') as f:
+            json.dump(mine, f, indent=1)
+    return hashlib.sha256(json.dumps(mine, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def searched(job: Job) -> Dict[str, float]:
@@ -224,27 +244,37 @@ def searched(job: Job) -> Dict[str, float]:
     return {n: job.hyper[n] for n in AXES[job.method]}
 
 
-def tune(cfg: TuneConfig, client, folder: str, progress: bool = True) -> dict:
-    """Run (or resume) the three stages on `client`'s cluster, the studies and results kept
-    in `folder` (:func:`check_folder` first); the report (JSON-safe)."""
+def tune(cfg: TuneConfig, client, folder: str, progress: bool = True,
+         storage: Optional[str] = None) -> dict:
+    """Run (or resume) the three stages on `client`'s cluster, the results kept in `folder`
+    (:func:`check_folder` first), the studies in `storage` (an Optuna database URL or a
+    journal file; default the journal :data:`STUDY_FILE` in `folder`); the report
+    (JSON-safe)."""
     cfg.validate()
+    tag = check_folder(folder, cfg)
+    storage = storage or os.path.join(folder, STUDY_FILE)
     start, load_start = time.monotonic(), os.getloadavg()
     settings = settings_from(cfg.config, cfg.thetas, cfg.adapt_steps,
                              {'batch_size': cfg.batch_size, 'curvature': CURVATURE},
                              control=cfg.score == 'control')
     cache = ResultCache(os.path.join(folder, 'cache'), settings)
     drawn = draw_jobs(cfg.k, cfg.iterations, cfg.seed)
-    search = Search(os.path.join(folder, STUDY_FILE), {m: AXES[m] for m in TUNED_METHODS},
+    search = Search(storage, {m: AXES[m] for m in TUNED_METHODS},
                     {m: [searched(j) for j in drawn if j.method == m] for m in TUNED_METHODS},
-                    cfg.refine, cfg.per_round, cfg.seed)
+                    cfg.refine, cfg.per_round, cfg.seed, cfg.rule(), tag)
 
     def job(trial: Trial) -> Job:
         return Job(trial.method, trial.number, with_cg(trial.method, trial.params),
-                   cfg.iterations, ADAPT_LRS, trial.stage)
+                   cfg.iterations, ADAPT_LRS, trial.stage, prune_above=trial.prune_above)
 
     def told(done: Job, result: dict) -> None:
-        if done.method in TUNED_METHODS:
-            search.tell(done.method, done.index, result['score'])
+        if done.method not in TUNED_METHODS:
+            return
+        reports = result.get('meta_loss_reports', [])
+        if 'pruned_at' in result:
+            search.prune(done.method, done.index, reports)
+        else:
+            search.tell(done.method, done.index, result['score'], reports)
 
     supervised = [j for j in drawn if j.method == 'supervised']
     extra = supervised      # with the first round (cached once run)
@@ -282,6 +312,7 @@ def tune(cfg: TuneConfig, client, folder: str, progress: bool = True) -> dict:
             'n_systems': settings.learner.source.n_systems,
             'hidden': list(settings.learner.nssm.hidden), 'draw_seed': cfg.seed,
             'score': SCORES[cfg.score], 'search': SEARCH, 'per_round': cfg.per_round,
+            'pruner': PRUNERS[cfg.pruner],
             'nmpc_costs': list(settings.control.nmpc) if settings.control else None,
             'robust_score': 'mean of the score over the robust_seeds source sets at '
                             'full_iterations outer steps, best adaptation step size'},
@@ -296,7 +327,9 @@ def tune(cfg: TuneConfig, client, folder: str, progress: bool = True) -> dict:
         'winners': winners,
         'search_wall_s': round(search_s, 1), 'wall_s': round(time.monotonic() - start, 1),
         'cpu_s': round(sum(r['cpu_seconds'] for r in results + robust_runs), 1),
-        'study': os.path.join(folder, STUDY_FILE),
+        'study': {'storage': without_password(storage), 'names': search.names},
+        'pruned': sorted([r['method'], r['index'], r['pruned_at']] for r in results
+                         if 'pruned_at' in r),
         'jobs': slots(client), 'threads_per_job': cfg.threads,
         'load_avg_start': [round(v, 2) for v in load_start],
         'load_avg_end': [round(v, 2) for v in os.getloadavg()]})
