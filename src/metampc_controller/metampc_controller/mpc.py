@@ -12,6 +12,7 @@ settings and measurements: docs/mpc.md.
 """
 from dataclasses import dataclass, field, replace
 import math
+import signal
 import time
 from typing import Optional, Sequence, Tuple
 
@@ -28,6 +29,10 @@ from metampc_controller.terminal_cost import terminal_cost, TerminalCost
 
 # OSQP statuses whose solution is used; 'solved inaccurate' is what a capped solve reports when
 # it meets 10x the tolerances, still a good plan.
+# OSQP's Ctrl-C listener takes a SIGINT that arrives during a solve (status OSQP_SIGINT,
+# "Solver interrupted") and the process's own handler never sees it: a node asked to stop
+# would go on. solve() gives it back to the process.
+_SIGINT = int(osqp.SolverStatus.OSQP_SIGINT)
 _USABLE = frozenset(int(s) for s in (osqp.SolverStatus.OSQP_SOLVED,
                                      osqp.SolverStatus.OSQP_SOLVED_INACCURATE))
 
@@ -414,6 +419,8 @@ class LatentMpc:
                     ext.warm_start(x_warm, None)
                 ext.solve()
                 info = ext.info
+                if info.status_val == _SIGINT:
+                    signal.raise_signal(signal.SIGINT)
                 # obj_val = 1/2 x'Px + q'x is non-finite iff x is; J = obj_val + b'b.
                 status, iters, obj = info.status, info.iter, info.obj_val
                 if info.status_val in _USABLE and math.isfinite(obj):
@@ -428,6 +435,8 @@ class LatentMpc:
                     solver.warm_start(x=x_warm)
                 res = solver.solve(raise_error=False)
                 info = res.info
+                if info.status_val == _SIGINT:
+                    signal.raise_signal(signal.SIGINT)
                 status, iters, obj = info.status, info.iter, info.obj_val
                 if info.status_val in _USABLE and math.isfinite(obj):
                     x, cost = res.x, obj + bb
