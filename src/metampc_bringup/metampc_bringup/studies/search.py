@@ -1,17 +1,14 @@
 """Stages 1 and 2 of the tuning (:mod:`.tuning`) as Optuna studies, asked and told by the
 client while the trials run on the cluster (:mod:`.study_jobs`).
 
-One study per method in one Optuna storage (:func:`open_storage`: a journal file, or a
-database URL shared by several clients; optuna-dashboard reads either), over the method's grid
-(categorical parameters). Stage 1: the given configurations, enqueued; stage 2: ``refine``
-trials of the TPE sampler (start-up: stage 1), ``per_round`` asked at once per method. Each
-ask's sampler is seeded from (seed, method, trial number): with the trials told so far (the
-storage holds them) that fixes what is asked, so the same seed gives the same trials and a
-stopped search resumes with those of an uninterrupted one (its asked, untold trials first).
-A configuration tried already is told failed and asked again, never run twice (after
-:data:`DUPLICATE_ASKS`: a seeded draw among the untried). With a :class:`.pruning.MedianRule`
-each trial is asked with its pruning thresholds (a user attribute, kept for a resumed round)
-and told with its reports, COMPLETE or PRUNED. No rclpy, no torch here.
+One study per method in one storage (:func:`open_storage`: a journal file or a database URL
+shared by clients) over the method's grid. Stage 1: the given configurations, enqueued; stage
+2: ``refine`` TPE trials, ``per_round`` asked at once per method. Each ask's sampler is seeded
+from (seed, method, trial number), so the same seed gives the same trials and a stopped search
+resumes with those of an uninterrupted one (asked, untold trials first). A configuration tried
+already is never run twice (after :data:`DUPLICATE_ASKS`: a seeded draw among the untried).
+With a :class:`.pruning.MedianRule` each trial carries its pruning thresholds (a user
+attribute) and is told with its reports, COMPLETE or PRUNED. No rclpy, no torch here.
 """
 import dataclasses
 import itertools

@@ -3,14 +3,12 @@
 The logic of ``scripts/tune.py``: every method gets the same budget of meta-trainings, spent
 on validation systems only (source set 1000.., validation thetas from rng([1000 + i, 0x5a1]),
 never the experiment's test targets); each model is adapted by eq. (infer) with every step size
-of :data:`ADAPT_LRS` and scored by closed-loop tracking against the true-model NMPC
-(``score`` 'control') or by held-out loss ('prediction'); stages 1-2 are an Optuna study per
-meta method (:mod:`.search`: the paired draws, then TPE; hopeless trials stopped by the median
-pruner, :mod:`.pruning`), stage 3 re-runs the finalists and the incumbent on
-``robust_seeds`` source sets. Jobs (seeded: the scores are reproducible at the same thread
-count) run on the cluster layer (:mod:`.study_jobs`); the results stay in the search's folder
-and the studies in its journal file (or a shared ``storage``), so a stopped search resumes.
-:func:`tune` returns the report. Protocol and results: docs/tuning.md.
+of :data:`ADAPT_LRS` and scored by closed-loop tracking against the true-model NMPC ('control')
+or by held-out loss ('prediction'); stages 1-2 are an Optuna study per meta method
+(:mod:`.search`; the median pruner, :mod:`.pruning`), stage 3 re-runs the finalists and the
+incumbent on ``robust_seeds`` source sets. Seeded jobs run on the cluster layer
+(:mod:`.study_jobs`); results and studies stay in the search's folder (or a shared
+``storage``), so a stopped search resumes. :func:`tune` returns the report (docs/tuning.md).
 """
 import hashlib
 import itertools
