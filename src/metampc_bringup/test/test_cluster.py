@@ -3,6 +3,7 @@ before connecting, one that does not answer, the lifeline of a job's process whe
 is killed, workers that run other code, Ctrl-C, the scheduler lost. Tests address loopback
 only."""
 import functools
+import logging
 import os
 import signal
 import socket
@@ -223,3 +224,22 @@ def test_a_tls_scheduler_takes_a_client_of_its_ca_and_no_other(tmp_path):
     with pytest.raises(ValueError, match='--tls-key /nonexistent.key: cannot be read'):
         with connect(ClusterSpec(scheduler=address, tls=unreadable)):
             pass
+
+
+def test_each_finished_job_logs_the_count_and_what_every_worker_holds(caplog):
+    """Three jobs on one worker slot: after each, one line with the count and the jobs the
+    worker holds then (those not done, in the order it picks them), idle at the end."""
+    caplog.set_level(logging.INFO, logger='metampc.cluster')
+    got = {}
+    with connect(ClusterSpec(jobs=1)) as client:
+        worker, = client.scheduler_info()['workers']
+        assert run_batch(client, time.sleep, [0.3, 0.6, 0.9], 'naps', got.__setitem__) == []
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith('naps: ')]
+    done = list(got)                # the order the jobs finished
+    assert len(lines) == 3 and lines[-1] == f'naps: 3 of 3 done (0 failed); {worker}: idle'
+    for n, line in enumerate(lines[:2], start=1):
+        head, held = line.split(f'; {worker}: ')
+        assert head == f'naps: {n} of 3 done (0 failed)'
+        assert held.endswith(' held') and sorted(map(float, held[:-5].split(', '))) == sorted(
+            done[n:])
+    assert sorted(got) == [0.3, 0.6, 0.9]

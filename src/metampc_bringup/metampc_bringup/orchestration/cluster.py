@@ -256,6 +256,21 @@ def job_cancelled() -> bool:
     return key in _STOPPING or task is None or task.state not in ('executing', 'long-running')
 
 
+def _worker_state(client, left: Dict[Any, Any]) -> Tuple[Dict[str, List[Any]], int]:
+    """Per worker address, the items of `left` (future -> item) it holds (running, or
+    waiting for its slot), and how many run: per worker at most its slots."""
+    items = {future.key: item for future, item in left.items()}
+    try:
+        processing, workers = client.processing(), client.scheduler_info()['workers']
+    except OSError:           # the scheduler is gone: as_completed says so next
+        return {}, 0
+    held = {worker: [items[key] for key in keys if key in items]
+            for worker, keys in sorted(processing.items())}
+    running = sum(min(len(v), int(workers.get(w, {}).get('resources', {}).get(SLOT, 1)))
+                  for w, v in held.items())
+    return held, running
+
+
 def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
               done: Callable[[Any, Any], None], progress: bool = False
               ) -> List[Tuple[Any, BaseException]]:
@@ -265,7 +280,8 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
 
     Ctrl-C asks the jobs to stop (:func:`job_cancelled`) and hands what they return within
     :data:`DRAIN_S` to ``done`` (a second Ctrl-C: at once), cancels the rest and re-raises.
-    `name` labels the progress line (tqdm: done, running, failed) when `progress`.
+    `name` labels the progress line (tqdm: done, running, failed, ETA) when `progress`; each
+    finished job logs the count and what every worker runs (INFO, ``metampc.cluster``).
 
     Raises:
         SchedulerLost: the connection to the scheduler is lost (the jobs done by then were
@@ -288,8 +304,13 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
                 failed.append((item, future.exception()))
             else:
                 done(item, future.result())
-            bar.set_postfix(failed=len(failed), refresh=False)
+            held, running = _worker_state(client, left)
+            bar.set_postfix(running=running, failed=len(failed), refresh=False)
             bar.update()
+            log.info('%s: %d of %d done (%d failed); %s', name, len(futures) - len(left),
+                     len(futures), len(failed), '; '.join(
+                         f'{w}: ' + (', '.join(map(str, v)) + ' held' if v else 'idle')
+                         for w, v in held.items()) or 'no worker state (no scheduler)')
     except KeyboardInterrupt:
         _drain(client, left, done)
         raise
