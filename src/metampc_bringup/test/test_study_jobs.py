@@ -3,10 +3,14 @@ gives the result of a direct call (the process pool's before), on a worker that 
 settings before too and in a fresh process; a job that raises is reported with its error
 after the others finished and were cached; the same call again runs only what is missing."""
 import functools
+import os
+import signal
+import threading
+import time
 
 import pytest
 
-from metampc_bringup.orchestration.cluster import ClusterSpec
+from metampc_bringup.orchestration.cluster import ClusterSpec, job_cancelled
 from metampc_bringup.studies.offline import Job, settings_from
 from metampc_bringup.studies.study_jobs import (ResultCache, run_jobs, study_cluster,
                                                 StudyError)
@@ -101,3 +105,42 @@ def test_a_job_that_raises_is_reported_after_the_others_and_the_rerun_runs_only_
     counting = Counting(threads_cluster)
     assert run(counting, jobs, 'search', settings, cache) == results
     assert counting.submitted == 0
+
+
+STARTED = []        # indices of the jobs whose function _until_asked ran
+
+
+def _until_asked(job: Job) -> dict:
+    """Runs until the client asks its jobs to stop (Ctrl-C), then sends back its result."""
+    STARTED.append(job.index)
+    while not job_cancelled():
+        time.sleep(0.02)
+    return _made_up(job)
+
+
+def test_ctrl_c_starts_no_waiting_job_and_keeps_the_running_one_s_result(
+        tmp_path, tiny_config, threads_cluster):
+    """Four jobs on one slot, Ctrl-C while the first runs: it sends back its result (cached),
+    the three waiting for the slot never start (before: each ran to its end while the client
+    drained, up to 180 s), and the same call runs only them."""
+    settings = settings_from(str(tiny_config), 1, 3)
+    cache = ResultCache(str(tmp_path / 'cache'), settings)
+    jobs = [Job('maml', i, {}, 1, (), 'search') for i in range(4)]
+
+    def ctrl_c():
+        while not STARTED:
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGINT)
+    threading.Thread(target=ctrl_c, daemon=True).start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_jobs(threads_cluster, jobs, 'search', settings, cache, fn=_until_asked,
+                     progress=False)
+        assert STARTED == [0]
+    finally:
+        STARTED.clear()
+    assert [cache.get(job) is not None for job in jobs] == [True, False, False, False]
+    counting = Counting(threads_cluster)
+    assert run_jobs(counting, jobs, 'search', settings, cache, fn=_made_up,
+                    progress=False) == [_made_up(job) for job in jobs]
+    assert counting.submitted == 3

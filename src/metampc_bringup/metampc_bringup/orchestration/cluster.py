@@ -289,13 +289,16 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
     """
     from distributed import as_completed
     from tqdm import tqdm
-    futures: Dict[Any, Any] = {
-        client.submit(job, item, key=f'{name}-{item}-{uuid.uuid4().hex[:12]}', pure=False,
-                      resources={SLOT: 1}): item for item in items}
-    left = dict(futures)
+    items = list(items)
+    futures: Dict[Any, Any] = {}
+    left: Dict[Any, Any] = {}       # submitted and not done: what a Ctrl-C drains
     failed: List[Tuple[Any, BaseException]] = []
     bar = tqdm(total=len(items), desc=name, unit='job', disable=not progress)
     try:
+        for item in items:          # a Ctrl-C while submitting drains what was submitted
+            future = client.submit(job, item, key=f'{name}-{item}-{uuid.uuid4().hex[:12]}',
+                                   pure=False, resources={SLOT: 1})
+            futures[future] = left[future] = item
         for future in as_completed(futures, loop=client.loop):
             item = left.pop(future)
             if future.status == 'cancelled':    # never by this client but on Ctrl-C

@@ -21,7 +21,7 @@ import tempfile
 from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple, TypeVar
 
 from metampc_bringup.orchestration.cluster import (ClusterError, ClusterSpec, connect,
-                                                   run_batch, SchedulerLost)
+                                                   job_cancelled, run_batch, SchedulerLost)
 from metampc_bringup.orchestration.lifeline import child_env, hold
 from metampc_bringup.studies.offline import Job, run_job, Settings, use
 
@@ -107,9 +107,16 @@ def run_jobs(client, jobs: Sequence[Job], what: str, settings: Settings, cache: 
     return results
 
 
+class JobStopped(RuntimeError):
+    """A job asked to stop (Ctrl-C) before it started."""
+
+
 def _on_worker(fn: Callable[[Job], dict], settings: Settings, threads: int, fresh: bool,
                job: Job) -> dict:
-    """A job on a worker: here, or with `fresh` in a child process of its own."""
+    """A job on a worker: here, or with `fresh` in a child process of its own. Asked to stop
+    before it started (Ctrl-C while it waited for a slot): raises at once, nothing cached."""
+    if job_cancelled():
+        raise JobStopped(f'{job}: asked to stop before it started')
     if not fresh:
         use(settings, threads)
         return fn(job)
