@@ -15,8 +15,8 @@ are cached per (seed, variant) in RUN_DIR/retrack/, so a stopped run resumes.
 A variant is NAME:key=value,key=value with controller parameter names (docs/controller.md);
 values are YAML (``0.3``, ``none``, ``[1.0, 0.0]``; YAML reads ``off`` as false). ``--nmpc
 key=value,...`` sets the yardstick's own parameters (e.g. ``nmpc_tail=20``: then the NMPC runs
-again instead of its recorded cost being taken, and every ratio is against it). A bad name or
-value is one error line, exit 2.
+again instead of its recorded cost being taken, and every ratio is against it; ``--check`` and
+``--trajectory`` fly it with them too). A bad name or value is one error line, exit 2.
 """
 import argparse
 import hashlib
@@ -176,7 +176,7 @@ def main(argv=None) -> int:
         verdicts = {}
         for seed, rec in recordings.items():
             runs = {}
-            retrack_seed(experiment, seed, rec, {}, methods=[], episodes=runs)
+            retrack_seed(experiment, seed, rec, yardstick, methods=[], episodes=runs)
             verdicts[seed] = check_verdicts(experiment, seed, rec, runs['nmpc'])
             print(f'check, seed {seed}: ' + '; '.join(
                 f"{m}: {'flies' if v['vs_meta'] and v['vs_meta']['ok'] else 'refused'} vs meta, "
@@ -191,7 +191,9 @@ def main(argv=None) -> int:
         for name, overrides in variants:
             runs[name] = {}
             retrack_seed(experiment, args.trajectory, recordings[args.trajectory], overrides,
-                         nmpc=name == variants[0][0], episodes=runs[name])
+                         nmpc=False, episodes=runs[name])
+        retrack_seed(experiment, args.trajectory, recordings[args.trajectory], yardstick,
+                     methods=[], episodes=runs[variants[0][0]])     # the NMPC, with --nmpc's
         plot_episodes(runs, experiment.resolved().tracked_outputs, os.path.join(
             args.run_dir, f'retrack_seed{args.trajectory}.png'),
             f'{args.run_dir}, seed {args.trajectory}')
