@@ -10,6 +10,7 @@ result comes back to the client (no shared filesystem), which keeps it in the st
 A job that raises is reported with its error (:class:`StudyError`) after the others finished.
 """
 import contextlib
+import dataclasses
 import functools
 import json
 import logging
@@ -89,6 +90,8 @@ def run_jobs(client, jobs: Sequence[Job], what: str, settings: Settings, cache: 
     position = {id(jobs[i]): i for i in todo}
 
     def done(job: Job, result: dict) -> None:
+        if isinstance(result, NotStarted):
+            return
         cache.put(job, result)
         results[position[id(job)]] = result
         if landed is not None:
@@ -107,16 +110,19 @@ def run_jobs(client, jobs: Sequence[Job], what: str, settings: Settings, cache: 
     return results
 
 
-class JobStopped(RuntimeError):
-    """A job asked to stop (Ctrl-C) before it started."""
+@dataclasses.dataclass(frozen=True)
+class NotStarted:
+    """What a job asked to stop (Ctrl-C) before it started sends back: nothing to cache."""
+
+    job: str
 
 
 def _on_worker(fn: Callable[[Job], dict], settings: Settings, threads: int, fresh: bool,
                job: Job) -> dict:
     """A job on a worker: here, or with `fresh` in a child process of its own. Asked to stop
-    before it started (Ctrl-C while it waited for a slot): raises at once, nothing cached."""
+    before it started (Ctrl-C while it waited for a slot): :class:`NotStarted` at once."""
     if job_cancelled():
-        raise JobStopped(f'{job}: asked to stop before it started')
+        return NotStarted(str(job))
     if not fresh:
         use(settings, threads)
         return fn(job)
