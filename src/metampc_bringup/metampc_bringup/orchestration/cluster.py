@@ -312,7 +312,7 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
             bar.update()
             log.info('%s: %d of %d done (%d failed); %s', name, len(futures) - len(left),
                      len(futures), len(failed), '; '.join(
-                         f'{w}: ' + (', '.join(map(str, v)) + ' held' if v else 'idle')
+                         f'{w}: {len(v)} held' if v else f'{w}: idle'
                          for w, v in held.items()) or 'no worker state (no scheduler)')
     except KeyboardInterrupt:
         _drain(client, left, done)
