@@ -105,13 +105,12 @@ def test_a_model_the_check_must_refuse_is_refused_and_the_loop_goes_on():
     assert abs(plant.output()[0] - 0.5) < 1e-2
 
 
-def test_a_late_answer_to_a_given_up_request_is_checked_too():
-    """Under `requested`, an answer whose request was given up (it came after adapt_timeout)
-    is still an answer to this controller's request: it is used from the next tick if it
-    passes, so it must pass the check like a timely one."""
+def _ran_60_steps(check_config: ModelCheckConfig) -> ControllerCore:
+    """A core with the good model in use after 60 steps of the plant (theta 0.5, set-point
+    0.5), the check configured by `check_config`."""
     core = ControllerCore(ControllerConfig(reference_kind='setpoint',
-                                           reference_params={'value': 0.5}, mpc=MPC))
-    assert core.tuning.config.model_check.model_check == 'requested'
+                                           reference_params={'value': 0.5}, mpc=MPC,
+                                           model_check=check_config))
     core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
     plant = Plant(PlantConfig(theta=(0.5,)))
     y, u = plant.output(), 0.0
@@ -119,6 +118,15 @@ def test_a_late_answer_to_a_given_up_request_is_checked_too():
         core.observe(k, [u], y)
         u = float(core.tick().u[0])
         y = plant.step([u])
+    return core
+
+
+def test_a_late_answer_to_a_given_up_request_is_checked_too():
+    """Under `requested`, an answer whose request was given up (it came after adapt_timeout)
+    is still an answer to this controller's request: it is used from the next tick if it
+    passes, so it must pass the check like a timely one."""
+    core = _ran_60_steps(ModelCheckConfig())
+    assert core.tuning.config.model_check.model_check == 'requested'
     late = build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2)
     assert core.trigger.pending is None     # no request pending: any earlier one is over
     assert core.vet(late, request_step=40).startswith('check: its 20-step prediction error')
@@ -245,16 +253,8 @@ def test_a_candidate_whose_disturbance_is_not_detectable_is_refused_by_the_check
 def test_the_controller_scores_as_planned_when_asked():
     """model_check_as_planned: the core hands the check its MPC's offset-free form and gain."""
     for planned in (False, True):
-        core = ControllerCore(ControllerConfig(
-            reference_kind='setpoint', reference_params={'value': 0.5}, mpc=MPC,
-            model_check=ModelCheckConfig(model_check='all', model_check_as_planned=planned)))
-        core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
-        plant = Plant(PlantConfig(theta=(0.5,)))
-        y, u = plant.output(), 0.0
-        for k in range(60):
-            core.observe(k, [u], y)
-            u = float(core.tick().u[0])
-            y = plant.step([u])
+        core = _ran_60_steps(ModelCheckConfig(model_check='all',
+                                              model_check_as_planned=planned))
         reason = core.vet(build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2))
         assert reason.startswith('check: its 20-step prediction error') and (
             ('(offset-free state, as planned)' in reason) == planned), reason
