@@ -256,14 +256,16 @@ def job_cancelled() -> bool:
     return key in _STOPPING or task is None or task.state not in ('executing', 'long-running')
 
 
-def _worker_state(client, left: Dict[Any, Any]) -> Tuple[Dict[str, List[Any]], int]:
+def _worker_state(client, left: Dict[Any, Any]
+                  ) -> Optional[Tuple[Dict[str, List[Any]], int]]:
     """Per worker address, the items of `left` (future -> item) it holds (running, or
-    waiting for its slot), and how many run: per worker at most its slots."""
+    waiting for its slot), and how many run: per worker at most its slots. None when the
+    scheduler does not answer (as_completed then says it is lost)."""
     items = {future.key: item for future, item in left.items()}
     try:
         processing, workers = client.processing(), client.scheduler_info()['workers']
-    except OSError:           # the scheduler is gone: as_completed says so next
-        return {}, 0
+    except OSError:
+        return None
     held = {worker: [items[key] for key in keys if key in items]
             for worker, keys in sorted(processing.items())}
     running = sum(min(len(v), int(workers.get(w, {}).get('resources', {}).get(SLOT, 1)))
@@ -281,7 +283,7 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
     Ctrl-C asks the jobs to stop (:func:`job_cancelled`) and hands what they return within
     :data:`DRAIN_S` to ``done`` (a second Ctrl-C: at once), cancels the rest and re-raises.
     `name` labels the progress line (tqdm: done, running, failed, ETA) when `progress`; each
-    finished job logs the count and what every worker runs (INFO, ``metampc.cluster``).
+    finished job logs the count and how many jobs every worker holds (INFO, ``metampc.cluster``).
 
     Raises:
         SchedulerLost: the connection to the scheduler is lost (the jobs done by then were
@@ -307,13 +309,15 @@ def run_batch(client, job: Callable[..., Any], items: Sequence[Any], name: str,
                 failed.append((item, future.exception()))
             else:
                 done(item, future.result())
-            held, running = _worker_state(client, left)
-            bar.set_postfix(running=running, failed=len(failed), refresh=False)
+            state = _worker_state(client, left)
+            if state is not None:
+                held, running = state
+                bar.set_postfix(running=running, failed=len(failed), refresh=False)
+                log.info('%s: %d of %d done (%d failed); %s', name, len(futures) - len(left),
+                         len(futures), len(failed), '; '.join(
+                             f'{w}: {len(v)} held' if v else f'{w}: idle'
+                             for w, v in held.items()))
             bar.update()
-            log.info('%s: %d of %d done (%d failed); %s', name, len(futures) - len(left),
-                     len(futures), len(failed), '; '.join(
-                         f'{w}: {len(v)} held' if v else f'{w}: idle'
-                         for w, v in held.items()) or 'no worker state (no scheduler)')
     except KeyboardInterrupt:
         _drain(client, left, done)
         raise
