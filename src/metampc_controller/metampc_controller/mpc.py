@@ -27,12 +27,12 @@ from metampc_controller.offset_free import (DisturbanceEstimator, disturbance_mo
                                             SteadyStateTarget)
 from metampc_controller.terminal_cost import terminal_cost, TerminalCost
 
-# OSQP statuses whose solution is used; 'solved inaccurate' is what a capped solve reports when
-# it meets 10x the tolerances, still a good plan.
 # OSQP's Ctrl-C listener takes a SIGINT that arrives during a solve (status OSQP_SIGINT,
 # "Solver interrupted") and the process's own handler never sees it: a node asked to stop
 # would go on. solve() gives it back to the process.
 _SIGINT = int(osqp.SolverStatus.OSQP_SIGINT)
+# OSQP statuses whose solution is used; 'solved inaccurate' is what a capped solve reports when
+# it meets 10x the tolerances, still a good plan.
 _USABLE = frozenset(int(s) for s in (osqp.SolverStatus.OSQP_SOLVED,
                                      osqp.SolverStatus.OSQP_SOLVED_INACCURATE))
 
@@ -419,8 +419,6 @@ class LatentMpc:
                     ext.warm_start(x_warm, None)
                 ext.solve()
                 info = ext.info
-                if info.status_val == _SIGINT:
-                    signal.raise_signal(signal.SIGINT)
                 # obj_val = 1/2 x'Px + q'x is non-finite iff x is; J = obj_val + b'b.
                 status, iters, obj = info.status, info.iter, info.obj_val
                 if info.status_val in _USABLE and math.isfinite(obj):
@@ -435,11 +433,11 @@ class LatentMpc:
                     solver.warm_start(x=x_warm)
                 res = solver.solve(raise_error=False)
                 info = res.info
-                if info.status_val == _SIGINT:
-                    signal.raise_signal(signal.SIGINT)
                 status, iters, obj = info.status, info.iter, info.obj_val
                 if info.status_val in _USABLE and math.isfinite(obj):
                     x, cost = res.x, obj + bb
+            if info.status_val == _SIGINT:
+                signal.raise_signal(signal.SIGINT)
         fallback = x is None
         slack = 0.0
         if not fallback and pb.soft is not None:
