@@ -6,8 +6,6 @@ value within stale_timeout + dt of the robot's last sample (measured here) and f
 controller again once the robot is back; a bad mapping is one line and exit status 2."""
 import os
 import signal
-import subprocess
-import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -17,7 +15,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from metampc_testing import own_lines, session_pids
+from metampc_testing import example_script, own_lines
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ROBOT = os.path.join(ROOT, 'examples', 'joint_robot', 'joint_robot.py')
@@ -59,10 +57,7 @@ def test_the_loop_tracks_through_the_bridge_and_a_silent_robot_gets_the_safe_val
     node.create_subscription(PlantInfo, 'plant_info', infos.append, LATCHED)
     node.create_subscription(DiagnosticArray, 'diagnostics',
                              lambda m: statuses.extend(m.status), 100)
-    log = open(tmp_path / 'robot.log', 'w')
-    robot = subprocess.Popen([sys.executable, ROBOT, '50'], stdout=log, stderr=subprocess.STDOUT,
-                             start_new_session=True)
-    try:
+    with example_script([ROBOT, '50'], tmp_path / 'robot.log') as robot:
         sender = procs.start('metampc_controller', 'send_model', params=MODEL)
         bridge = procs.start('metampc_plant', 'bridge', params={'mapping_file': MAPPING})
         controller = procs.start('metampc_controller', 'controller', params=CONTROLLER)
@@ -80,7 +75,10 @@ def test_the_loop_tracks_through_the_bridge_and_a_silent_robot_gets_the_safe_val
             t_k = seconds(y.header.stamp)
             assert tuple(y.y) in {v for s, v in samples if t_k - STALE_S <= s <= t_k}, y
             assert tuple(y.u_applied) in sent | {(SAFE,)}, y
-        assert all(abs(c[0] - SETPOINT) < 0.1 for _, c in commands[-10:])  # tau = q here
+        # Tracking, the controller's torque goes out (tau = q at rest here), not the safe value.
+        tracking = [c[0] for _, c in commands[-10:]]
+        assert sum(abs(c - SETPOINT) < 0.1 for c in tracking) >= 8, (tracking,
+                                                                     procs.output(bridge))
 
         os.kill(robot.pid, signal.SIGUSR1)                  # the robot stalls
         silenced = time.time()
@@ -88,7 +86,7 @@ def test_the_loop_tracks_through_the_bridge_and_a_silent_robot_gets_the_safe_val
                        'the safe command')
         time.sleep(STALE_S + 2 * DT)
         last = max(seconds(m.header.stamp) for _, m in states)
-        first_safe = min(t for t, c in commands if t > silenced and c == [SAFE])
+        first_safe = min(t for t, c in commands if t > last and c == [SAFE])
         delay = first_safe - last
         print(f'safe command {delay:.3f} s after the robot\'s last sample (stale_timeout '
               f'{STALE_S} s, dt {DT} s)')
@@ -105,13 +103,6 @@ def test_the_loop_tracks_through_the_bridge_and_a_silent_robot_gets_the_safe_val
         assert ys[-1].step > stalled_step + STALE_S / DT    # the stale steps were skipped
         for proc in (controller, bridge, sender):
             assert procs.interrupt(proc) == 0, procs.output(proc)
-    finally:
-        if robot.poll() is None:
-            os.killpg(robot.pid, signal.SIGINT)
-        robot.wait(10.0)
-        log.close()
-    assert robot.returncode == 0, open(tmp_path / 'robot.log').read()
-    assert session_pids(robot) == []
     out = procs.output(bridge)
     assert 'command -> safe value [0.0] (no sample on /joint_states for' in out, out
     assert 'the command follows the controller from its answer to step' in out, out
