@@ -87,6 +87,7 @@ def test_a_silent_machine_gets_the_safe_value_within_stale_timeout_plus_dt_until
     line.tick(0)
     line.core.answer(0, [0.5], T0 + 0.01)
     last = newest_stamp(T0 + 0.45)           # the machine's last sample before it stalls
+    assert last == pytest.approx(100.44)
     line.silent = (last + PERIOD / 2, T0 + 1.5)
     states = []
     for k in range(1, 20):
