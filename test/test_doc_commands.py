@@ -17,11 +17,12 @@ import pytest
 from metampc_common.node_main import QOS_OVERRIDES, ROS_PARAMETERS
 from metampc_controller import controller_params, send_model_node
 from metampc_learner import learner_params
-from metampc_plant import plant_params
+from metampc_plant import bridge_node, plant_params
 from metampc_recording import foxglove_params, recorder_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NODES = {('metampc_plant', 'plant'): plant_params.PARAMETERS,
+         ('metampc_plant', 'bridge'): bridge_node.PARAMETERS,
          ('metampc_controller', 'controller'): controller_params.PARAMETERS,
          ('metampc_controller', 'send_model'): send_model_node.PARAMETERS,
          ('metampc_learner', 'learner'): learner_params.PARAMETERS,
