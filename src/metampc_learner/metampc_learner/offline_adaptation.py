@@ -23,7 +23,7 @@ from metampc_model.nssm import Nssm, Params
 from metampc_plant.machine_mapping import load_mapping
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
-from metampc_learner.data import Trajectory, Windows
+from metampc_learner.data import longest_run, samples_in, Windows
 from metampc_learner.grid_samples import grid_samples, GridSamples
 from metampc_learner.heldout import heldout_loss
 from metampc_learner.meta_train import META_METHODS
@@ -98,8 +98,10 @@ def adapt_settings(method: str, config: OfflineConfig) -> Tuple[AdaptConfig, str
         except (OSError, yaml.YAMLError) as err:
             raise OfflineError(f'--config {config.config_file}: {" ".join(str(err).split())}') \
                 from None
-        entry = (data.get('adapt') or {}).get(method) or {} if isinstance(data, dict) else {}
-        listed = {k: entry[k] for k in ('steps', 'lr', 'gamma') if k in entry}
+        section = data.get('adapt') if isinstance(data, dict) else None
+        entry = section.get(method) if isinstance(section, dict) else None
+        if isinstance(entry, dict):
+            listed = {k: entry[k] for k in ('steps', 'lr', 'gamma') if k in entry}
     settings = AdaptConfig(**{**listed, **given})
     try:
         settings.validate()
@@ -113,10 +115,6 @@ def adapt_settings(method: str, config: OfflineConfig) -> Tuple[AdaptConfig, str
 def _usable(grid: GridSamples) -> TargetSamples:
     keep = np.flatnonzero(grid.usable)
     return TargetSamples(keep.astype(np.int64), grid.u[keep], grid.y[keep])
-
-
-def _longest(trajectories: List[Trajectory]) -> int:
-    return max((len(t) for t in trajectories), default=0)
 
 
 def tstep_rmse(model: Nssm, params: Params, windows: Windows) -> List[float]:
@@ -169,8 +167,8 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
     if len(train_w) == 0 or len(held_w) == 0:
         raise OfflineError(
             f'too few usable samples: {used} used ({len(usable)} usable of {len(grid.times)}); '
-            f'the longest runs without a skipped sample are {_longest(train)} (training) and '
-            f'{_longest(held)} (held out), each part needs H + T = {cfg.window}')
+            f'the longest runs without a skipped sample are {longest_run(train)} (training) and '
+            f'{longest_run(held)} (held out), each part needs H + T = {cfg.window}')
     log(f'{method}: {settings.steps} steps at lr {settings.lr:g} on '
         f'{len(train_w)} windows, {len(held_w)} held out')
 
@@ -181,7 +179,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         result = supervised(model, train_w, held_w, settings, config.seed, step_line)
     else:
         result = adapt(model, ckpt.params, train_w, held_w, settings, step_line)
-    n_train, n_held = sum(len(t) for t in train), sum(len(t) for t in held)
+    n_train, n_held = samples_in(train), samples_in(held)
     save_checkpoint(out, model, result.params, {
         'method': method, 'stage': 'adapted', 'train_loss': result.train_loss[-1],
         'train_steps': settings.steps, 'train_samples': n_train, 'seed': config.seed,
