@@ -29,7 +29,8 @@ _FLOATS = frozenset(FLOATING_POINT_TYPES)
 _STEP = re.compile(r'^([A-Za-z][A-Za-z0-9_]*)(?:\[(\d+)\])?$')
 _TOPIC = re.compile(r'^(~/|/)?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$')
 KEYS = {'': ('name', 'dt', 'stale_timeout', 'outputs', 'command'),
-        'output': ('name', 'unit', 'topic', 'type', 'field', 'scale', 'offset', 'stamp'),
+        'output': ('name', 'unit', 'topic', 'type', 'field', 'scale', 'offset', 'stamp', 'min',
+                   'max'),
         'command': ('topic', 'type', 'inputs', 'fixed'),
         'input': ('name', 'unit', 'field', 'scale', 'offset', 'min', 'max', 'safe')}
 
@@ -182,7 +183,8 @@ def _checked_leaf(path: FieldPath, type_name: str, kinds: frozenset, key: str, w
 
 @dataclass(frozen=True)
 class Output:
-    """Output y_i = scale * (field of the topic's message) + offset."""
+    """Output y_i = scale * (field of the topic's message) + offset; [min, max]: the range the
+    sensor reads (-inf, inf unless stated): a y_i at or beyond it is saturated."""
 
     name: str
     unit: str
@@ -191,6 +193,8 @@ class Output:
     field: FieldPath
     scale: float
     offset: float
+    min: float = -math.inf
+    max: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -254,6 +258,14 @@ class MachineMapping:
     @property
     def safe(self) -> np.ndarray:
         return np.array([i.safe for i in self.command.inputs])
+
+    @property
+    def y_min(self) -> np.ndarray:
+        return np.array([o.min for o in self.outputs])
+
+    @property
+    def y_max(self) -> np.ndarray:
+        return np.array([o.max for o in self.outputs])
 
     def stamp(self, topic: Topic, msg: Any, received: float) -> float:
         """A sample's time, s: its stamp field (sec + 1e-9 nanosec), or `received`."""
@@ -397,10 +409,14 @@ def _outputs(items: List[Any]) -> Tuple[Tuple[Output, ...], Tuple[Topic, ...]]:
                 raise MappingError(f'{key}.stamp: {topic} is stamped by '
                                    f'{known.stamp.text if known.stamp else RECEIVE} in an '
                                    'earlier output')
+        low = _number(data, 'min', key) if 'min' in data else -math.inf
+        high = _number(data, 'max', key) if 'max' in data else math.inf
+        if not low < high:
+            raise MappingError(f'{key}: min {low:g} must be below max {high:g}')
         outputs.append(Output(_text(data, 'name', key, f'y{i}'), _text(data, 'unit', key, ''),
                               topic, type_name, path,
                               _number(data, 'scale', key, 1.0, nonzero=True),
-                              _number(data, 'offset', key, 0.0)))
+                              _number(data, 'offset', key, 0.0), low, high))
         previous = known.outputs if known is not None else ()
         topics[topic] = Topic(topic, type_name, cls, stamp, previous + (i,))
     _unique([o.name for o in outputs], 'outputs')

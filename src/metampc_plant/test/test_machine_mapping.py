@@ -50,6 +50,7 @@ def test_the_example_file_maps_joint_states_to_y_and_u_to_a_float64_multi_array(
     assert m.output_values(topic, msg).tolist() == [0.25, -1.5]
     assert m.stamp(topic, msg, received=99.0) == 7.25
     assert (m.u_min.tolist(), m.u_max.tolist(), m.safe.tolist()) == ([-1.0], [1.0], [0.0])
+    assert (m.y_min.tolist(), m.y_max.tolist()) == ([-np.inf] * 2, [np.inf] * 2)
     command = m.command_message([0.75])
     assert isinstance(command, Float64MultiArray) and list(command.data) == [0.75]
     assert m.command_values(command).tolist() == [0.75]
@@ -65,6 +66,12 @@ def test_scale_and_offset_apply_both_ways():
     msg = m.command_message([0.5, 1.5])
     assert list(msg.data) == [-1.5, 0.0, 1.5]       # data[1] grown with 0.0
     assert m.command_values(msg).tolist() == [0.5, 1.5]
+
+
+def test_an_output_range_needs_only_the_side_that_is_stated():
+    assert parse_mapping(mapping_with(output={'max': 10})).y_max.tolist() == [10.0]
+    low = parse_mapping(mapping_with(output={'min': -0.5}))
+    assert (low.y_min.tolist(), low.y_max.tolist()) == ([-0.5], [np.inf])
 
 
 def test_nested_fields_fixed_arrays_sequences_of_messages_and_the_receive_stamp():
@@ -156,6 +163,8 @@ BAD = [
      'sensor_msgs/msg/JointState is double, not a builtin_interfaces/msg/Time (or receive)'),
     (mapping_with(output={'scael': 2.0}), 'outputs[0].scael: unknown key (expected one of '),
     (mapping_with(output={'scale': 0}), 'outputs[0].scale must be a finite number other than 0'),
+    (mapping_with(output={'min': 2, 'max': 1}), 'outputs[0]: min 2 must be below max 1'),
+    (mapping_with(output={'max': '.inf'}), "outputs[0].max must be a number, got '.inf'"),
     (mapping_with(output={'topic': 'joint states'}),
      "outputs[0].topic: 'joint states' is no topic name"),
     (mapping_with(outputs=[]), 'outputs: expected a non-empty list'),
