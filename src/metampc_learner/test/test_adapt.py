@@ -45,7 +45,10 @@ def test_adaptation_curves_and_proximal_pull(target):
     prox = adapt(model, init, train, held, AdaptConfig(steps=6, lr=0.05, gamma=10.0))
     assert _distance(prox.params, init) < _distance(plain.params, init)
     none = adapt(model, init, train, held, AdaptConfig(steps=0))
-    assert all(torch.equal(none.params[k], init[k]) for k in init)
+    # Unchanged up to the round trip of A through its stable parameterisation (float32: seen
+    # 1.5e-8 on one CPU, 0 on another), far below one step's change.
+    assert all(torch.allclose(none.params[k], init[k], rtol=1e-6, atol=1e-7) for k in init)
+    assert _distance(none.params, init) < 1e-4 * _distance(plain.params, init)
 
 
 def test_supervised_starts_from_the_seeded_random_init(target):
