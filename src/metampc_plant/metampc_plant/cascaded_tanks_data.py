@@ -17,7 +17,6 @@ from typing import Optional, Union
 import numpy as np
 
 SHA256 = 'ef2388ed822f3aef4aa80d6b0f2b466dd80b361786b3eafc7a2957c31ea323a7'
-SAMPLES = 1024
 TS = 4.0    # s
 
 
@@ -70,5 +69,5 @@ def load_cascaded_tanks(path: Optional[Union[str, Path]] = None) -> CascadedTank
     return CascadedTanksData(u_est=u_est, y_est=y_est, u_test=u_test, y_test=y_test, ts=TS)
 
 
-__all__ = ['SHA256', 'SAMPLES', 'TS', 'DataError', 'CascadedTanksData', 'shipped_file',
+__all__ = ['SHA256', 'TS', 'DataError', 'CascadedTanksData', 'shipped_file',
            'load_cascaded_tanks']
