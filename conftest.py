@@ -21,8 +21,9 @@ import pytest
 from metampc_testing import SESSION_ENV
 
 # The recorder fixtures and the session's one recorded closed-loop run, for the recording and the
-# bringup tests alike (test/ is on pythonpath).
-pytest_plugins = ['recording_fixtures']
+# bringup tests alike (test/ is on pythonpath); the joint robot's recording and a meta-model, for
+# adaptation from a recording.
+pytest_plugins = ['recording_fixtures', 'robot_recording']
 
 ORPHAN_GRACE_S = 5.0    # the bound: nothing of a stopped run left 5 s later
 

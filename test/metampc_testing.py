@@ -97,6 +97,24 @@ def dask_cluster(host: str, port: int, workers, tls=None, prefix=()):
                 proc.wait()
 
 
+@contextlib.contextmanager
+def example_script(args, log: Path):
+    """`python ARGS...` (a stand-in machine of examples/) in a session of its own, its output
+    in `log`; yields its Popen. Stopped on leaving by SIGINT (also when the body fails), which
+    it must answer with exit status 0 and nothing of its session left running."""
+    with open(log, 'w') as out:
+        proc = subprocess.Popen([sys.executable, *map(str, args)], stdout=out,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            yield proc
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGINT)
+            proc.wait(10.0)
+    assert proc.returncode == 0, log.read_text()
+    assert session_pids(proc) == []
+
+
 def make_certificates(folder: Path, name: str = 'ca'):
     """A CA of its own (`name`) and a certificate and key for 127.0.0.1 signed by it, made by
     the openssl command in `folder`, valid one day: (CA, certificate, key) PEM paths."""

@@ -2,8 +2,9 @@
 `python scripts/X.py --flag` names a flag the script's --help lists, each `ros2 run PKG EXE
 --ros-args -p name:=value` names an executable and a parameter that node declares, and each
 other `ros2 VERB ...` of a code block parses as written (metampc_ros2cli's parser, ros2cli's
-syntax). The commands are read from fenced and indented code blocks and from inline code
-spans (`python scripts/` and `ros2 run` only: a span may name a verb without its arguments)."""
+syntax), and each `ros2 run` of a command-line program names flags its --help lists. The
+commands are read from fenced and indented code blocks and from inline code spans (`python
+scripts/` and `ros2 run` only: a span may name a verb without its arguments)."""
 import functools
 import glob
 import os
@@ -17,16 +18,19 @@ import pytest
 from metampc_common.node_main import QOS_OVERRIDES, ROS_PARAMETERS
 from metampc_controller import controller_params, send_model_node
 from metampc_learner import learner_params
-from metampc_plant import plant_params
+from metampc_plant import bridge_node, plant_params
 from metampc_recording import foxglove_params, recorder_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NODES = {('metampc_plant', 'plant'): plant_params.PARAMETERS,
+         ('metampc_plant', 'bridge'): bridge_node.PARAMETERS,
          ('metampc_controller', 'controller'): controller_params.PARAMETERS,
          ('metampc_controller', 'send_model'): send_model_node.PARAMETERS,
          ('metampc_learner', 'learner'): learner_params.PARAMETERS,
          ('metampc_recording', 'recorder'): recorder_config.PARAMETERS,
          ('metampc_recording', 'foxglove'): foxglove_params.PARAMETERS}
+# Command-line programs of `ros2 run` (argparse, no ROS parameters): their parser's module.
+CLIS = {('metampc_learner', 'adapt_offline'): 'metampc_learner.adapt_offline'}
 # A usage template, not a command: `ros2 run PKG EXE`, `-p name:=value`.
 TEMPLATE = re.compile(r'ros2 run [A-Z_]+ |-p name:=value')
 PAGES = ['README.md'] + sorted(os.path.relpath(p, ROOT)
@@ -85,8 +89,11 @@ def test_script_flags_exist(page, command):
     assert not flags - listed, f'{page}: `{command}` uses {sorted(flags - listed)}'
 
 
-@pytest.mark.parametrize('page, command',
-                         [pc for pc in COMMANDS if pc[1].startswith('ros2 run ')])
+RUNS = [pc for pc in COMMANDS if pc[1].startswith('ros2 run ')]
+
+
+@pytest.mark.parametrize('page, command', [pc for pc in RUNS
+                                           if tuple(pc[1].split()[2:4]) not in CLIS])
 def test_ros2_run_names_declared_parameters(page, command):
     tokens = command.split()
     node = (tokens[2], tokens[3])
@@ -95,6 +102,17 @@ def test_ros2_run_names_declared_parameters(page, command):
     unknown = [n for n in names if n not in NODES[node] and n not in ROS_PARAMETERS
                and not n.startswith(QOS_OVERRIDES)]
     assert not unknown, f'{page}: `{command}` sets undeclared {unknown}'
+
+
+@pytest.mark.parametrize('page, command', [pc for pc in RUNS
+                                           if tuple(pc[1].split()[2:4]) in CLIS])
+def test_ros2_run_programs_name_their_flags(page, command):
+    import importlib
+    listed = set(re.findall(r'(--[a-z][a-z0-9-]*)', importlib.import_module(
+        CLIS[tuple(command.split()[2:4])]).parser().format_help()))
+    flags = {re.sub(r'[\[\]=].*$', '', t.strip('[]')) for t in command.split()
+             if t.strip('[').startswith('--')}
+    assert not flags - listed, f'{page}: `{command}` uses {sorted(flags - listed)}'
 
 
 @pytest.mark.parametrize('page, command', [

@@ -13,6 +13,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Module of a node's PARAMETERS: its page, or 'page#Section' where the page documents two nodes.
 NODE_PAGES = {
     'metampc_plant.plant_params': 'plant.md',
+    'metampc_plant.bridge_node': 'bridge.md',
     'metampc_controller.controller_params': 'controller.md#Parameters',
     'metampc_controller.send_model_node': 'controller.md#Sending a model by hand',
     'metampc_learner.learner_params': 'learner.md',

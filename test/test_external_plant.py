@@ -5,15 +5,12 @@ samples, meta-trains, adapts and publishes; the controller tracks with the adapt
 """
 import math
 import os
-import signal
-import subprocess
-import sys
 
 from metampc_msgs.msg import ControlInput, MpcStatus, PlantInfo, PlantOutput
 from metampc_msgs.srv import Adapt, MetaTrain
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from metampc_testing import session_pids
+from metampc_testing import example_script
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(ROOT, 'examples', 'external_plant', 'external_plant.py')
@@ -40,10 +37,7 @@ def test_an_external_plant_is_learned_and_controlled(procs, probe, tmp_path):
     probe.node.create_subscription(PlantInfo, 'plant_info', infos.append, LATCHED)
     probe.node.create_subscription(ControlInput, 'u', inputs.append, RELIABLE)
     probe.node.create_subscription(MpcStatus, 'mpc_status', statuses.append, RELIABLE)
-    log = open(tmp_path / 'external_plant.log', 'w')
-    plant = subprocess.Popen([sys.executable, SCRIPT, '0.1'], stdout=log,
-                             stderr=subprocess.STDOUT, start_new_session=True)
-    try:
+    with example_script([SCRIPT, '0.1'], tmp_path / 'external_plant.log'):
         learner = procs.start('metampc_learner', 'learner', params=LEARNER)
         controller = procs.start('metampc_controller', 'controller', params=CONTROLLER)
         meta = probe.node.create_client(MetaTrain, 'meta_train')
@@ -70,10 +64,3 @@ def test_an_external_plant_is_learned_and_controlled(procs, probe, tmp_path):
         assert all(all(math.isfinite(v) for v in m.y) and not m.diverged for m in ys)
         for proc in (controller, learner):
             assert procs.interrupt(proc) == 0, procs.output(proc)
-    finally:
-        if plant.poll() is None:
-            os.killpg(plant.pid, signal.SIGINT)
-        plant.wait(10.0)
-        log.close()
-    assert plant.returncode == 0, open(tmp_path / 'external_plant.log').read()
-    assert session_pids(plant) == []

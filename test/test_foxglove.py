@@ -20,11 +20,11 @@ from rclpy.serialization import deserialize_message
 from websockets.exceptions import ConnectionClosed
 
 from metampc_bringup.analysis.run_series import DEFAULT_TOPICS
+from metampc_common.message_types import message_class
 from metampc_recording.foxglove_client import FoxgloveClient
 from metampc_recording.foxglove_server import LiveServer
 from metampc_recording.msg_schema import (DefinitionSource, MessageDefinition,
                                           package_share_directory)
-from metampc_recording.rclpy_adapters import message_class
 from metampc_testing import own_lines, session_pids
 
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)

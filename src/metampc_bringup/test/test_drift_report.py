@@ -7,8 +7,8 @@ import pytest
 
 from metampc_bringup.analysis.drift_report import (drift_experiment_report, MOVING_WINDOW_S,
                                                    moving_cost, RECOVERY_FACTOR, recovery_time,
-                                                   refusals, run_metrics, RunSignals,
-                                                   squared_errors)
+                                                   refusal_kind, refusals, run_metrics,
+                                                   RunSignals, squared_errors)
 
 
 def test_moving_cost_is_the_trailing_mean():
@@ -39,7 +39,8 @@ def signals(y, ref, version=None, requests=()):
                       error_t=np.ones(n - 1), change_t=np.zeros(n - 1),
                       request=np.isin(steps, requests),
                       trigger=['triggered' if k in requests else '' for k in steps],
-                      ref=np.asarray(ref, float).reshape(n - 1, 1), compute=[0.2])
+                      ref=np.asarray(ref, float).reshape(n - 1, 1), compute=[0.2],
+                      model_status=['ok'] * (n - 1))
 
 
 def test_run_metrics_against_hand_computed_costs():
@@ -127,6 +128,18 @@ def test_refusals_are_the_statuses_that_turn_to_a_new_rejection():
                         'rejected: bad weights: nan', 'rejected: check: b', 'rejected: check: b']
     assert refusals(sig) == [[1, 'check: a'], [4, 'bad weights: nan'], [5, 'check: b']]
     assert run_metrics(sig, None, None, [0], 0.1)['refusals'] == refusals(sig)
+
+
+def test_a_revert_after_probation_is_counted_as_one_and_is_no_swap():
+    """Model 2 flies at step 2 and is reverted to model 1 at step 5: one swap (2), one
+    refusal of kind 'revert' with its whole status."""
+    sig = signals(np.zeros(8), np.zeros(7), version=[1, 1, 2, 2, 2, 1, 1])
+    sig.model_status = ['ok'] * 5 + ['reverted: check: worse'] * 2
+    m = run_metrics(sig, None, None, [0], 0.1)
+    assert m['swaps'] == [2] and m['adaptations'] == 1
+    assert m['refusals'] == [[5, 'reverted: check: worse']]
+    assert refusal_kind(m['refusals'][0][1]) == 'revert'
+    assert refusal_kind('check: b') == 'check'
 
 
 def test_each_adapting_mode_is_paired_with_none_by_seed(tmp_path):

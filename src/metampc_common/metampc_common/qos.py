@@ -1,8 +1,9 @@
 """The QoS profiles of the metampc graph, each defined once so that both ends of a topic agree.
 
-Every profile is reliable: the lockstep plant waits for the answer to each sample, and a lost
-sample or model would make a seeded run irreproducible. docs/plant.md, controller.md and
-learner.md list the profile of every topic.
+Every profile of metampc's own topics is reliable: the lockstep plant waits for the answer to
+each sample, and a lost sample or model would make a seeded run irreproducible. A machine's
+own topics, read by the bridge, are best effort (:data:`MACHINE`). docs/plant.md,
+controller.md, learner.md and bridge.md list the profile of every topic.
 """
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
@@ -30,3 +31,7 @@ SPARSE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # late still gets the events published before (the analysis reads the phases from them).
 EVENTS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# A machine's own topics, read by the bridge: best effort matches any writer, reliable or best
+# effort (a sensor driver's is often best effort, and a reliable reader would get nothing).
+MACHINE = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT,
+                     durability=DurabilityPolicy.VOLATILE)

@@ -443,7 +443,7 @@ class ControllerCore:
         trial = self.tried(request_step)
         with self._setup_lock:      # not between set_plant's clock rule and the offer
             bundle.mpc.set_time_limit(self._time_limit())
-            start = self.swap.offer(bundle, request_step, trial)
+            start = self.swap.offer(bundle, request_step, trial, self._probation(request_step))
         if start is None and trial:
             # Its request ended (given up) since vet() left it to a trial: a late answer now,
             # checked at arrival like one.
@@ -495,18 +495,31 @@ class ControllerCore:
             return 0
         return config.model_check.model_check_trial
 
-    def _verdict(self, bundle: ModelBundle, **samples) -> Verdict:
+    def _probation(self, request_step: int) -> int:
+        """Samples the answer naming `request_step` is on probation for once it flies (0:
+        none): ``model_check_probation`` for the answer to the pending request when the check
+        applies."""
+        config = self.tuning.config
+        if not (applies(config.model_check, bool(request_step))
+                and self.swap.answers(request_step)):
+            return 0
+        return config.model_check.model_check_probation
+
+    def _verdict(self, bundle: ModelBundle, reference: Optional[ModelBundle] = None,
+                 **samples) -> Verdict:
         """:func:`model_check.check` of `bundle` on the episode's samples (`samples`: check's
-        `scored` and `where`; default the latest window) against the model in use when
-        `bundle` is of its method, persistence otherwise."""
+        `scored` and `where`; default the latest window) against `reference` (default the
+        model in use) when `bundle` is of its method, persistence otherwise."""
         u, y = self.history.snapshot()
-        current, config = self.model, self.config
+        current, config = reference or self.model, self.config
         same = current is not None and current.method == bundle.method
         planned = config.model_check.model_check_as_planned
         return check(bundle.predictor, current.predictor if same else None, u, y,
                      config.mpc.horizon, config.model_check,
                      offset_free=config.mpc.offset_free if planned else 'none',
-                     disturbance_gain=config.mpc.disturbance_gain, **samples)
+                     disturbance_gain=config.mpc.disturbance_gain,
+                     current_name='the model it replaced' if reference else 'the model in use',
+                     **samples)
 
     def reject_model(self, reason: str) -> None:
         """Report rejected weights; the previous model stays in use (builder thread)."""
@@ -734,10 +747,10 @@ class ControllerCore:
         history = self.history
         step = history.step
         with self._setup_lock:  # not between a retune's rebuild of the answer and its swap
-            answer = self.swap.due(step)
+            answer = self.swap.due(step, self.model)
             if answer is not None:
                 self._setup = self._setup._replace(model=answer, model_status='ok')
-            verdict = self._end_trial(step)
+            verdict = self._end_trial(step) or self._end_probation(step)
         tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)
@@ -774,9 +787,27 @@ class ControllerCore:
         # Scored on samples first..step (the H before them as history).
         verdict = self._verdict(bundle, scored=step - first + 1,
                                 where=f'its trial from step {first}, unseen by its adaptation')
-        self.swap.judged(bundle, verdict.ok)
+        self.swap.judged(step, bundle, verdict.ok, self.model)
         self._setup = self._setup._replace(model=bundle, model_status='ok') if verdict.ok \
             else self._setup._replace(model_status=f'rejected: {verdict.reason}')
+        return verdict.reason
+
+    def _end_probation(self, step: int) -> str:
+        """Judge the flown answer whose probation the tick of `step` ends (under the set-up
+        lock), on the samples of its own loop against the model it replaced: kept, or that
+        model comes back with the reason in model_status ('reverted: ...'). Returns the
+        verdict's line ('' if no probation ended)."""
+        over = self.swap.probation_over(step)
+        if over is None:
+            return ''
+        first, flown, replaced = over
+        verdict = self._verdict(flown, replaced, scored=step - first + 1,
+                                where=f'its probation from step {first}, on its own loop')
+        self.swap.kept(flown, verdict.ok)
+        if not verdict.ok:
+            replaced.mpc.reset()        # cold, as on a new model: its plan and p are stale
+            self._setup = self._setup._replace(model=replaced,
+                                               model_status=f'reverted: {verdict.reason}')
         return verdict.reason
 
     @staticmethod

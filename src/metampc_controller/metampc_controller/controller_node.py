@@ -43,7 +43,7 @@ from metampc_plant.plant_description import PlantDescription
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
             'retunes', 'adapt_requests', 'adapt_timeouts', 'adapt_refusals', 'refused_models',
-            'dropped')
+            'reverted_models', 'dropped')
 DELIVERY_TIMEOUT = Duration(seconds=10.0)   # deactivation's wait for the readers' acks
 HOLD_POLL_S = 0.002     # how often an answer waiting for a requested model looks for it, s
 
@@ -182,14 +182,18 @@ class ControllerNode(Node):
         self._counts['fallbacks'] += res.fallback
 
     def _end_of_trial(self, res: TickResult) -> None:
-        """Say what the tick that ended a requested model's trial decided."""
-        if res.model_status.startswith('rejected:'):
+        """Say what the tick that ended a requested model's trial or probation decided."""
+        if res.model_status.startswith('reverted:'):
+            self._counts['reverted_models'] += 1
+            self.get_logger().error(f'reverted to model version {res.model_version} at step '
+                                    f'{res.step}: {res.verdict}')
+        elif res.model_status.startswith('rejected:'):
             self._counts['refused_models'] += 1
             self._counts['rejected_weights'] += 1
             self.get_logger().error(f'refused the model tried until step {res.step}: '
                                     f'{res.verdict}; model in use: {res.model_version}')
         else:
-            self.get_logger().info(f'model version {res.model_version} in use from step '
+            self.get_logger().info(f'model version {res.model_version} in use at step '
                                    f'{res.step}: {res.verdict}')
 
     def _publish_status(self, res: TickResult, tick_time: float) -> None:
@@ -335,7 +339,8 @@ class ControllerNode(Node):
         then (in either clock mode: an unanswered request blocks the next ones)."""
         def expire():
             self.destroy_timer(timer)
-            if self.core.trigger.pending is not request:     # answered (or given up) already
+            # Answered (or given up) already, or its answer is queued, tried or on probation.
+            if self.core.trigger.pending is not request or self.core.swap.holds_answer():
                 return
             self._give_up('adapt_timeouts', f'no model answered the adaptation request of step '
                           f'{request.step} within {self.cfg.trigger.adapt_timeout} s: going on '

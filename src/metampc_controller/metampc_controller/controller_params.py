@@ -205,11 +205,12 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
     node.excitation_seed = excitation.seed
     node.trigger = build(TRIGGER, values)
     node.model_check = build(CHECK, values)
-    trial = node.model_check.model_check_trial
-    if 0 < trial < mpc.horizon:
-        raise ParameterError(f'model_check_trial must be 0 or at least horizon ({mpc.horizon}) '
-                             f'samples, so that its check scores at least one prediction; '
-                             f'got {trial}')
+    for name in ('model_check_trial', 'model_check_probation'):
+        samples = getattr(node.model_check, name)
+        if 0 < samples < mpc.horizon:
+            raise ParameterError(f'{name} must be 0 or at least horizon ({mpc.horizon}) '
+                                 f'samples, so that its check scores at least one prediction; '
+                                 f'got {samples}')
     node.hold = build(HOLD, values)
     return node
 

@@ -42,6 +42,11 @@ class ModelCheckConfig:
                                        '(scored on them alone: its adaptation never saw them); '
                                        '0: checked at arrival like any model; else at least '
                                        'the horizon', ge=0, le=900, live=True)
+    model_check_probation: int = param(0, 'samples a requested model that flew is judged on, '
+                                          'on its own loop, against the model it replaced, '
+                                          'which comes back if it predicts them better; 0: '
+                                          'none; else at least the horizon', ge=0, le=900,
+                                       live=True)
     model_check_stride: int = param(5, 'samples between the starts of the scored predictions',
                                     ge=1, live=True)
     model_check_as_planned: bool = param(False, 'score each model as the MPC plans with it: '
@@ -127,13 +132,14 @@ def _corrected(model: NssmPredictor, u: np.ndarray, y: np.ndarray, horizon: int,
 def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndarray,
           y: np.ndarray, horizon: int, config: ModelCheckConfig, scored: Optional[int] = None,
           where: str = 'the latest of the episode', offset_free: str = 'none',
-          disturbance_gain: float = 0.5) -> Verdict:
+          disturbance_gain: float = 0.5, current_name: str = 'the model in use') -> Verdict:
     """Verdict on `candidate` against `current` (None: persistence) on the last `scored`
     samples (default ``model_check_window``) of the episode's u (K, n_u), y (K, n_y), the H
     before them as history (module docstring); `where` names them in the reason. With an
     `offset_free` form each model is scored as the MPC plans with it: corrected by its own
     disturbance estimate (gain `disturbance_gain`), run from up to :func:`warmup` samples
-    before the scored ones. Which models to check is the caller's (:func:`applies`)."""
+    before the scored ones; `current_name` names `current` in the reason. Which models to
+    check is the caller's (:func:`applies`)."""
     h = max(candidate.config.history, current.config.history if current is not None else 1)
     scored = config.model_check_window if scored is None else scored
     if min(len(y), scored + h) < h + horizon + 1:
@@ -158,7 +164,7 @@ def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndar
     except ValueError as err:          # its disturbance is not detectable: it cannot fly
         return Verdict(False, f'check: {err}')
     ref = n_step_error(scorer(current), *args)
-    what = 'the model in use' if current is not None else 'persistence (y stays)'
+    what = current_name if current is not None else 'persistence (y stays)'
     kind = f'{horizon}-step prediction error' + (
         f' (offset-free {offset_free}, as planned)' if corrected else '')
     n = len(y) - first - 1

@@ -143,22 +143,25 @@ def test_history_snapshot_is_the_episode_oldest_first():
     assert core.history.snapshot()[0].tolist() == [[9.0]]
 
 
-def _tried_run(trial: int, candidate: DecodedWeights, flip_at: int = 10 ** 9):
+def _tried_run(trial: int, candidate: DecodedWeights, flip_at: int = 10 ** 9,
+               probation: int = 0, flip_until: int = 10 ** 9, steps: int = 100):
     """A lockstep core on the plant (theta 0.5) with the good model in use, periodic requests
-    every 4 s (step 40, swap step 50), `candidate` answering the first one at step 45, and the
-    plant's input negated from step `flip_at` on (a plant that changed at once: the flipped
-    model is then the right one). Returns the tick results of steps 0..99, the answer's vet
-    or offer_model result before that of step 45."""
+    every 4 s (step 40, swap step 50), `candidate` answering the first one at step 45 (tried
+    for `trial` samples, then on `probation`), and the plant's input negated from step
+    `flip_at` to `flip_until` (a plant that changed at once: the flipped model is then the
+    right one). Returns the tick results of steps 0..steps - 1, the answer's vet or
+    offer_model result before that of step 45."""
     config = ControllerConfig(reference_kind='setpoint', reference_params={'value': 0.5},
                               mpc=MPC, trigger=TriggerConfig(adaptation='periodic',
                                                              adapt_period=4.0),
-                              model_check=ModelCheckConfig(model_check_trial=trial))
+                              model_check=ModelCheckConfig(model_check_trial=trial,
+                                                           model_check_probation=probation))
     core = ControllerCore(config)
     core.set_plant(PlantDescription('vanderpol', 0.1, (-1.0,), (1.0,), 2, True))
     core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
     plant = Plant(PlantConfig(theta=(0.5,)))
     y, u, results = plant.output(), 0.0, []
-    for k in range(100):
+    for k in range(steps):
         core.observe(k, [u], y)
         if k == 45:
             bundle = build_model(candidate, 2, 'manual', 'adapted', MPC, 1, 2)
@@ -167,7 +170,7 @@ def _tried_run(trial: int, candidate: DecodedWeights, flip_at: int = 10 ** 9):
         res = core.tick()
         results.append(res)
         u = float(res.u[0])
-        y = plant.step([-u if k + 1 >= flip_at else u])
+        y = plant.step([-u if flip_at <= k + 1 < flip_until else u])
     return results
 
 
@@ -196,6 +199,36 @@ def test_a_tried_answer_that_predicts_worse_is_refused_and_the_loop_goes_on():
     assert ticks[75].verdict.startswith('check: its 20-step prediction error')
     assert all(r.model_status.startswith('rejected: check:') for r in ticks[75:])
     assert [r.request.step for r in ticks if r.request] == [40, 80]
+
+
+def test_a_flown_answer_that_predicts_its_own_loop_worse_is_reverted_and_the_loop_goes_on():
+    """The plant is flipped during the trial only (steps 50-74): the flipped answer passes it
+    and flies at 75 on probation; the plant is itself again, and on the 51 samples of the
+    answer's own loop the model it replaced predicts better: at 125 that model (version 1)
+    comes back, model_status says why, and the trigger asks again at once (its request was
+    pending through the probation: none at 80 or 120)."""
+    ticks = [r for r in _tried_run(25, manual(flip=True), flip_at=50, probation=50,
+                                   flip_until=75, steps=150) if isinstance(r, TickResult)]
+    assert [r.model_version for r in ticks] == [1] * 75 + [2] * 50 + [1] * 25
+    assert [r.step for r in ticks if r.verdict] == [75, 125]
+    assert ticks[75].verdict.startswith('check passed')
+    assert ticks[125].verdict.startswith('check: its 20-step prediction error') and (
+        'on 51 samples (its probation from step 75, on its own loop)' in ticks[125].verdict
+        and ticks[125].verdict.endswith('of the model it replaced'))
+    assert all(r.model_status.startswith('reverted: check:') for r in ticks[125:])
+    assert [r.request.step for r in ticks if r.request] == [40, 125]
+    assert all(r.solver_status == 'solved' for r in ticks)
+
+
+def test_a_flown_answer_that_stays_the_better_predictor_is_kept_after_its_probation():
+    """The plant stays flipped from step 50: the flipped answer flies at 75 and is kept at
+    125, the request answered then (the next one at once: its period has passed)."""
+    ticks = [r for r in _tried_run(25, manual(flip=True), flip_at=50, probation=50,
+                                   steps=150) if isinstance(r, TickResult)]
+    assert [r.model_version for r in ticks] == [1] * 75 + [2] * 75
+    assert [r.step for r in ticks if r.verdict] == [75, 125]
+    assert ticks[125].verdict.startswith('check passed') and ticks[125].model_status == 'ok'
+    assert [r.request.step for r in ticks if r.request] == [40, 125]
 
 
 def linear_data(model: NssmPredictor, bias, steps=200, seed=0):

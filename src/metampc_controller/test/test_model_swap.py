@@ -125,9 +125,58 @@ def test_an_answer_with_a_trial_is_tried_from_its_swap_step_then_judged():
         assert swap.trigger.pending is not None         # not answered while tried
         assert [swap.trial_over(k) for k in (33, 34)] == [None, None]
         assert swap.trial_over(35) == (30, Model(2)) and swap.trial_over(36) is None
-        swap.judged(Model(2), ok)
-        assert swap.trigger.pending is None
+        swap.judged(35, Model(2), ok, Model(1))
+        assert swap.trigger.pending is None and not swap.holds_answer()
         assert swap.trigger._version == (2 if ok else 1)     # whose baseline is measured
+
+
+def test_a_flown_answer_on_probation_keeps_its_request_until_the_verdict():
+    """Probation of 5 samples, no trial: the answer flies at the tick of 30, the request stays
+    pending (no new one, nothing waits) until the tick of 35 ends the probation with (30, the
+    answer, the model it replaced); kept answers the request for it, a revert ends it with
+    the replaced model's baseline."""
+    for ok in (True, False):
+        swap = asked(lockstep=True)
+        assert swap.offer(Model(2), 20, probation=5) == 30
+        assert swap.due(30, Model(1)) == Model(2)
+        assert swap.trigger.pending is not None and swap.holds_answer()
+        assert not any(swap.waits(k) for k in range(30, 36))
+        assert swap.trigger.update(34, DT, math.nan, math.nan, 2) is None   # no new request
+        assert [swap.probation_over(k) for k in (33, 34)] == [None, None]
+        assert swap.probation_over(35) == (30, Model(2), Model(1))
+        assert swap.probation_over(36) is None and not swap.holds_answer()
+        swap.kept(Model(2), ok)
+        assert swap.trigger.pending is None
+        assert swap.trigger._version == (2 if ok else 1)
+
+
+def test_probation_follows_a_passed_trial_and_is_skipped_without_a_replaced_model():
+    swap = asked(lockstep=True)
+    swap.offer(Model(2), 20, trial=5, probation=20)
+    run(swap, range(28, 36))
+    swap.trial_over(35)
+    swap.judged(35, Model(2), True, Model(1))        # flies at 35, on probation until 55
+    assert swap.trigger.pending is not None
+    assert swap.probation_over(54) is None
+    assert swap.probation_over(55) == (35, Model(2), Model(1))
+    swap.retune(lambda m: Model(m.version + 10))     # nothing held any more
+    first = asked(lockstep=True)                     # no model in use before: nothing to judge
+    first.offer(Model(2), 20, probation=5)
+    assert first.due(30, None) == Model(2) and first.trigger.pending is None
+
+
+def test_a_retune_rebuilds_the_replaced_model_and_a_new_episode_forgets_the_probation():
+    swap = asked(lockstep=True)
+    swap.offer(Model(2), 20, probation=5)
+    swap.due(30, Model(1))
+    swap.retune(lambda m: Model(m.version + 10))
+    assert swap.probation_over(35) == (30, Model(2), Model(11))
+    swap = asked(lockstep=True)
+    swap.offer(Model(2), 20, probation=5)
+    swap.due(30, Model(1))
+    swap.trigger.new_episode()
+    swap.new_episode()
+    assert swap.probation_over(35) is None and not swap.holds_answer()
 
 
 def test_in_real_time_a_trial_starts_at_the_next_tick():

@@ -54,6 +54,16 @@ class Trajectory:
         return self.steps.shape[0]
 
 
+def samples_in(trajectories: Sequence[Trajectory]) -> int:
+    """The samples of all `trajectories`."""
+    return sum(len(t) for t in trajectories)
+
+
+def longest_run(trajectories: Sequence[Trajectory]) -> int:
+    """The longest run of consecutive valid samples (the longest trajectory; 0 for none)."""
+    return max((len(t) for t in trajectories), default=0)
+
+
 def trajectories_from_samples(steps: np.ndarray, u: np.ndarray, y: np.ndarray,
                               state_bound: float = np.inf) -> List[Trajectory]:
     """Split buffered samples into trajectories (what the learner node calls on its buffer).
@@ -388,6 +398,6 @@ class SourceSet:
                      for part in (train, test))
 
 
-__all__ = ['Trajectory', 'trajectories_from_samples', 'windows', 'split_by_time',
-           'normalisation_from', 'Windows', 'SourceConfig', 'simulate_episodes', 'SourceData',
-           'simulate_source', 'simulate_target', 'SourceSet']
+__all__ = ['Trajectory', 'samples_in', 'longest_run', 'trajectories_from_samples', 'windows',
+           'split_by_time', 'normalisation_from', 'Windows', 'SourceConfig', 'simulate_episodes',
+           'SourceData', 'simulate_source', 'simulate_target', 'SourceSet']

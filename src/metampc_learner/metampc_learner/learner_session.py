@@ -20,8 +20,8 @@ import numpy as np
 from metampc_model.nssm import init_params, Nssm, Params
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
-from metampc_learner.data import (normalisation_from, simulate_source, SourceConfig,
-                                  SourceData, SourceSet, Trajectory, Windows)
+from metampc_learner.data import (longest_run, normalisation_from, samples_in,
+                                  simulate_source, SourceConfig, SourceData, SourceSet, Windows)
 from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
 from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
@@ -94,15 +94,6 @@ class AdaptOutcome:
     used_samples: int
     train_samples: int
     heldout_samples: int
-
-
-def _samples(trajectories: List[Trajectory]) -> int:
-    return sum(len(t) for t in trajectories)
-
-
-def _longest(trajectories: List[Trajectory]) -> int:
-    """The longest run of consecutive valid samples."""
-    return max((len(t) for t in trajectories), default=0)
 
 
 @dataclass
@@ -203,7 +194,7 @@ class LearnerSession:
         result = meta_train(model, source, config, progress, collector)
         tail = [v for v in result.losses[-FINAL_LOSS_STEPS:] if math.isfinite(v)]
         final = float(np.mean(tail)) if tail else math.nan
-        samples = (sum(_samples(ts) for ts in self._source_data().trajectories)
+        samples = (sum(samples_in(ts) for ts in self._source_data().trajectories)
                    + result.collected_samples)
         record = self._new_record(model=model, params=result.params, method=config.method,
                                   stage='meta', train_loss=final,
@@ -288,10 +279,10 @@ class LearnerSession:
                 least = math.ceil(window / min(cfg.heldout_fraction, 1 - cfg.heldout_fraction))
                 raise LearnerError(
                     f'too few target samples: {len(samples)} buffered, {used} used, of which '
-                    f'{_samples(train)} valid for training and {_samples(held)} held out; each '
-                    f'part needs a run of H + T = {window} consecutive valid samples (about '
+                    f'{samples_in(train)} valid for training and {samples_in(held)} held out; '
+                    f'each part needs a run of H + T = {window} consecutive valid samples (about '
                     f'{least} buffered samples in all without gaps); the longest runs are '
-                    f'{_longest(train)} and {_longest(held)} samples, broken by '
+                    f'{longest_run(train)} and {longest_run(held)} samples, broken by '
                     f'{max(len(train) - 1, 0) + max(len(held) - 1, 0)} gap(s): steps that '
                     'never reached the learner or left the state box')
             step_config = AdaptConfig(job.steps, job.lr, job.gamma)
@@ -302,8 +293,8 @@ class LearnerSession:
         record = self._new_record(
             model=model, params=result.params, method=job.method or meta.method,
             stage='adapted', train_loss=result.train_loss[-1], train_steps=job.steps,
-            train_samples=_samples(train), seed=seed, train_time=result.elapsed)
-        return AdaptOutcome(record, result, used, _samples(train), _samples(held))
+            train_samples=samples_in(train), seed=seed, train_time=result.elapsed)
+        return AdaptOutcome(record, result, used, samples_in(train), samples_in(held))
 
     def loop_adapt(self, version: int, samples: TargetSamples,
                    progress: Optional[ProgressFn] = None) -> AdaptOutcome:
@@ -327,7 +318,7 @@ class LearnerSession:
         train_w = Windows.from_trajectories(train, model.norm, model.config)
         if len(train_w) == 0:
             raise LearnerError(f'too few samples: the window holds {len(samples)}, its longest '
-                               f'run of consecutive valid samples is {_longest(train)}, a '
+                               f'run of consecutive valid samples is {longest_run(train)}, a '
                                f'window needs H + T = {model.config.window}')
         loop = cfg.loop
         no_heldout = Windows.from_trajectories([], model.norm, model.config)
@@ -336,9 +327,9 @@ class LearnerSession:
                        anchor=anchor)
         new = self._new_record(model=model, params=result.params, method=record.method,
                                stage='online', train_loss=result.train_loss[-1],
-                               train_steps=loop.steps, train_samples=_samples(train),
+                               train_steps=loop.steps, train_samples=samples_in(train),
                                seed=record.seed, train_time=result.elapsed)
-        return AdaptOutcome(new, result, used, _samples(train), 0)
+        return AdaptOutcome(new, result, used, samples_in(train), 0)
 
 
 __all__ = ['LearnerError', 'ModelRecord', 'MetaOutcome', 'AdaptOutcome', 'LearnerSession']

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from metampc_model.nssm_config import NssmConfig
-from metampc_learner.data import (normalisation_from, simulate_episodes, simulate_source,
+from metampc_learner.data import (longest_run, normalisation_from, samples_in,
+                                  simulate_episodes, simulate_source,
                                   simulate_target, SourceConfig, SourceData, SourceSet,
                                   split_by_time, Trajectory, trajectories_from_samples,
                                   Windows, windows)
@@ -48,6 +49,8 @@ def test_buffered_samples_split_at_gaps_non_finite_and_bound():
     for t in trajs:
         assert np.all(np.isfinite(t.y)) and np.abs(t.y).max() <= 10.0
     assert trajectories_from_samples([], np.zeros(0), np.zeros((0, 2))) == []
+    assert (samples_in(trajs), longest_run(trajs)) == (11, 6)
+    assert (samples_in([]), longest_run([])) == (0, 0)
 
 
 def test_windows_stay_inside_one_trajectory():

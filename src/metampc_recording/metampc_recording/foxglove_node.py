@@ -11,13 +11,14 @@ import sys
 from functools import partial
 from typing import Dict, Set
 
+from metampc_common.message_types import message_class
 from metampc_common.node_main import declare_parameters, run_node
 from metampc_common.params import ParameterError
 from metampc_recording.foxglove_params import parse_params, PARAMETERS
 from metampc_recording.foxglove_server import LiveServer
 from metampc_recording.graph_topics import default_topic, new_topics, resolve_topics
 from metampc_recording.msg_schema import DefinitionNotFoundError
-from metampc_recording.rclpy_adapters import message_class, qos_to_rclpy
+from metampc_recording.rclpy_adapters import qos_to_rclpy
 from metampc_recording.rosbag2_qos import request_for_offers
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node

@@ -14,6 +14,8 @@ import re
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Set, Tuple
 
+from metampc_common.message_types import split_type_name
+
 DELIMITER = '=' * 80 + '\n'
 _MARKER = os.path.join('share', 'ament_index', 'resource_index', 'packages')
 # rosbag2's MSG_FIELD_TYPE_REGEX and IDL_FIELD_TYPE_REGEX (ECMAScript: '^' is start of text only).
@@ -22,8 +24,6 @@ _IDL_INCLUDE = re.compile(r'(?:^|\n)#include\s+(?:"|<)([a-zA-Z0-9_/]+)\.idl(?:"|
 _PRIMITIVES = frozenset({
     'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16', 'uint16', 'int32',
     'uint32', 'int64', 'uint64', 'string'})
-_ROS_NAME = r'[a-zA-Z][a-zA-Z0-9_]*'
-_TYPE_NAME = re.compile(rf'^({_ROS_NAME})/(?:({_ROS_NAME})/)?({_ROS_NAME})$')
 _MAX_DEPTH = 50
 
 
@@ -55,15 +55,6 @@ def package_share_directory(package: str, prefixes: Optional[List[str]] = None) 
         if os.path.isfile(os.path.join(prefix, _MARKER, package)):
             return os.path.join(prefix, 'share', package)
     raise DefinitionNotFoundError(f'package {package!r} is not in the ament index')
-
-
-def split_type_name(type_name: str) -> Tuple[str, str, str]:
-    """'pkg/msg/Type' or 'pkg/Type' -> ('pkg', 'msg', 'Type'); ValueError for anything else."""
-    match = _TYPE_NAME.match(type_name)
-    if match is None:
-        raise ValueError(f'invalid type name {type_name!r}')
-    package, namespace, name = match.groups()
-    return package, namespace or 'msg', name
 
 
 def _dependencies(fmt: str, text: str, package: str) -> List[str]:

@@ -13,7 +13,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Dict, List
 
-from metampc_recording.rclpy_adapters import message_class, qos_to_rclpy
+from metampc_common.message_types import message_class
+from metampc_recording.rclpy_adapters import qos_to_rclpy
 from metampc_recording.recording_reader import read_recording, Recording
 from metampc_recording.rosbag2_qos import offer_for_recorded, profiles_from_yaml, QosProfile
 import rclpy

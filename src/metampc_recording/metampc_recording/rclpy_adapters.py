@@ -1,11 +1,7 @@
 """Conversions between rclpy objects and the plain data of the recording cores.
 
-Shared by the recorder and the player nodes: rclpy QoSProfile <-> :class:`QosProfile`, and the
-Python message class of a type name.
+Shared by the recorder, the player and the live view: rclpy QoSProfile <-> :class:`QosProfile`.
 """
-import importlib
-
-from metampc_recording.msg_schema import split_type_name
 from metampc_recording.rosbag2_qos import QosProfile
 from rclpy.duration import Duration
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
@@ -40,9 +36,3 @@ def qos_to_rclpy(profile: QosProfile) -> QoSProfile:
         liveliness=_policy(LivelinessPolicy, profile.liveliness),
         liveliness_lease_duration=Duration(nanoseconds=profile.liveliness_lease_duration_ns),
         avoid_ros_namespace_conventions=profile.avoid_ros_namespace_conventions)
-
-
-def message_class(type_name: str) -> type:
-    """The generated Python class of 'pkg/msg/Type' (ImportError/AttributeError if absent)."""
-    package, namespace, name = split_type_name(type_name)
-    return getattr(importlib.import_module(f'{package}.{namespace}'), name)

@@ -29,7 +29,7 @@ def interface_class(type_name: str, kind: str) -> Any:
     Raises:
         RuntimeError: not the full name of an interface of that kind that is installed.
     """
-    from metampc_recording.rclpy_adapters import message_class
+    from metampc_common.message_types import message_class
     parts = type_name.split('/')
     if len(parts) == 2:
         parts.insert(1, kind)

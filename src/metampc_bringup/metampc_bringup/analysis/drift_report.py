@@ -164,18 +164,23 @@ def _mean(values: np.ndarray) -> Optional[float]:
 
 
 def refusals(sig: RunSignals) -> List[List[Any]]:
-    """[step, reason] of each model the controller refused: a status whose model_status turns
-    to a new 'rejected: <reason>'."""
+    """[step, reason] of each model the controller refused or reverted after its probation: a
+    status whose model_status turns to a new 'rejected: <reason>' (reason) or 'reverted:
+    <reason>' (kept whole)."""
     out, last = [], ''
     for step, status in zip(sig.step, sig.model_status):
-        if status.startswith('rejected: ') and status != last:
-            out.append([int(step), status[len('rejected: '):]])
+        if status != last and status.startswith(('rejected: ', 'reverted: ')):
+            out.append([int(step), status[len('rejected: '):]
+                        if status.startswith('rejected: ') else status])
         last = status
     return out
 
 
 def refusal_kind(reason: str) -> str:
-    """'check' for the model check's refusals, else the reason's first words (bad weights)."""
+    """'check' for the model check's refusals, 'revert' for a model reverted after its
+    probation, else the reason's first words (bad weights)."""
+    if reason.startswith('reverted: '):
+        return 'revert'
     return 'check' if reason.startswith('check:') else reason.split(':')[0][:40]
 
 
@@ -187,8 +192,9 @@ def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[
     other between identical runs)."""
     e2 = squared_errors(sig, tracked)
     t = (sig.step + 1) * dt     # the time of the output each error is of
-    swaps = [int(sig.step[i]) for i in range(1, len(sig.step))
-             if sig.model_version[i] != sig.model_version[i - 1]]
+    swaps = [int(sig.step[i]) for i in range(1, len(sig.step))     # reverts are no swap
+             if sig.model_version[i] != sig.model_version[i - 1]
+             and not sig.model_status[i].startswith('reverted: ')]
     out: Dict[str, Any] = {
         'steps': int(len(sig.step)), 'cost': _mean(e2),
         'requests': [[int(k), tr] for k, r, tr in zip(sig.step, sig.request, sig.trigger) if r],

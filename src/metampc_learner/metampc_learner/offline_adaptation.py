@@ -1,0 +1,247 @@
+"""Adaptation from a recording: a machine's bag or CSV, its mapping file, a meta-model checkpoint.
+
+The usable grid samples (:mod:`.grid_samples`) are D_target: the first ``samples`` of them, the
+last ``holdout`` share held out (``target_buffer.split_target``, cut at every skipped sample,
+as the learner node splits its buffer). The learner's own adaptation runs on the rest
+(``adapt.adapt``, eq. infer from the checkpoint's weights; ``adapt.supervised`` from random
+weights of its architecture), the result is saved as a learner checkpoint (stage 'adapted') and
+a report says the T-step error on the held-out tail of the meta-model and of the adapted model,
+the adaptation curve and the samples used and skipped. No rclpy. docs/offline_adaptation.md.
+"""
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+import yaml
+
+from metampc_model.nssm import Nssm, Params
+from metampc_plant.machine_mapping import load_mapping
+from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
+from metampc_learner.data import longest_run, samples_in, Windows
+from metampc_learner.grid_samples import grid_samples, GridSamples
+from metampc_learner.heldout import heldout_loss
+from metampc_learner.meta_train import META_METHODS
+from metampc_learner.recorded_streams import read_recording
+from metampc_learner.target_buffer import split_target, TargetSamples
+
+SUPERVISED = 'supervised'
+LISTED_RUNS = 50        # skipped runs listed in the report (all are counted)
+
+
+class OfflineError(ValueError):
+    """The inputs do not fit together (checkpoint and mapping, too few samples); one line."""
+
+
+@dataclass
+class OfflineConfig:
+    """What to adapt and how.
+
+    Attributes:
+        method: '' (the checkpoint's), the checkpoint's meta method, or 'supervised'.
+        steps, lr, gamma: of eq. (infer) (gamma: ignored by supervised); None: from
+            `config_file`'s ``adapt.<method>``, else the learner's defaults (AdaptConfig).
+        config_file: an experiment configuration (config/default.yaml) or ''.
+        samples: use the first `samples` usable samples (0: all).
+        holdout: the last share of them held out, in (0, 1).
+        seed: the supervised baseline's initial weights (eq. infer is deterministic).
+        keep_saturated: keep samples whose input is at a bound (clipped), see grid_samples.
+        time_column: the CSV's time column (None: `time` if there is one, else one row per dt).
+    """
+
+    method: str = ''
+    steps: Optional[int] = None
+    lr: Optional[float] = None
+    gamma: Optional[float] = None
+    config_file: str = ''
+    samples: int = 0
+    holdout: float = 0.2
+    seed: int = 0
+    keep_saturated: bool = False
+    time_column: Optional[str] = None
+
+
+def resolve_method(requested: str, info: Dict[str, Any], path: str) -> str:
+    """The method of a run: the checkpoint's meta method or 'supervised' (OfflineError else)."""
+    held = info.get('method', 'imaml')
+    if requested == SUPERVISED:
+        return SUPERVISED
+    if held not in META_METHODS:
+        raise OfflineError(f'{path} holds a {held!r} model, not a meta-model of '
+                           f'{", ".join(META_METHODS)}: only --method supervised trains on it '
+                           '(from random weights of its architecture)')
+    if requested not in ('', held):
+        raise OfflineError(f'--method {requested}: {path} holds a {held} meta-model (use '
+                           f'--method {held} or {SUPERVISED})')
+    return held
+
+
+def adapt_settings(method: str, config: OfflineConfig) -> Tuple[AdaptConfig, str]:
+    """(steps, lr, gamma of `method`, where they come from): each given one, else the config
+    file's ``adapt.<method>`` entry, else AdaptConfig's default.
+
+    Raises:
+        OfflineError: an unreadable config file or a value out of range (named).
+    """
+    given = {k: getattr(config, k) for k in ('steps', 'lr', 'gamma')
+             if getattr(config, k) is not None}
+    listed: Dict[str, Any] = {}
+    if config.config_file:
+        try:
+            with open(config.config_file, encoding='utf-8') as f:
+                data = yaml.safe_load(f) or {}
+        except (OSError, yaml.YAMLError) as err:
+            raise OfflineError(f'--config {config.config_file}: {" ".join(str(err).split())}') \
+                from None
+        section = data.get('adapt') if isinstance(data, dict) else None
+        entry = section.get(method) if isinstance(section, dict) else None
+        if isinstance(entry, dict):
+            listed = {k: entry[k] for k in ('steps', 'lr', 'gamma') if k in entry}
+    settings = AdaptConfig(**{**listed, **given})
+    try:
+        settings.validate()
+    except ValueError as err:
+        raise OfflineError(f'adaptation settings: {err}') from None
+    where = ', '.join([f'{k} given' for k in given]
+                      + [f'{k} from {config.config_file}' for k in listed if k not in given])
+    return settings, where or 'the learner\'s defaults'
+
+
+def _usable(grid: GridSamples) -> TargetSamples:
+    keep = np.flatnonzero(grid.usable)
+    return TargetSamples(keep.astype(np.int64), grid.u[keep], grid.y[keep])
+
+
+def tstep_rmse(model: Nssm, params: Params, windows: Windows) -> List[float]:
+    """Per output, the RMSE of the T-step predictions over all windows and steps, physical
+    units (the normalised errors times y_std); NaN without windows."""
+    if len(windows) == 0:
+        return [math.nan] * model.config.n_y
+    with torch.no_grad():
+        y_hat = torch.func.functional_call(model, params, (windows.u, windows.y))
+        err = (y_hat - windows.y[..., model.config.history:, :]).double()
+    rms = err.square().mean(dim=(0, 1)).sqrt().numpy()
+    return (rms * model.norm.y_std).tolist()
+
+
+def _skipped_runs(grid: GridSamples) -> List[Dict[str, Any]]:
+    return [{'from_step': a, 'to_step': b, 'from_time': float(grid.times[a]), 'count': b - a + 1,
+             'reason': reason} for a, b, reason in grid.skipped_runs()[:LISTED_RUNS]]
+
+
+def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
+                config: OfflineConfig, log: Callable[[str], None] = lambda text: None,
+                progress: bool = False) -> Dict[str, Any]:
+    """Adapt, write the checkpoint `out` and its report (`out` less .pt, + .json and .md).
+
+    Returns the report (see docs/offline_adaptation.md). `log` gets a line per phase and per
+    step; `progress`: a progress bar while a bag is read (on a terminal).
+
+    Raises:
+        MappingError, RecordingError, OfflineError (ValueError), OSError: one line each.
+    """
+    start = time.monotonic()
+    mapping = load_mapping(mapping_path)
+    ckpt = load_checkpoint(checkpoint)
+    model, cfg = ckpt.model, ckpt.model.config
+    n_u, n_y = len(mapping.command.inputs), len(mapping.outputs)
+    if (cfg.n_u, cfg.n_y) != (n_u, n_y):
+        raise OfflineError(f'{checkpoint}: a model of {cfg.n_u} input(s) and {cfg.n_y} '
+                           f'output(s); the mapping {mapping_path} has {n_u} and {n_y}')
+    method = resolve_method(config.method, ckpt.info, checkpoint)
+    settings, settings_from = adapt_settings(method, config)
+    recorded = read_recording(recording, mapping, config.time_column, progress)
+    grid = grid_samples(recorded, mapping, config.keep_saturated)
+    usable = _usable(grid)
+    log(f'{recording}: {len(grid.times)} samples on the grid of dt = {mapping.dt:g} s, '
+        f'{len(usable)} usable')
+    train, held, used = split_target(usable, config.samples, config.holdout, math.inf)
+    dtype = next(iter(ckpt.params.values())).dtype
+    train_w = Windows.from_trajectories(train, model.norm, cfg, dtype)
+    held_w = Windows.from_trajectories(held, model.norm, cfg, dtype)
+    if len(train_w) == 0 or len(held_w) == 0:
+        raise OfflineError(
+            f'too few usable samples: {used} used ({len(usable)} usable of {len(grid.times)}); '
+            f'the longest runs without a skipped sample are {longest_run(train)} (training) and '
+            f'{longest_run(held)} (held out), each part needs H + T = {cfg.window}')
+    log(f'{method}: {settings.steps} steps at lr {settings.lr:g} on '
+        f'{len(train_w)} windows, {len(held_w)} held out')
+
+    def step_line(p):
+        log(f'step {p.iteration}/{p.total}: held-out loss {p.loss:.5g} ({p.elapsed:.1f} s)')
+
+    if method == SUPERVISED:
+        result = supervised(model, train_w, held_w, settings, config.seed, step_line)
+    else:
+        result = adapt(model, ckpt.params, train_w, held_w, settings, step_line)
+    n_train, n_held = samples_in(train), samples_in(held)
+    save_checkpoint(out, model, result.params, {
+        'method': method, 'stage': 'adapted', 'train_loss': result.train_loss[-1],
+        'train_steps': settings.steps, 'train_samples': n_train, 'seed': config.seed,
+        'heldout_loss': result.heldout_loss[-1], 'meta_checkpoint': checkpoint,
+        'recording': recording, 'mapping': mapping_path})
+    report = {
+        'recording': recording, 'kind': recorded.kind, 'clock': recorded.clock,
+        'mapping': mapping_path, 'checkpoint': checkpoint, 'out': out, 'method': method,
+        'steps': settings.steps, 'lr': settings.lr,
+        'gamma': 0.0 if method == SUPERVISED else settings.gamma, 'seed': config.seed,
+        'settings_from': settings_from,
+        'history': cfg.history, 'loss_horizon': cfg.loss_horizon,
+        'outputs': [o.name for o in mapping.outputs], 'units': [o.unit for o in mapping.outputs],
+        'samples': {
+            'dt': mapping.dt, 'first_time': float(grid.times[0]), 'grid': len(grid.times),
+            'usable': len(usable), 'used': used, 'train': n_train, 'heldout': n_held,
+            'unused': len(usable) - used, 'train_windows': len(train_w),
+            'heldout_windows': len(held_w), 'skipped': grid.counts(),
+            'skipped_runs': _skipped_runs(grid), 'messages': recorded.read,
+            'unreadable': recorded.unreadable, 'keep_saturated': config.keep_saturated},
+        'heldout': {
+            'meta': {'loss': heldout_loss(model, ckpt.params, held_w),
+                     'rmse': tstep_rmse(model, ckpt.params, held_w)},
+            'adapted': {'loss': result.heldout_loss[-1],
+                        'rmse': tstep_rmse(model, result.params, held_w)}},
+        'curve': {'train_loss': result.train_loss, 'heldout_loss': result.heldout_loss,
+                  'rates': result.rates},
+        'elapsed_s': time.monotonic() - start}
+    stem = out[:-3] if out.endswith('.pt') else out
+    with open(stem + '.json', 'w', encoding='utf-8') as f:
+        json.dump(report, f, indent=2)
+    with open(stem + '.md', 'w', encoding='utf-8') as f:
+        f.write(report_markdown(report))
+    return report
+
+
+def report_markdown(report: Dict[str, Any]) -> str:
+    """The report as a short markdown page (tables of the samples, the held-out error and the
+    adaptation curve)."""
+    s, h = report['samples'], report['heldout']
+    lines = [f"# adapt_offline: {report['method']} on {os.path.basename(report['recording'])}",
+             '', f"{report['steps']} steps at lr {report['lr']:g} (gamma {report['gamma']:g}) "
+             f"from {report['checkpoint']}; H = {report['history']}, "
+             f"T = {report['loss_horizon']}; written to {report['out']}.", '',
+             '| samples | count |', '|---|---|',
+             f"| on the grid (dt = {s['dt']:g} s, from t = {s['first_time']:.3f} s) | "
+             f"{s['grid']} |", f"| usable | {s['usable']} |",
+             f"| used: training / held out | {s['train']} / {s['heldout']} |",
+             f"| usable, beyond --samples | {s['unused']} |"]
+    lines += [f'| skipped: {reason} | {n} |' for reason, n in s['skipped'].items() if n]
+    lines += ['', f"| held-out T-step error (T = {report['loss_horizon']}, "
+              f"{s['heldout_windows']} windows) | meta-model | adapted |", '|---|---|---|',
+              f"| l_SSM (normalised) | {h['meta']['loss']:.5g} | {h['adapted']['loss']:.5g} |"]
+    for name, unit, meta, ours in zip(report['outputs'], report['units'], h['meta']['rmse'],
+                                      h['adapted']['rmse']):
+        lines.append(f"| RMSE {name}{f' [{unit}]' if unit else ''} | {meta:.5g} | {ours:.5g} |")
+    curve = report['curve']
+    lines += ['', '| step | training loss | held-out loss |', '|---|---|---|']
+    lines += [f'| {k} | {a:.5g} | {b:.5g} |'
+              for k, (a, b) in enumerate(zip(curve['train_loss'], curve['heldout_loss']))]
+    return '\n'.join(lines) + '\n'
+
+
+__all__ = ['OfflineConfig', 'OfflineError', 'run_offline', 'report_markdown', 'resolve_method',
+           'tstep_rmse', 'SUPERVISED']

@@ -1,0 +1,133 @@
+"""Adaptation from a recording, the core: every sample of the robot's bag accounted for, the
+split as the learner node's, the learner's own adaptation and its checkpoint; the reported
+T-step RMSE against the controller's numpy predictor; methods and settings resolved, and inputs
+that do not fit refused with one line."""
+import json
+
+import numpy as np
+import pytest
+
+from metampc_model.nssm import Nssm
+from metampc_model.nssm_config import NssmConfig
+from metampc_model.predictor import NssmPredictor
+from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
+from metampc_learner.data import Trajectory, Windows
+from metampc_learner.grid_samples import REASONS
+from metampc_learner.offline_adaptation import (adapt_settings, OfflineConfig, OfflineError,
+                                                resolve_method, run_offline, tstep_rmse)
+
+pytestmark = pytest.mark.xdist_group('robot_recording')
+
+
+@pytest.fixture(scope='module')
+def mapping_file():
+    from robot_recording import MAPPING
+    return MAPPING
+
+
+def test_every_sample_is_accounted_for_and_the_checkpoint_is_the_adapted_one(robot_bag,
+                                                                             robot_meta,
+                                                                             mapping_file,
+                                                                             tmp_path):
+    out = str(tmp_path / 'adapted.pt')
+    lines = []
+    report = run_offline(str(robot_bag), mapping_file, robot_meta, out,
+                         OfflineConfig(steps=5, lr=1.0, samples=300, holdout=0.25), lines.append)
+    s = report['samples']
+    assert s['grid'] == s['usable'] + sum(s['skipped'].values()) == 500
+    assert set(s['skipped']) == set(REASONS)
+    assert (s['used'], s['train'], s['heldout']) == (300, 225, 75)
+    assert s['unused'] == s['usable'] - 300
+    assert sum(r['count'] for r in s['skipped_runs']) == sum(s['skipped'].values())
+    curve, held = report['curve'], report['heldout']
+    assert len(curve['train_loss']) == len(curve['heldout_loss']) == 6
+    assert held['meta']['loss'] == pytest.approx(curve['heldout_loss'][0], rel=1e-6)
+    assert held['adapted']['loss'] == curve['heldout_loss'][-1] < held['meta']['loss']
+    assert len(held['adapted']['rmse']) == 2 and report['loss_horizon'] == 5
+    assert (report['method'], report['settings_from']) == ('maml', 'steps given, lr given')
+    info = load_checkpoint(out).info
+    assert (info['method'], info['stage'], info['train_steps'], info['train_samples']) == (
+        'maml', 'adapted', 5, 225)
+    assert info['heldout_loss'] == held['adapted']['loss']
+    with open(out[:-3] + '.json') as f:
+        assert json.load(f) == report
+    with open(out[:-3] + '.md') as f:
+        assert f.read().startswith('# adapt_offline: maml on robot\n')
+    assert lines[-1].startswith('step 5/5: held-out loss ')
+
+
+def test_kept_saturated_inputs_leave_no_sample_skipped_for_it(robot_bag, robot_meta,
+                                                              mapping_file, tmp_path):
+    report = run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'a.pt'),
+                         OfflineConfig(steps=0, keep_saturated=True))
+    assert report['samples']['skipped']['input_saturated'] == 0
+    assert report['samples']['keep_saturated'] is True
+    held = report['heldout']
+    assert held['adapted']['loss'] == pytest.approx(held['meta']['loss'], rel=1e-5)
+    assert held['adapted']['rmse'] == pytest.approx(held['meta']['rmse'], rel=1e-5)
+
+
+def test_the_reported_rmse_is_the_controller_predictors_error(robot_meta, fresh_robot):
+    from robot_recording import tstep_rmse as predictor_rmse
+    ckpt = load_checkpoint(robot_meta)
+    u, y = fresh_robot
+    windows = Windows.from_trajectories([Trajectory(np.arange(1, len(u) + 1), u, y)],
+                                        ckpt.model.norm, ckpt.model.config)
+    ours = tstep_rmse(ckpt.model, ckpt.params, windows)
+    theirs = predictor_rmse(NssmPredictor(ckpt.model.config, ckpt.model.norm, ckpt.params),
+                            u, y, ckpt.model.config.loss_horizon)
+    np.testing.assert_allclose(ours, theirs, rtol=1e-4)
+
+
+def test_supervised_trains_from_seeded_random_weights(robot_bag, robot_meta, mapping_file,
+                                                      tmp_path):
+    def run(seed):
+        return run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 's.pt'),
+                           OfflineConfig(method='supervised', steps=2, gamma=5.0, seed=seed))
+    a, b, c = run(3), run(3), run(4)
+    assert a['curve'] == b['curve'] and a['curve'] != c['curve']
+    assert (a['method'], a['gamma']) == ('supervised', 0.0)
+    assert a['curve']['heldout_loss'][0] != pytest.approx(a['heldout']['meta']['loss'])
+
+
+def test_the_method_is_the_checkpoints_or_supervised():
+    assert resolve_method('', {'method': 'imaml'}, 'm.pt') == 'imaml'
+    assert resolve_method('', {}, 'm.pt') == 'imaml'
+    assert resolve_method('supervised', {'method': 'maml'}, 'm.pt') == 'supervised'
+    with pytest.raises(OfflineError, match=r'^--method imaml: m.pt holds a maml meta-model '
+                       r'\(use --method maml or supervised\)$'):
+        resolve_method('imaml', {'method': 'maml'}, 'm.pt')
+    with pytest.raises(OfflineError, match="^m.pt holds a 'oracle' model, not a meta-model"):
+        resolve_method('', {'method': 'oracle'}, 'm.pt')
+
+
+def test_settings_come_from_the_command_line_then_the_config_file_then_the_defaults(tmp_path):
+    config = tmp_path / 'experiment.yaml'
+    config.write_text('adapt:\n  maml: {steps: 7, lr: 0.2}\n  imaml: {steps: 9}\n')
+    settings, where = adapt_settings('maml', OfflineConfig(lr=0.5, config_file=str(config)))
+    assert (settings.steps, settings.lr, settings.gamma) == (7, 0.5, 0.0)
+    assert where == f'lr given, steps from {config}'
+    settings, where = adapt_settings('supervised', OfflineConfig(config_file=str(config)))
+    assert (settings.steps, settings.lr, where) == (20, 0.05, "the learner's defaults")
+    with pytest.raises(OfflineError, match='^adaptation settings: lr'):
+        adapt_settings('maml', OfflineConfig(lr=-1.0))
+    with pytest.raises(OfflineError, match=r'^--config .*nowhere.yaml: \[Errno 2\]'):
+        adapt_settings('maml', OfflineConfig(config_file=str(tmp_path / 'nowhere.yaml')))
+
+
+def test_a_checkpoint_of_other_sizes_or_too_few_samples_is_one_line(robot_bag, robot_meta,
+                                                                    mapping_file, tmp_path):
+    three = str(tmp_path / 'three.pt')
+    config = NssmConfig(n_y=3, history=5, loss_horizon=5, hidden=(8,), n_z=2)
+    model = Nssm(config)
+    save_checkpoint(three, model, model.params(), {'method': 'maml'})
+    with pytest.raises(OfflineError) as err:
+        run_offline(str(robot_bag), mapping_file, three, str(tmp_path / 'x.pt'),
+                    OfflineConfig())
+    assert str(err.value) == (f'{three}: a model of 1 input(s) and 3 output(s); the mapping '
+                              f'{mapping_file} has 1 and 2')
+    with pytest.raises(OfflineError) as err:
+        run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'x.pt'),
+                    OfflineConfig(samples=15))
+    assert str(err.value).startswith('too few usable samples: 15 used (')
+    assert str(err.value).endswith('each part needs H + T = 10')
