@@ -34,9 +34,29 @@ def quadruple_tank(x, u, th):
             -a[3] / big_a[3] * s[3] + (1 - g1) * k1 / big_a[3] * u[0]]
 
 
+def cascaded_tanks(x, u, th):
+    """Each tank gains its net inflow; at its rim (9.9 V) it starts to spill, linearly more up
+    to all of the excess at 10 V; the upper tank's spill sends k5 u into the lower one."""
+    k1, k2, k3, k4, k5 = th
+
+    def spill_share(level):
+        if level <= 9.9:
+            return 0.0
+        return 1.0 if level >= 10.0 else (level - 9.9) / 0.1
+
+    def gain(net, level):
+        return net - spill_share(level) * net if net > 0 else net
+
+    upper = math.sqrt(max(x[0], 0.0))
+    lower = math.sqrt(max(x[1], 0.0))
+    return [gain(k4 * u[0] - k1 * upper, x[0]),
+            gain(k2 * upper - k3 * lower + k5 * u[0] * spill_share(x[0]), x[1])]
+
+
 EQUATIONS = {'vanderpol': vanderpol, 'duffing': duffing, 'pendulum': pendulum,
-             'quadruple_tank': quadruple_tank}
-OUTPUT_GAIN = {'quadruple_tank': np.array([[0.5, 0, 0, 0], [0, 0.5, 0, 0]])}
+             'quadruple_tank': quadruple_tank, 'cascaded_tanks': cascaded_tanks}
+OUTPUT_GAIN = {'quadruple_tank': np.array([[0.5, 0, 0, 0], [0, 0.5, 0, 0]]),
+               'cascaded_tanks': np.array([[0.0, 1.0]])}
 
 
 def one_step(name, x, u, theta, dt):

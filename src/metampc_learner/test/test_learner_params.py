@@ -74,7 +74,7 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     ({'gamma': 0.0}, 'gamma must be > 0'),
     ({'lr_outer': -1.0}, 'lr_outer must be > 0'),
     ({'dt': NAN}, 'dt must be finite'),
-    ({'family': 'tank'}, "unknown plant family 'tank'; installed: duffing"),
+    ({'family': 'tank'}, "unknown plant family 'tank'; installed: cascaded_tanks, duffing"),
     ({'method': 'reptile'}, 'method must be one of imaml, maml, maml_unrolled'),
     ({'curvature': 'fisher'}, 'curvature must be one of gauss_newton, hessian'),
     ({'hidden': [16, 0]}, 'hidden must be >= 1'),

@@ -11,7 +11,10 @@ from metampc_plant.family import PlantFamily, Signal, ThetaComponent
 from metampc_plant.registry import family_names, get_family, UnknownFamily
 from metampc_plant.simulator import Plant, PlantConfig
 
-SHIPPED = ('duffing', 'pendulum', 'quadruple_tank', 'vanderpol')
+SHIPPED = ('cascaded_tanks', 'duffing', 'pendulum', 'quadruple_tank', 'vanderpol')
+# RK4 integrates these to 1e-6 everywhere; the cascaded tanks' spill at the rims is a kink,
+# tested on its own (test_cascaded_tanks.py: 1e-6 away from the rims, 1e-3 V across them).
+SMOOTH = tuple(name for name in SHIPPED if name != 'cascaded_tanks')
 
 
 def held_inputs(family: PlantFamily, n: int, rng: np.random.Generator, hold: int = 5):
@@ -20,13 +23,14 @@ def held_inputs(family: PlantFamily, n: int, rng: np.random.Generator, hold: int
     return np.repeat(levels, hold, axis=0)[:n]
 
 
-def test_the_four_families_are_registered():
+def test_the_shipped_families_are_registered():
     assert set(SHIPPED) <= set(family_names())
-    with pytest.raises(UnknownFamily, match="unknown plant family 'tank'; installed: duffing"):
+    with pytest.raises(UnknownFamily, match="unknown plant family 'tank'; installed: "
+                                            'cascaded_tanks, duffing'):
         get_family('tank')
 
 
-@pytest.mark.parametrize('name', SHIPPED)
+@pytest.mark.parametrize('name', SMOOTH)
 def test_one_step_error_against_scipy_below_1e6(name):
     family = get_family(name)
     rng = np.random.default_rng(7)

@@ -118,6 +118,7 @@ FAMILY_RUNS = {  # family: (theta, x0), a target drawn by hand from each prior
     'duffing': ([0.2, -0.6, 1.1], [0.3, 0.0]),
     'pendulum': ([0.9, 1.2, 0.1], [0.4, 0.0]),
     'quadruple_tank': ([0.7, 0.4], [12.4, 12.7, 1.8, 1.4]),
+    'cascaded_tanks': ([0.06, 0.03, 0.03, 0.045, 0.015], [3.0, 3.0]),   # below the rims
 }
 
 
@@ -355,7 +356,8 @@ BAD_PARAMS = {
     'bounds': ({'u_min': 2.0}, 'u_min <= u_max'),
     'mode': ({'mode': 'fast'}, 'mode must be one of'),
     'x0': ({'x0': [1.0]}, 'x0 of family vanderpol needs 2 values'),
-    'family': ({'family': 'tank'}, "unknown plant family 'tank'; installed: duffing"),
+    'family': ({'family': 'tank'}, "unknown plant family 'tank'; installed: cascaded_tanks, "
+                                   'duffing'),
     'theta': ({'family': 'duffing', 'theta': [0.1]}, 'theta of family duffing needs 3'),
     # One range check wherever theta enters (before: only a schedule's rows had one).
     'range': ({'theta': 9.0}, 'theta: theta = 9 lies outside the range [-4, 4] of family '
