@@ -228,5 +228,17 @@ def child_main(argv: Sequence[str]) -> int:
     return 0
 
 
+def exit_now(status: int) -> None:
+    """End the seed child with `status` once its output is flushed, without the interpreter's
+    teardown: a Ctrl-C that lands while the orchestrator closes its client node can leave the
+    node's daemon spin thread inside rclpy, and the C++ destructors at a normal exit then
+    abort the process (seen once in CI: 'terminate called without an active exception', exit
+    status -6, after the seed had stopped its nodes)."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
 if __name__ == '__main__':
-    sys.exit(child_main(sys.argv[1:]))
+    exit_now(child_main(sys.argv[1:]))
