@@ -105,12 +105,12 @@ def arx_baseline(u: np.ndarray, y: np.ndarray, protocol: Protocol) -> Tuple[Arx,
     return best, Scores(best_rmse, rmse(predicted, measured))
 
 
-def greybox_baseline(family: PlantFamily, u: np.ndarray, y: np.ndarray, protocol: Protocol,
-                     theta_guess: Sequence[float],
+def fit_greybox_head(family: PlantFamily, u: np.ndarray, y: np.ndarray, n: int,
+                     protocol: Protocol, theta_guess: Sequence[float],
                      theta_bounds: Optional[Tuple[Sequence[float], Sequence[float]]] = None
-                     ) -> Tuple[GreyBoxFit, Scores]:
-    """The family member fitted to the head (candidates around `theta_guess`), its scores."""
-    protocol.check(len(y))
+                     ) -> GreyBoxFit:
+    """The family member fitted to samples 0..n-1 of (u, y) (N,): the protocol's candidates
+    around `theta_guess` and initial states, then its least-squares searches."""
     u2, y2 = np.asarray(u, dtype=float)[:, None], np.asarray(y, dtype=float)[:, None]
     rng = np.random.default_rng(protocol.seed)
     size = (protocol.candidates, family.n_theta)
@@ -118,9 +118,19 @@ def greybox_baseline(family: PlantFamily, u: np.ndarray, y: np.ndarray, protocol
         rng.uniform(-np.log(protocol.spread), np.log(protocol.spread), size))
     levels = rng.uniform(family.x0_low, family.x0_high, (protocol.candidates, family.n_x))
     x0s = np.array([family.state_from_output(y2[0], x) for x in levels])
-    n = protocol.fit_samples
-    fit = fit_greybox(family, u2[:n], y2[:n], thetas, x0s, theta_bounds, protocol.substeps,
-                      protocol.polish)
+    return fit_greybox(family, u2[:n], y2[:n], thetas, x0s, theta_bounds, protocol.substeps,
+                       protocol.polish)
+
+
+def greybox_baseline(family: PlantFamily, u: np.ndarray, y: np.ndarray, protocol: Protocol,
+                     theta_guess: Sequence[float],
+                     theta_bounds: Optional[Tuple[Sequence[float], Sequence[float]]] = None
+                     ) -> Tuple[GreyBoxFit, Scores]:
+    """The family member fitted to the head (candidates around `theta_guess`), its scores."""
+    protocol.check(len(y))
+    u2, y2 = np.asarray(u, dtype=float)[:, None], np.asarray(y, dtype=float)[:, None]
+    fit = fit_greybox_head(family, u, y, protocol.fit_samples, protocol, theta_guess,
+                           theta_bounds)
     x_sim, y_sim = simulate_family(family, fit.theta[None], fit.x0[None], u2, protocol.substeps)
     origins = protocol.origins(len(y))
     predicted = predict_greybox(family, fit.theta, u2, y2, origins, protocol.history,
@@ -130,4 +140,5 @@ def greybox_baseline(family: PlantFamily, u: np.ndarray, y: np.ndarray, protocol
     return fit, Scores(rmse(y_sim[0, tail], y2[tail]), rmse(predicted, measured))
 
 
-__all__ = ['Protocol', 'Scores', 'rmse', 'arx_baseline', 'greybox_baseline']
+__all__ = ['Protocol', 'Scores', 'rmse', 'arx_baseline', 'fit_greybox_head',
+           'greybox_baseline']

@@ -1,0 +1,329 @@
+#!/usr/bin/env python3
+"""The Cascaded Tanks benchmark measured on the real data: meta-learned NSSMs against the
+supervised NSSM, an ARX model and the grey-box physics model, on the test record.
+
+Meta-trains iMAML and first-order MAML on simulated systems of the `cascaded_tanks` family
+(--config: its learner set-up and meta-training settings; each meta-model cached in
+OUT/meta_<method>.pt: run the same command again to resume), then fits every model on the
+estimation record's first 300 samples and on all 1024: the meta-models adapted with the
+learner's own eq. (infer), the supervised NSSM from random weights, ARX, grey-box. Every choice
+(adaptation step size and steps, ARX orders) is made on the estimation record: fitted on its
+head (samples 0..299, or 0..767 for the full record's choice), scored on samples 768..1023.
+The test record is then predicted once: free-run simulation RMSE and T-step prediction RMSE,
+volts (docs/real_data.md says how each model runs and where its initial state comes from).
+
+Usage: python scripts/cascaded_tanks_benchmark.py --out runs/cts [--seed 0]
+       [--config config/cascaded_tanks.yaml] [--figure docs/img/cascaded_tanks_test.png]
+Writes OUT/benchmark.json and prints the table. Exit status: 0 done, 2 bad arguments.
+"""
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from typing import Dict, List, Tuple
+
+import numpy as np
+import torch
+
+from metampc_bringup.experiment_config import ConfigError, learner_config, load
+from metampc_bringup.studies.offline import request_meta_config
+from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
+from metampc_learner.data import normalisation_from, simulate_source, SourceSet, Trajectory, \
+    Windows
+from metampc_learner.meta_train import meta_train
+from metampc_learner.offline_adaptation import tstep_rmse
+from metampc_model.nssm import Nssm, Params
+from metampc_plant.cascaded_tanks_data import load_cascaded_tanks
+from metampc_plant.families.cascaded_tanks import GUESS
+from metampc_plant.identification.arx import fit_arx, predict_arx, simulate_arx
+from metampc_plant.identification.greybox import predict_greybox, simulate_family
+from metampc_plant.identification.validation import arx_baseline, fit_greybox_head, Protocol, \
+    rmse
+from metampc_plant.registry import get_family
+
+METHODS = ('imaml', 'maml')
+FITS = (300, 1024)           # estimation samples 0..n-1 fitted
+CHOOSE_HEAD = {300: 300, 1024: 768}   # head that the choices of each fit are made on
+TAIL = 768                   # estimation samples TAIL..1023 score the choices
+LRS = (0.03, 0.1, 0.3, 1.0)  # adaptation step sizes tried (the learner's Armijo maximum)
+# Published free-run simulation RMSE on the test record, volts, models fitted on all 1024
+# estimation samples (Math. Probl. Eng. 2021, 6613425, Table 2; docs/real_data.md).
+PUBLISHED = {'BLA': 0.7574, 'PNLSS-I': 0.4498, 'NLSS2': 0.3433}
+
+
+def log(text: str) -> None:
+    print(f'[{time.strftime("%H:%M:%S")}] {text}', file=sys.stderr, flush=True)
+
+
+def trajectory(u: np.ndarray, y: np.ndarray, start: int, stop: int) -> Trajectory:
+    """Record samples start..stop-1 as a Trajectory: u[k] paired with the y[k+1] it acts on
+    first (stop - start - 1 pairs)."""
+    return Trajectory(np.arange(start, stop - 1), u[start:stop - 1], y[start + 1:stop])
+
+
+def record_windows(model: Nssm, u: np.ndarray, y: np.ndarray, start: int, stop: int
+                   ) -> Windows:
+    """The NSSM's windows (H + T pairs) of record samples start..stop-1, normalised."""
+    return Windows.from_trajectories([trajectory(u, y, start, stop)], model.norm, model.config,
+                                     next(model.parameters()).dtype)
+
+
+def simulate_nssm(model: Nssm, params: Params, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Free-run simulation over a record (N,): the encoder reads the H pairs (u[k], y[k+1]),
+    k = 0..H-1, then the latent state runs on the inputs alone (eq. z_next) over one window of
+    the whole record; y_hat[H+1..N-1], NaN at 0..H (not predicted)."""
+    t = trajectory(u, y, 0, len(y))
+    u_n, y_n = model.norm.normalise(t.u[None], t.y[None])
+    dtype = next(model.parameters()).dtype
+    with torch.no_grad():
+        y_hat = torch.func.functional_call(model, params, (torch.as_tensor(u_n, dtype=dtype),
+                                                           torch.as_tensor(y_n, dtype=dtype)))
+    out = np.full(len(y), np.nan)
+    out[model.config.history + 1:] = model.norm.denormalise_y(
+        y_hat[0].double().numpy())[:, 0]
+    return out
+
+
+def run_adaptation(model: Nssm, init: Params, method: str, train: Windows, held: Windows,
+                   lr: float, steps: int, seed: int):
+    """eq. (infer) from the meta-model `init`, or the supervised NSSM from init_params(seed)."""
+    settings = AdaptConfig(steps=steps, lr=lr)
+    if method == 'supervised':
+        return supervised(model, train, held, settings, seed)
+    return adapt(model, init, train, held, settings)
+
+
+def choose_adaptation(model: Nssm, init: Params, method: str, train: Windows, held: Windows,
+                      max_steps: int, seed: int) -> Dict[str, float]:
+    """The step size of LRS and the steps (0..max_steps) of least held-out loss, with it."""
+    best = {'lr': LRS[0], 'steps': 0, 'heldout_loss': math.inf}
+    for lr in LRS:
+        try:
+            curve = run_adaptation(model, init, method, train, held, lr, max_steps,
+                                   seed).heldout_loss
+        except ValueError:      # the loss turned non-finite: this step size is out
+            continue
+        k = int(np.nanargmin(curve))
+        if curve[k] < best['heldout_loss']:
+            best = {'lr': lr, 'steps': k, 'heldout_loss': float(curve[k])}
+    return best
+
+
+def meta_models(args, experiment) -> Tuple[Nssm, Dict[str, Params], Dict[str, dict]]:
+    """The meta-model of each method: OUT/meta_<method>.pt when it holds this run's settings,
+    else meta-trained on the family's simulated source set (and saved there)."""
+    cfg = learner_config(experiment, args.seed)
+    source_cfg = dataclasses.replace(cfg.source, seed=args.seed, **(
+        {'n_systems': args.n_systems} if args.n_systems else {}))
+    model, params, info = None, {}, {}
+    source = None
+    for method in METHODS:
+        meta = dataclasses.replace(cfg.meta, method=method, seed=args.seed,
+                                   **request_meta_config(experiment, method))
+        if args.meta_iterations:
+            meta = dataclasses.replace(meta, iterations=args.meta_iterations)
+        wanted = {'method': method, 'seed': args.seed, 'config': args.config,
+                  'meta_config': json.dumps(dataclasses.asdict(meta), sort_keys=True),
+                  'source_config': repr(source_cfg)}
+        path = os.path.join(args.out, f'meta_{method}.pt')
+        if os.path.exists(path):
+            ckpt = load_checkpoint(path)
+            if all(ckpt.info.get(k) == v for k, v in wanted.items()):
+                log(f'{method}: meta-model cached in {path}')
+                model, params[method], info[method] = ckpt.model, ckpt.params, ckpt.info
+                continue
+        if source is None:
+            log(f'simulating {source_cfg.n_systems} source systems of {source_cfg.family}')
+            data = simulate_source(source_cfg)
+            model = Nssm(cfg.nssm, normalisation_from(
+                [t for ts in data.trajectories for t in ts]))
+            source = SourceSet(data, model.norm, cfg.nssm, cfg.train_fraction)
+        log(f'{method}: meta-training, {meta.iterations} outer steps')
+
+        def progress(p, method=method):
+            if p.iteration % max(1, p.total // 10) == 0:
+                log(f'{method}: step {p.iteration}/{p.total}, meta-test loss {p.loss:.4g} '
+                    f'({p.elapsed:.0f} s)')
+
+        result = meta_train(model, source, meta, progress)
+        info[method] = {**wanted, 'stage': 'meta', 'seconds': round(result.elapsed, 1),
+                        'final_loss': float(np.mean(result.losses[-10:])),
+                        'best_iteration': result.best_iteration}
+        params[method] = result.params
+        save_checkpoint(path, model, result.params, info[method])
+    return model, params, info
+
+
+def greybox(args, family, u: np.ndarray, y: np.ndarray, n: int, protocol: Protocol) -> dict:
+    """The grey-box fit to estimation samples 0..n-1 (cached in OUT/greybox_<n>.json)."""
+    path = os.path.join(args.out, f'greybox_{n}.json')
+    wanted = {'n': n, 'candidates': protocol.candidates, 'polish': protocol.polish,
+              'substeps': protocol.substeps}
+    if os.path.exists(path):
+        with open(path, encoding='utf-8') as f:
+            cached = json.load(f)
+        if all(cached.get(k) == v for k, v in wanted.items()):
+            log(f'grey-box on 0..{n - 1}: cached in {path}')
+            return cached
+    log(f'grey-box on 0..{n - 1}: fitting')
+    start = time.monotonic()
+    fit = fit_greybox_head(family, u, y, n, protocol, GUESS,
+                           (np.zeros(family.n_theta), np.full(family.n_theta, np.inf)))
+    out = {**wanted, 'theta': fit.theta.tolist(), 'x0': fit.x0.tolist(), 'fit_rmse': fit.rmse,
+           'seconds': round(time.monotonic() - start, 1)}
+    with open(path, 'w', encoding='utf-8') as f:
+        json.dump(out, f)
+    return out
+
+
+def scores(y: np.ndarray, y_sim: np.ndarray, predicted: np.ndarray, origins: np.ndarray,
+           horizon: int, first: int) -> Dict[str, float]:
+    """Simulation RMSE on samples first..N-1, T-step prediction RMSE at `origins`."""
+    measured = y[origins[:, None] + np.arange(1, horizon + 1)]
+    return {'simulation_rmse': rmse(y_sim[first:], y[first:]),
+            'prediction_rmse': rmse(predicted, measured)}
+
+
+def fit_all(args, model, meta, family, data, protocol) -> Tuple[List[dict], Dict[str, dict]]:
+    """Every model fitted on each of FITS, scored on the test record once; the simulations."""
+    u, y, ut, yt = data.u_est, data.y_est, data.u_test, data.y_test
+    n_h, n_t = model.config.history, model.config.loss_horizon
+    origins = np.arange(n_h, len(yt) - n_t)      # the NSSM's windows on the test record
+    test_w = record_windows(model, ut, yt, 0, len(yt))
+    held = record_windows(model, u, y, TAIL - 1 - n_h, len(y))
+    rows, sims = [], {}
+    for n in FITS:
+        head = CHOOSE_HEAD[n]
+        choose_w, fit_w = record_windows(model, u, y, 0, head), record_windows(model, u, y, 0, n)
+        for method in (*METHODS, 'supervised'):
+            start = time.monotonic()
+            chosen = choose_adaptation(model, meta.get(method), method, choose_w, held,
+                                       args.max_steps, args.seed)
+            res = run_adaptation(model, meta.get(method), method, fit_w, held, chosen['lr'],
+                                 chosen['steps'], args.seed)
+            sim = simulate_nssm(model, res.params, ut, yt)
+            row = {'fit': n, 'model': method, 'choice': chosen,
+                   'validation_sim_rmse': rmse(simulate_nssm(model, res.params, u, y)[TAIL:],
+                                               y[TAIL:]) if n < TAIL else None,
+                   'test': {'simulation_rmse': rmse(sim[n_h + 1:], yt[n_h + 1:]),
+                            'prediction_rmse': tstep_rmse(model, res.params, test_w)[0]},
+                   'seconds': round(time.monotonic() - start, 1)}
+            rows.append(row)
+            sims[f'{method} {n}'] = sim
+            log(f'{method} on 0..{n - 1}: lr {chosen["lr"]:g}, {chosen["steps"]} steps; test '
+                f'simulation RMSE {row["test"]["simulation_rmse"]:.4f} V')
+        arx, _ = arx_baseline(u, y, dataclasses.replace(protocol, fit_samples=head))
+        arx = fit_arx(u[:n], y[:n], len(arx.a), len(arx.b), arx.nk)
+        sim = simulate_arx(arx, ut, yt)
+        rows.append({'fit': n, 'model': f'ARX({len(arx.a)}, {len(arx.b)}, {arx.nk})',
+                     'test': scores(yt, sim, predict_arx(arx, ut, yt, origins, n_t), origins,
+                                    n_t, n_h + 1),
+                     'test_all_samples': rmse(sim[arx.lag:], yt[arx.lag:])})
+        sims[f'ARX {n}'] = sim
+        grey = greybox(args, family, u, y, n, protocol)
+        x_sim, y_sim = simulate_family(family, np.array([grey['theta']]), np.array([grey['x0']]),
+                                       ut[:, None], protocol.substeps)
+        predicted = predict_greybox(family, grey['theta'], ut[:, None], yt[:, None], origins,
+                                    n_h, n_t, x_sim[0], protocol.substeps)[..., 0]
+        rows.append({'fit': n, 'model': 'grey-box', 'theta': grey['theta'], 'x0': grey['x0'],
+                     'test': scores(yt, y_sim[0, :, 0], predicted, origins, n_t, n_h + 1),
+                     'test_all_samples': rmse(y_sim[0, :, 0], yt)})
+        sims[f'grey-box {n}'] = y_sim[0, :, 0]
+        log(f'ARX and grey-box on 0..{n - 1}: test simulation RMSE '
+            f'{rows[-2]["test"]["simulation_rmse"]:.4f}, '
+            f'{rows[-1]["test"]["simulation_rmse"]:.4f} V')
+    return rows, sims
+
+
+def table(rows: List[dict]) -> str:
+    """The markdown table of the test figures (volts)."""
+    lines = ['| fitted on | model | simulation RMSE (V) | 10-step prediction RMSE (V) |',
+             '|---|---|---|---|']
+    for r in rows:
+        lines.append(f"| estimation 0..{r['fit'] - 1} | {r['model']} | "
+                     f"{r['test']['simulation_rmse']:.4f} | {r['test']['prediction_rmse']:.4f} |")
+    for name, value in PUBLISHED.items():
+        lines.append(f'| estimation 0..1023 (published) | {name} | {value:.4f} | |')
+    return '\n'.join(lines)
+
+
+def figure(path: str, yt: np.ndarray, sims: Dict[str, np.ndarray], ts: float) -> None:
+    """The test record's measured level and each model's free-run simulation, per fit."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(len(FITS), 1, figsize=(8, 5.5), sharex=True)
+    t = np.arange(len(yt)) * ts
+    for ax, n in zip(axes, FITS):
+        ax.plot(t, yt, 'k', lw=1.5, label='measured')
+        for name in (*METHODS, 'supervised', 'ARX', 'grey-box'):
+            ax.plot(t, sims[f'{name} {n}'], lw=0.9, label=name)
+        ax.set_ylabel('level (V)')
+        ax.set_title(f'test record, free run; fitted on estimation samples 0..{n - 1}',
+                     fontsize=9)
+        ax.set_ylim(0, 12)
+    axes[0].legend(fontsize=7, ncol=6, loc='upper left')
+    axes[-1].set_xlabel('time (s)')
+    fig.tight_layout()
+    fig.savefig(path, dpi=70)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--out', required=True, help='folder of the results and the cache')
+    parser.add_argument('--seed', type=int, default=0,
+                        help='source set, meta-training and supervised initial weights')
+    parser.add_argument('--config', default='config/cascaded_tanks.yaml',
+                        help='the family\'s experiment configuration (learner, meta_train)')
+    parser.add_argument('--figure', default='', help='PNG of the test-record free runs')
+    parser.add_argument('--max-steps', type=int, default=200,
+                        help='adaptation steps searched (0..this) on the estimation record')
+    parser.add_argument('--meta-iterations', type=int, default=0,
+                        help='outer steps of both methods (0: the config\'s)')
+    parser.add_argument('--n-systems', type=int, default=0,
+                        help='source systems (0: the config\'s)')
+    parser.add_argument('--candidates', type=int, default=512, help='grey-box candidates')
+    parser.add_argument('--polish', type=int, default=4, help='grey-box searches')
+    parser.add_argument('--substeps', type=int, default=4, help='grey-box RK4 steps a sample')
+    args = parser.parse_args(argv)
+    try:
+        experiment = load(args.config)
+        if experiment.plant_family.name != 'cascaded_tanks':
+            raise ConfigError(f'--config {args.config}: family {experiment.plant_family.name}, '
+                              'not cascaded_tanks')
+        if min(args.seed, args.max_steps, args.meta_iterations, args.n_systems) < 0:
+            raise ConfigError('--seed, --max-steps, --meta-iterations, --n-systems must be >= 0')
+        if os.path.exists(args.out) and not os.path.isdir(args.out):
+            raise ConfigError(f'--out {args.out} exists and is not a folder')
+        protocol = Protocol(fit_samples=300, validation_start=TAIL, candidates=args.candidates,
+                            polish=args.polish, substeps=args.substeps, seed=args.seed)
+        protocol.check(1024)
+    except ValueError as err:       # ConfigError is one
+        print(f'cascaded_tanks_benchmark: {err}', file=sys.stderr)
+        return 2
+    os.makedirs(args.out, exist_ok=True)
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+    start = time.monotonic()
+    data = load_cascaded_tanks()
+    model, meta, meta_info = meta_models(args, experiment)
+    rows, sims = fit_all(args, model, meta, get_family('cascaded_tanks'), data, protocol)
+    report = {'config': args.config, 'seed': args.seed, 'max_steps': args.max_steps,
+              'meta': meta_info, 'rows': rows, 'published': PUBLISHED,
+              'scored': f'test samples {model.config.history + 1}..1023',
+              'wall_s': round(time.monotonic() - start, 1)}
+    with open(os.path.join(args.out, 'benchmark.json'), 'w', encoding='utf-8') as f:
+        json.dump(report, f, indent=1)
+    if args.figure:
+        figure(args.figure, data.y_test, sims, data.ts)
+    print(table(rows))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
