@@ -45,7 +45,7 @@ from metampc_plant.identification.validation import arx_baseline, fit_greybox_he
     rmse
 from metampc_plant.registry import get_family
 
-METHODS = ('imaml', 'maml')
+META = ('imaml', 'maml')       # the meta methods this benchmark compares (of META_METHODS)
 FITS = (300, 1024)           # estimation samples 0..n-1 fitted
 CHOOSE_HEAD = {300: 300, 1024: 768}   # head that the choices of each fit are made on
 TAIL = 768                   # estimation samples TAIL..1023 score the choices
@@ -121,7 +121,7 @@ def meta_models(args, experiment) -> Tuple[Nssm, Dict[str, Params], Dict[str, di
         {'n_systems': args.n_systems} if args.n_systems else {}))
     model, params, info = None, {}, {}
     source = None
-    for method in METHODS:
+    for method in META:
         meta = dataclasses.replace(cfg.meta, method=method, seed=args.seed,
                                    **request_meta_config(experiment, method))
         if args.meta_iterations:
@@ -199,7 +199,7 @@ def fit_all(args, model, meta, family, data, protocol) -> Tuple[List[dict], Dict
     for n in FITS:
         head = CHOOSE_HEAD[n]
         choose_w, fit_w = record_windows(model, u, y, 0, head), record_windows(model, u, y, 0, n)
-        for method in (*METHODS, 'supervised'):
+        for method in (*META, 'supervised'):
             start = time.monotonic()
             chosen = choose_adaptation(model, meta.get(method), method, choose_w, held,
                                        args.max_steps, args.seed)
@@ -260,7 +260,7 @@ def figure(path: str, yt: np.ndarray, sims: Dict[str, np.ndarray], ts: float) ->
     t = np.arange(len(yt)) * ts
     for ax, n in zip(axes, FITS):
         ax.plot(t, yt, 'k', lw=1.5, label='measured')
-        for name in (*METHODS, 'supervised', 'ARX', 'grey-box'):
+        for name in (*META, 'supervised', 'ARX', 'grey-box'):
             ax.plot(t, sims[f'{name} {n}'], lw=0.9, label=name)
         ax.set_ylabel('level (V)')
         ax.set_title(f'test record, free run; fitted on estimation samples 0..{n - 1}',
