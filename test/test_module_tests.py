@@ -46,8 +46,6 @@ TESTED_ELSEWHERE: Dict[str, Tuple[str, str]] = {
     'metampc_plant.families.pendulum': _FAMILIES,
     'metampc_plant.families.quadruple_tank': _FAMILIES,
     'metampc_plant.families.vanderpol': _FAMILIES,
-    'metampc_bringup.orchestration.orchestrator': (
-        _SYSTEM, 'the orchestrator end to end, its report against the recording read by rosbags'),
     'metampc_bringup.orchestration.seed_jobs': (
         _SYSTEM, '--jobs 2 (the embedded cluster) against --jobs 1, resume, Ctrl-C of both '
         'seeds: processes end to end'),

@@ -17,6 +17,7 @@ import logging
 import math
 import os
 import signal
+import threading
 import time
 from typing import Any, Callable, Dict, Iterator, List, Optional
 
@@ -55,6 +56,29 @@ def terminate_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM wait until the block ends, then raise KeyboardInterrupt: a stop that
+    has begun is not cut halfway (every node stopped, the recording finished). A signal its
+    previous handler ignored stays ignored. Only in the main thread (elsewhere: no change)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: List[int] = []
+
+    def handler(signum, frame):
+        if previous[signum] is not signal.SIG_IGN:
+            caught.append(signum)
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    if caught:
+        raise KeyboardInterrupt(f'signal {caught[0]}')
 
 
 class SeedRun:
@@ -97,10 +121,13 @@ class SeedRun:
             self._bring_up(group)
             self._phases()
         finally:
-            if self.client is not None:
-                self.client.close()
-            # Newest first: controllers, plant, learner, then the recorder finishes its file.
-            group.stop_all(timeout=20.0)
+            # A Ctrl-C that lands here (seen: a seed at its normal end) waits for the stop:
+            # cut halfway it left a recording without its end and once aborted the process.
+            with interrupts_deferred():
+                if self.client is not None:
+                    self.client.close()
+                # Newest first: controllers, plant, learner, then the recorder finishes its file.
+                group.stop_all(timeout=20.0)
             self.timings['total'] = time.monotonic() - started
         return {'seed': self.seed, 'theta': self.theta, 'recording': self.recording,
                 'timings': self.timings}
