@@ -51,6 +51,19 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker('xdist_group') is None:
             item.add_marker(pytest.mark.xdist_group(item.path.name))
+    if getattr(config.option, 'loadgroup', False) and items and hasattr(items[0], '_id'):
+        for item in items:
+            _tag_group(item)
+
+
+def _tag_group(item) -> None:
+    """Append '@<group>' to the item's node id, as xdist does for --dist loadgroup: xdist 3.8
+    writes it to ``item._nodeid``, which pytest 9.2 no longer reads (the id is ``item._id``),
+    so without this no test was grouped (a group's fixtures were built on both workers)."""
+    from _pytest.nodeid import NodeId
+    names = sorted({str(m.args[0] if m.args else m.kwargs.get('name', 'default'))
+                    for m in item.iter_markers('xdist_group')})
+    item._id = NodeId.parse(f'{item.nodeid}@{"_".join(names)}')
 
 
 def _left_running() -> list:
