@@ -11,11 +11,18 @@ from metampc_testing import alive, session_pids
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEAVES = '''
+import atexit
 import subprocess
 
 
 def test_leaves_a_process_behind():
-    print('PID', subprocess.Popen(['sleep', '60'], start_new_session=True).pid)
+    child = subprocess.Popen(['sleep', '60'], start_new_session=True)
+    print('PID', child.pid)
+    with open(f'/proc/{child.pid}/environ', 'rb') as f:
+        print('ITS SESSION VARIABLE', [v for v in f.read().split(b'\\0')
+                                       if v.startswith(b'METAMPC_TEST_SESSION=')])
+    # Once (CI, under load) the check found nothing: was the process still running then?
+    atexit.register(lambda: print('AT EXIT: its exit status', child.poll(), flush=True))
 '''
 CLEAN = '''
 import subprocess

@@ -15,7 +15,9 @@ def ros2(*args, timeout=60):
 
 @pytest.fixture
 def daemon():
-    """The session domain's daemon, stopped after the test whatever happens."""
+    """The session domain's daemon: stopped before the test (a list verb of an earlier test in
+    this session starts one, as ros2cli's do) and after it, whatever happens."""
+    ros2('daemon', 'stop')
     yield
     ros2('daemon', 'stop')
 
