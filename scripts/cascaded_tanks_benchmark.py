@@ -62,6 +62,7 @@ LRS = (0.03, 0.1, 0.3, 1.0)  # adaptation step sizes tried (the learner's Armijo
 # Published free-run simulation RMSE on the test record, volts, models fitted on all 1024
 # estimation samples (Math. Probl. Eng. 2021, 6613425, Table 2; docs/real_data.md).
 PUBLISHED = {'BLA': 0.7574, 'PNLSS-I': 0.4498, 'NLSS2': 0.3433}
+COLOURS = {'imaml': 'C0', 'maml': 'C1', 'supervised': 'C2'}   # the twin figure's
 
 
 def log(text: str) -> None:
@@ -418,14 +419,15 @@ def twin_figure(path: str, seed: int, runs: Dict[str, np.ndarray],
     t = np.arange(len(nmpc['y'])) * ts
     for col, n in enumerate(FITS):
         top, bottom = axes[0, col], axes[1, col]
-        top.plot(t[1:], nmpc['y_ref'], 'k--', lw=1, label='reference')
-        for name, style in (('nmpc', 'k'), *((m, None) for m in (*META, 'supervised'))):
+        for name in ('supervised', *META, 'nmpc'):     # the NMPC on top
             run = nmpc if name == 'nmpc' else {
                 part: runs[f'twin {name} {n} {part}'] for part in ('y', 'u')}
-            kw = {'color': style} if style else {}
-            top.plot(t[:len(run['y'])], run['y'], lw=0.9, label=name.upper() if
-                     name == 'nmpc' else name, **kw)
-            bottom.plot(t[:len(run['u'])], run['u'], lw=0.8, **kw)
+            style = {'color': 'k', 'lw': 1.0, 'label': 'NMPC'} if name == 'nmpc' else {
+                'color': COLOURS[name], 'lw': 0.8, 'label': name,
+                'alpha': 0.6 if name == 'supervised' else 1.0}
+            top.plot(t, run['y'], **style)
+            bottom.plot(t, run['u'], **style)
+        top.plot(t[1:], nmpc['y_ref'], 'r--', lw=0.8, label='reference')
         top.set_title(f'twin, seed {seed}; NSSMs fitted on estimation 0..{n - 1}', fontsize=9)
         top.set_ylim(0, 11)
         bottom.set_xlabel('time (s)')
