@@ -44,8 +44,8 @@ from metampc_learner.data import normalisation_from, simulate_source, SourceSet,
     Windows
 from metampc_learner.meta_train import meta_train
 from metampc_learner.offline_adaptation import tstep_rmse
-from metampc_model.weights_codec import DecodedWeights
 from metampc_model.nssm import Nssm, Params
+from metampc_model.weights_codec import DecodedWeights
 from metampc_plant.cascaded_tanks_data import load_cascaded_tanks
 from metampc_plant.families.cascaded_tanks import GUESS
 from metampc_plant.identification.arx import fit_arx, predict_arx, simulate_arx
