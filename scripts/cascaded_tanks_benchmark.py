@@ -1,20 +1,26 @@
 #!/usr/bin/env python3
 """The Cascaded Tanks benchmark measured on the real data: meta-learned NSSMs against the
-supervised NSSM, an ARX model and the grey-box physics model, on the test record.
+supervised NSSM, an ARX model and the grey-box physics model, on the test record and on the
+tank's twin in closed loop.
 
-Meta-trains iMAML and first-order MAML on simulated systems of the `cascaded_tanks` family
-(--config: its learner set-up and meta-training settings; each meta-model cached in
-OUT/meta_<method>.pt: run the same command again to resume), then fits every model on the
-estimation record's first 300 samples and on all 1024: the meta-models adapted with the
-learner's own eq. (infer), the supervised NSSM from random weights, ARX, grey-box. Every choice
+Per meta-training seed (--seed, several in turn): meta-trains iMAML and first-order MAML on
+simulated systems of the `cascaded_tanks` family (--config: its learner set-up and
+meta-training settings), then fits every model on the estimation record's first 300 samples
+and on all 1024: the meta-models adapted with the learner's own eq. (infer), the supervised
+NSSM from random weights, ARX, grey-box (these two do not depend on the seed). Every choice
 (adaptation step size and steps, ARX orders) is made on the estimation record: fitted on its
 head (samples 0..299, or 0..767 for the full record's choice), scored on samples 768..1023.
 The test record is then predicted once: free-run simulation RMSE and T-step prediction RMSE,
-volts (docs/real_data.md says how each model runs and where its initial state comes from).
+volts. The twin (the family at the grey-box fit to all 1024 samples) is tracked by the latent
+MPC of --config's controller section on each fitted NSSM and by the true-model NMPC
+(docs/real_data.md says how each model runs and where its initial state comes from).
 
-Usage: python scripts/cascaded_tanks_benchmark.py --out runs/cts [--seed 0]
+Usage: python scripts/cascaded_tanks_benchmark.py --out runs/cts [--seed 0 1 2 3 4]
        [--config config/cascaded_tanks.yaml] [--figure docs/img/cascaded_tanks_test.png]
-Writes OUT/benchmark.json and prints the table. Exit status: 0 done, 2 bad arguments.
+       [--twin-figure docs/img/cascaded_tanks_twin.png]
+Writes OUT/seed_<s>/benchmark.json per seed and OUT/summary.json, prints the tables; every
+step is cached in OUT (run the same command again to resume). Exit status: 0 done, 2 bad
+arguments.
 """
 import argparse
 import dataclasses
@@ -28,6 +34,8 @@ from typing import Dict, List, Tuple
 import numpy as np
 import torch
 
+from metampc_bringup.analysis.retrack import summarise
+from metampc_bringup.analysis.twin import nssm_weights, track_twin
 from metampc_bringup.experiment_config import ConfigError, learner_config, load
 from metampc_bringup.studies.offline import request_meta_config
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
@@ -37,6 +45,7 @@ from metampc_learner.data import normalisation_from, simulate_source, SourceSet,
 from metampc_learner.meta_train import meta_train
 from metampc_learner.offline_adaptation import tstep_rmse
 from metampc_model.nssm import Nssm, Params
+from metampc_model.weights_codec import DecodedWeights
 from metampc_plant.cascaded_tanks_data import load_cascaded_tanks
 from metampc_plant.families.cascaded_tanks import GUESS
 from metampc_plant.identification.arx import fit_arx, predict_arx, simulate_arx
@@ -53,6 +62,7 @@ LRS = (0.03, 0.1, 0.3, 1.0)  # adaptation step sizes tried (the learner's Armijo
 # Published free-run simulation RMSE on the test record, volts, models fitted on all 1024
 # estimation samples (Math. Probl. Eng. 2021, 6613425, Table 2; docs/real_data.md).
 PUBLISHED = {'BLA': 0.7574, 'PNLSS-I': 0.4498, 'NLSS2': 0.3433}
+COLOURS = {'imaml': 'C0', 'maml': 'C1', 'supervised': 'C2'}   # the twin figure's
 
 
 def log(text: str) -> None:
@@ -113,23 +123,24 @@ def choose_adaptation(model: Nssm, init: Params, method: str, train: Windows, he
     return best
 
 
-def meta_models(args, experiment) -> Tuple[Nssm, Dict[str, Params], Dict[str, dict]]:
-    """The meta-model of each method: OUT/meta_<method>.pt when it holds this run's settings,
-    else meta-trained on the family's simulated source set (and saved there)."""
-    cfg = learner_config(experiment, args.seed)
-    source_cfg = dataclasses.replace(cfg.source, seed=args.seed, **(
+def meta_models(args, experiment, seed: int, folder: str
+                ) -> Tuple[Nssm, Dict[str, Params], Dict[str, dict]]:
+    """The meta-model of each method: folder/meta_<method>.pt when it holds this run's
+    settings, else meta-trained on the family's simulated source set (and saved there)."""
+    cfg = learner_config(experiment, seed)
+    source_cfg = dataclasses.replace(cfg.source, seed=seed, **(
         {'n_systems': args.n_systems} if args.n_systems else {}))
     model, params, info = None, {}, {}
     source = None
     for method in META:
-        meta = dataclasses.replace(cfg.meta, method=method, seed=args.seed,
+        meta = dataclasses.replace(cfg.meta, method=method, seed=seed,
                                    **request_meta_config(experiment, method))
         if args.meta_iterations:
             meta = dataclasses.replace(meta, iterations=args.meta_iterations)
-        wanted = {'method': method, 'seed': args.seed, 'config': args.config,
+        wanted = {'method': method, 'seed': seed, 'config': args.config,
                   'meta_config': json.dumps(dataclasses.asdict(meta), sort_keys=True),
                   'source_config': repr(source_cfg)}
-        path = os.path.join(args.out, f'meta_{method}.pt')
+        path = os.path.join(folder, f'meta_{method}.pt')
         if os.path.exists(path):
             ckpt = load_checkpoint(path)
             if all(ckpt.info.get(k) == v for k, v in wanted.items()):
@@ -158,25 +169,36 @@ def meta_models(args, experiment) -> Tuple[Nssm, Dict[str, Params], Dict[str, di
     return model, params, info
 
 
+def cached(path: str, wanted: dict):
+    """The JSON object in `path` if it holds every item of `wanted`, else None."""
+    if not os.path.exists(path):
+        return None
+    with open(path, encoding='utf-8') as f:
+        found = json.load(f)
+    return found if all(found.get(k) == v for k, v in wanted.items()) else None
+
+
+def save(path: str, value: dict) -> None:
+    with open(path, 'w', encoding='utf-8') as f:
+        json.dump(value, f, indent=1)
+
+
 def greybox(args, family, u: np.ndarray, y: np.ndarray, n: int, protocol: Protocol) -> dict:
     """The grey-box fit to estimation samples 0..n-1 (cached in OUT/greybox_<n>.json)."""
     path = os.path.join(args.out, f'greybox_{n}.json')
     wanted = {'n': n, 'candidates': protocol.candidates, 'polish': protocol.polish,
               'substeps': protocol.substeps}
-    if os.path.exists(path):
-        with open(path, encoding='utf-8') as f:
-            cached = json.load(f)
-        if all(cached.get(k) == v for k, v in wanted.items()):
-            log(f'grey-box on 0..{n - 1}: cached in {path}')
-            return cached
+    found = cached(path, wanted)
+    if found is not None:
+        log(f'grey-box on 0..{n - 1}: cached in {path}')
+        return found
     log(f'grey-box on 0..{n - 1}: fitting')
     start = time.monotonic()
     fit = fit_greybox_head(family, u, y, n, protocol, GUESS,
                            (np.zeros(family.n_theta), np.full(family.n_theta, np.inf)))
     out = {**wanted, 'theta': fit.theta.tolist(), 'x0': fit.x0.tolist(), 'fit_rmse': fit.rmse,
            'seconds': round(time.monotonic() - start, 1)}
-    with open(path, 'w', encoding='utf-8') as f:
-        json.dump(out, f)
+    save(path, out)
     return out
 
 
@@ -188,23 +210,25 @@ def scores(y: np.ndarray, y_sim: np.ndarray, predicted: np.ndarray, origins: np.
             'prediction_rmse': rmse(predicted, measured)}
 
 
-def fit_all(args, model, meta, family, data, protocol) -> Tuple[List[dict], Dict[str, dict]]:
-    """Every model fitted on each of FITS, scored on the test record once; the simulations."""
+def fit_all(args, seed: int, model, meta, family, data, protocol
+            ) -> Tuple[List[dict], Dict[str, np.ndarray], Dict[str, DecodedWeights]]:
+    """Every model fitted on each of FITS, scored on the test record once; the simulations
+    ('<model> <n>': (1024,)); the fitted NSSMs ('<method> <n>')."""
     u, y, ut, yt = data.u_est, data.y_est, data.u_test, data.y_test
     n_h, n_t = model.config.history, model.config.loss_horizon
     origins = np.arange(n_h, len(yt) - n_t)      # the NSSM's windows on the test record
     test_w = record_windows(model, ut, yt, 0, len(yt))
     held = record_windows(model, u, y, TAIL - 1 - n_h, len(y))
-    rows, sims = [], {}
+    rows, sims, fitted = [], {}, {}
     for n in FITS:
         head = CHOOSE_HEAD[n]
         choose_w, fit_w = record_windows(model, u, y, 0, head), record_windows(model, u, y, 0, n)
         for method in (*META, 'supervised'):
             start = time.monotonic()
             chosen = choose_adaptation(model, meta.get(method), method, choose_w, held,
-                                       args.max_steps, args.seed)
+                                       args.max_steps, seed)
             res = run_adaptation(model, meta.get(method), method, fit_w, held, chosen['lr'],
-                                 chosen['steps'], args.seed)
+                                 chosen['steps'], seed)
             sim = simulate_nssm(model, res.params, ut, yt)
             row = {'fit': n, 'model': method, 'choice': chosen,
                    'validation_sim_rmse': rmse(simulate_nssm(model, res.params, u, y)[TAIL:],
@@ -214,6 +238,7 @@ def fit_all(args, model, meta, family, data, protocol) -> Tuple[List[dict], Dict
                    'seconds': round(time.monotonic() - start, 1)}
             rows.append(row)
             sims[f'{method} {n}'] = sim
+            fitted[f'{method} {n}'] = nssm_weights(model, res.params)
             log(f'{method} on 0..{n - 1}: lr {chosen["lr"]:g}, {chosen["steps"]} steps; test '
                 f'simulation RMSE {row["test"]["simulation_rmse"]:.4f} V')
         arx, _ = arx_baseline(u, y, dataclasses.replace(protocol, fit_samples=head))
@@ -236,32 +261,143 @@ def fit_all(args, model, meta, family, data, protocol) -> Tuple[List[dict], Dict
         log(f'ARX and grey-box on 0..{n - 1}: test simulation RMSE '
             f'{rows[-2]["test"]["simulation_rmse"]:.4f}, '
             f'{rows[-1]["test"]["simulation_rmse"]:.4f} V')
-    return rows, sims
+    return rows, sims, fitted
 
 
-def table(rows: List[dict]) -> str:
-    """The markdown table of the test figures (volts)."""
+def series(episode) -> Dict[str, np.ndarray]:
+    """A tracking run's level y (K + 1,), pump voltage u (K + 1,) and reference (K,), V."""
+    return {'y': episode.y[:, 0], 'u': episode.u[:, 0], 'y_ref': episode.y_ref[:, 0]}
+
+
+def twin_nmpc(args, experiment, grey: dict) -> Tuple[dict, Dict[str, np.ndarray]]:
+    """The true-model NMPC's run on the twin, the same for every seed (OUT/twin_nmpc.json when
+    it holds this twin and experiment, else flown and saved there): its result and series."""
+    path = os.path.join(args.out, 'twin_nmpc.json')
+    wanted = {'theta': grey['theta'], 'x0': grey['x0'],
+              'experiment': json.dumps(experiment.to_dict(), sort_keys=True)}
+    found = cached(path, wanted)
+    if found is None:
+        log('twin: the NMPC\'s tracking run')
+        episodes: dict = {}
+        result = track_twin(experiment, grey['theta'], grey['x0'], {'nmpc': None}, episodes)
+        found = {**wanted, 'result': dataclasses.asdict(result['nmpc']),
+                 'series': {k: v.tolist() for k, v in series(episodes['nmpc']).items()}}
+        save(path, found)
+    return found['result'], {k: np.array(v) for k, v in found['series'].items()}
+
+
+def twin(experiment, grey: dict, fitted: Dict[str, DecodedWeights], nmpc: dict
+         ) -> Tuple[Dict[str, Dict[str, dict]], Dict[str, Dict[str, np.ndarray]]]:
+    """Each fitted NSSM's tracking run on the twin: {'fit <n>': {'nmpc': nmpc, method: its
+    result}} and each run's series ('<method> <n>')."""
+    episodes: dict = {}
+    results = track_twin(experiment, grey['theta'], grey['x0'], fitted, episodes)
+    out: Dict[str, Dict[str, dict]] = {}
+    for name, result in results.items():
+        method, n = name.split()
+        out.setdefault(f'fit {n}', {'nmpc': nmpc})[method] = dataclasses.asdict(result)
+        log(f'twin, {name}: tracking cost {result.cost:.4g} (NMPC {nmpc["cost"]:.4g})'
+            f'{", escaped" if result.escaped else ""}{", refused" if result.rejected else ""}')
+    return out, {name: series(ep) for name, ep in episodes.items()}
+
+
+def run_seed(args, experiment, seed: int, data, protocol: Protocol, grey: dict, nmpc: dict
+             ) -> dict:
+    """One seed's meta-training, fits, test-record figures and twin runs: OUT/seed_<s>/
+    benchmark.json (and the series in series.npz there) when it holds this run's settings,
+    else computed (meta-models cached there too)."""
+    folder = os.path.join(args.out, f'seed_{seed}')
+    path = os.path.join(folder, 'benchmark.json')
+    wanted = {'seed': seed, 'config': args.config, 'max_steps': args.max_steps,
+              'meta_iterations': args.meta_iterations, 'n_systems': args.n_systems,
+              'greybox': grey, 'nmpc': nmpc,
+              'experiment': json.dumps(experiment.to_dict(), sort_keys=True)}
+    found = cached(path, wanted)
+    if found is not None and os.path.exists(os.path.join(folder, 'series.npz')):
+        log(f'seed {seed}: cached in {path}')
+        return found
+    os.makedirs(folder, exist_ok=True)
+    torch.manual_seed(seed)
+    start = time.monotonic()
+    model, meta, meta_info = meta_models(args, experiment, seed, folder)
+    rows, sims, fitted = fit_all(args, seed, model, meta, get_family('cascaded_tanks'), data,
+                                 protocol)
+    twin_rows, twin_series = twin(experiment, grey, fitted, nmpc)
+    np.savez_compressed(os.path.join(folder, 'series.npz'), **{
+        f'test {k}': v for k, v in sims.items()}, **{
+        f'twin {k} {part}': v for k, s in twin_series.items() for part, v in s.items()})
+    report = {**wanted, 'meta': meta_info, 'rows': rows, 'twin': twin_rows,
+              'scored': f'test samples {model.config.history + 1}..1023',
+              'wall_s': round(time.monotonic() - start, 1)}
+    save(path, report)
+    return report
+
+
+def summary(reports: List[dict], nmpc: dict) -> dict:
+    """Over the seeds: each model's test figures per fit (values by seed, median, min, max)
+    and the twin's tracking (retrack.summarise: cost / NMPC by seed, median, worst, escapes)."""
+    test: Dict[str, dict] = {}
+    for report in reports:
+        for r in report['rows']:
+            key = f'{r["fit"]} {r["model"]}'
+            row = test.setdefault(key, {'fit': r['fit'], 'model': r['model']})
+            for name, value in r['test'].items():
+                row.setdefault(name, []).append(value)
+    for row in test.values():
+        for key in ('simulation_rmse', 'prediction_rmse'):
+            values = row[key]
+            row[key] = {'values': values, 'median': float(np.median(values)),
+                        'min': min(values), 'max': max(values)}
+    return {'seeds': [r['seed'] for r in reports], 'test': list(test.values()),
+            'twin': summarise({r['seed']: r['twin'] for r in reports}), 'nmpc': nmpc,
+            'published': PUBLISHED}
+
+
+def spread(figure: dict) -> str:
+    """median (min..max) of a test figure over the seeds, volts (the value for one seed)."""
+    if figure['min'] == figure['max']:
+        return f'{figure["median"]:.4f}'
+    return f'{figure["median"]:.4f} ({figure["min"]:.4f}..{figure["max"]:.4f})'
+
+
+def table(result: dict) -> str:
+    """The markdown table of the test figures (volts), median (min..max) over the seeds."""
     lines = ['| fitted on | model | simulation RMSE (V) | 10-step prediction RMSE (V) |',
              '|---|---|---|---|']
-    for r in rows:
+    for r in result['test']:
         lines.append(f"| estimation 0..{r['fit'] - 1} | {r['model']} | "
-                     f"{r['test']['simulation_rmse']:.4f} | {r['test']['prediction_rmse']:.4f} |")
+                     f"{spread(r['simulation_rmse'])} | {spread(r['prediction_rmse'])} |")
     for name, value in PUBLISHED.items():
         lines.append(f'| estimation 0..1023 (published) | {name} | {value:.4f} | |')
     return '\n'.join(lines)
 
 
+def twin_table(result: dict) -> str:
+    """The markdown table of the twin's tracking cost / the NMPC's (inf: escaped)."""
+    seeds = result['seeds']
+    lines = [f'| fitted on | model | cost / NMPC, seeds {", ".join(map(str, seeds))} | median | '
+             'worst | escapes | refused | mean steady offset (V) |', '|---' * 8 + '|']
+    for variant, methods in result['twin'].items():
+        for method, row in methods.items():
+            ratios = ', '.join(f'{row["ratios"][s]:.3g}' for s in seeds)
+            lines.append(f'| estimation 0..{int(variant.split()[1]) - 1} | {method} | {ratios} | '
+                         f'{row["median"]:.3g} | {row["worst"]:.3g} | {row["escapes"]} | '
+                         f'{row["rejected"]} | {row["mean_offset"]:.3f} |')
+    nmpc = result['nmpc']
+    lines.append(f'| | NMPC (true model) | cost {nmpc["cost"]:.4g} | | | '
+                 f'{int(nmpc["escaped"])} | | {np.mean(nmpc["offsets"]):.3f} |')
+    return '\n'.join(lines)
+
+
 def figure(path: str, yt: np.ndarray, sims: Dict[str, np.ndarray], ts: float) -> None:
     """The test record's measured level and each model's free-run simulation, per fit."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
     fig, axes = plt.subplots(len(FITS), 1, figsize=(8, 5.5), sharex=True)
     t = np.arange(len(yt)) * ts
     for ax, n in zip(axes, FITS):
         ax.plot(t, yt, 'k', lw=1.5, label='measured')
         for name in (*META, 'supervised', 'ARX', 'grey-box'):
-            ax.plot(t, sims[f'{name} {n}'], lw=0.9, label=name)
+            ax.plot(t, sims[f'test {name} {n}'], lw=0.9, label=name)
         ax.set_ylabel('level (V)')
         ax.set_title(f'test record, free run; fitted on estimation samples 0..{n - 1}',
                      fontsize=9)
@@ -273,14 +409,56 @@ def figure(path: str, yt: np.ndarray, sims: Dict[str, np.ndarray], ts: float) ->
     plt.close(fig)
 
 
+def twin_figure(path: str, seed: int, runs: Dict[str, np.ndarray],
+                nmpc: Dict[str, np.ndarray], ts: float) -> None:
+    """One seed's tracking runs on the twin, per fit: the level against the reference, and
+    the pump voltage."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(2, len(FITS), figsize=(9, 5), sharex=True,
+                             gridspec_kw={'height_ratios': [2, 1]})
+    t = np.arange(len(nmpc['y'])) * ts
+    for col, n in enumerate(FITS):
+        top, bottom = axes[0, col], axes[1, col]
+        for name in ('supervised', *META, 'nmpc'):     # the NMPC on top
+            run = nmpc if name == 'nmpc' else {
+                part: runs[f'twin {name} {n} {part}'] for part in ('y', 'u')}
+            style = {'color': 'k', 'lw': 1.0, 'label': 'NMPC'} if name == 'nmpc' else {
+                'color': COLOURS[name], 'lw': 0.8, 'label': name,
+                'alpha': 0.6 if name == 'supervised' else 1.0}
+            top.plot(t, run['y'], **style)
+            bottom.plot(t, run['u'], **style)
+        top.plot(t[1:], nmpc['y_ref'], 'r--', lw=0.8, label='reference')
+        top.set_title(f'twin, seed {seed}; NSSMs fitted on estimation 0..{n - 1}', fontsize=9)
+        top.set_ylim(0, 11)
+        bottom.set_xlabel('time (s)')
+    axes[0, 0].set_ylabel('lower level (V)')
+    axes[1, 0].set_ylabel('pump (V)')
+    axes[0, 0].legend(fontsize=7, ncol=2, loc='lower left')
+    fig.tight_layout()
+    fig.savefig(path, dpi=70)
+    plt.close(fig)
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', required=True, help='folder of the results and the cache')
-    parser.add_argument('--seed', type=int, default=0,
-                        help='source set, meta-training and supervised initial weights')
+    parser.add_argument('--seed', type=int, nargs='+', default=[0],
+                        help='meta-training seeds, run in turn (each: source set, '
+                             'meta-training and supervised initial weights; OUT/seed_<s>/)')
     parser.add_argument('--config', default='config/cascaded_tanks.yaml',
-                        help='the family\'s experiment configuration (learner, meta_train)')
-    parser.add_argument('--figure', default='', help='PNG of the test-record free runs')
+                        help='the family\'s experiment configuration (learner, meta_train, '
+                             'controller, reference)')
+    parser.add_argument('--figure', default='', help='PNG of the test-record free runs '
+                        '(the first seed)')
+    parser.add_argument('--twin-figure', default='', help='PNG of the tracking runs on the '
+                        'twin (the first seed)')
     parser.add_argument('--max-steps', type=int, default=200,
                         help='adaptation steps searched (0..this) on the estimation record')
     parser.add_argument('--meta-iterations', type=int, default=0,
@@ -296,32 +474,40 @@ def main(argv=None) -> int:
         if experiment.plant_family.name != 'cascaded_tanks':
             raise ConfigError(f'--config {args.config}: family {experiment.plant_family.name}, '
                               'not cascaded_tanks')
-        if min(args.seed, args.max_steps, args.meta_iterations, args.n_systems) < 0:
+        if min(*args.seed, args.max_steps, args.meta_iterations, args.n_systems) < 0:
             raise ConfigError('--seed, --max-steps, --meta-iterations, --n-systems must be >= 0')
+        if len(set(args.seed)) != len(args.seed):
+            raise ConfigError(f'--seed: each seed once, got {args.seed}')
         if os.path.exists(args.out) and not os.path.isdir(args.out):
             raise ConfigError(f'--out {args.out} exists and is not a folder')
+        # The grey-box search's candidates are drawn with rng(0) whatever the seed: ARX and
+        # grey-box do not depend on it.
         protocol = Protocol(fit_samples=300, validation_start=TAIL, candidates=args.candidates,
-                            polish=args.polish, substeps=args.substeps, seed=args.seed)
+                            polish=args.polish, substeps=args.substeps, seed=0)
         protocol.check(1024)
     except ValueError as err:       # ConfigError is one
         print(f'cascaded_tanks_benchmark: {err}', file=sys.stderr)
         return 2
     os.makedirs(args.out, exist_ok=True)
     torch.set_num_threads(1)
-    torch.manual_seed(args.seed)
-    start = time.monotonic()
     data = load_cascaded_tanks()
-    model, meta, meta_info = meta_models(args, experiment)
-    rows, sims = fit_all(args, model, meta, get_family('cascaded_tanks'), data, protocol)
-    report = {'config': args.config, 'seed': args.seed, 'max_steps': args.max_steps,
-              'meta': meta_info, 'rows': rows, 'published': PUBLISHED,
-              'scored': f'test samples {model.config.history + 1}..1023',
-              'wall_s': round(time.monotonic() - start, 1)}
-    with open(os.path.join(args.out, 'benchmark.json'), 'w', encoding='utf-8') as f:
-        json.dump(report, f, indent=1)
-    if args.figure:
-        figure(args.figure, data.y_test, sims, data.ts)
-    print(table(rows))
+    # The twin: the family at the grey-box fit to the whole estimation record.
+    grey = greybox(args, get_family('cascaded_tanks'), data.u_est, data.y_est, FITS[-1],
+                   protocol)
+    nmpc, nmpc_series = twin_nmpc(args, experiment, grey)
+    reports = [run_seed(args, experiment, seed, data, protocol, grey, nmpc)
+               for seed in args.seed]
+    result = summary(reports, nmpc)
+    save(os.path.join(args.out, 'summary.json'), result)
+    if args.figure or args.twin_figure:
+        first = np.load(os.path.join(args.out, f'seed_{args.seed[0]}', 'series.npz'))
+        if args.figure:
+            figure(args.figure, data.y_test, first, data.ts)
+        if args.twin_figure:
+            twin_figure(args.twin_figure, args.seed[0], first, nmpc_series, data.ts)
+    print(table(result))
+    print()
+    print(twin_table(result))
     return 0
 
 

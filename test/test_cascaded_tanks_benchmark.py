@@ -1,6 +1,7 @@
 """scripts/cascaded_tanks_benchmark.py: the NSSM's free-run simulation against a recursion
-written out by hand, the record's sample pairing, and the script end to end on a tiny budget
-(resumed from its cache), with one error line and exit status 2 for bad input."""
+written out by hand, the record's sample pairing, the summary over seeds against figures
+worked out by hand, and the script end to end on a tiny budget and a short twin run (resumed
+from its cache), with one error line and exit status 2 for bad input."""
 import json
 from pathlib import Path
 import runpy
@@ -58,32 +59,71 @@ def _cache_greybox(out: Path):
             'x0': list(FIT_X0), 'fit_rmse': 0.0, 'seconds': 0.0}))
 
 
+def _short_config(tmp_path: Path) -> str:
+    # The twin's tracking run cut to 10 samples of the first set-point, a 5-sample horizon.
+    text = (ROOT / 'config' / 'cascaded_tanks.yaml').read_text()
+    text = text.replace('track_duration: 3200.0', 'track_duration: 40.0')
+    text = text.replace('  horizon: 20 ', '  horizon: 5 ').replace('nmpc_tail: 20', 'nmpc_tail: 5')
+    path = tmp_path / 'short.yaml'
+    path.write_text(text)
+    return str(path)
+
+
 def test_tiny_budget_end_to_end_and_resumed(tmp_path, capsys):
     out = tmp_path / 'cts'
     _cache_greybox(out)
-    figure = tmp_path / 'f.png'
-    assert SCRIPT['main'](['--out', str(out), '--figure', str(figure), *TINY]) == 0
+    figures = ['--figure', str(tmp_path / 'f.png'), '--twin-figure', str(tmp_path / 't.png')]
+    args = ['--out', str(out), '--config', _short_config(tmp_path), *TINY]
+    assert SCRIPT['main']([*args, *figures]) == 0
     captured = capsys.readouterr()
     assert 'imaml: meta-training, 1 outer steps' in captured.err
-    assert captured.out.count('\n') == 2 + 10 + 3     # header, 10 rows, 3 published
-    report = json.loads((out / 'benchmark.json').read_text())
+    # header, 10 rows, 3 published; a blank line; header, 6 rows, the NMPC
+    assert captured.out.count('\n') == 2 + 10 + 3 + 1 + 2 + 6 + 1
+    report = json.loads((out / 'seed_0' / 'benchmark.json').read_text())
     assert [r['fit'] for r in report['rows']] == [300] * 5 + [1024] * 5
     grey = [r for r in report['rows'] if r['model'] == 'grey-box']
     assert grey[0]['test'] == grey[1]['test']     # the same cached fit
     # The family's fit run from x(0) over the test record: the documented level of error.
     assert 0.2 < grey[0]['test_all_samples'] < 1.0
-    assert figure.stat().st_size > 1000
-    assert SCRIPT['main'](['--out', str(out), *TINY]) == 0
+    nmpc = json.loads((out / 'twin_nmpc.json').read_text())
+    assert nmpc['theta'] == list(FIT_THETA) and len(nmpc['series']['y']) == 11
+    for fit in ('fit 300', 'fit 1024'):
+        twin = report['twin'][fit]
+        assert sorted(twin) == ['imaml', 'maml', 'nmpc', 'supervised']
+        assert all(not r['rejected'] and np.isfinite(r['cost']) for r in twin.values())
+    assert all((tmp_path / name).stat().st_size > 1000 for name in ('f.png', 't.png'))
+    assert SCRIPT['main'](args) == 0
     resumed = capsys.readouterr()
-    assert 'meta-model cached' in resumed.err and 'meta-training' not in resumed.err
-    again = json.loads((out / 'benchmark.json').read_text())
-    assert [r['test'] for r in again['rows']] == [r['test'] for r in report['rows']]
+    assert 'seed 0: cached' in resumed.err and 'twin: the NMPC' not in resumed.err
+    assert resumed.out == captured.out
+
+
+def _report(seed: int, sim: float, cost: float, nmpc: dict) -> dict:
+    result = {'cost': cost, 'escaped': False, 'rejected': '', 'offsets': [0.1]}
+    return {'seed': seed, 'rows': [{'fit': 300, 'model': 'imaml', 'test': {
+        'simulation_rmse': sim, 'prediction_rmse': sim / 2}}],
+        'twin': {'fit 300': {'nmpc': nmpc, 'imaml': result}}}
+
+
+def test_summary_over_seeds():
+    nmpc = {'cost': 2.0, 'escaped': False, 'rejected': '', 'offsets': [0.01]}
+    result = SCRIPT['summary']([_report(0, 1.0, 3.0, nmpc), _report(1, 3.0, 5.0, nmpc),
+                                _report(2, 1.5, 9.0, nmpc)], nmpc)
+    sim = result['test'][0]['simulation_rmse']
+    assert (sim['median'], sim['min'], sim['max']) == (1.5, 1.0, 3.0)
+    twin = result['twin']['fit 300']['imaml']
+    assert twin['ratios'] == {0: 1.5, 1: 2.5, 2: 4.5}
+    assert (twin['median'], twin['worst'], twin['escapes']) == (2.5, 4.5, 0)
+    assert '| estimation 0..299 | imaml | 1.5, 2.5, 4.5 | 2.5 | 4.5 | 0 | 0 | 0.100 |' in \
+        SCRIPT['twin_table'](result)
+    assert '| 1.5000 (1.0000..3.0000) | 0.7500 (0.5000..1.5000) |' in SCRIPT['table'](result)
 
 
 @pytest.mark.parametrize('args, message', [
     (['--max-steps', '-1'], 'must be >= 0'),
     (['--config', 'config/quadruple_tank.yaml'], 'not cascaded_tanks'),
     (['--config', '/nonexistent.yaml'], 'cannot read config'),
+    (['--seed', '1', '1'], 'each seed once'),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, message):
     assert SCRIPT['main'](['--out', str(tmp_path / 'o'), *args]) == 2

@@ -162,21 +162,31 @@ def retrack_seed(experiment: ExperimentConfig, seed: int, recording: str,
     """Tracking of every recorded adapted model (or `methods`) of one seed, plus 'nmpc' (the
     yardstick: unaffected by the latent MPC's settings, and the slowest part; `nmpc` False
     leaves it out). `episodes`, if given, receives each method's :class:`Episode`."""
+    models = adapted_models(recording)
+    wanted = methods if methods is not None else sorted(models)
+    flown: Dict[str, Optional[DecodedWeights]] = {
+        method: weights_from_fields(fields_of(models[method]))
+        for method in wanted if method in models}
+    if nmpc:
+        flown['nmpc'] = None
+    return track_models(experiment, seed, overrides, flown, episodes)
+
+
+def track_models(experiment: ExperimentConfig, seed: int, overrides: Mapping[str, Any],
+                 models: Mapping[str, Optional[DecodedWeights]],
+                 episodes: Optional[Dict[str, Episode]] = None) -> Dict[str, MethodResult]:
+    """The experiment's tracking run of `seed` (its theta*, track_x0, reference, controller
+    section with `overrides`) flown by each of `models` in turn: the latent MPC on the
+    weights, or the true-model NMPC for None. `episodes`, if given, receives each
+    :class:`Episode`."""
     cfg = experiment.resolved()
     controller = controller_values(cfg, seed, overrides)
     plant = cfg.node_parameters('plant', seed)
     horizon = controller_config(cfg, seed, overrides).mpc.horizon
     theta = cfg.target_theta(seed)
     tracked = list(cfg.tracked_outputs)
-    models = adapted_models(recording)
-    wanted = methods if methods is not None else sorted(models)
     results: Dict[str, MethodResult] = {}
-    for method in wanted + (['nmpc'] if nmpc else []):
-        weights = None
-        if method != 'nmpc':
-            if method not in models:
-                continue
-            weights = weights_from_fields(fields_of(models[method]))
+    for method, weights in models.items():
         try:
             episode = fly(controller, plant, theta, cfg.track_x0, cfg.track_steps(), weights)
         except WeightsError as err:
