@@ -137,6 +137,24 @@ def write_bag(session: Session, path: Path, storage: str = 'mcap') -> Path:
     return path
 
 
+def write_recording(session: Session, path: Path, chunk_size: int) -> Path:
+    """The robot's topics as one MCAP file written by metampc's recorder writer (rosbag2's
+    layout), in log-time order, a chunk closed every `chunk_size` bytes."""
+    from metampc_recording.mcap_writer import McapWriterConfig, Rosbag2McapWriter
+    store = _store()
+    writer = Rosbag2McapWriter(McapWriterConfig(str(path), chunk_size=chunk_size))
+    messages = []
+    for topic, type_name, recorded in (
+            (JOINTS, 'sensor_msgs/msg/JointState', session.joint_states),
+            (COMMANDS, 'std_msgs/msg/Float64MultiArray', session.commands)):
+        writer.add_topic(topic, type_name, [])
+        messages += [(ns, topic, store.serialize_cdr(m, type_name)) for ns, m in recorded]
+    for ns, topic, data in sorted(messages, key=lambda m: m[0]):
+        writer.write(topic, bytes(data), ns, ns)
+    writer.close()
+    return path
+
+
 def write_csv(session: Session, path: Path, nan_row: Optional[int] = None,
               gap: Sequence[int] = ()) -> Path:
     """The logger's CSV: time, q, qd, tau (the torque from t_k on); qd left empty in row
@@ -212,4 +230,4 @@ def fresh_robot():
 
 
 __all__ = ['MAPPING', 'JOINTS', 'COMMANDS', 'joint_state', 'command', 'Session', 'simulate',
-           'write_bag', 'write_csv', 'tstep_rmse', 'meta_checkpoint']
+           'write_bag', 'write_recording', 'write_csv', 'tstep_rmse', 'meta_checkpoint']

@@ -7,7 +7,8 @@ The house in layers, lowest first (each package imports only packages of lower l
 `model` (the NSSM of eq. (SSM)) needs common only; `recording` (recorder, reader, player,
 live view) needs nothing of the model, the nodes or the orchestration; the controller reaches
 the plant for the true-model NMPC only, the learner reaches the controller for the MPC of online
-collection; ros2cli reaches recording and common, never bringup. Every import counts: top
+collection and recording's reader for a recording cut short (adapt_offline); ros2cli reaches
+recording and common, never bringup. Every import counts: top
 level, inside functions, and `from . import` (a relative import, counted as '.', allowed to
 no package: every import names its package). Modules import each other without a cycle, in
 any package.
@@ -30,7 +31,7 @@ MAY_IMPORT = {
     MODEL: {COMMON},
     RECORDING: {COMMON, MSGS},
     CONTROLLER: {COMMON, MSGS, PLANT, MODEL},
-    LEARNER: {COMMON, MSGS, PLANT, MODEL, CONTROLLER},
+    LEARNER: {COMMON, MSGS, PLANT, MODEL, RECORDING, CONTROLLER},
     ROS2CLI: {COMMON, MSGS, RECORDING},
     BRINGUP: {COMMON, MSGS, PLANT, MODEL, RECORDING, CONTROLLER, LEARNER},
 }

@@ -156,6 +156,8 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
     method = resolve_method(config.method, ckpt.info, checkpoint)
     settings, settings_from = adapt_settings(method, config)
     recorded = read_recording(recording, mapping, config.time_column, progress)
+    if recorded.cut_short:
+        log(recorded.cut_short)
     grid = grid_samples(recorded, mapping, config.keep_saturated)
     usable = _usable(grid)
     log(f'{recording}: {len(grid.times)} samples on the grid of dt = {mapping.dt:g} s, '
@@ -187,6 +189,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         'recording': recording, 'mapping': mapping_path})
     report = {
         'recording': recording, 'kind': recorded.kind, 'clock': recorded.clock,
+        'cut_short': recorded.cut_short,
         'mapping': mapping_path, 'checkpoint': checkpoint, 'out': out, 'method': method,
         'steps': settings.steps, 'lr': settings.lr,
         'gamma': 0.0 if method == SUPERVISED else settings.gamma, 'seed': config.seed,
@@ -224,6 +227,7 @@ def report_markdown(report: Dict[str, Any]) -> str:
              '', f"{report['steps']} steps at lr {report['lr']:g} (gamma {report['gamma']:g}) "
              f"from {report['checkpoint']}; H = {report['history']}, "
              f"T = {report['loss_horizon']}; written to {report['out']}.", '',
+             *([f"**{report['cut_short']}.**", ''] if report['cut_short'] else []),
              '| samples | count |', '|---|---|',
              f"| on the grid (dt = {s['dt']:g} s, from t = {s['first_time']:.3f} s) | "
              f"{s['grid']} |", f"| usable | {s['usable']} |",

@@ -1,26 +1,29 @@
 """A machine's recording read through its mapping file: stamped streams of y and of u.
 
 A bag (rosbag2 folder of MCAP or sqlite3 storage, or one ``.mcap`` / ``.db3`` file; read by
-`rosbags` with the types stored in it) gives, per output topic of the mapping, each message's
-stamp (the mapping's stamp rule; the log time for ``receive``) and outputs, and the command
-topic's inputs stamped by their log time. A CSV (a header row of column names) gives the same
-from its columns: the outputs' and inputs' ``name``, holding the fields' values (y_i = scale *
-column + offset, u_j = (column - offset) / scale), stamped by a time column (s) or one row per
-dt. A value that cannot be read (a sequence too short for the field's index, an empty cell) is
-NaN. :class:`RecordingError` is one line naming what is wrong. docs/offline_adaptation.md.
+`rosbags`; an MCAP file cut short, e.g. by a killed recorder, by metampc_recording's reader up
+to its last complete chunk) gives, per output topic of the mapping, each message's stamp (the
+mapping's stamp rule; the log time for ``receive``) and outputs, and the command topic's inputs
+stamped by their log time. A CSV (a header row of column names) gives the same from its
+columns: the outputs' and inputs' ``name``, holding the fields' values (y_i = scale * column +
+offset, u_j = (column - offset) / scale), stamped by a time column (s) or one row per dt. A
+value that cannot be read (a sequence too short for the field's index, an empty cell) is NaN.
+:class:`RecordingError` is one line naming what is wrong. docs/offline_adaptation.md.
 """
 import csv
+import glob
 import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from metampc_plant.machine_mapping import MachineMapping
 
 TIME_COLUMN = 'time'    # the CSV's time column when it has one of that name
+MCAP_MAGIC = b'\x89MCAP0\r\n'   # an MCAP file's first and last 8 bytes (its end: a finished file)
 
 
 class RecordingError(ValueError):
@@ -47,6 +50,7 @@ class Recorded:
         kind: 'bag' or 'csv'; clock: how the samples are stamped, in words.
         read: messages (rows) read per topic (column group); unreadable: of them, those
             with a value that could not be read (NaN).
+        cut_short: '' for a finished recording; else what was read of one cut short.
     """
 
     outputs: List[Stream]
@@ -55,6 +59,7 @@ class Recorded:
     clock: str
     read: Dict[str, int]
     unreadable: Dict[str, int]
+    cut_short: str = ''
 
 
 def _stream(stamps: Sequence[float], values: Sequence[np.ndarray], width: int,
@@ -98,40 +103,90 @@ def read_bag(path: str, mapping: MachineMapping, progress: bool = False) -> Reco
         RecordingError: no bag there, a mapping topic not in it or of another type, or its
             messages lack a field of the mapping (the bag's type differs from the installed).
     """
+    cut = cut_mcap(path)
+    if cut is not None:
+        return _read_cut_mcap(cut, path, mapping, progress)
     reader = _reader(path)
     try:
-        recorded = {c.topic: c.msgtype for c in reader.connections}
-        wanted = [(f'outputs[{t.outputs[0]}]', t.topic, t.type) for t in mapping.topics]
-        wanted.append(('command', mapping.command.topic, mapping.command.type))
-        for key, topic, type_name in wanted:
-            if topic not in recorded:
-                listed = ', '.join(f'{n} ({t})' for n, t in sorted(recorded.items())) or 'none'
-                raise RecordingError(f'{key}.topic: {topic} is not in {path} (its topics: '
-                                     f'{listed})')
-            if recorded[topic] != type_name:
-                raise RecordingError(f'{key}.type: {topic} is {recorded[topic]} in {path}, '
-                                     f'not {type_name}')
-        return _read_messages(reader, path, mapping, progress)
+        _check_topics({c.topic: c.msgtype for c in reader.connections}, path, mapping)
+        connections = [c for c in reader.connections if c.topic in _keys(mapping)]
+        messages = ((c.topic, log_time, reader.deserialize(raw, c.msgtype))
+                    for c, log_time, raw in reader.messages(connections=connections))
+        return _read_messages(messages, sum(c.msgcount for c in connections), path, mapping,
+                              progress)
     finally:
         reader.close()
 
 
-def _read_messages(reader, path: str, mapping: MachineMapping, progress: bool) -> Recorded:
-    from tqdm import tqdm
+def cut_mcap(path: str) -> Optional[str]:
+    """The MCAP file at `path` (the file, or a folder's only ``.mcap``) if it lacks its end
+    (its writer never finished it), else None."""
+    files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, '*.mcap')))
+    if len(files) != 1 or not files[0].lower().endswith('.mcap'):
+        return None
+    with open(files[0], 'rb') as f:
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            return None     # not MCAP: rosbags says what it is
+        f.seek(0, os.SEEK_END)
+        if f.tell() >= 2 * len(MCAP_MAGIC):
+            f.seek(-len(MCAP_MAGIC), os.SEEK_END)
+            if f.read() == MCAP_MAGIC:
+                return None
+    return files[0]
+
+
+def _read_cut_mcap(file: str, path: str, mapping: MachineMapping, progress: bool) -> Recorded:
+    """An MCAP file cut short: every message of its complete chunks (metampc_recording's
+    stream reader needs no summary), decoded with the schemas stored in it."""
+    from metampc_recording.recording_reader import read_recording as read_mcap
+    recording = read_mcap(file, messages=False)
+    _check_topics({t.name: t.type_name for t in recording.topics.values()}, path, mapping)
+    keys = _keys(mapping)
+    messages = ((raw.topic, raw.log_time, msg) for _, raw, msg in recording.decoded(keys))
+    recorded = _read_messages(messages, sum(recording.topics[k].count for k in keys), path,
+                              mapping, progress)
+    recorded.cut_short = (f'{file} was cut short (no end: its writer did not finish it); '
+                          f'read its {recording.message_count} messages up to its last '
+                          'complete chunk')
+    return recorded
+
+
+def _keys(mapping: MachineMapping) -> Dict[str, str]:
+    """The mapping's topics, each with its key in the mapping file (for messages)."""
     keys = {t.topic: f'outputs[{t.outputs[0]}]' for t in mapping.topics}
     keys[mapping.command.topic] = 'command'
+    return keys
+
+
+def _check_topics(recorded: Dict[str, str], path: str, mapping: MachineMapping) -> None:
+    """RecordingError if a topic of the mapping is not among `recorded` ({topic: type}) or is
+    of another type there."""
+    for topic, key in _keys(mapping).items():
+        type_name = (mapping.command.type if key == 'command'
+                     else next(t.type for t in mapping.topics if t.topic == topic))
+        if topic not in recorded:
+            listed = ', '.join(f'{n} ({t})' for n, t in sorted(recorded.items())) or 'none'
+            raise RecordingError(f'{key}.topic: {topic} is not in {path} (its topics: '
+                                 f'{listed})')
+        if recorded[topic] != type_name:
+            raise RecordingError(f'{key}.type: {topic} is {recorded[topic]} in {path}, '
+                                 f'not {type_name}')
+
+
+def _read_messages(messages: Iterable[Tuple[str, int, Any]], total: int, path: str,
+                   mapping: MachineMapping, progress: bool) -> Recorded:
+    """Recorded from `messages`: (topic, log time in ns, decoded message) of the mapping's
+    topics, `total` of them (for the progress bar)."""
+    from tqdm import tqdm
+    keys = _keys(mapping)
     index = {t.topic: i for i, t in enumerate(mapping.topics)}
     n_u = len(mapping.command.inputs)
     stamps: Dict[str, List[float]] = {name: [] for name in keys}
     values: Dict[str, List[np.ndarray]] = {name: [] for name in keys}
     unreadable = dict.fromkeys(keys, 0)
-    connections = [c for c in reader.connections if c.topic in keys]
-    bar = tqdm(reader.messages(connections=connections), desc=f'reading {path}', unit='msg',
-               total=sum(c.msgcount for c in connections), disable=not progress,
-               leave=False)
-    for connection, log_time, raw in bar:
-        name = connection.topic
-        msg = reader.deserialize(raw, connection.msgtype)
+    bar = tqdm(messages, desc=f'reading {path}', unit='msg', total=total,
+               disable=not progress, leave=False)
+    for name, log_time, msg in bar:
         received = 1e-9 * log_time
         try:
             if name == mapping.command.topic:

@@ -56,6 +56,21 @@ def test_every_sample_is_accounted_for_and_the_checkpoint_is_the_adapted_one(rob
     assert lines[-1].startswith('step 5/5: held-out loss ')
 
 
+def test_a_recording_cut_short_is_adapted_on_and_the_report_says_so(robot_session, robot_meta,
+                                                                    mapping_file, tmp_path):
+    from robot_recording import write_recording
+    data = write_recording(robot_session, tmp_path / 'whole.mcap', 8192).read_bytes()
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(data[:len(data) // 2])
+    lines = []
+    report = run_offline(str(cut), mapping_file, robot_meta, str(tmp_path / 'a.pt'),
+                         OfflineConfig(steps=1, lr=1.0, samples=100, holdout=0.25), lines.append)
+    assert report['cut_short'].startswith(f'{cut} was cut short') and report['cut_short'] in lines
+    assert 0 < report['samples']['grid'] < 500     # the finished file's grid: 500 samples
+    with open(tmp_path / 'a.md') as f:
+        assert f'**{report["cut_short"]}.**' in f.read()
+
+
 def test_kept_saturated_inputs_leave_no_sample_skipped_for_it(robot_bag, robot_meta,
                                                               mapping_file, tmp_path):
     report = run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'a.pt'),

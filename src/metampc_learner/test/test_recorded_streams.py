@@ -54,6 +54,26 @@ def test_a_bag_gives_the_stamps_and_values_written_into_it(robot_session, tmp_pa
     assert got.kind == 'bag' and got.clock.startswith('/joint_states: header.stamp')
 
 
+def test_a_recording_cut_short_gives_the_messages_of_its_complete_chunks(robot_session,
+                                                                         tmp_path, mapping):
+    """A recorder killed mid-file leaves no summary (rosbags cannot open it): what its
+    complete chunks hold is read, a prefix of the finished file's messages as rosbags reads
+    them."""
+    from robot_recording import write_recording
+    whole = write_recording(robot_session, tmp_path / 'whole.mcap', chunk_size=8192)
+    data = whole.read_bytes()
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(data[:len(data) * 6 // 10])
+    full, got = read_bag(str(whole), mapping), read_bag(str(cut), mapping)
+    assert full.cut_short == '' and got.cut_short.startswith(f'{cut} was cut short')
+    assert all(0 < got.read[k] < full.read[k] for k in full.read)
+    for part, all_of in [*zip(got.outputs, full.outputs), (got.command, full.command)]:
+        n = len(part.stamps)
+        assert part.stamps.tolist() == all_of.stamps[:n].tolist()
+        np.testing.assert_array_equal(part.values, all_of.values[:n])    # NaN where NaN
+    assert got.unreadable['/effort_controller/commands'] == 0 and got.kind == 'bag'
+
+
 def test_a_message_too_short_for_the_field_reads_as_nan(tmp_path, mapping):
     from robot_recording import command, joint_state, Session, write_bag
     session = Session(joint_states=[(10**9, joint_state(10**9, [0.5], [1.0])),
