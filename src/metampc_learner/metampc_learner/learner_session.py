@@ -136,13 +136,15 @@ class LearnerSession:
         save_checkpoint(path, record.model, record.params, {
             'method': record.method, 'stage': record.stage, 'version': record.version,
             'train_loss': record.train_loss, 'train_steps': record.train_steps,
-            'train_samples': record.train_samples, 'seed': record.seed})
+            'train_samples': record.train_samples, 'seed': record.seed,
+            'dt': self._dt()})
 
     def load_meta(self, path: str) -> ModelRecord:
         """Load a checkpoint as the meta-model of its method (info 'method', default imaml).
 
         Raises:
-            LearnerError: unreadable file, or a method that is not a meta method.
+            LearnerError: unreadable file, a method that is not a meta method, or a model
+                trained at another dt than this learner's (info 'dt', when it has one).
         """
         try:
             ckpt = load_checkpoint(path)
@@ -153,6 +155,10 @@ class LearnerSession:
         if method not in META_METHODS:
             raise LearnerError(f'{path!r} holds a {method!r} model, not a meta-model of '
                                f'{", ".join(META_METHODS)}')
+        dt = self._dt()
+        if 'dt' in info and not math.isclose(info['dt'], dt, rel_tol=1e-9):
+            raise LearnerError(f'{path!r} holds a model of dt = {info["dt"]:g} s; this '
+                               f'learner samples at dt = {dt:g} s')
         return self._new_record(
             model=ckpt.model, params=ckpt.params, method=method, stage='meta',
             train_loss=float(info.get('train_loss', math.nan)),
@@ -160,6 +166,10 @@ class LearnerSession:
             train_samples=int(info.get('train_samples', 0)), seed=int(info.get('seed', 0)))
 
     # --- source data ----------------------------------------------------------------------
+
+    def _dt(self) -> float:
+        """The sample time of this learner's models, s (the source systems', as resolved)."""
+        return self.config.source.resolved().dt
 
     def _source_data(self) -> SourceData:
         if self._source is None:

@@ -153,6 +153,9 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
     if (cfg.n_u, cfg.n_y) != (n_u, n_y):
         raise OfflineError(f'{checkpoint}: a model of {cfg.n_u} input(s) and {cfg.n_y} '
                            f'output(s); the mapping {mapping_path} has {n_u} and {n_y}')
+    if 'dt' in ckpt.info and not math.isclose(ckpt.info['dt'], mapping.dt, rel_tol=1e-9):
+        raise OfflineError(f'{checkpoint}: a model of dt = {ckpt.info["dt"]:g} s; the mapping '
+                           f'{mapping_path} samples at dt = {mapping.dt:g} s')
     method = resolve_method(config.method, ckpt.info, checkpoint)
     settings, settings_from = adapt_settings(method, config)
     recorded = read_recording(recording, mapping, config.time_column, progress)
@@ -186,7 +189,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         'method': method, 'stage': 'adapted', 'train_loss': result.train_loss[-1],
         'train_steps': settings.steps, 'train_samples': n_train, 'seed': config.seed,
         'heldout_loss': result.heldout_loss[-1], 'meta_checkpoint': checkpoint,
-        'recording': recording, 'mapping': mapping_path})
+        'recording': recording, 'mapping': mapping_path, 'dt': mapping.dt})
     report = {
         'recording': recording, 'kind': recorded.kind, 'clock': recorded.clock,
         'cut_short': recorded.cut_short,

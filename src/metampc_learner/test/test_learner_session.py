@@ -155,6 +155,7 @@ def test_versions_continue_after_the_checkpoints_on_disk(tmp_path):
     assert second.version == 7
     loaded = second.load_meta(str(tmp_path / 'meta_imaml_v1.pt'))
     assert (loaded.version, loaded.stage, loaded.method) == (8, 'meta', 'imaml')
+    assert load_checkpoint(str(tmp_path / 'meta_imaml_v8.pt')).info['dt'] == 0.1
     assert _equal(load_checkpoint(str(tmp_path / 'meta_imaml_v8.pt')).params, rec.params)
     assert second.latest_meta == 'imaml'
 
@@ -167,5 +168,9 @@ def test_load_meta_refuses_what_is_not_a_meta_model(tmp_path):
     path = str(tmp_path / 'oracle.pt')
     save_checkpoint(path, model, model.params(), {'method': 'oracle'})
     with pytest.raises(LearnerError, match="holds a 'oracle' model, not a meta-model"):
+        session.load_meta(path)
+    save_checkpoint(path, model, model.params(), {'method': 'maml', 'dt': 0.05})
+    with pytest.raises(LearnerError, match="holds a model of dt = 0.05 s; this learner "
+                                           "samples at dt = 0.1 s"):
         session.load_meta(path)
     assert session.version == 0 and not session.meta_models

@@ -46,8 +46,8 @@ def test_every_sample_is_accounted_for_and_the_checkpoint_is_the_adapted_one(rob
     assert len(held['adapted']['rmse']) == 2 and report['loss_horizon'] == 5
     assert (report['method'], report['settings_from']) == ('maml', 'steps given, lr given')
     info = load_checkpoint(out).info
-    assert (info['method'], info['stage'], info['train_steps'], info['train_samples']) == (
-        'maml', 'adapted', 5, 225)
+    assert (info['method'], info['stage'], info['train_steps'], info['train_samples'],
+            info['dt']) == ('maml', 'adapted', 5, 225, 0.1)
     assert info['heldout_loss'] == held['adapted']['loss']
     with open(out[:-3] + '.json') as f:
         assert json.load(f) == report
@@ -141,6 +141,13 @@ def test_a_checkpoint_of_other_sizes_or_too_few_samples_is_one_line(robot_bag, r
                     OfflineConfig())
     assert str(err.value) == (f'{three}: a model of 1 input(s) and 3 output(s); the mapping '
                               f'{mapping_file} has 1 and 2')
+    ckpt, other_dt = load_checkpoint(robot_meta), str(tmp_path / 'dt.pt')
+    save_checkpoint(other_dt, ckpt.model, ckpt.params, {**ckpt.info, 'dt': 0.05})
+    with pytest.raises(OfflineError) as err:
+        run_offline(str(robot_bag), mapping_file, other_dt, str(tmp_path / 'x.pt'),
+                    OfflineConfig())
+    assert str(err.value) == (f'{other_dt}: a model of dt = 0.05 s; the mapping '
+                              f'{mapping_file} samples at dt = 0.1 s')
     with pytest.raises(OfflineError) as err:
         run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'x.pt'),
                     OfflineConfig(samples=15))
