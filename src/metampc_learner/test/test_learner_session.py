@@ -66,7 +66,7 @@ def test_meta_train_numbers_saves_and_reproduces(tmp_path):
     assert _equal(ckpt.params, rec.params)
     assert ckpt.info == {'method': 'imaml', 'stage': 'meta', 'version': 1,
                          'train_loss': out.final_loss, 'train_steps': 12,
-                         'train_samples': rec.train_samples, 'seed': 2}
+                         'train_samples': rec.train_samples, 'seed': 2, 'dt': 0.1}
     again = LearnerSession(_config()).meta_train(cfg.meta, False).record
     assert _equal(again.params, rec.params), 'same seed, same weights'
 
