@@ -23,7 +23,6 @@ import numpy as np
 from metampc_plant.machine_mapping import MachineMapping
 
 TIME_COLUMN = 'time'    # the CSV's time column when it has one of that name
-MCAP_MAGIC = b'\x89MCAP0\r\n'   # an MCAP file's first and last 8 bytes (its end: a finished file)
 
 
 class RecordingError(ValueError):
@@ -121,18 +120,15 @@ def read_bag(path: str, mapping: MachineMapping, progress: bool = False) -> Reco
 def cut_mcap(path: str) -> Optional[str]:
     """The MCAP file at `path` (the file, or a folder's only ``.mcap``) if it lacks its end
     (its writer never finished it), else None."""
+    from metampc_recording.recording_reader import finished, resolve_recording
     files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, '*.mcap')))
     if len(files) != 1 or not files[0].lower().endswith('.mcap'):
         return None
-    with open(files[0], 'rb') as f:
-        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-            return None     # not MCAP: rosbags says what it is
-        f.seek(0, os.SEEK_END)
-        if f.tell() >= 2 * len(MCAP_MAGIC):
-            f.seek(-len(MCAP_MAGIC), os.SEEK_END)
-            if f.read() == MCAP_MAGIC:
-                return None
-    return files[0]
+    try:
+        resolve_recording(files[0])     # starts as an MCAP file does
+    except ValueError:
+        return None                     # not MCAP: rosbags says what it is
+    return None if finished(files[0]) else files[0]
 
 
 def _read_cut_mcap(file: str, path: str, mapping: MachineMapping, progress: bool) -> Recorded:
@@ -151,19 +147,21 @@ def _read_cut_mcap(file: str, path: str, mapping: MachineMapping, progress: bool
     return recorded
 
 
+def _wanted(mapping: MachineMapping) -> List[Tuple[str, str, str]]:
+    """(key in the mapping file, topic, type) of each topic the mapping reads."""
+    return [*((f'outputs[{t.outputs[0]}]', t.topic, t.type) for t in mapping.topics),
+            ('command', mapping.command.topic, mapping.command.type)]
+
+
 def _keys(mapping: MachineMapping) -> Dict[str, str]:
     """The mapping's topics, each with its key in the mapping file (for messages)."""
-    keys = {t.topic: f'outputs[{t.outputs[0]}]' for t in mapping.topics}
-    keys[mapping.command.topic] = 'command'
-    return keys
+    return {topic: key for key, topic, _ in _wanted(mapping)}
 
 
 def _check_topics(recorded: Dict[str, str], path: str, mapping: MachineMapping) -> None:
     """RecordingError if a topic of the mapping is not among `recorded` ({topic: type}) or is
     of another type there."""
-    for topic, key in _keys(mapping).items():
-        type_name = (mapping.command.type if key == 'command'
-                     else next(t.type for t in mapping.topics if t.topic == topic))
+    for key, topic, type_name in _wanted(mapping):
         if topic not in recorded:
             listed = ', '.join(f'{n} ({t})' for n, t in sorted(recorded.items())) or 'none'
             raise RecordingError(f'{key}.topic: {topic} is not in {path} (its topics: '

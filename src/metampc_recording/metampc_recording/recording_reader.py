@@ -19,6 +19,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import read_magic, StreamReader
+from mcap.writer import MCAP0_MAGIC
 from mcap_ros2.decoder import DecoderFactory
 from metampc_recording.mcap_writer import RUN_METADATA_NAME
 
@@ -163,6 +164,16 @@ def resolve_recording(path: str) -> str:
         raise ValueError(f'several .mcap files in {path}: '
                          f'{", ".join(os.path.basename(f) for f in found)}; name one')
     return found[0]
+
+
+def finished(path: str) -> bool:
+    """Whether an MCAP file ends with the closing magic bytes its writer puts last (a file
+    cut short, e.g. by a killed writer, does not), read without scanning the file."""
+    with open(path, 'rb') as f:
+        if f.seek(0, os.SEEK_END) < 2 * len(MCAP0_MAGIC):
+            return False
+        f.seek(-len(MCAP0_MAGIC), os.SEEK_END)
+        return f.read() == MCAP0_MAGIC
 
 
 @dataclass

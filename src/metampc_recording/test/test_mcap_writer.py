@@ -8,7 +8,7 @@ from mcap.reader import make_reader
 from mcap_ros2._dynamic import serialize_dynamic
 from metampc_recording.mcap_writer import McapWriterConfig, Rosbag2McapWriter
 from metampc_recording.msg_schema import DefinitionSource
-from metampc_recording.recording_reader import read_recording
+from metampc_recording.recording_reader import finished, read_recording
 from metampc_recording.rosbag2_qos import profiles_from_yaml, QosProfile
 import pytest
 from rosbags.highlevel import AnyReader
@@ -141,7 +141,7 @@ def test_unfinished_file_reads_up_to_its_last_complete_chunk(tmp_path, compressi
     cut = tmp_path / 'cut.mcap'
     cut.write_bytes(left)
     recording = read_recording(str(cut))
-    assert not recording.complete
+    assert not recording.complete and not finished(str(cut))
     assert len(recording.messages) == in_chunks
     steps = [m.step for _, _, m in recording.decoded(['/y'])]
     assert steps == list(range(len(steps)))
@@ -152,6 +152,7 @@ def test_unfinished_file_reads_up_to_its_last_complete_chunk(tmp_path, compressi
         recording = read_recording(str(cut))
         steps = [m.step for _, _, m in recording.decoded(['/y'])]
         assert steps == list(range(len(steps)))
+        assert not finished(str(cut))
     writer.close()
     recording = read_recording(path)
-    assert recording.complete and len(recording.messages) == 35
+    assert recording.complete and len(recording.messages) == 35 and finished(path)
