@@ -503,28 +503,13 @@ def test_the_same_command_resumes_running_only_the_seeds_without_a_report(
     assert len(other.stdout.strip().splitlines()) == 1, other.stdout
 
 
-def test_an_existing_loopback_cluster_gives_the_results_of_the_embedded_one(
-        parallel_run, tmp_path):
-    """`dask scheduler` and a `dask worker` of two one-slot processes, started here on
-    loopback: run_experiment.py --scheduler gives, seed for seed, the embedded cluster's
-    results; the seeds ran on that worker (their lines are in its log, not the client's)."""
-    logs = tmp_path / 'worker.log'
-    with loopback_dask(logs, workers=2) as (address, _):
-        out = str(tmp_path / 'run')
-        done = _run_to_end(['--out', out, '--scheduler', address, *PARALLEL[:-2]])
-        assert done.returncode == 0, done.stdout
-        assert f'cluster {address}: 2 worker(s), 2 slot(s)' in done.stdout, done.stdout
-        assert 'ROS_DOMAIN_ID' not in done.stdout and \
-            len(re.findall(r'seed \d: ROS_DOMAIN_ID', logs.read_text())) == 2
-        assert [timing_free(s) for s in per_seed_reports(out)] == \
-            [timing_free(s) for s in per_seed_reports(parallel_run[0])]
-
-
 def test_a_worker_killed_in_the_middle_of_a_seed_runs_it_again_with_the_same_results(
         parallel_run, tmp_path):
-    """Two seeds on a loopback `dask worker` of two one-slot processes; the worker process of
-    seed 0 SIGKILLed once that seed has collected: the seed's nodes end with it, the scheduler
-    runs seed 0 again, the run ends 0 and the merged report equals the embedded cluster's."""
+    """`dask scheduler` and a `dask worker` of two one-slot processes, started here on
+    loopback, run_experiment.py --scheduler on it: the seeds run on that worker (their lines
+    are in its log, not the client's). The worker process of seed 0 SIGKILLed once that seed
+    has collected: the seed's nodes end with it, the scheduler runs seed 0 again, the run ends
+    0 and the merged report equals, seed for seed, the embedded cluster's."""
     log = tmp_path / 'worker.log'
     with loopback_dask(log, workers=2) as (address, _):
         proc = subprocess.Popen(
@@ -552,7 +537,10 @@ def test_a_worker_killed_in_the_middle_of_a_seed_runs_it_again_with_the_same_res
                     os.kill(pid, signal.SIGKILL)
             proc.stdout.close()
     assert proc.returncode == 0, text
+    assert f'cluster {address}: 2 worker(s), 2 slot(s)' in text, text
+    assert 'ROS_DOMAIN_ID' not in text, text
     assert len(re.findall(r'seed 0: ROS_DOMAIN_ID', log.read_text())) == 2, log.read_text()
+    assert len(re.findall(r'seed 1: ROS_DOMAIN_ID', log.read_text())) == 1, log.read_text()
     assert [timing_free(s) for s in per_seed_reports(str(tmp_path / 'run'))] == \
         [timing_free(s) for s in per_seed_reports(parallel_run[0])]
 
