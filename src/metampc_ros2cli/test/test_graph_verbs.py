@@ -43,19 +43,34 @@ class Recorder:
             return list(self.msgs)
 
 
+def _listed(verb: str) -> set:
+    out = ros2(verb, 'list')
+    return set(out.stdout.split()) if out.returncode == 0 else set()
+
+
 @pytest.fixture(scope='module')
 def graph(tmp_path_factory):
     """One realtime plant at RATE_HZ for the module (each test starting its own would add ~5 s
-    per test); the probe records its y. Stopped, and the probe closed, after the last test."""
+    per test); the probe records its y. The list verbs answer from a daemon started here and
+    waited for until it lists the plant's endpoints: a verb's own node (or a daemon just
+    started by it) under localhost discovery may miss some (once in CI: /u), and completeness
+    is test_daemon's subject, not this file's. Stopped, with the daemon and the probe, after
+    the last test."""
     from metampc_testing import ProcessGroup, TestNode
     group = ProcessGroup(str(tmp_path_factory.mktemp('graph_verbs')))
     probe = TestNode()
+    ros2('daemon', 'stop')
     try:
         group.start('metampc_plant', 'plant', params={'mode': 'realtime', 'rate_hz': RATE_HZ})
         ys = Recorder(probe, PlantOutput, 'y')
         probe.wait_for(lambda: len(ys.snapshot()) > 3, 60.0, 'y from the plant')
+        assert ros2('daemon', 'start').returncode == 0
+        probe.wait_for(lambda: {'/y', '/u', '/plant_info'} <= _listed('topic')
+                       and '/reset' in _listed('service') and '/plant' in _listed('node'),
+                       60.0, "the plant's endpoints in the daemon's listings")
         yield ys, probe
     finally:
+        ros2('daemon', 'stop')
         probe.close()
         group.stop_all()
 
