@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+from typing import Callable
 
 import pytest
 
@@ -78,6 +79,17 @@ def cluster(tmp_path_factory):
     assert ours(os.getpid()) == [] and root_links() == links
 
 
+def _since_now(logs) -> Callable[[int], str]:
+    """A reader of the lines worker log i gets from now on (not the earlier tests')."""
+    known = [log.stat().st_size for log in logs]
+
+    def new(i: int) -> str:
+        with open(logs[i]) as f:
+            f.seek(known[i])
+            return f.read()
+    return new
+
+
 def test_seeds_on_a_tls_cluster_of_two_hosts_give_the_reports_of_jobs_1(
         cluster, serial, tmp_path):
     """run_experiment.py --seeds 2 --scheduler tls://<h0> from the client's namespace: both
@@ -85,6 +97,7 @@ def test_seeds_on_a_tls_cluster_of_two_hosts_give_the_reports_of_jobs_1(
     the links, and every seed's report equals that of --jobs 1 (lockstep is deterministic)."""
     net, address = cluster['net'], cluster['address']
     before = net.traffic()
+    new = _since_now(cluster['logs'])
     out = str(tmp_path / 'run')
     started = time.monotonic()
     done = _run([*RUN, '--out', out, '--scheduler', address, *cluster['tls']],
@@ -92,7 +105,7 @@ def test_seeds_on_a_tls_cluster_of_two_hosts_give_the_reports_of_jobs_1(
     cluster['undisturbed_s'] = time.monotonic() - started
     assert done.returncode == 0, done.stdout
     assert f'cluster {address}: 2 worker(s), 2 slot(s)' in done.stdout, done.stdout
-    ran = [re.findall(r'seed (\d): ROS_DOMAIN_ID', log.read_text()) for log in cluster['logs']]
+    ran = [re.findall(r'seed (\d): ROS_DOMAIN_ID', new(i)) for i in (0, 1)]
     assert all(ran) and sorted(sum(ran, [])) == ['0', '1'], ran
     assert [timing_free(s) for s in per_seed_reports(out)] == [timing_free(s) for s in serial]
     after = net.traffic()
@@ -142,13 +155,7 @@ def test_a_worker_sigkilled_in_the_middle_of_a_seed_changes_nothing_but_the_time
     the undisturbed one's: the rerun's cost."""
     net, address = cluster['net'], cluster['address']
     out = str(tmp_path / 'run')
-    logs = cluster['logs']
-    known = [log.stat().st_size for log in logs]     # the earlier tests' lines
-
-    def new(i: int) -> str:
-        with open(logs[i]) as f:
-            f.seek(known[i])
-            return f.read()
+    new = _since_now(cluster['logs'])
     started = time.monotonic()
     proc = subprocess.Popen(
         ['ip', 'netns', 'exec', net.orchestrator, sys.executable, SCRIPT, *RUN, '--out', out,
