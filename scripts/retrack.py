@@ -12,6 +12,8 @@ are cached per (seed, variant) in RUN_DIR/retrack/, so a stopped run resumes.
     python scripts/retrack.py runs/vdp --variant none:offset_free=none \\
         --variant state:offset_free=state --variant input:offset_free=input --jobs 2
 
+``--seeds 100,106`` takes only those of the run's seeds.
+
 A variant is NAME:key=value,key=value with controller parameter names (docs/controller.md);
 values are YAML (``0.3``, ``none``, ``[1.0, 0.0]``; YAML reads ``off`` as false). ``--nmpc
 key=value,...`` sets the yardstick's own parameters (e.g. ``nmpc_tail=20``: then the NMPC runs
@@ -42,6 +44,15 @@ def parse_variant(text: str) -> Tuple[str, Dict[str, Any]]:
             raise ValueError(f'variant {name}: {item!r} is not key=value')
         values[key.strip()] = yaml.safe_load(value)
     return name, values
+
+
+def seed_list(text: str) -> Tuple[int, ...]:
+    """'100,101,106' -> (100, 101, 106); argparse's type for --seeds."""
+    try:
+        seeds = tuple(int(s) for s in text.split(','))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not seeds separated by commas') from None
+    return seeds
 
 
 def _job(run_dir: str, seed: int, recording: str, overrides: Dict[str, Any],
@@ -86,6 +97,8 @@ def main(argv=None) -> int:
                         help="the NMPC yardstick's controller settings (e.g. nmpc_tail=20); "
                              'default: the recorded ones')
     parser.add_argument('--jobs', type=int, default=1, help='seeds at once (processes)')
+    parser.add_argument('--seeds', type=seed_list, metavar='S,S,...',
+                        help="only these of the run's seeds (default: all of them)")
     parser.add_argument('--recompute-nmpc', action='store_true',
                         help="run the NMPC again instead of taking its recorded tracking cost "
                              "from RUN_DIR/report.json (the same number: a lockstep run is "
@@ -123,6 +136,12 @@ def main(argv=None) -> int:
     recordings = seed_recordings(args.run_dir)
     if not recordings:
         parser.error(f'{args.run_dir}: no seed_<n>/recording.mcap in it')
+    if args.seeds:
+        missing = sorted(set(args.seeds) - set(recordings))
+        if missing:
+            parser.error(f'--seeds: {args.run_dir} has no seed {missing} (it has '
+                         f'{sorted(recordings)})')
+        recordings = {seed: recordings[seed] for seed in sorted(set(args.seeds))}
     cache_dir = os.path.join(args.run_dir, 'retrack')
     os.makedirs(cache_dir, exist_ok=True)
 

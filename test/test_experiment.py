@@ -155,8 +155,14 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
         assert result.cost == pytest.approx(recorded, rel=1e-9, abs=1e-12), method
     # scripts/retrack.py with the yardstick's own settings (--nmpc): every ratio is against
     # that NMPC, flown again (not the recorded one), here with a tail of 3 samples.
-    subprocess.run([sys.executable, os.path.join(ROOT, 'scripts', 'retrack.py'), out, '--nmpc',
-                    'nmpc_tail=3', '--variant', 'a:'], check=True, timeout=300)
+    retrack = [sys.executable, os.path.join(ROOT, 'scripts', 'retrack.py'), out]
+    subprocess.run(retrack + ['--nmpc', 'nmpc_tail=3', '--variant', 'a:', '--seeds',
+                              str(per_seed['seed'])], check=True, timeout=300)
+    for seeds, error in (('99', f'--seeds: {out} has no seed [99]'),
+                         ('1,x', "'1,x' is not seeds separated by commas")):
+        bad = subprocess.run(retrack + ['--seeds', seeds], capture_output=True, text=True,
+                             timeout=120)
+        assert bad.returncode == 2 and error in bad.stderr, bad.stderr
     with open(os.path.join(out, 'retrack.json')) as f:
         table = json.load(f)['summary']['a']
     cfg = config.resolved()
