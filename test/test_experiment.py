@@ -174,6 +174,13 @@ def test_ci_experiment_produces_every_artefact_consistent_with_the_recording(tmp
     for method in config.meta_methods():
         assert table[method]['ratios'][str(seed)] == pytest.approx(
             again[method].cost / tailed, rel=1e-9), method
+    # scripts/model_gains.py reads the same run: a row per adapted model, its cost ratio the
+    # report's (the gains themselves: test_model_gains.py against closed forms).
+    gains = subprocess.run([sys.executable, os.path.join(ROOT, 'scripts', 'model_gains.py'), out],
+                           capture_output=True, text=True, timeout=300, check=True).stdout
+    row = next(line for line in gains.splitlines() if line.startswith(f'{seed} | imaml | '))
+    assert float(row.split(' | ')[2]) == pytest.approx(
+        again['imaml'].cost / again['nmpc'].cost, abs=0.006), row
     with open(os.path.join(out, 'report.md')) as f:
         text = f.read()
     assert '(a) final meta-training loss' in text and 'fig2_meta_training.png' in text

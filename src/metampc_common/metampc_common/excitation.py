@@ -5,8 +5,10 @@ simulated episodes (source tasks, the oracle, the warm-up of online collection) 
 
 Every generator returns an array of shape (B, K, n_u): K input vectors for each of B systems,
 one per sample of length dt, each input within its own bounds (n_u = the number of bounds).
-The inputs of one system are drawn independently of each other. Determinism: the same
-arguments and seed give the same array; with one input the draws are those of a (B, K) array.
+The inputs of one system are drawn independently of each other, within the band
+``center +- amplitude (u_max - u_min) / 2`` of each input (default: the whole range). Determinism:
+the same arguments and seed give the same array; with one input the draws are those of a (B, K)
+array.
 """
 from dataclasses import dataclass
 from typing import Tuple
@@ -16,6 +18,19 @@ import numpy as np
 from metampc_common.params import check_fields, param
 
 KINDS = ('random_hold', 'multisine', 'prbs')
+
+
+def amplitude_param():
+    """The band's width as a parameter field (the learner's and the controller's)."""
+    return param(1.0, 'excitation within center +- amplitude x half of each input range (1 '
+                      'about the middle: the whole range)', gt=0, le=1)
+
+
+def center_param():
+    """The band's centre as a parameter field (the learner's and the controller's)."""
+    return param((), 'centre of the excitation band, one per input (empty: the middle of each '
+                     'input range); the band must lie within the input bounds', item=float,
+                 scalar=True)
 
 
 @dataclass
@@ -30,6 +45,9 @@ class ExcitationConfig:
             means "the plant family's"; they must be filled in (e.g. by the learner's source
             settings) before a signal is generated.
         hold_s: hold time of random_hold and prbs, s.
+        amplitude, center: the band the signal keeps to, per input
+            ``center +- amplitude (u_max - u_min) / 2`` (center empty: the middle), e.g. an
+            operating region inside wide bounds.
         f_max_hz: highest frequency of multisine, Hz.
         n_sines: number of multisine components.
     """
@@ -40,8 +58,31 @@ class ExcitationConfig:
     u_max: Tuple[float, ...] = param((), "input upper bounds of the simulated systems, one per "
                                          "input (empty: the family's)", item=float, scalar=True)
     hold_s: float = param(0.5, 'excitation hold time, s', gt=0)
+    amplitude: float = amplitude_param()
+    center: Tuple[float, ...] = center_param()
     f_max_hz: float = 1.0
     n_sines: int = 8
+
+    def band(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(lo, hi), each (n_u,): the band the signal keeps to (bounds filled in).
+
+        Raises:
+            ValueError: a centre of the wrong length, or a band that leaves the bounds.
+        """
+        lo, hi = np.asarray(self.u_min, dtype=float), np.asarray(self.u_max, dtype=float)
+        if self.amplitude == 1.0 and not self.center:
+            return lo, hi              # the whole range, exactly (no rounding of the draws)
+        half = self.amplitude * 0.5 * (hi - lo)
+        center = 0.5 * (lo + hi) if not self.center else np.asarray(self.center, dtype=float)
+        if center.shape != lo.shape:
+            raise ValueError(f'excitation_center needs one value per input ({lo.size}), got '
+                             f'{list(self.center)}')
+        slack = 1e-9 * (1.0 + np.abs(hi - lo))        # the rounding of center +- half
+        if np.any(center - half < lo - slack) or np.any(center + half > hi + slack):
+            raise ValueError(f'the excitation band, excitation_center {center.tolist()} +- '
+                             f'excitation_amplitude x half the range {half.tolist()}, leaves '
+                             f'the input bounds [{lo.tolist()}, {hi.tolist()}]')
+        return np.maximum(center - half, lo), np.minimum(center + half, hi)
 
     def validate(self) -> None:
         """Raise ValueError if a setting is out of range."""
@@ -52,6 +93,8 @@ class ExcitationConfig:
                 lo > hi for lo, hi in zip(self.u_min, self.u_max))):
             raise ValueError(f'need u_min <= u_max, one pair per input, got {list(self.u_min)}, '
                              f'{list(self.u_max)}')
+        if filled:
+            self.band()
         if not (self.f_max_hz > 0 and self.n_sines >= 1):
             raise ValueError('f_max_hz must be > 0 and n_sines >= 1')
 
@@ -65,7 +108,7 @@ def excitation(config: ExcitationConfig, batch: int, n_samples: int, dt: float,
     if batch < 0 or n_samples < 0 or not dt > 0:
         raise ValueError(f'need batch, n_samples >= 0 and dt > 0 s, got {batch}, {n_samples}, '
                          f'{dt}')
-    lo, hi = np.asarray(config.u_min), np.asarray(config.u_max)
+    lo, hi = config.band()
     n_u = lo.shape[0]
     if n_samples == 0:
         return np.zeros((batch, 0, n_u))

@@ -1,4 +1,6 @@
 """Excitation signals: within their bounds, of the right shape and structure, and seeded."""
+import re
+
 import numpy as np
 import pytest
 
@@ -65,3 +67,31 @@ def test_empty_and_invalid():
             excitation(cfg, 1, 10, 0.1, 0)
     with pytest.raises(ValueError):
         excitation(ExcitationConfig(**UNIT), 1, 10, 0.0, 0)
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_a_band_is_an_excitation_of_its_own_bounds(kind):
+    # center +- amplitude x half the range is the same signal as bounds set to that band.
+    band = ExcitationConfig(kind=kind, u_min=(0.0, -3.0), u_max=(10.0, -1.0), amplitude=0.4,
+                            center=(3.0, -2.5))
+    assert [b.tolist() for b in band.band()] == [[1.0, -2.9], [5.0, -2.1]]
+    as_bounds = ExcitationConfig(kind=kind, u_min=(1.0, -2.9), u_max=(5.0, -2.1))
+    np.testing.assert_allclose(excitation(band, 3, 400, 5.0, seed=4),
+                               excitation(as_bounds, 3, 400, 5.0, seed=4), rtol=0, atol=1e-12)
+    # The whole range about the middle (the defaults): the bounds themselves, bit for bit.
+    whole = ExcitationConfig(kind=kind, u_min=(0.1,), u_max=(0.7,))
+    assert [b.tolist() for b in whole.band()] == [[0.1], [0.7]]
+
+
+@pytest.mark.parametrize('center, amplitude, error', [
+    ((3.0,), 0.7, 'leaves the input bounds'),           # 3 - 3.5 < 0
+    ((9.0,), 0.4, 'leaves the input bounds'),           # 9 + 2 > 10
+    ((3.0, 3.0), 0.2, 'excitation_center needs one value per input (1)'),
+])
+def test_a_band_outside_the_bounds_is_refused(center, amplitude, error):
+    cfg = ExcitationConfig(u_min=(0.0,), u_max=(10.0,), amplitude=amplitude, center=center)
+    with pytest.raises(ValueError, match=re.escape(error)):
+        excitation(cfg, 1, 10, 5.0, 0)
+    # The edge itself is inside: 3 +- 0.6 x 5 = [0, 6].
+    edge = ExcitationConfig(u_min=(0.0,), u_max=(10.0,), amplitude=0.6, center=(3.0,))
+    assert [b.tolist() for b in edge.band()] == [[0.0], [6.0]]

@@ -11,14 +11,12 @@ of :class:`ReferenceParams` (prefix ``reference_``), the pre-model excitation's 
 from dataclasses import dataclass, field
 from typing import Any, Dict, Mapping, Sequence, Tuple
 
-import numpy as np
-
 from metampc_common.hold_config import HoldConfig
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 
 from metampc_controller.adaptation_trigger import TriggerConfig
-from metampc_common.excitation import ExcitationConfig
+from metampc_common.excitation import amplitude_param, center_param, ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.planner_registry import REGISTRY
@@ -107,18 +105,19 @@ class ExcitationParams:
 
     kind: str = param('random_hold', 'excitation signal: random_hold is uniform levels, prbs '
                                      'a binary sequence', choices=EXCITATION_KINDS)
-    amplitude: float = param(1.0, 'excitation within the middle a of each input range (1: '
-                                  'the whole range [u_min, u_max])', gt=0, le=1)
+    amplitude: float = amplitude_param()
+    center: Tuple[float, ...] = center_param()
     hold_s: float = param(0.5, 'excitation hold time, s', gt=0)
     seed: int = param(0, 'excitation seed', ge=0)
 
     def within(self, u_min: Sequence[float], u_max: Sequence[float]) -> ExcitationConfig:
-        """The excitation signal's settings: per input, the centre of [u_min, u_max] plus or
-        minus amplitude times its half-width (with bounds +-1: within +-amplitude)."""
-        lo, hi = np.asarray(u_min, dtype=float), np.asarray(u_max, dtype=float)
-        mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-        return ExcitationConfig(kind=self.kind, u_min=tuple(mid - self.amplitude * half),
-                                u_max=tuple(mid + self.amplitude * half), hold_s=self.hold_s)
+        """The excitation signal's settings inside the input bounds (ValueError: a band that
+        leaves them)."""
+        config = ExcitationConfig(kind=self.kind, u_min=tuple(u_min), u_max=tuple(u_max),
+                                  hold_s=self.hold_s, amplitude=self.amplitude,
+                                  center=tuple(self.center))
+        config.validate()
+        return config
 
 
 @dataclass
@@ -201,7 +200,10 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
         raise ParameterError(str(err)) from None
     excitation = build(EXCITATION, values)
     node.reference_kind, node.reference_params = reference.kind, reference_params
-    node.excitation = excitation.within(*mpc.bounds(node.n_u))
+    try:
+        node.excitation = excitation.within(*mpc.bounds(node.n_u))
+    except ValueError as err:
+        raise ParameterError(str(err)) from None
     node.excitation_seed = excitation.seed
     node.trigger = build(TRIGGER, values)
     node.model_check = build(CHECK, values)

@@ -38,11 +38,16 @@ def test_values_are_converted_and_combined():
     assert isinstance(cfg.rate_hz, float) and cfg.rate_hz == 50.0   # an integer for a double
     assert cfg.mpc.horizon == 10 and tuple(cfg.mpc.q) == (2.0, 0.5)
     # The excitation: the middle 0.8 of the input range [-0.5, 1].
-    assert cfg.excitation.u_min == pytest.approx((-0.35,)) and cfg.n_u == 1
-    assert cfg.excitation.u_max == pytest.approx((0.85,))
+    lo, hi = cfg.excitation.band()
+    assert lo == pytest.approx([-0.35]) and hi == pytest.approx([0.85]) and cfg.n_u == 1
+    assert (cfg.excitation.u_min, cfg.excitation.u_max) == ((-0.5,), (1.0,))
     tank = parse_params(values(u_min=[0, 0], u_max=[10, 10], r=[0.1, 0.2], q=[1, 1]))
     assert (tank.n_u, tank.n_y, tank.mpc.r) == (2, 2, (0.1, 0.2))
-    assert (tank.excitation.u_min, tank.excitation.u_max) == ((0.0, 0.0), (10.0, 10.0))
+    assert [list(b) for b in tank.excitation.band()] == [[0.0, 0.0], [10.0, 10.0]]
+    # An operating region inside wide bounds: 3 V +- 0.4 x 5 V on both pumps.
+    region = parse_params(values(u_min=[0, 0], u_max=[10, 10], r=[0.1, 0.2], q=[1, 1],
+                                 excitation_center=[3.0, 3.0], excitation_amplitude=0.4))
+    assert [list(b) for b in region.excitation.band()] == [[1.0, 1.0], [5.0, 5.0]]
     assert cfg.reference_params == {'n_y': 2, 'outputs': (0, 1), 'initial': 0.1,
                                     'steps': ((1.0, 0.5), (2.5, -0.5))}
     assert not cfg.active and cfg.pre_model_input == 'excitation'
@@ -54,6 +59,17 @@ def test_values_are_converted_and_combined():
     rows = parse_params(values(reference_per_output=True, reference_outputs=[1, 0],
                                reference_values=[6.0, 6.5, 5.0, 7.25]))
     assert rows.reference_params['setpoints'] == [(6.0, 6.5), (5.0, 7.25)]
+
+
+@pytest.mark.parametrize('center, amplitude, error', [
+    ([3.0, 3.0], 0.8, 'excitation_center [3.0, 3.0] +- excitation_amplitude x half the range '
+                      '[4.0, 4.0], leaves the input bounds'),      # 3 - 4 < 0
+    ([3.0], 0.2, 'excitation_center needs one value per input (2)'),
+])
+def test_an_excitation_band_outside_the_bounds_is_refused(center, amplitude, error):
+    with pytest.raises(ParameterError, match=re.escape(error)):
+        parse_params(values(u_min=[0, 0], u_max=[10, 10], r=[0.1, 0.2], q=[1, 1],
+                            excitation_center=center, excitation_amplitude=amplitude))
 
 
 BAD = {

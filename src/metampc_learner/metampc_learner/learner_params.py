@@ -88,7 +88,9 @@ class LearnerNodeConfig:
 META = Section(MetaConfig)
 NSSM = Section(NssmConfig)
 SOURCE = Section(SourceConfig, rename={'seed': 'source_seed'})
-EXCITATION = Section(ExcitationConfig, rename={'kind': 'excitation'})
+EXCITATION = Section(ExcitationConfig, rename={'kind': 'excitation',
+                                               'amplitude': 'excitation_amplitude',
+                                               'center': 'excitation_center'})
 ONLINE = Section(OnlineCollectionConfig, 'online_',
                  rename={'episode_samples': 'online_samples'})
 ADAPT = Section(AdaptConfig, 'adapt_')

@@ -59,6 +59,9 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     assert (cfg.source.n_systems, cfg.source.dt, cfg.source.seed) == (9, 1.0, 5)
     exc = cfg.source.excitation
     assert (exc.kind, exc.u_min, exc.u_max, exc.hold_s) == ('prbs', (-0.5,), (1.0,), 1.0)
+    region = parse_params(_raw(family='quadruple_tank', excitation_center=[3, 2.5],
+                               excitation_amplitude=0.4)).source.excitation
+    assert [b.tolist() for b in region.band()] == [[1.0, 0.5], [5.0, 4.5]]    # +- 0.4 x 5 V
     assert cfg.online_collection and cfg.online.noise_std == 0.0 and cfg.online.seed == 11
     assert cfg.online.episode_samples == 40
     assert (cfg.target_buffer_size, cfg.buffer_on_start) == (120, False)
@@ -91,6 +94,11 @@ def test_values_reach_the_config_and_integers_pass_for_doubles():
     ({'progress_period': 1.5}, 'progress_period must be in (0, 1]'),
     ({'u_min': 2.0}, 'u_min <= u_max'),
     ({'excitation': 'chirp'}, 'excitation must be one of random_hold, multisine, prbs'),
+    ({'excitation_amplitude': 0.0}, 'excitation_amplitude must be in (0, 1]'),
+    ({'family': 'quadruple_tank', 'excitation_center': [3.0, 3.0],
+      'excitation_amplitude': 0.8}, 'excitation_center [3.0, 3.0] +- excitation_amplitude x half'),
+    ({'family': 'quadruple_tank', 'excitation_center': 3.0}, 'excitation_center needs one value '
+                                                             'per input (2)'),
     ({'state_bound': 0.5}, 'initial states of family vanderpol reach beyond state_bound 0.5'),
     ({'family': 'quadruple_tank', 'u_max': [12.0, 10.0]}, 'outside those of family'),
     ({'online_noise_std': -0.1}, 'online_noise_std must be >= 0'),
