@@ -31,8 +31,10 @@ def test_sigusr1_prints_every_thread_stack_and_the_node_goes_on(procs, probe):
     probe.wait_for_node('plant', timeout=30.0)
     (node,) = [pid for pid in session_pids(proc) if pid != proc.pid]
     os.kill(node, signal.SIGUSR1)
-    probe.wait_for(lambda: 'most recent call first' in procs.output(proc), 30.0, 'a stack dump')
-    assert 'plant_node.py' in procs.output(proc)      # the main thread's frames
+    # The dump streams in while it is read: wait for the main thread's frames themselves.
+    probe.wait_for(lambda: 'most recent call first' in procs.output(proc)
+                   and 'plant_node.py' in procs.output(proc), 30.0,
+                   "a stack dump with the main thread's frames (plant_node.py)")
     assert proc.poll() is None
     assert procs.interrupt(proc) == 0
 
