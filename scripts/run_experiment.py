@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     parser.add_argument('--family', help='plant family (docs/families.md); overrides the '
                                          "config's family key")
     parser.add_argument('--methods', help='comma-separated: imaml,maml,maml_unrolled,'
-                                          'supervised,oracle,nmpc')
+                                          'supervised,oracle,arx,nmpc')
     parser.add_argument('--seeds', type=int, help='number of seeds')
     parser.add_argument('--first-seed', type=int, help='seed of the first run')
     add_arguments(parser, 'seeds run at once on an embedded cluster, each in a ROS domain of '

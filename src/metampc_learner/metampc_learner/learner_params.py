@@ -25,7 +25,7 @@ from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
 
 # The methods an Adapt request may name ('' too: the latest meta-model).
-ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle')
+ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle', 'arx')
 
 
 @dataclass
@@ -60,6 +60,9 @@ class LearnerNodeConfig:
                                     ge=1)
     buffer_on_start: bool = param(True, 'buffer y from the start (false: only after '
                                         'set_buffering true)')
+    arx_order: int = param(2, 'order p of the arx baseline: y_t from p past outputs and the '
+                              'inputs u_t .. u_{t-p+1} (at most the history H; the '
+                              'hidden layers need 2 (p (n_y + n_u) - n_u) units)', ge=1)
     heldout_fraction: float = param(0.2, 'last share of the buffered samples held out for the '
                                          'loss curve', gt=0, lt=1)
     meta_model_path: str = param('', "checkpoint to load at start and publish as stage meta "
@@ -162,7 +165,7 @@ class AdaptJob:
     """A resolved Adapt request.
 
     Attributes:
-        method: '' (latest meta-model), a meta method, 'supervised' or 'oracle'.
+        method: '' (latest meta-model), a meta method, 'supervised', 'oracle' or 'arx'.
         steps: gradient steps (Adam steps for the oracle).
         lr: step size.
         gamma: proximal strength of eq. infer (>= 0; ignored by supervised and oracle).

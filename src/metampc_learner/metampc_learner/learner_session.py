@@ -5,23 +5,27 @@ loaded, numbers each model it makes with an increasing version (continuing after
 in ``checkpoint_dir``, where each is saved) and serves the node's jobs, one at a time:
 :meth:`LearnerSession.meta_train` (Algorithm 1 on the simulated source set, optionally with
 online collection, eq. (ub)), :meth:`LearnerSession.adapt` (eq. (infer) from a meta-model on
-D_target, or the 'supervised' / 'oracle' baselines, with a held-out loss curve) and
+D_target, or the 'supervised' / 'oracle' / 'arx' baselines, with a held-out loss curve) and
 :meth:`LearnerSession.loop_adapt` (adaptation in the loop). Requests it cannot carry out raise
 :class:`LearnerError` with the reason. The node's services and versions: docs/learner.md.
 """
 import math
 import os
 import re
+import time
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+import torch
 
-from metampc_model.nssm import init_params, Nssm, Params
+from metampc_model.nssm import init_params, Nssm, Params, prediction_loss
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
+from metampc_learner.arx import arx_nssm
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (longest_run, normalisation_from, samples_in,
-                                  simulate_source, SourceConfig, SourceData, SourceSet, Windows)
+                                  simulate_source, SourceConfig, SourceData, SourceSet,
+                                  Trajectory, Windows)
 from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
 from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
@@ -47,7 +51,7 @@ class ModelRecord:
     Attributes:
         model: architecture and normalisation.
         params: the weights (omega_inf for stage 'meta', omega* for 'adapted').
-        method: 'imaml', 'maml', 'maml_unrolled', 'supervised' or 'oracle'.
+        method: 'imaml', 'maml', 'maml_unrolled', 'supervised', 'oracle' or 'arx'.
         stage: 'meta' or 'adapted'.
         version: number of this model (increases with every model of the session).
         train_loss: final training loss, normalised units.
@@ -261,7 +265,8 @@ class LearnerSession:
             raise LearnerError("the oracle needs the target's theta: no plant_info received"
                                if plant is None else "the oracle needs the target's theta: "
                                'plant_info gives none (not a simulated plant)')
-        meta = None if job.method in ('supervised', 'oracle') else self._meta_for(job.method)
+        meta = (None if job.method in ('supervised', 'oracle', 'arx')
+                else self._meta_for(job.method))
         model = self._fresh_model() if meta is None else meta.model
         train, held, used = split_target(samples, job.n_samples, cfg.heldout_fraction,
                                          cfg.source.state_bound)
@@ -296,15 +301,35 @@ class LearnerSession:
                     f'{max(len(train) - 1, 0) + max(len(held) - 1, 0)} gap(s): steps that '
                     'never reached the learner or left the state box')
             step_config = AdaptConfig(job.steps, job.lr, job.gamma)
-            if meta is None:
+            if job.method == 'arx':
+                model, result = self._arx(model, train, held)
+            elif meta is None:
                 result = supervised(model, train_w, held_w, step_config, seed, progress)
             else:
                 result = adapt(model, meta.params, train_w, held_w, step_config, progress)
         record = self._new_record(
             model=model, params=result.params, method=job.method or meta.method,
-            stage='adapted', train_loss=result.train_loss[-1], train_steps=job.steps,
+            stage='adapted', train_loss=result.train_loss[-1],
+            train_steps=0 if job.method == 'arx' else job.steps,
             train_samples=samples_in(train), seed=seed, train_time=result.elapsed)
         return AdaptOutcome(record, result, used, samples_in(train), samples_in(held))
+
+    def _arx(self, base: Nssm, train: Sequence[Trajectory], held: Sequence[Trajectory]
+             ) -> Tuple[Nssm, AdaptResult]:
+        """The ARX baseline fitted on the training part (:mod:`.arx`), as an NSSM of `base`'s
+        history, widths and scaling; its l_SSM on both parts (one point each)."""
+        start = time.monotonic()
+        try:
+            config, norm, params = arx_nssm(train, self.config.arx_order, base.config,
+                                            base.norm)
+        except ValueError as err:
+            raise LearnerError(f'arx: {err}') from None
+        model = Nssm(config, norm)
+        with torch.no_grad():
+            losses = [float(prediction_loss(model, params, w.u, w.y)) for w in (
+                Windows.from_trajectories(part, norm, config) for part in (train, held))]
+        return model, AdaptResult(params, [losses[0]], [losses[1]], [],
+                                  time.monotonic() - start)
 
     def loop_adapt(self, version: int, samples: TargetSamples,
                    progress: Optional[ProgressFn] = None) -> AdaptOutcome:

@@ -7,6 +7,7 @@ import torch
 
 from metampc_model.nssm import init_params, Nssm
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.arx import arx_nssm
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   Windows)
@@ -174,3 +175,23 @@ def test_load_meta_refuses_what_is_not_a_meta_model(tmp_path):
                                            "samples at dt = 0.1 s"):
         session.load_meta(path)
     assert session.version == 0 and not session.meta_models
+
+
+def test_arx_is_fitted_on_the_training_part_and_refused_with_the_reason():
+    cfg = _config()
+    session = LearnerSession(cfg)
+    samples = _target(cfg, 40)
+    out = session.adapt(AdaptJob('arx', 4, 0.05, 1.0, 0), samples, None)
+    rec = out.record
+    assert (rec.method, rec.stage, rec.train_steps) == ('arx', 'adapted', 0)
+    assert rec.model.config.n_z == 5          # p (n_y + n_u) - n_u, p = 2
+    train, held, _ = split_target(samples, 0, 0.25, 10.0)
+    scale = session._fresh_model().norm            # the source stds, as every method's
+    config, norm, params = arx_nssm(train, 2, cfg.nssm, scale)
+    assert config == rec.model.config and _equal(rec.params, params)
+    np.testing.assert_array_equal(rec.model.norm.y_std, scale.y_std)
+    assert len(out.result.heldout_loss) == 1 and np.isfinite(out.result.heldout_loss[0])
+    deep = LearnerSession(_config(arx_order=4))
+    with pytest.raises(LearnerError, match='arx: ARX.4. reads 4 samples; the model history H '
+                                           'is 3'):
+        deep.adapt(AdaptJob('arx', 0, 0.0, 0.0, 0), samples, None)
