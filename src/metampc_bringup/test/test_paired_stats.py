@@ -268,3 +268,33 @@ def test_claims_leave_out_methods_not_run():
     assert cl['a_meta_loss_imaml_below_maml']['stats'] == {}
     assert list(cl['b_adaptation_order']['0']['stats']) == ['imaml<supervised']
     assert list(cl['c_tracking_cost_stats']) == ['imaml<supervised', 'imaml<nmpc']
+
+
+def test_the_arx_baseline_is_compared_with_both_meta_methods():
+    """With an 'arx' method (the linear baseline) the tracking costs and the large held-out
+    losses get 'imaml < arx' and 'maml < arx'; markdown names it ARX."""
+    rng = np.random.default_rng(3)
+    reports = [_fake_seed_report(seed, rng) for seed in range(5)]
+    for r in reports:
+        maml = r['methods']['maml']['tracking']['tracking']['cost']
+        r['methods']['arx'] = {'tracking': {'escaped': False, 'tracking': {
+            'cost': 0.25 * maml, 'rmse': 0.1}}}
+        for method, loss in (('imaml', 1.0), ('maml', 2.0), ('arx', 4.0)):
+            r['methods'][method]['heldout'] = {'meta': None, 'adapted': loss}
+    cl = claims(reports)
+    costs = cl['c_tracking_cost_stats']
+    assert list(costs)[-2:] == ['imaml<arx', 'maml<arx']
+    assert costs['imaml<arx']['median_ratio'] == pytest.approx(2.0)   # 0.5 / 0.25
+    assert costs['maml<arx']['contradicted']
+    large = cl['b_heldout_large']['adapted']['stats']
+    assert large['imaml<arx']['median_ratio'] == pytest.approx(0.25)
+    assert large['imaml<arx']['supported'] and 'imaml<supervised' not in large
+    report = json_safe({
+        'methods': ['imaml', 'maml', 'supervised', 'oracle', 'arx', 'nmpc'],
+        'seeds': [r['seed'] for r in reports], 'thetas': [r['theta'] for r in reports],
+        'wall_time_s': 10.0, 'claims': cl, 'figures': [],
+        'config': {k: {} for k in ('meta_train', 'adapt', 'learner', 'controller')},
+        'per_seed': reports})
+    text = markdown(_restore(report))
+    assert '| (c) tracking cost: MAML < ARX | 0/5 | 4 [4, 4] | 0.062 | contradicted |' in text
+    assert '| (c) tracking cost of ARX (escaped 0/5) |' in text

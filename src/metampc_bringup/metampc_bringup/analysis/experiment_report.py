@@ -298,9 +298,12 @@ def _tracking_cost(report: Dict, method: str) -> float:
 
 # Pairwise claims 'a < b' with statistics; the chain of (b) is the first two.
 ADAPT_PAIRS = (('imaml', 'maml'), ('maml', 'supervised'), ('imaml', 'supervised'))
+# The linear ARX baseline (learner method 'arx'): the yardstick of the meta-learned models.
+ARX_PAIRS = (('imaml', 'arx'), ('maml', 'arx'))
 TRACKING_PAIRS = (('imaml', 'maml'), ('imaml', 'supervised'), ('maml', 'supervised'),
-                  ('imaml', 'nmpc'), ('imaml', 'oracle'), ('maml', 'nmpc'), ('maml', 'oracle'))
-NAMES = {'imaml': 'iMAML', 'maml': 'MAML', 'nmpc': 'NMPC'}
+                  ('imaml', 'nmpc'), ('imaml', 'oracle'), ('maml', 'nmpc'), ('maml', 'oracle'),
+                  *ARX_PAIRS)
+NAMES = {'imaml': 'iMAML', 'maml': 'MAML', 'nmpc': 'NMPC', 'arx': 'ARX'}
 
 
 def pairwise(values_per_seed: List[Dict[str, float]], pairs: Sequence[Tuple[str, str]]
@@ -337,9 +340,9 @@ def claims(reports: List[Dict]) -> Dict[str, Any]:
     out['b_adaptation_order'] = b
     large = {}     # the same pairs on >= 2000 independent samples: meta-model, adapted model
     for stage in ('meta', 'adapted'):
-        values = [{m: _heldout(r, m, stage) for m in ('imaml', 'maml', 'supervised')}
+        values = [{m: _heldout(r, m, stage) for m in ('imaml', 'maml', 'supervised', 'arx')}
                   for r in reports]
-        large[stage] = {'losses': values, 'stats': pairwise(values, ADAPT_PAIRS)}
+        large[stage] = {'losses': values, 'stats': pairwise(values, ADAPT_PAIRS + ARX_PAIRS)}
     out['b_heldout_large'] = large
     c = {}
     present = sorted({m for r in reports for m in r['methods']})
