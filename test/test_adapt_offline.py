@@ -55,6 +55,16 @@ def test_adapt_offline_on_the_robot_bag_as_a_user_runs_it(robot_bag, robot_meta,
     assert np.all(ours < 0.7 * meta), (meta, ours)
     held = report['heldout']
     assert held['adapted']['loss'] < 0.5 * held['meta']['loss']
+    # The linear ARX of the same 240 samples, flown the same way: the robot near its
+    # operating point is close to linear, and least squares finds what 20 steps do not.
+    arx = tmp_path / 'arx.pt'
+    assert main([str(robot_bag), MAPPING, robot_meta, '--out', str(arx), '--samples', '300',
+                 '--method', 'arx']) == 0
+    msg, _ = controller_predictor(str(arx))
+    assert (msg.method, msg.stage, msg.train_steps) == ('arx', 'adapted', 0)
+    linear = errors_on_fresh_data(str(arx), fresh_robot)
+    print(f'fresh episode, T-step RMSE [q, qd]: arx {linear}')
+    assert np.all(linear < 0.1 * ours), (ours, linear)
 
 
 def test_adapt_offline_on_a_csv_of_the_robot(robot_session, robot_meta, fresh_robot, tmp_path,

@@ -2,7 +2,7 @@
 
     ros2 run metampc_learner adapt_offline RECORDING MAPPING CHECKPOINT --out ADAPTED.pt
         [--method M] [--steps N] [--lr R] [--gamma G] [--config YAML] [--samples N]
-        [--holdout F] [--seed S] [--keep-saturated] [--time-column NAME]
+        [--holdout F] [--seed S] [--keep-saturated] [--time-column NAME] [--arx-order P]
 
 A thin layer over :mod:`.offline_adaptation`: it writes ADAPTED.pt, ADAPTED.json and
 ADAPTED.md, prints the markdown report, and logs each phase and step on stderr. Bad input (a
@@ -13,8 +13,8 @@ import argparse
 import sys
 
 from metampc_learner.meta_train import META_METHODS
-from metampc_learner.offline_adaptation import (OfflineConfig, report_markdown, run_offline,
-                                                SUPERVISED)
+from metampc_learner.offline_adaptation import (ARX, OfflineConfig, report_markdown,
+                                                run_offline, SUPERVISED)
 
 
 def _fraction(text: str) -> float:
@@ -40,8 +40,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('checkpoint', help='the meta-model checkpoint (the learner\'s .pt)')
     p.add_argument('--out', required=True, help='the adapted checkpoint to write (.pt); the '
                    'report goes beside it (.json, .md)')
-    p.add_argument('--method', default='', choices=['', *META_METHODS, SUPERVISED],
-                   help="default: the checkpoint's; supervised: from random weights")
+    p.add_argument('--method', default='', choices=['', *META_METHODS, SUPERVISED, ARX],
+                   help="default: the checkpoint's; supervised: from random weights; arx: the "
+                   'linear ARX baseline by least squares (the checkpoint gives H and scaling)')
     p.add_argument('--steps', type=_count, help='adaptation steps (default: --config, else 20)')
     p.add_argument('--lr', type=float, help='step size (default: --config, else 0.05)')
     p.add_argument('--gamma', type=float, help='proximal strength of eq. (infer) (default: '
@@ -56,6 +57,8 @@ def parser() -> argparse.ArgumentParser:
                    'weights (default 0)')
     p.add_argument('--keep-saturated', action='store_true',
                    help='keep samples whose input is at a bound (default: skip them)')
+    p.add_argument('--arx-order', type=int, default=2, help='order p of --method arx '
+                   '(default 2)')
     p.add_argument('--time-column', help='the CSV\'s time column, s (default: "time" if it has '
                    'one, else one row per dt)')
     return p
@@ -67,7 +70,8 @@ def main(args=None) -> int:
     config = OfflineConfig(method=opts.method, steps=opts.steps, lr=opts.lr, gamma=opts.gamma,
                            config_file=opts.config, samples=opts.samples,
                            holdout=opts.holdout, seed=opts.seed,
-                           keep_saturated=opts.keep_saturated, time_column=opts.time_column)
+                           keep_saturated=opts.keep_saturated, time_column=opts.time_column,
+                           arx_order=opts.arx_order)
 
     def log(text: str) -> None:
         print(f'adapt_offline: {text}', file=sys.stderr, flush=True)

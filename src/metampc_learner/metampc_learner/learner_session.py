@@ -12,20 +12,17 @@ D_target, or the 'supervised' / 'oracle' / 'arx' baselines, with a held-out loss
 import math
 import os
 import re
-import time
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional
 
 import numpy as np
-import torch
 
-from metampc_model.nssm import init_params, Nssm, Params, prediction_loss
+from metampc_model.nssm import init_params, Nssm, Params
 from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
-from metampc_learner.arx import arx_nssm
+from metampc_learner.arx import fit_arx
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (longest_run, normalisation_from, samples_in,
-                                  simulate_source, SourceConfig, SourceData, SourceSet,
-                                  Trajectory, Windows)
+                                  simulate_source, SourceConfig, SourceData, SourceSet, Windows)
 from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
 from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
@@ -302,7 +299,10 @@ class LearnerSession:
                     'never reached the learner or left the state box')
             step_config = AdaptConfig(job.steps, job.lr, job.gamma)
             if job.method == 'arx':
-                model, result = self._arx(model, train, held)
+                try:
+                    model, result = fit_arx(model, train, held, cfg.arx_order)
+                except ValueError as err:
+                    raise LearnerError(f'arx: {err}') from None
             elif meta is None:
                 result = supervised(model, train_w, held_w, step_config, seed, progress)
             else:
@@ -313,23 +313,6 @@ class LearnerSession:
             train_steps=0 if job.method == 'arx' else job.steps,
             train_samples=samples_in(train), seed=seed, train_time=result.elapsed)
         return AdaptOutcome(record, result, used, samples_in(train), samples_in(held))
-
-    def _arx(self, base: Nssm, train: Sequence[Trajectory], held: Sequence[Trajectory]
-             ) -> Tuple[Nssm, AdaptResult]:
-        """The ARX baseline fitted on the training part (:mod:`.arx`), as an NSSM of `base`'s
-        history, widths and scaling; its l_SSM on both parts (one point each)."""
-        start = time.monotonic()
-        try:
-            config, norm, params = arx_nssm(train, self.config.arx_order, base.config,
-                                            base.norm)
-        except ValueError as err:
-            raise LearnerError(f'arx: {err}') from None
-        model = Nssm(config, norm)
-        with torch.no_grad():
-            losses = [float(prediction_loss(model, params, w.u, w.y)) for w in (
-                Windows.from_trajectories(part, norm, config) for part in (train, held))]
-        return model, AdaptResult(params, [losses[0]], [losses[1]], [],
-                                  time.monotonic() - start)
 
     def loop_adapt(self, version: int, samples: TargetSamples,
                    progress: Optional[ProgressFn] = None) -> AdaptOutcome:

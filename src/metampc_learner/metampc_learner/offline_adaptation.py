@@ -12,7 +12,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
@@ -22,6 +22,7 @@ import yaml
 from metampc_model.nssm import Nssm, Params
 from metampc_plant.machine_mapping import load_mapping
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.arx import fit_arx
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import longest_run, samples_in, Windows
 from metampc_learner.grid_samples import grid_samples, GridSamples
@@ -31,6 +32,7 @@ from metampc_learner.recorded_streams import read_recording
 from metampc_learner.target_buffer import split_target, TargetSamples
 
 SUPERVISED = 'supervised'
+ARX = 'arx'                 # the linear baseline (metampc_learner.arx): no steps
 LISTED_RUNS = 50        # skipped runs listed in the report (all are counted)
 
 
@@ -43,8 +45,9 @@ class OfflineConfig:
     """What to adapt and how.
 
     Attributes:
-        method: '' (the checkpoint's), the checkpoint's meta method, or 'supervised'.
-        steps, lr, gamma: of eq. (infer) (gamma: ignored by supervised); None: from
+        method: '' (the checkpoint's), the checkpoint's meta method, 'supervised' or 'arx'
+            (the checkpoint gives the architecture and the output scaling).
+        steps, lr, gamma: of eq. (infer) (gamma: ignored by supervised; all: by arx); None: from
             `config_file`'s ``adapt.<method>``, else the learner's defaults (AdaptConfig).
         config_file: an experiment configuration (config/default.yaml) or ''.
         samples: use the first `samples` usable samples (0: all).
@@ -52,6 +55,7 @@ class OfflineConfig:
         seed: the supervised baseline's initial weights (eq. infer is deterministic).
         keep_saturated: keep samples whose input is at a bound (clipped), see grid_samples.
         time_column: the CSV's time column (None: `time` if there is one, else one row per dt).
+        arx_order: the order p of the arx baseline.
     """
 
     method: str = ''
@@ -64,20 +68,22 @@ class OfflineConfig:
     seed: int = 0
     keep_saturated: bool = False
     time_column: Optional[str] = None
+    arx_order: int = 2
 
 
 def resolve_method(requested: str, info: Dict[str, Any], path: str) -> str:
-    """The method of a run: the checkpoint's meta method or 'supervised' (OfflineError else)."""
+    """The method of a run: the checkpoint's meta method, 'supervised' or 'arx' (OfflineError
+    else)."""
     held = info.get('method', 'imaml')
-    if requested == SUPERVISED:
-        return SUPERVISED
+    if requested in (SUPERVISED, ARX):
+        return requested
     if held not in META_METHODS:
         raise OfflineError(f'{path} holds a {held!r} model, not a meta-model of '
-                           f'{", ".join(META_METHODS)}: only --method supervised trains on it '
-                           '(from random weights of its architecture)')
+                           f'{", ".join(META_METHODS)}: only --method {SUPERVISED} (from random '
+                           f'weights of its architecture) or {ARX} trains on it')
     if requested not in ('', held):
         raise OfflineError(f'--method {requested}: {path} holds a {held} meta-model (use '
-                           f'--method {held} or {SUPERVISED})')
+                           f'--method {held}, {SUPERVISED} or {ARX})')
     return held
 
 
@@ -174,18 +180,30 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
             f'too few usable samples: {used} used ({len(usable)} usable of {len(grid.times)}); '
             f'the longest runs without a skipped sample are {longest_run(train)} (training) and '
             f'{longest_run(held)} (held out), each part needs H + T = {cfg.window}')
-    log(f'{method}: {settings.steps} steps at lr {settings.lr:g} on '
-        f'{len(train_w)} windows, {len(held_w)} held out')
+    if method == ARX:         # least squares, no steps: the settings do not apply
+        settings, settings_from = replace(settings, steps=0), 'none (least squares)'
+        log(f'{method}: ARX({config.arx_order}) by least squares on {samples_in(train)} '
+            f'samples, {len(held_w)} windows held out')
+    else:
+        log(f'{method}: {settings.steps} steps at lr {settings.lr:g} on '
+            f'{len(train_w)} windows, {len(held_w)} held out')
 
     def step_line(p):
         log(f'step {p.iteration}/{p.total}: held-out loss {p.loss:.5g} ({p.elapsed:.1f} s)')
 
-    if method == SUPERVISED:
+    fitted, fitted_held = model, held_w     # the adapted model and its held-out windows
+    if method == ARX:
+        try:
+            fitted, result = fit_arx(model, train, held, config.arx_order)
+        except ValueError as err:
+            raise OfflineError(f'arx: {err}') from None
+        fitted_held = Windows.from_trajectories(held, fitted.norm, fitted.config, dtype)
+    elif method == SUPERVISED:
         result = supervised(model, train_w, held_w, settings, config.seed, step_line)
     else:
         result = adapt(model, ckpt.params, train_w, held_w, settings, step_line)
     n_train, n_held = samples_in(train), samples_in(held)
-    save_checkpoint(out, model, result.params, {
+    save_checkpoint(out, fitted, result.params, {
         'method': method, 'stage': 'adapted', 'train_loss': result.train_loss[-1],
         'train_steps': settings.steps, 'train_samples': n_train, 'seed': config.seed,
         'heldout_loss': result.heldout_loss[-1], 'meta_checkpoint': checkpoint,
@@ -195,7 +213,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         'cut_short': recorded.cut_short,
         'mapping': mapping_path, 'checkpoint': checkpoint, 'out': out, 'method': method,
         'steps': settings.steps, 'lr': settings.lr,
-        'gamma': 0.0 if method == SUPERVISED else settings.gamma, 'seed': config.seed,
+        'gamma': 0.0 if method in (SUPERVISED, ARX) else settings.gamma, 'seed': config.seed,
         'settings_from': settings_from,
         'history': cfg.history, 'loss_horizon': cfg.loss_horizon,
         'outputs': [o.name for o in mapping.outputs], 'units': [o.unit for o in mapping.outputs],
@@ -210,7 +228,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
             'meta': {'loss': heldout_loss(model, ckpt.params, held_w),
                      'rmse': tstep_rmse(model, ckpt.params, held_w)},
             'adapted': {'loss': result.heldout_loss[-1],
-                        'rmse': tstep_rmse(model, result.params, held_w)}},
+                        'rmse': tstep_rmse(fitted, result.params, fitted_held)}},
         'curve': {'train_loss': result.train_loss, 'heldout_loss': result.heldout_loss,
                   'rates': result.rates},
         'elapsed_s': time.monotonic() - start}
@@ -251,4 +269,4 @@ def report_markdown(report: Dict[str, Any]) -> str:
 
 
 __all__ = ['OfflineConfig', 'OfflineError', 'run_offline', 'report_markdown', 'resolve_method',
-           'tstep_rmse', 'SUPERVISED']
+           'tstep_rmse', 'ARX', 'SUPERVISED']

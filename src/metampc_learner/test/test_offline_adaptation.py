@@ -105,12 +105,41 @@ def test_supervised_trains_from_seeded_random_weights(robot_bag, robot_meta, map
     assert a['curve']['heldout_loss'][0] != pytest.approx(a['heldout']['meta']['loss'])
 
 
+def test_arx_is_fitted_without_steps_and_reported_in_its_own_scaling(
+        robot_bag, robot_meta, mapping_file, fresh_robot, tmp_path):
+    from robot_recording import tstep_rmse as predictor_rmse
+    out = str(tmp_path / 'arx.pt')
+    report = run_offline(str(robot_bag), mapping_file, robot_meta, out,
+                         OfflineConfig(method='arx', steps=7, samples=300, holdout=0.25))
+    assert (report['method'], report['steps'], report['gamma']) == ('arx', 0, 0.0)
+    assert report['settings_from'] == 'none (least squares)'
+    assert len(report['curve']['heldout_loss']) == 1 and report['curve']['rates'] == []
+    ckpt = load_checkpoint(out)
+    assert (ckpt.info['method'], ckpt.info['train_steps'], ckpt.info['train_samples']) == (
+        'arx', 0, 225)
+    cfg = ckpt.model.config
+    assert cfg.n_z == 2 * (cfg.n_y + cfg.n_u) - cfg.n_u and not cfg.stable_latent    # p = 2
+    # Its held-out RMSE is measured in its own scaling: l_SSM = sum_i (rmse_i / y_std_i)^2.
+    held = report['heldout']['adapted']
+    assert sum((r / s) ** 2 for r, s in zip(held['rmse'], ckpt.model.norm.y_std)) == \
+        pytest.approx(held['loss'], rel=1e-4)
+    u, y = fresh_robot          # and the checkpoint is the NSSM the controller flies
+    windows = Windows.from_trajectories([Trajectory(np.arange(1, len(u) + 1), u, y)],
+                                        ckpt.model.norm, ckpt.model.config)
+    np.testing.assert_allclose(
+        tstep_rmse(ckpt.model, ckpt.params, windows),
+        predictor_rmse(NssmPredictor(ckpt.model.config, ckpt.model.norm, ckpt.params), u, y,
+                       ckpt.model.config.loss_horizon), rtol=1e-3)   # torch float32: its RMSE
+    # is ~1e-4 of the outputs' scale, so the float32 rounding shows in the 4th digit
+
+
 def test_the_method_is_the_checkpoints_or_supervised():
     assert resolve_method('', {'method': 'imaml'}, 'm.pt') == 'imaml'
     assert resolve_method('', {}, 'm.pt') == 'imaml'
     assert resolve_method('supervised', {'method': 'maml'}, 'm.pt') == 'supervised'
+    assert resolve_method('arx', {'method': 'oracle'}, 'm.pt') == 'arx'
     with pytest.raises(OfflineError, match=r'^--method imaml: m.pt holds a maml meta-model '
-                       r'\(use --method maml or supervised\)$'):
+                       r'\(use --method maml, supervised or arx\)$'):
         resolve_method('imaml', {'method': 'maml'}, 'm.pt')
     with pytest.raises(OfflineError, match="^m.pt holds a 'oracle' model, not a meta-model"):
         resolve_method('', {'method': 'oracle'}, 'm.pt')
