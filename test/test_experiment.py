@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from metampc_bringup.analysis.retrack import controller_values, fly, retrack_seed
+from metampc_bringup.analysis.retrack import (adapted_models, controller_values, fly,
+                                              retrack_seed)
 from metampc_bringup.experiment import rebuild_report, run_experiment
 from metampc_bringup.experiment_config import ConfigError, learner_config, load
 from metampc_bringup.orchestration.lifeline import ENV as LIFELINE
@@ -237,6 +238,24 @@ def _interrupt_after_collection(args, collections: int, timeout: float,
             for pid in session_pids(proc):
                 os.kill(pid, signal.SIGKILL)
     return proc.returncode, ''.join(lines) + rest
+
+
+def test_a_run_without_meta_training_adapts_on_the_whole_collection(tmp_path):
+    """`--methods arx`: nothing trains between the collection and the first adapt, so the
+    learner is asked to stop buffering while it is still taking the collection in. The stop
+    waits for it (set_buffering's `least`): D_target is the whole collection, as after a
+    meta-training (before 2026-12-02 such a run kept 119-300 of 300 samples)."""
+    out = str(tmp_path / 'run')
+    done = _run_to_end(['--out', out, '--methods', 'arx'])
+    assert done.returncode == 0, done.stdout
+    config = load(CI_CONFIG)
+    per_seed = per_seed_reports(out)[0]
+    held = per_seed['buffering']
+    assert (held['kept'], held['lost']) == (config.target_samples, 0), held
+    train = config.target_samples - round(learner_config(config, 0).heldout_fraction
+                                          * config.target_samples)
+    model = adapted_models(os.path.join(out, 'seed_0', 'recording.mcap'))['arx']
+    assert model.train_samples == train
 
 
 def test_ctrl_c_stops_every_node_and_leaves_a_readable_recording(tmp_path):

@@ -166,6 +166,13 @@ class LearnerNode(Node):
             response.cleared = buffer.start()
             response.message = (f'buffering (re)started: {response.cleared} samples cleared, '
                                 f'keeping the next {buffer.capacity} valid samples')
+        elif buffer.enabled and not buffer.full and len(buffer) < request.least:
+            response.kept, response.skipped, response.lost = (len(buffer), buffer.skipped,
+                                                              buffer.lost)
+            response.capacity = buffer.capacity
+            response.message = (f'buffering goes on: {len(buffer)} of the {request.least} '
+                                f'samples asked for kept so far')
+            return response         # success false: the caller asks again
         else:
             buffer.freeze()
             self._unsubscribe_y()

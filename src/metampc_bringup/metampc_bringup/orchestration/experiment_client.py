@@ -216,9 +216,10 @@ class ExperimentClient(SpunNode):
     # --- services --------------------------------------------------------------------------
 
     def call(self, name: str, request: Any, timeout: float, what: str,
-             tick: Optional[Callable[[], None]] = None) -> Any:
-        """Call service `name`; the response if it succeeded, else ExperimentError."""
-        return self.finish(self.start(name, request), timeout, what, tick)
+             tick: Optional[Callable[[], None]] = None, refused_ok: bool = False) -> Any:
+        """Call service `name`; the response if it succeeded (or, with `refused_ok`, was
+        answered with success false), else ExperimentError."""
+        return self.finish(self.start(name, request), timeout, what, tick, refused_ok)
 
     def start(self, name: str, request: Any) -> 'Call':
         """Send a request to service `name` and return the call at once: the caller does
@@ -232,7 +233,7 @@ class ExperimentClient(SpunNode):
         return Call(client, request, self._notify)
 
     def finish(self, call: 'Call', timeout: float, what: str,
-               tick: Optional[Callable[[], None]] = None) -> Any:
+               tick: Optional[Callable[[], None]] = None, refused_ok: bool = False) -> Any:
         """Wait up to `timeout` s for a started call, resending a request that carries an id
         while it is unanswered (:class:`Call`); the response if it succeeded, else
         ExperimentError (the call is cancelled on any failure, Ctrl-C included)."""
@@ -250,7 +251,7 @@ class ExperimentClient(SpunNode):
         response = call.result()
         if response is None:
             raise ExperimentError(f'{what}: the call failed ({call.exception()})')
-        if hasattr(response, 'success') and not response.success:
+        if hasattr(response, 'success') and not response.success and not refused_ok:
             raise ExperimentError(f'{what}: {response.message}')
         return response
 
@@ -273,10 +274,12 @@ class ExperimentClient(SpunNode):
                 '%s: some answers of %s were not acknowledged by every reader within 10 s: '
                 'the recording may lack them', what, controller)
 
-    def set_buffering(self, buffering: bool, what: str) -> SetBuffering.Response:
-        """(Re)start or stop the learner's buffering; its response (counts, matched y)."""
-        return self.call('set_buffering', SetBuffering.Request(buffering=buffering), 10.0,
-                         what)
+    def set_buffering(self, buffering: bool, what: str, least: int = 0
+                      ) -> SetBuffering.Response:
+        """(Re)start or stop the learner's buffering (stop: only once it holds `least`
+        samples, else ``success`` false); its response (counts, matched y)."""
+        return self.call('set_buffering', SetBuffering.Request(buffering=buffering, least=least),
+                         10.0, what, refused_ok=least > 0)
 
     def poll_inactive(self, controller: str, until: Callable[[SetActive.Response], bool],
                       timeout: float, period: float) -> bool:

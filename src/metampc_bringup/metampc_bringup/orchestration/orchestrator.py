@@ -189,15 +189,12 @@ class SeedRun:
         for i, method in enumerate(config.meta_methods()):
             meanwhile = self._track_nmpc if nmpc_meanwhile and i == 0 else None
             self._timed(f'meta_train_{method}', self._meta_train, method, meanwhile)
-        # Only now, long after the plant paused: the learner has taken every sample of the
-        # collection, and its buffer (capacity target_samples) holds the first ones, whatever
-        # the timing (stopped at once, it kept however many it had processed by then).
-        kept = self.client.set_buffering(False, 'collect: stop buffering')
+        kept = self._stop_buffering()
         self.client.event(events.BufferingStopped(kept=kept.kept, skipped=kept.skipped,
                                                   lost=kept.lost))
-        if kept.lost:
-            log.warning('seed %d: %d target samples never reached the learner', self.seed,
-                        kept.lost)
+        if kept.lost or kept.kept < config.target_samples:
+            log.warning('seed %d: the learner kept %d of the %d target samples (%d never '
+                        'reached it)', self.seed, kept.kept, config.target_samples, kept.lost)
         if config.scenario == 'drift':
             if 'nmpc' in config.methods and not nmpc_meanwhile:
                 self._track_nmpc()
@@ -334,6 +331,20 @@ class SeedRun:
             if time.monotonic() > deadline:
                 raise ExperimentError("collect: the learner's y subscription never matched "
                                       f'the plant within {self.config.timeouts.startup:g} s')
+            time.sleep(MATCH_POLL_S)
+
+    def _stop_buffering(self):
+        """Stop the learner's D_target once it holds the collection (its buffer's capacity is
+        target_samples: the first ones), asking again while it is still taking them in (right
+        after the collection, with no meta-training before, it had kept half of them); after
+        the phase timeout it stops with what it has. Its last answer (counts)."""
+        client, least = self.client, self.config.target_samples
+        deadline = time.monotonic() + self.config.timeouts.phase
+        while True:
+            answer = client.set_buffering(False, 'collect: stop buffering',
+                                          least=0 if time.monotonic() > deadline else least)
+            if answer.success:
+                return answer
             time.sleep(MATCH_POLL_S)
 
     def _collect(self) -> None:
