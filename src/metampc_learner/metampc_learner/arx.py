@@ -4,7 +4,8 @@ ARX(p) in physical units, u_k the input that produced y_k (the data convention):
 
     y_t = sum_{i=1..p} a_i y_{t-i} + sum_{j=0..p-1} b_j u_{t-j} + c
 
-fitted on every t of a trajectory with p samples before it (numpy lstsq). As an NSSM of eq.
+fitted on every t of a trajectory with p samples before it (the least squares of
+``metampc_plant.identification.arx``, which the Cascaded Tanks baselines use). As an NSSM of eq.
 (SSM) it is exact: z_t = [y_t .. y_{t-p+1}, u_t .. u_{t-p+2}] in normalised units (n_z =
 p n_y + (p - 1) n_u), read from the encoder's history by its ReLU layers as relu(x) - relu(-x);
 A the companion matrix, B and C selections. The normalisation keeps the given stds and takes as
@@ -23,38 +24,20 @@ from metampc_learner.data import Trajectory, Windows
 from metampc_model.normalisation import Normalisation
 from metampc_model.nssm import Nssm, prediction_loss
 from metampc_model.nssm_config import NssmConfig, param_shapes
-
-
-def regression(trajectories: Sequence[Trajectory], order: int
-               ) -> Tuple[np.ndarray, np.ndarray]:
-    """Regressors (M, p n_y + p n_u + 1) = [y_{t-1} .. y_{t-p}, u_t .. u_{t-p+1}, 1] and
-    targets (M, n_y) = y_t, over every t with p samples before it in its trajectory."""
-    rows: List[np.ndarray] = []
-    targets: List[np.ndarray] = []
-    for traj in trajectories:
-        for t in range(order, len(traj)):
-            rows.append(np.concatenate([traj.y[t - 1::-1][:order].reshape(-1),
-                                        traj.u[t::-1][:order].reshape(-1), [1.0]]))
-            targets.append(traj.y[t])
-    if not rows:
-        raise ValueError(f'ARX({order}): no trajectory has more than {order} samples')
-    return np.array(rows), np.array(targets)
+from metampc_plant.identification.arx import least_squares
 
 
 def fit(trajectories: Sequence[Trajectory], order: int
         ) -> Tuple[List[np.ndarray], List[np.ndarray], np.ndarray]:
-    """Least-squares ARX(p): (a_1..a_p each (n_y, n_y), b_0..b_{p-1} each (n_y, n_u), c (n_y,)).
+    """Least-squares ARX(p) (``identification.arx.least_squares``, nk = 0: u_k produced y_k):
+    (a_1..a_p each (n_y, n_y), b_0..b_{p-1} each (n_y, n_u), c (n_y,)).
 
     Raises:
         ValueError: fewer equations than unknowns per output.
     """
-    x, y = regression(trajectories, order)
-    if x.shape[0] < x.shape[1]:
-        raise ValueError(f'ARX({order}): {x.shape[0]} equations for {x.shape[1]} unknowns per '
-                         'output')
-    theta = np.linalg.lstsq(x, y, rcond=None)[0].T           # (n_y, unknowns)
-    n_y = y.shape[1]
-    n_u = (x.shape[1] - 1 - order * n_y) // order
+    theta = least_squares([(t.u, t.y) for t in trajectories], order, order, 0)
+    n_y = theta.shape[0]
+    n_u = (theta.shape[1] - 1 - order * n_y) // order
     a = [theta[:, i * n_y:(i + 1) * n_y] for i in range(order)]
     b = [theta[:, order * n_y + j * n_u:order * n_y + (j + 1) * n_u] for j in range(order)]
     return a, b, theta[:, -1]
@@ -164,4 +147,4 @@ def fit_arx(base: Nssm, train: Sequence[Trajectory], held: Sequence[Trajectory],
     return model, AdaptResult(params, [losses[0]], [losses[1]], [], time.monotonic() - start)
 
 
-__all__ = ['arx_nssm', 'as_nssm', 'equilibrium', 'fit', 'fit_arx', 'regression']
+__all__ = ['arx_nssm', 'as_nssm', 'equilibrium', 'fit', 'fit_arx']

@@ -1,14 +1,16 @@
-"""Linear ARX models of one input and one output: least-squares fit, simulation, T-step prediction.
+"""Linear ARX models: least-squares fit, simulation, T-step prediction.
 
     y[k] = a_1 y[k-1] + ... + a_na y[k-na] + b_0 u[k-nk] + ... + b_(nb-1) u[k-nk-nb+1] + c
 
 (c an offset: the data need not be centred). Fitted by ordinary least squares on the one-step
-equation error (numpy.linalg.lstsq); run either in free simulation (each y from the model's own
-earlier outputs) or as a T-step predictor (measured outputs up to the origin, the model's own
-after it). u[k] and y[k] share the index k; nk = 1 makes u[k] act on y[k+1] first. Pure numpy.
+equation error (numpy.linalg.lstsq; :func:`least_squares` for any numbers of inputs and
+outputs and several records, the learner's `arx` method uses it too); the single-input,
+single-output :class:`Arx` runs either in free simulation (each y from the model's own earlier
+outputs) or as a T-step predictor (measured outputs up to the origin, the model's own after it).
+u[k] and y[k] share the index k; nk = 1 makes u[k] act on y[k+1] first. Pure numpy.
 """
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Sequence, Tuple
 
 import numpy as np
 
@@ -42,6 +44,36 @@ def _check(u: np.ndarray, y: np.ndarray):
     return u, y
 
 
+def least_squares(records: Sequence[Tuple[np.ndarray, np.ndarray]], na: int, nb: int, nk: int
+                  ) -> np.ndarray:
+    """Least-squares ARX(na, nb, nk) with offset, any numbers of inputs and outputs: over every
+    k >= lag of each record (u (N, n_u), y (N, n_y)), records never mixed in one equation.
+
+    Returns:
+        theta (n_y, na n_y + nb n_u + 1): [a_1 .. a_na (each n_y columns), b_0 .. b_(nb-1)
+        (each n_u columns), c].
+
+    Raises:
+        ValueError: na < 0, nb < 1, nk < 0, or fewer equations than unknowns.
+    """
+    if na < 0 or nb < 1 or nk < 0:
+        raise ValueError(f'ARX orders need na >= 0, nb >= 1, nk >= 0, got {na}, {nb}, {nk}')
+    lag = max(na, nk + nb - 1, 1)
+    rows, targets = [], []
+    for u, y in records:
+        ks = np.arange(lag, len(y))
+        rows.append(np.concatenate([y[ks - i] for i in range(1, na + 1)]
+                                   + [u[ks - nk - j] for j in range(nb)]
+                                   + [np.ones((len(ks), 1))], axis=1))
+        targets.append(y[ks])
+    x, y = np.concatenate(rows), np.concatenate(targets)
+    if len(x) < x.shape[1]:
+        raise ValueError(f'ARX({na}, {nb}, {nk}) needs more than {lag + x.shape[1] - 1} '
+                         f'samples in a record (or records of more than {lag}), got '
+                         f'{len(x)} equations for {x.shape[1]} unknowns per output')
+    return np.linalg.lstsq(x, y, rcond=None)[0].T
+
+
 def fit_arx(u: Sequence[float], y: Sequence[float], na: int, nb: int, nk: int) -> Arx:
     """Least-squares ARX(na, nb, nk) with offset on samples k = lag .. N-1 of u, y (N,).
 
@@ -49,16 +81,7 @@ def fit_arx(u: Sequence[float], y: Sequence[float], na: int, nb: int, nk: int) -
         ValueError: na < 0, nb < 1, nk < 0, or fewer equations than unknowns.
     """
     u, y = _check(u, y)
-    if na < 0 or nb < 1 or nk < 0:
-        raise ValueError(f'ARX orders need na >= 0, nb >= 1, nk >= 0, got {na}, {nb}, {nk}')
-    lag = Arx(np.zeros(na), np.zeros(nb), nk, 0.0).lag
-    ks = np.arange(lag, len(y))
-    if len(ks) < na + nb + 1:
-        raise ValueError(f'ARX({na}, {nb}, {nk}) needs more than {lag + na + nb} samples, got '
-                         f'{len(y)}')
-    columns = ([y[ks - i] for i in range(1, na + 1)] + [u[ks - nk - j] for j in range(nb)]
-               + [np.ones(len(ks))])
-    coef = np.linalg.lstsq(np.stack(columns, axis=1), y[ks], rcond=None)[0]
+    coef = least_squares([(u[:, None], y[:, None])], na, nb, nk)[0]
     return Arx(a=coef[:na], b=coef[na:na + nb], nk=nk, c=float(coef[-1]))
 
 
@@ -104,4 +127,4 @@ def simulate_arx(model: Arx, u: Sequence[float], y_init: Sequence[float]) -> np.
     return np.concatenate([start[:model.lag], rest])
 
 
-__all__ = ['Arx', 'fit_arx', 'predict_arx', 'simulate_arx']
+__all__ = ['Arx', 'fit_arx', 'least_squares', 'predict_arx', 'simulate_arx']
