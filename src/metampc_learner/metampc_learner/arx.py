@@ -4,13 +4,12 @@ ARX(p) in physical units, u_k the input that produced y_k (the data convention):
 
     y_t = sum_{i=1..p} a_i y_{t-i} + sum_{j=0..p-1} b_j u_{t-j} + c
 
-fitted on every t of a trajectory with p samples before it (the least squares of
-``metampc_plant.identification.arx``, which the Cascaded Tanks baselines use). As an NSSM of eq.
-(SSM) it is exact: z_t = [y_t .. y_{t-p+1}, u_t .. u_{t-p+2}] in normalised units (n_z =
-p n_y + (p - 1) n_u), read from the encoder's history by its ReLU layers as relu(x) - relu(-x);
-A the companion matrix, B and C selections. The normalisation keeps the given stds and takes as
-means an equilibrium of the ARX (u_mean: the data's), so c vanishes in normalised units. The
-controller, the recorder and the reports then take it like any adapted model (docs/learner.md).
+fitted on every t of a trajectory with p samples before it (``identification.arx``'s least
+squares). As an NSSM of eq. (SSM) it is exact: z_t = [y_t .. y_{t-p+1}, u_t .. u_{t-p+2}]
+normalised (n_z = p n_y + (p - 1) n_u), read from the history by the encoder's ReLU layers as
+relu(x) - relu(-x); A the companion matrix, B and C selections. The normalisation keeps the
+given stds and takes as means an equilibrium of the ARX, so c vanishes in normalised units.
+The controller, the recorder and the reports take it like any adapted model (docs/learner.md).
 """
 from dataclasses import replace
 import time
