@@ -35,8 +35,7 @@ def fit(trajectories: Sequence[Trajectory], order: int
         ValueError: fewer equations than unknowns per output.
     """
     theta = least_squares([(t.u, t.y) for t in trajectories], order, order, 0)
-    n_y = theta.shape[0]
-    n_u = (theta.shape[1] - 1 - order * n_y) // order
+    n_y, n_u = trajectories[0].y.shape[1], trajectories[0].u.shape[1]
     a = [theta[:, i * n_y:(i + 1) * n_y] for i in range(order)]
     b = [theta[:, order * n_y + j * n_u:order * n_y + (j + 1) * n_u] for j in range(order)]
     return a, b, theta[:, -1]

@@ -34,7 +34,12 @@ class Arx:
     @property
     def lag(self) -> int:
         """Samples of the past a prediction needs: max(na, nk + nb - 1) (>= 1)."""
-        return max(len(self.a), self.nk + len(self.b) - 1, 1)
+        return _lag(len(self.a), len(self.b), self.nk)
+
+
+def _lag(na: int, nb: int, nk: int) -> int:
+    """The first sample an ARX(na, nb, nk) equation can be written for."""
+    return max(na, nk + nb - 1, 1)
 
 
 def _check(u: np.ndarray, y: np.ndarray):
@@ -58,7 +63,7 @@ def least_squares(records: Sequence[Tuple[np.ndarray, np.ndarray]], na: int, nb:
     """
     if na < 0 or nb < 1 or nk < 0:
         raise ValueError(f'ARX orders need na >= 0, nb >= 1, nk >= 0, got {na}, {nb}, {nk}')
-    lag = max(na, nk + nb - 1, 1)
+    lag = _lag(na, nb, nk)
     rows, targets = [], []
     for u, y in records:
         ks = np.arange(lag, len(y))
