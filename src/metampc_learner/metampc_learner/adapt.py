@@ -6,9 +6,11 @@ paper's plain steps of sec. Simulation). Supervised baseline: the same steps fro
 initialisation (gamma = 0). Both report the loss on held-out target windows before and after
 every step.
 
-Step size (the same rule for every method): each step backtracks from the nominal rate ``lr``
-(Armijo, ``FlatObjective.armijo_step``), so a rate too large for the target's curvature is
-halved within the step instead of costing it, and the next step tries ``lr`` again.
+Step rule (``rule``, the same for every method): 'gradient' (default) backtracks each step from
+the nominal rate ``lr`` (Armijo, ``FlatObjective.armijo_step``), so a rate too large for the
+target's curvature is halved within the step instead of costing it, and the next step tries
+``lr`` again; 'gauss_newton' takes Levenberg-Marquardt steps on the same objective
+(:mod:`.gauss_newton`, ``cg_steps`` of CG each; ``lr`` unused).
 """
 import math
 import time
@@ -20,18 +22,27 @@ import torch
 from metampc_common.params import check_fields, param
 from metampc_model.nssm import init_params, Nssm, Params
 from metampc_learner.data import Windows
+from metampc_learner.gauss_newton import lm_step, MU_START
 from metampc_learner.objective import FlatObjective
 from metampc_learner.progress import Progress, ProgressFn
 
 
+RULES = ('gradient', 'gauss_newton')
+
+
 @dataclass
 class AdaptConfig:
-    """Attributes: steps (m), lr (beta_in), gamma (>= 0) of eq. (infer)."""
+    """Attributes: steps (m), lr (beta_in), gamma (>= 0) of eq. (infer); the step rule and its
+    CG iterations (module docstring)."""
 
     steps: int = param(20, 'adaptation gradient steps', ge=0, live=True)
     lr: float = param(0.05, 'adaptation step size', gt=0, live=True)
     gamma: float = param(0.0, 'proximal strength of eq. infer (0: plain gradient steps)', ge=0,
                          live=True)
+    rule: str = param('gradient', 'adaptation step rule: gradient (backtracked from lr) or '
+                                  'gauss_newton (Levenberg-Marquardt, lr unused)',
+                      choices=RULES)
+    cg_steps: int = param(30, 'CG iterations per gauss_newton step', ge=1)
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
@@ -46,7 +57,8 @@ class AdaptResult:
         params: omega*.
         train_loss: l_SSM(D_target; psi) before each step and after the last.
         heldout_loss: l_SSM on the held-out target windows, same indexing.
-        rates: the step size each step took (0.0: no decrease found, psi kept), length steps.
+        rates: the step size each step took (gauss_newton: 1 / (gamma + damping)), 0.0 when no
+            decrease was found and psi kept; length steps.
         elapsed: wall time, s.
     """
 
@@ -87,9 +99,14 @@ def adapt(model: Nssm, init: Params, train: Windows, heldout: Windows, config: A
                              f'{len(result.train_loss) - 1}')
 
     record()
+    damping = MU_START
     for step in range(1, config.steps + 1):
-        psi, rate = objective.armijo_step(psi, centre, train.u, train.y, config.lr,
-                                          config.gamma)
+        if config.rule == 'gauss_newton':
+            psi, rate, damping = lm_step(objective, psi, centre, train.u, train.y,
+                                         config.gamma, damping, config.cg_steps)
+        else:
+            psi, rate = objective.armijo_step(psi, centre, train.u, train.y, config.lr,
+                                              config.gamma)
         result.rates.append(rate)
         record()
         if progress is not None:

@@ -18,7 +18,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from metampc_model.nssm import init_params, Nssm, Params
-from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
+from metampc_learner.adapt import adapt, AdaptResult, supervised
 from metampc_learner.arx import fit_arx
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (longest_run, normalisation_from, samples_in,
@@ -297,7 +297,7 @@ class LearnerSession:
                     f'{longest_run(train)} and {longest_run(held)} samples, broken by '
                     f'{max(len(train) - 1, 0) + max(len(held) - 1, 0)} gap(s): steps that '
                     'never reached the learner or left the state box')
-            step_config = AdaptConfig(job.steps, job.lr, job.gamma)
+            step_config = replace(cfg.adapt, steps=job.steps, lr=job.lr, gamma=job.gamma)
             if job.method == 'arx':
                 try:
                     model, result = fit_arx(model, train, held, cfg.arx_order)
@@ -340,7 +340,8 @@ class LearnerSession:
                                f'window needs H + T = {model.config.window}')
         loop = cfg.loop
         no_heldout = Windows.from_trajectories([], model.norm, model.config)
-        steps = AdaptConfig(loop.steps, loop.lr or cfg.adapt.lr, loop.gamma)
+        steps = replace(cfg.adapt, steps=loop.steps, lr=loop.lr or cfg.adapt.lr,
+                        gamma=loop.gamma)
         result = adapt(model, record.params, train_w, no_heldout, steps, progress,
                        anchor=anchor)
         new = self._new_record(model=model, params=result.params, method=record.method,

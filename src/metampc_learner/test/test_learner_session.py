@@ -113,6 +113,31 @@ def test_adapt_methods_match_the_cores_on_the_same_split(tmp_path):
     assert _equal(out.record.params, direct.params)
 
 
+def test_the_node_step_rule_reaches_the_adaptation_and_the_loop():
+    """adapt_rule gauss_newton (and its adapt_cg_steps) is what the Adapt answer and an
+    adaptation in the loop run: equal to the core's, and not the gradient steps'."""
+    cfg = _config(adapt_rule='gauss_newton', adapt_cg_steps=5)
+    session = LearnerSession(cfg)
+    meta = session.meta_train(replace(cfg.meta, method='maml'), False).record
+    samples = _target(cfg, 40)
+    out = session.adapt(AdaptJob('', 3, 0.05, 0.0, 0), samples, None)
+    train, held, _ = split_target(samples, 0, 0.25, 10.0)
+    model = meta.model
+    windows = [Windows.from_trajectories(p, model.norm, model.config) for p in (train, held)]
+    rule = AdaptConfig(3, 0.05, 0.0, 'gauss_newton', 5)
+    assert _equal(out.record.params, adapt(model, meta.params, *windows, rule).params)
+    assert not _equal(out.record.params,
+                      adapt(model, meta.params, *windows, AdaptConfig(3, 0.05, 0.0)).params)
+    loop = session.loop_adapt(out.record.version, samples)
+    every, _, _ = split_target(samples, 0, 0.0, 10.0)
+    direct = adapt(model, out.record.params, Windows.from_trajectories(every, model.norm,
+                                                                       model.config),
+                   Windows.from_trajectories([], model.norm, model.config),
+                   AdaptConfig(cfg.loop.steps, cfg.loop.lr or cfg.adapt.lr, cfg.loop.gamma,
+                               'gauss_newton', 5), anchor=meta.params)
+    assert _equal(loop.record.params, direct.params)
+
+
 def test_oracle_fits_simulated_target_episodes():
     cfg = _config()
     session = LearnerSession(cfg)
