@@ -6,11 +6,10 @@ paper's plain steps of sec. Simulation). Supervised baseline: the same steps fro
 initialisation (gamma = 0). Both report the loss on held-out target windows before and after
 every step.
 
-Step rule (``rule``, the same for every method): 'gradient' (default) backtracks each step from
-the nominal rate ``lr`` (Armijo, ``FlatObjective.armijo_step``), so a rate too large for the
-target's curvature is halved within the step instead of costing it, and the next step tries
-``lr`` again; 'gauss_newton' takes Levenberg-Marquardt steps on the same objective
-(:mod:`.gauss_newton`, ``cg_steps`` of CG each; ``lr`` unused).
+Step rule (``rule``, every method): 'gradient' backtracks each step from the rate ``lr``
+(Armijo, ``FlatObjective.armijo_step``: a rate too large for the target's curvature is halved
+within the step, the next step tries ``lr`` again); 'gauss_newton' takes Levenberg-Marquardt
+steps on the same objective (:mod:`.gauss_newton`, ``cg_steps`` of CG each; ``lr`` unused).
 """
 import math
 import time
