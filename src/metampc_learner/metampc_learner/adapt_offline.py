@@ -1,7 +1,8 @@
 """`ros2 run metampc_learner adapt_offline`: adaptation from a recording, on the command line.
 
     ros2 run metampc_learner adapt_offline RECORDING MAPPING CHECKPOINT --out ADAPTED.pt
-        [--method M] [--steps N] [--lr R] [--gamma G] [--config YAML] [--samples N]
+        [--method M] [--steps N] [--lr R] [--gamma G] [--rule R] [--cg-steps N]
+        [--config YAML] [--samples N]
         [--holdout F] [--seed S] [--keep-saturated] [--time-column NAME] [--arx-order P]
 
 A thin layer over :mod:`.offline_adaptation`: it writes ADAPTED.pt, ADAPTED.json and
@@ -12,6 +13,7 @@ and exit status 2. docs/offline_adaptation.md.
 import argparse
 import sys
 
+from metampc_learner.adapt import RULES
 from metampc_learner.meta_train import META_METHODS
 from metampc_learner.offline_adaptation import (ARX, OfflineConfig, report_markdown,
                                                 run_offline, SUPERVISED)
@@ -47,8 +49,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--lr', type=float, help='step size (default: --config, else 0.05)')
     p.add_argument('--gamma', type=float, help='proximal strength of eq. (infer) (default: '
                    '--config, else 0)')
+    p.add_argument('--rule', choices=RULES, help='step rule: gradient (backtracked from --lr) or '
+                   'gauss_newton (Levenberg-Marquardt; default: --config, else gradient)')
+    p.add_argument('--cg-steps', type=int, help='CG iterations per gauss_newton step '
+                   '(default: --config, else 30)')
     p.add_argument('--config', default='', help='an experiment configuration whose adapt.<method> '
-                   'gives the defaults of --steps, --lr, --gamma (e.g. config/default.yaml)')
+                   'gives the defaults of --steps, --lr, --gamma and whose learner section those '
+                   'of --rule, --cg-steps (e.g. config/pendulum.yaml)')
     p.add_argument('--samples', type=_count, default=0,
                    help='use the first N usable samples (default 0: all)')
     p.add_argument('--holdout', type=_fraction, default=0.2,
@@ -68,6 +75,7 @@ def main(args=None) -> int:
     """Run the command; its exit status (0, or 2 for bad input)."""
     opts = parser().parse_args(args)
     config = OfflineConfig(method=opts.method, steps=opts.steps, lr=opts.lr, gamma=opts.gamma,
+                           rule=opts.rule, cg_steps=opts.cg_steps,
                            config_file=opts.config, samples=opts.samples,
                            holdout=opts.holdout, seed=opts.seed,
                            keep_saturated=opts.keep_saturated, time_column=opts.time_column,

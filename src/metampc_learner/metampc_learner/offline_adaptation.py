@@ -27,11 +27,14 @@ from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import longest_run, samples_in, Windows
 from metampc_learner.grid_samples import grid_samples, GridSamples
 from metampc_learner.heldout import heldout_loss
+from metampc_learner.learner_params import ADAPT
 from metampc_learner.meta_train import META_METHODS
 from metampc_learner.recorded_streams import read_recording
 from metampc_learner.target_buffer import split_target, TargetSamples
 
 SUPERVISED = 'supervised'
+STEP_KEYS = ('steps', 'lr', 'gamma')    # AdaptConfig's fields per method: adapt.<method>
+RULE_KEYS = ('rule', 'cg_steps')        # and the learner node's: learner.adapt_<field>
 ARX = 'arx'                 # the linear baseline (metampc_learner.arx): no steps
 LISTED_RUNS = 50        # skipped runs listed in the report (all are counted)
 
@@ -49,6 +52,9 @@ class OfflineConfig:
             (the checkpoint gives the architecture and the output scaling).
         steps, lr, gamma: of eq. (infer) (gamma: ignored by supervised; all: by arx); None: from
             `config_file`'s ``adapt.<method>``, else the learner's defaults (AdaptConfig).
+        rule, cg_steps: the step rule and a gauss_newton step's CG iterations; None: from
+            `config_file`'s ``learner`` parameters (adapt_rule, adapt_cg_steps), as the
+            learner node runs that file, else the learner's defaults.
         config_file: an experiment configuration (config/default.yaml) or ''.
         samples: use the first `samples` usable samples (0: all).
         holdout: the last share of them held out, in (0, 1).
@@ -62,6 +68,8 @@ class OfflineConfig:
     steps: Optional[int] = None
     lr: Optional[float] = None
     gamma: Optional[float] = None
+    rule: Optional[str] = None
+    cg_steps: Optional[int] = None
     config_file: str = ''
     samples: int = 0
     holdout: float = 0.2
@@ -88,13 +96,14 @@ def resolve_method(requested: str, info: Dict[str, Any], path: str) -> str:
 
 
 def adapt_settings(method: str, config: OfflineConfig) -> Tuple[AdaptConfig, str]:
-    """(steps, lr, gamma of `method`, where they come from): each given one, else the config
-    file's ``adapt.<method>`` entry, else AdaptConfig's default.
+    """(the adaptation settings of `method`, where they come from): each given one, else the
+    config file's (steps, lr, gamma: its ``adapt.<method>`` entry; the rule and its CG steps:
+    its ``learner`` parameters), else AdaptConfig's default.
 
     Raises:
         OfflineError: an unreadable config file or a value out of range (named).
     """
-    given = {k: getattr(config, k) for k in ('steps', 'lr', 'gamma')
+    given = {k: getattr(config, k) for k in (*STEP_KEYS, *RULE_KEYS)
              if getattr(config, k) is not None}
     listed: Dict[str, Any] = {}
     if config.config_file:
@@ -104,10 +113,14 @@ def adapt_settings(method: str, config: OfflineConfig) -> Tuple[AdaptConfig, str
         except (OSError, yaml.YAMLError) as err:
             raise OfflineError(f'--config {config.config_file}: {" ".join(str(err).split())}') \
                 from None
-        section = data.get('adapt') if isinstance(data, dict) else None
+        data = data if isinstance(data, dict) else {}
+        section, learner = data.get('adapt'), data.get('learner')
         entry = section.get(method) if isinstance(section, dict) else None
         if isinstance(entry, dict):
-            listed = {k: entry[k] for k in ('steps', 'lr', 'gamma') if k in entry}
+            listed = {k: entry[k] for k in STEP_KEYS if k in entry}
+        if isinstance(learner, dict):
+            listed.update({k: learner[ADAPT.name(k)] for k in RULE_KEYS
+                           if ADAPT.name(k) in learner})
     settings = AdaptConfig(**{**listed, **given})
     try:
         settings.validate()
@@ -185,8 +198,8 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         log(f'{method}: ARX({config.arx_order}) by least squares on {samples_in(train)} '
             f'samples, {len(held_w)} windows held out')
     else:
-        log(f'{method}: {settings.steps} steps at lr {settings.lr:g} on '
-            f'{len(train_w)} windows, {len(held_w)} held out')
+        said = steps_text(settings.steps, settings.lr, settings.rule, settings.cg_steps)
+        log(f'{method}: {said} on {len(train_w)} windows, {len(held_w)} held out')
 
     def step_line(p):
         log(f'step {p.iteration}/{p.total}: held-out loss {p.loss:.5g} ({p.elapsed:.1f} s)')
@@ -212,7 +225,8 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         'recording': recording, 'kind': recorded.kind, 'clock': recorded.clock,
         'cut_short': recorded.cut_short,
         'mapping': mapping_path, 'checkpoint': checkpoint, 'out': out, 'method': method,
-        'steps': settings.steps, 'lr': settings.lr,
+        'steps': settings.steps, 'lr': settings.lr, 'rule': settings.rule,
+        'cg_steps': settings.cg_steps,
         'gamma': 0.0 if method in (SUPERVISED, ARX) else settings.gamma, 'seed': config.seed,
         'settings_from': settings_from,
         'history': cfg.history, 'loss_horizon': cfg.loss_horizon,
@@ -240,12 +254,20 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
     return report
 
 
+def steps_text(steps: int, lr: float, rule: str, cg_steps: int) -> str:
+    """The steps of an adaptation in words, by its rule (AdaptConfig's fields)."""
+    if rule == 'gauss_newton':
+        return f'{steps} Levenberg-Marquardt steps ({cg_steps} CG iterations each)'
+    return f'{steps} steps at lr {lr:g}'
+
+
 def report_markdown(report: Dict[str, Any]) -> str:
     """The report as a short markdown page (tables of the samples, the held-out error and the
     adaptation curve)."""
     s, h = report['samples'], report['heldout']
     lines = [f"# adapt_offline: {report['method']} on {os.path.basename(report['recording'])}",
-             '', f"{report['steps']} steps at lr {report['lr']:g} (gamma {report['gamma']:g}) "
+             '', steps_text(report['steps'], report['lr'], report['rule'], report['cg_steps'])
+             + f" (gamma {report['gamma']:g}) "
              f"from {report['checkpoint']}; H = {report['history']}, "
              f"T = {report['loss_horizon']}; written to {report['out']}.", '',
              *([f"**{report['cut_short']}.**", ''] if report['cut_short'] else []),

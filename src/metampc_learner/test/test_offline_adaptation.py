@@ -41,7 +41,9 @@ def test_every_sample_is_accounted_for_and_the_checkpoint_is_the_adapted_one(rob
     assert sum(r['count'] for r in s['skipped_runs']) == sum(s['skipped'].values())
     curve, held = report['curve'], report['heldout']
     assert len(curve['train_loss']) == len(curve['heldout_loss']) == 6
-    assert held['meta']['loss'] == pytest.approx(curve['heldout_loss'][0], rel=1e-6)
+    # Two float32 code paths of one mean over the windows (the model's parameters, adapt's
+    # flat vector): equal to float32 rounding, 1.4e-6 apart on one machine.
+    assert held['meta']['loss'] == pytest.approx(curve['heldout_loss'][0], rel=1e-5)
     assert held['adapted']['loss'] == curve['heldout_loss'][-1] < held['meta']['loss']
     assert len(held['adapted']['rmse']) == 2 and report['loss_horizon'] == 5
     assert (report['method'], report['settings_from']) == ('maml', 'steps given, lr given')
@@ -157,6 +159,42 @@ def test_settings_come_from_the_command_line_then_the_config_file_then_the_defau
         adapt_settings('maml', OfflineConfig(lr=-1.0))
     with pytest.raises(OfflineError, match=r'^--config .*nowhere.yaml: \[Errno 2\]'):
         adapt_settings('maml', OfflineConfig(config_file=str(tmp_path / 'nowhere.yaml')))
+
+
+def test_the_rule_comes_from_the_command_line_then_the_configs_learner_section(tmp_path):
+    config = tmp_path / 'pendulum.yaml'
+    config.write_text('learner:\n  adapt_rule: gauss_newton\n  adapt_cg_steps: 12\n')
+    settings, where = adapt_settings('imaml', OfflineConfig(config_file=str(config)))
+    assert (settings.rule, settings.cg_steps) == ('gauss_newton', 12)
+    assert where == f'rule from {config}, cg_steps from {config}'
+    settings, where = adapt_settings('imaml', OfflineConfig(rule='gradient',
+                                                            config_file=str(config)))
+    assert (settings.rule, settings.cg_steps) == ('gradient', 12)
+    with pytest.raises(OfflineError, match='^adaptation settings: rule must be one of '
+                       "gradient, gauss_newton, got 'newton'$"):
+        adapt_settings('imaml', OfflineConfig(rule='newton'))
+    with pytest.raises(OfflineError, match='^adaptation settings: cg_steps'):
+        adapt_settings('imaml', OfflineConfig(rule='gauss_newton', cg_steps=0))
+
+
+def test_a_gauss_newton_rule_of_the_config_is_the_one_that_adapts(robot_bag, robot_meta,
+                                                                  mapping_file, tmp_path):
+    """The config file's rule and the same rule given run the same steps (bit for bit), and
+    they are Levenberg-Marquardt steps: rates 1 / damping, above --lr's backtracked ones."""
+    config = tmp_path / 'experiment.yaml'
+    config.write_text('learner:\n  adapt_rule: gauss_newton\n  adapt_cg_steps: 5\n')
+    lines = []
+    run = dict(steps=2, lr=1.0, samples=300, holdout=0.25)
+    listed = run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'a.pt'),
+                         OfflineConfig(**run, config_file=str(config)), lines.append)
+    given = run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'b.pt'),
+                        OfflineConfig(**run, rule='gauss_newton', cg_steps=5))
+    assert (listed['rule'], listed['cg_steps']) == ('gauss_newton', 5)
+    assert listed['curve'] == given['curve']
+    rates = listed['curve']['rates']
+    assert all(r > 1.0 for r in rates if r)
+    assert listed['heldout']['adapted']['loss'] < listed['heldout']['meta']['loss']
+    assert any('2 Levenberg-Marquardt steps (5 CG iterations each)' in line for line in lines)
 
 
 def test_a_checkpoint_of_other_sizes_or_too_few_samples_is_one_line(robot_bag, robot_meta,
