@@ -297,3 +297,27 @@ def test_tune_stopped_by_ctrl_c_resumes_without_running_the_finished_trials_agai
     after = told()
     assert {k: after[k] for k in before} == before
     assert len(after) == 2 * (2 + 2)     # every trial of both studies told
+
+
+def test_a_study_adapts_by_the_experiments_rule(tmp_path, tiny_config, direct):
+    """Under the experiment's ``adapt_rule: gauss_newton`` a job scores one step size, and
+    its held-out losses are those of the learner's own Levenberg-Marquardt adaptation
+    (``adapt.supervised`` with that rule on the job's validation data), not the gradient's."""
+    from dataclasses import replace as with_fields
+    from metampc_bringup.studies import offline
+    from metampc_learner.adapt import supervised
+    config = tmp_path / 'gauss_newton.yaml'
+    config.write_text(tiny_config.read_text().replace(
+        'learner: {', 'learner: {adapt_rule: gauss_newton, adapt_cg_steps: 4, '))
+    settings = settings_from(str(config), 1, 2)
+    assert (settings.learner.adapt.rule, settings.learner.adapt.cg_steps) == ('gauss_newton', 4)
+    result = direct(settings, Job('supervised', 0, {}, 0, ADAPT_LRS, 'search'))
+    assert [a['lr'] for a in result['adapt']] == [ADAPT_LRS[0]]
+    val = offline.validation(offline.VALIDATION_SEED, {})
+    step = with_fields(settings.learner.adapt, steps=2, lr=ADAPT_LRS[0], gamma=0.0)
+    expected = supervised(val.model, val.train[0], val.heldout[0], step,
+                          seed=offline.VALIDATION_SEED).heldout_loss[-1]
+    gradient = supervised(val.model, val.train[0], val.heldout[0],
+                          with_fields(step, rule='gradient'),
+                          seed=offline.VALIDATION_SEED).heldout_loss[-1]
+    assert result['adapt'][0]['heldout_final'] == [expected] != [gradient]

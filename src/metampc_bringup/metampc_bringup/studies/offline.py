@@ -314,7 +314,8 @@ def _pruning(thresholds: Optional[Sequence[float]], losses: List[float]):
 
 
 def run_job(job: Job) -> dict:
-    """Meta-train (meta methods), then score every step size; a failure scores inf.
+    """Meta-train (meta methods), then score every step size (one under the experiment's
+    ``adapt_rule: gauss_newton``, which takes none); a failure scores inf.
 
     The result holds the meta-training curve (every 10th step; the pruner's reports, means
     of every 10 steps: :mod:`.pruning`), its final loss (mean of the last 10 steps), the
@@ -363,8 +364,11 @@ def run_job(job: Job) -> dict:
     out['adapt'] = []
     start = time.monotonic()
     scoring = settings.control if job.target_theta is None else None
-    for lr in job.lrs:
-        step = AdaptConfig(steps=settings.adapt_steps, lr=lr)
+    rule = settings.learner.adapt       # the experiment's step rule, as its learner adapts
+    # gauss_newton takes no step size: one is scored, the others would repeat it.
+    for lr in job.lrs[:1] if rule.rule == 'gauss_newton' else job.lrs:
+        step = AdaptConfig(steps=settings.adapt_steps, lr=lr, rule=rule.rule,
+                           cg_steps=rule.cg_steps)
         curves: List[List[float]] = []
         ratios: List[float] = []
         for i, (train, held) in enumerate(zip(val.train, val.heldout)):
