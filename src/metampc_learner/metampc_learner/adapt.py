@@ -26,7 +26,8 @@ from metampc_learner.objective import FlatObjective
 from metampc_learner.progress import Progress, ProgressFn
 
 
-RULES = ('gradient', 'gauss_newton')
+GRADIENT, GAUSS_NEWTON = 'gradient', 'gauss_newton'
+RULES = (GRADIENT, GAUSS_NEWTON)
 
 
 @dataclass
@@ -38,8 +39,8 @@ class AdaptConfig:
     lr: float = param(0.05, 'adaptation step size', gt=0, live=True)
     gamma: float = param(0.0, 'proximal strength of eq. infer (0: plain gradient steps)', ge=0,
                          live=True)
-    rule: str = param('gradient', 'adaptation step rule: gradient (backtracked from lr) or '
-                                  'gauss_newton (Levenberg-Marquardt, lr unused)',
+    rule: str = param(GRADIENT, 'adaptation step rule: gradient (backtracked from lr) or '
+                                'gauss_newton (Levenberg-Marquardt, lr unused)',
                       choices=RULES)
     cg_steps: int = param(30, 'CG iterations per gauss_newton step', ge=1)
 
@@ -100,7 +101,7 @@ def adapt(model: Nssm, init: Params, train: Windows, heldout: Windows, config: A
     record()
     damping = MU_START
     for step in range(1, config.steps + 1):
-        if config.rule == 'gauss_newton':
+        if config.rule == GAUSS_NEWTON:
             psi, rate, damping = lm_step(objective, psi, centre, train.u, train.y,
                                          config.gamma, damping, config.cg_steps)
         else:

@@ -21,7 +21,7 @@ import yaml
 
 from metampc_model.nssm import Nssm, Params
 from metampc_plant.machine_mapping import load_mapping
-from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.adapt import adapt, AdaptConfig, GAUSS_NEWTON, supervised
 from metampc_learner.arx import fit_arx
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import longest_run, samples_in, Windows
@@ -256,7 +256,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
 
 def steps_text(steps: int, lr: float, rule: str, cg_steps: int) -> str:
     """The steps of an adaptation in words, by its rule (AdaptConfig's fields)."""
-    if rule == 'gauss_newton':
+    if rule == GAUSS_NEWTON:
         return f'{steps} Levenberg-Marquardt steps ({cg_steps} CG iterations each)'
     return f'{steps} steps at lr {lr:g}'
 

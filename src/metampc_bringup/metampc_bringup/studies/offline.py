@@ -23,7 +23,7 @@ import torch
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.experiment_config import ExperimentConfig, learner_config, load
 from metampc_bringup.studies.pruning import pruned_at, REPORT_EVERY, reports
-from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, supervised
+from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, GAUSS_NEWTON, supervised
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
                                   SourceSet, Windows)
 from metampc_learner.learner_params import LearnerNodeConfig
@@ -364,11 +364,11 @@ def run_job(job: Job) -> dict:
     out['adapt'] = []
     start = time.monotonic()
     scoring = settings.control if job.target_theta is None else None
-    rule = settings.learner.adapt       # the experiment's step rule, as its learner adapts
+    learner = settings.learner.adapt    # the experiment's step rule, as its learner adapts
     # gauss_newton takes no step size: one is scored, the others would repeat it.
-    for lr in job.lrs[:1] if rule.rule == 'gauss_newton' else job.lrs:
-        step = AdaptConfig(steps=settings.adapt_steps, lr=lr, rule=rule.rule,
-                           cg_steps=rule.cg_steps)
+    for lr in job.lrs[:1] if learner.rule == GAUSS_NEWTON else job.lrs:
+        step = AdaptConfig(steps=settings.adapt_steps, lr=lr, rule=learner.rule,
+                           cg_steps=learner.cg_steps)
         curves: List[List[float]] = []
         ratios: List[float] = []
         for i, (train, held) in enumerate(zip(val.train, val.heldout)):
