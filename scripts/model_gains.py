@@ -6,7 +6,10 @@ closed loop (metampc_bringup.analysis.model_gains; docs/mpc.md).
 Printed per seed and method: tracking cost / NMPC; the slowest pole's time constant (s) of
 the model and of the plant linearised at u0; eig(G_p G_m^+) (1: the model's gain is right,
 small: too large, negative: wrong sign); E as planned (offset-free by the run's form and gain,
-``model_check.check``) over the NMPC's tracking run of the seed, and E of persistence there.
+``model_check.check``) over the NMPC's tracking run of the seed, and E of persistence there;
+where the run flew the ``arx`` method, eig(G_arx G_m^+) on the tracked outputs (the gain the
+least-squares fit of the same samples gives, against the model's: negative, the model's sign
+disagrees with its own data's; '-' without an ARX).
 
     python scripts/model_gains.py RUN [--nmpc-run RUN2] [--u0 3.0,3.0]
 
@@ -29,7 +32,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     import numpy as np
     from metampc_bringup.analysis.experiment_report import tracking_series, tracking_spans
-    from metampc_bringup.analysis.model_gains import compare, time_constant
+    from metampc_bringup.analysis.model_gains import (agreement, compare, model_gain,
+                                                      time_constant)
     from metampc_bringup.analysis.retrack import adapted_models, seed_recordings
     from metampc_bringup.experiment_events import read_events
     from metampc_controller.model_check import check, ModelCheckConfig
@@ -37,6 +41,10 @@ def main(argv=None) -> int:
     from metampc_model.weights_codec import fields_of, weights_from_fields
     from metampc_plant.registry import get_family
     from metampc_recording.recording_reader import read_recording
+
+    def text(eigs):
+        return ' '.join(f'{v.real:+.2f}' + (f'{v.imag:+.2f}j' if abs(v.imag) > 1e-9 else '')
+                        for v in eigs)
 
     def report_of(run):
         try:
@@ -52,7 +60,7 @@ def main(argv=None) -> int:
     nmpc_recordings = seed_recordings(nmpc_run)
     recordings = seed_recordings(args.run)
     print('seed | method | cost / NMPC | slowest pole: model / plant (s) | eig(G_p G_m^+) | '
-          'E as planned on the NMPC loop (persistence)')
+          'E as planned on the NMPC loop (persistence) | eig(G_arx G_m^+), tracked')
     for per in report['per_seed']:
         seed, cfg = int(per['seed']), per['config']
         if not nmpc.get(seed) or seed not in nmpc_recordings:
@@ -68,11 +76,15 @@ def main(argv=None) -> int:
         rec = read_recording(nmpc_recordings[seed])
         loop = tracking_series(rec, tracking_spans(read_events(rec)))['nmpc'].outputs
         nmpc_cost = nmpc[seed]['tracking']['tracking']['cost']
+        models = {}
         for method, msg in adapted_models(recordings[seed]).items():
+            decoded = weights_from_fields(fields_of(msg))
+            models[method] = decoded, NssmPredictor(decoded.config, decoded.norm, decoded.params)
+        arx = models.get('arx')
+        tracked = per['config'].get('tracked_outputs')
+        for method, (decoded, model) in models.items():
             if method not in per['methods']:
                 continue
-            decoded = weights_from_fields(fields_of(msg))
-            model = NssmPredictor(decoded.config, decoded.norm, decoded.params)
             gains = compare(model.latent, family, per['theta'], u0, cfg['dt'])
             horizon = int(ctrl['horizon'])
             scored = len(loop.y) - decoded.config.history - 50
@@ -80,12 +92,12 @@ def main(argv=None) -> int:
                             scored=scored, offset_free=ctrl.get('offset_free', 'none'),
                             disturbance_gain=float(ctrl.get('disturbance_gain', 0.5)))
             cost = per['methods'][method]['tracking']['tracking']['cost'] / nmpc_cost
-            eigs = ' '.join(f'{v.real:+.2f}' + (f'{v.imag:+.2f}j' if abs(v.imag) > 1e-9 else '')
-                            for v in gains.ratio_eigs)
+            by_arx = '-' if arx is None else text(agreement(
+                model_gain(arx[1].latent), model_gain(model.latent), tracked))
             print(f'{seed} | {method} | {cost:.2f} | '
                   f'{time_constant(gains.model_pole, cfg["dt"]):.0f} / '
-                  f'{time_constant(gains.plant_pole, cfg["dt"]):.0f} | {eigs} | '
-                  f'{verdict.candidate:.4f} ({verdict.reference:.4f})', flush=True)
+                  f'{time_constant(gains.plant_pole, cfg["dt"]):.0f} | {text(gains.ratio_eigs)} | '
+                  f'{verdict.candidate:.4f} ({verdict.reference:.4f}) | {by_arx}', flush=True)
     return 0
 
 

@@ -6,8 +6,8 @@ import sys
 import numpy as np
 import pytest
 
-from metampc_bringup.analysis.model_gains import (compare, model_gain, plant_gain, plant_poles,
-                                                  time_constant)
+from metampc_bringup.analysis.model_gains import (agreement, compare, model_gain, plant_gain,
+                                                  plant_poles, time_constant)
 from metampc_model.latent_model import LatentModel
 from metampc_plant.families.quadruple_tank import (AREA, FAMILY as TANK, GRAVITY, OUTLET, PUMP,
                                                    SENSOR)
@@ -72,6 +72,23 @@ def test_a_model_with_the_plants_gain_has_ratio_one_and_a_wrong_sign_shows():
     flipped = compare(_latent(0.5 * np.eye(2), 0.5 * g_p @ np.diag([1.0, -1.0]), np.eye(2)),
                       TANK, THETA, U0, 5.0)
     assert np.min(flipped.ratio_eigs.real) < 0.0      # integral action diverges there
+
+
+def test_agreement_on_the_tracked_outputs_leaves_out_an_output_without_gain():
+    # A pendulum's gain: angle per torque, and its velocity, which has none at rest.
+    reference = np.array([[0.8], [0.0]])
+    wrong = np.array([[-4.0], [1e-9]])             # 5x too strong and the wrong sign
+    right = np.array([[4.0], [-1e-9]])
+    np.testing.assert_allclose(agreement(reference, wrong, [0]), [-0.2], rtol=1e-12)
+    np.testing.assert_allclose(agreement(reference, right, [0]), [0.2], rtol=1e-12)
+    # On all outputs the velocity adds an eigenvalue ~0 whose sign is rounding: a sign test
+    # must not read it.
+    both = sorted(agreement(reference, right).real, key=abs)
+    assert abs(both[0]) < 1e-9 and both[1] == pytest.approx(0.2, rel=1e-6)
+    g = plant_gain(TANK, THETA, U0)
+    np.testing.assert_allclose(agreement(g, g), [1.0, 1.0], atol=1e-9)
+    flipped = agreement(g, g @ np.diag([1.0, -1.0]))
+    assert np.min(flipped.real) < 0.0 < np.max(flipped.real)
 
 
 def test_the_script_refuses_a_folder_without_a_report(tmp_path):

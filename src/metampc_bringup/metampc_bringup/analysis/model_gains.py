@@ -7,11 +7,13 @@ around an input u_0 (``steady_state.steady_output``). An MPC with integral actio
 docs/mpc.md) plans its steady state with ``G_m`` and corrects by the estimate: it settles only
 along directions where ``eig(G_p G_m^+)`` has a positive real part, slowly where it is small
 (integral controllability). The slowest pole: max |eig(A)| against the plant's, linearised at
-the steady state of u_0 and sampled at dt. Pure numpy / scipy; scripts/model_gains.py prints
+the steady state of u_0 and sampled at dt. :func:`agreement` holds a model's gain against another
+model's on the tracked outputs, e.g. the least-squares ARX of the same samples, which a
+controller can fit where no plant is known. Pure numpy / scipy; scripts/model_gains.py prints
 them per seed of a run folder (docs/mpc.md, the tank's models).
 """
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 from scipy.linalg import expm
@@ -68,6 +70,16 @@ def time_constant(pole: float, dt: float) -> float:
     return float('inf') if abs(pole) >= 1.0 else -dt / float(np.log(abs(pole)))
 
 
+def agreement(reference: np.ndarray, model: np.ndarray,
+              rows: Optional[Sequence[int]] = None) -> np.ndarray:
+    """eig(G_ref G_m^+) (complex, len(rows)) of two steady-state gains (n_y, n_u) on the output
+    rows `rows` (None: all): 1 where they agree, negative where the model's sign is wrong on a
+    direction (integral action along it diverges). Restrict to the tracked outputs: an
+    output with no steady-state gain (a velocity) gives an eigenvalue ~0 of either sign."""
+    rows = list(range(reference.shape[0])) if rows is None else list(rows)
+    return np.linalg.eigvals(reference[rows] @ np.linalg.pinv(model[rows]))
+
+
 @dataclass
 class GainComparison:
     """A model against the plant at one input.
@@ -90,10 +102,10 @@ def compare(latent: LatentModel, family: PlantFamily, theta: Sequence[float],
             u0: Sequence[float], dt: float) -> GainComparison:
     """:class:`GainComparison` of `latent` and the family's plant at theta and u0."""
     g_m, g_p = model_gain(latent), plant_gain(family, theta, u0)
-    return GainComparison(g_m, g_p, np.linalg.eigvals(g_p @ np.linalg.pinv(g_m)),
+    return GainComparison(g_m, g_p, agreement(g_p, g_m),
                           float(np.max(np.abs(np.linalg.eigvals(latent.A)))),
                           float(plant_poles(family, theta, u0, dt)[0]))
 
 
-__all__ = ['compare', 'GainComparison', 'model_gain', 'plant_gain', 'plant_poles',
+__all__ = ['agreement', 'compare', 'GainComparison', 'model_gain', 'plant_gain', 'plant_poles',
            'time_constant']
