@@ -16,7 +16,9 @@ disagrees with its own data's; '-' without an ARX).
 ``--nmpc-run``: take the NMPC (its cost and its loop) from another run of the same seeds and
 configuration (a run made with ``--methods imaml,maml``). ``--u0``: the input of the
 linearisation (default: the experiment's first reference input, else the middle of the input
-bounds). A run folder without a report or a seed without an NMPC run is one error line, exit 2.
+bounds). A run folder without a report or a seed without an NMPC run is one error line, exit 2;
+a plant (or model) without a steady state at u0 prints n/a in the plant's columns and the
+reason on stderr.
 """
 import argparse
 import json
@@ -32,12 +34,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     import numpy as np
     from metampc_bringup.analysis.experiment_report import tracking_series, tracking_spans
-    from metampc_bringup.analysis.model_gains import (agreement, compare, model_gain,
-                                                      time_constant)
+    from metampc_bringup.analysis.model_gains import compare, time_constant
     from metampc_bringup.analysis.retrack import adapted_models, seed_recordings
     from metampc_bringup.experiment_events import read_events
     from metampc_controller.model_check import check, ModelCheckConfig
     from metampc_model.predictor import NssmPredictor
+    from metampc_model.steady_gain import agreement, steady_gain
     from metampc_model.weights_codec import fields_of, weights_from_fields
     from metampc_plant.registry import get_family
     from metampc_recording.recording_reader import read_recording
@@ -85,7 +87,14 @@ def main(argv=None) -> int:
         for method, (decoded, model) in models.items():
             if method not in per['methods']:
                 continue
-            gains = compare(model.latent, family, per['theta'], u0, cfg['dt'])
+            try:
+                gains = compare(model.latent, family, per['theta'], u0, cfg['dt'])
+                plant = (f'{time_constant(gains.model_pole, cfg["dt"]):.0f} / '
+                         f'{time_constant(gains.plant_pole, cfg["dt"]):.0f} | '
+                         f'{text(gains.ratio_eigs)}')
+            except ValueError as err:     # no steady state of the plant at u0 (or the model)
+                plant = 'n/a | n/a'
+                print(f'seed {seed}, {method}: {err}', file=sys.stderr)
             horizon = int(ctrl['horizon'])
             scored = len(loop.y) - decoded.config.history - 50
             verdict = check(model, None, loop.u_applied, loop.y, horizon, ModelCheckConfig(),
@@ -93,10 +102,8 @@ def main(argv=None) -> int:
                             disturbance_gain=float(ctrl.get('disturbance_gain', 0.5)))
             cost = per['methods'][method]['tracking']['tracking']['cost'] / nmpc_cost
             by_arx = '-' if arx is None else text(agreement(
-                model_gain(arx[1].latent), model_gain(model.latent), tracked))
-            print(f'{seed} | {method} | {cost:.2f} | '
-                  f'{time_constant(gains.model_pole, cfg["dt"]):.0f} / '
-                  f'{time_constant(gains.plant_pole, cfg["dt"]):.0f} | {text(gains.ratio_eigs)} | '
+                steady_gain(arx[1].latent), steady_gain(model.latent), tracked))
+            print(f'{seed} | {method} | {cost:.2f} | {plant} | '
                   f'{verdict.candidate:.4f} ({verdict.reference:.4f}) | {by_arx}', flush=True)
     return 0
 

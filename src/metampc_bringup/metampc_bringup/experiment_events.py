@@ -86,7 +86,8 @@ class MetaTrained(ExperimentEvent):
 
 @dataclass(kw_only=True)
 class Adapted(ExperimentEvent):
-    """An adapt call: the request's fields and the answer's (losses in normalised units)."""
+    """An adapt call: the request's fields and the answer's (losses in normalised units;
+    `fallback`: see Adapt.srv, '' in recordings made before it)."""
 
     KIND: ClassVar[str] = 'adapt'
     method: str
@@ -96,6 +97,7 @@ class Adapted(ExperimentEvent):
     loss_after: float
     loss_curve: List[float]
     message: str
+    fallback: str = ''        # the learner's gain check published this method's model instead
 
 
 @dataclass(kw_only=True)

@@ -319,6 +319,11 @@ class LearnerNode(Node):
             text = (f'{rec.method} model v{rec.version} (stage adapted): {job.steps} steps on '
                     f'{out.train_samples} {source} in {out.result.elapsed:.1f} s, held-out loss '
                     f'{curve[0]:.4g} -> {curve[-1]:.4g} on {out.heldout_samples} samples')
+            if out.gain_check:
+                text += f'; {out.gain_check}'
+            if out.fallback:
+                text += (f': the {out.fallback} model of the same samples flies in its place '
+                         f'(training loss {rec.train_loss:.4g})')
             return out, rec, text
 
         outcome = await self._run(response, 'adapt', job.method or self.session.latest_meta,
@@ -328,6 +333,7 @@ class LearnerNode(Node):
             response.model_version = outcome.record.version
             response.loss_before, response.loss_after = curve[0], curve[-1]
             response.loss_curve = curve
+            response.fallback = outcome.fallback
         return response
 
     # --- adaptation in the loop -----------------------------------------------------------

@@ -63,6 +63,10 @@ class LearnerNodeConfig:
     arx_order: int = param(2, 'order p of the arx baseline: y_t from p past outputs and the '
                               'inputs u_t .. u_{t-p+1} (at most the history H; the '
                               'hidden layers need 2 (p (n_y + n_u) - n_u) units)', ge=1)
+    gain_check: bool = param(False, 'refuse an adapted model whose steady-state gain on the '
+                                    "family's tracked outputs disagrees in sign with the "
+                                    'least-squares ARX of its samples, and publish that ARX in '
+                                    'its place (gain_check.py)')
     heldout_fraction: float = param(0.2, 'last share of the buffered samples held out for the '
                                          'loss curve', gt=0, lt=1)
     meta_model_path: str = param('', "checkpoint to load at start and publish as stage meta "

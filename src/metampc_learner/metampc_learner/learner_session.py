@@ -13,16 +13,19 @@ import math
 import os
 import re
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from metampc_model.latent_model import LatentModel
 from metampc_model.nssm import init_params, Nssm, Params
+from metampc_model.predictor import NssmPredictor
 from metampc_learner.adapt import adapt, AdaptResult, supervised
 from metampc_learner.arx import fit_arx
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (longest_run, normalisation_from, samples_in,
                                   simulate_source, SourceConfig, SourceData, SourceSet, Windows)
+from metampc_learner.gain_check import gain_verdict
 from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
 from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
@@ -35,6 +38,11 @@ from metampc_plant.plant_description import PlantDescription
 FINAL_LOSS_STEPS = 10   # final_loss of meta_train: mean meta-test loss of the last 10 steps
 CHECKPOINT_NAME = re.compile(r'(?:meta|adapted|online)_[a-z_]+_v(\d+)\.pt')
 KEPT_RECORDS = 64       # models kept by version for adaptation in the loop (the latest)
+
+
+def _latent(model: Nssm, params: Params) -> LatentModel:
+    """The latent model in physical units (eqs. z_next, haty) of `model` with `params`."""
+    return NssmPredictor(model.config, model.norm, params).latent
 
 
 class LearnerError(RuntimeError):
@@ -88,13 +96,17 @@ class MetaOutcome:
 @dataclass
 class AdaptOutcome:
     """A finished adaptation: the record, the core's result (held-out curve: index 0 before
-    the first step), and the samples of D_target used (in all, for training, held out)."""
+    the first step), and the samples of D_target used (in all, for training, held out); with
+    ``gain_check`` on, its verdict (`gain_check`: one line, '' when not checked) and the
+    method whose model flies in the adapted one's place (`fallback`: 'arx' or '')."""
 
     record: ModelRecord
     result: AdaptResult
     used_samples: int
     train_samples: int
     heldout_samples: int
+    gain_check: str = ''
+    fallback: str = ''
 
 
 @dataclass
@@ -307,12 +319,33 @@ class LearnerSession:
                 result = supervised(model, train_w, held_w, step_config, seed, progress)
             else:
                 result = adapt(model, meta.params, train_w, held_w, step_config, progress)
+        flown, verdict, fallback = result, '', ''
+        if cfg.gain_check and job.method not in ('arx', 'oracle'):
+            verdict, arx = self._gain_check(model, result.params, train, held)
+            if arx is not None:         # the record is the ARX's; the curves the adaptation's
+                fallback, (model, flown) = 'arx', arx
+                result = replace(result, params=flown.params,
+                                 elapsed=result.elapsed + flown.elapsed)
         record = self._new_record(
             model=model, params=result.params, method=job.method or meta.method,
-            stage='adapted', train_loss=result.train_loss[-1],
-            train_steps=0 if job.method == 'arx' else job.steps,
+            stage='adapted', train_loss=flown.train_loss[-1],
+            train_steps=0 if job.method == 'arx' or fallback else job.steps,
             train_samples=samples_in(train), seed=seed, train_time=result.elapsed)
-        return AdaptOutcome(record, result, used, samples_in(train), samples_in(held))
+        return AdaptOutcome(record, result, used, samples_in(train), samples_in(held),
+                            verdict, fallback)
+
+    def _gain_check(self, model: Nssm, params: Params, train: List, held: List
+                    ) -> Tuple[str, Optional[Tuple[Nssm, AdaptResult]]]:
+        """:func:`gain_verdict` of an adapted model against the ARX of its training samples:
+        (the verdict's line, the fitted ARX (model, result) to fly in its place, or None)."""
+        cfg = self.config
+        try:
+            arx_model, fitted = fit_arx(self._fresh_model(), train, held, cfg.arx_order)
+        except ValueError as err:
+            return f'gain check: unchecked, the ARX: {err}', None
+        verdict = gain_verdict(_latent(model, params), _latent(arx_model, fitted.params),
+                               cfg.source.plant_family.tracked)
+        return verdict.reason, None if verdict.ok else (arx_model, fitted)
 
     def loop_adapt(self, version: int, samples: TargetSamples,
                    progress: Optional[ProgressFn] = None) -> AdaptOutcome:
@@ -330,7 +363,9 @@ class LearnerSession:
             raise LearnerError(f'model version {version} is not one of the last '
                                f'{KEPT_RECORDS} models of this learner')
         meta = self.meta_models.get(record.method)
-        anchor = meta.params if meta is not None else record.params
+        # A model the gain check replaced by the ARX has the ARX's architecture: its own anchor.
+        anchor = (meta.params if meta is not None and meta.model.config == record.model.config
+                  else record.params)
         train, _, used = split_target(samples, 0, 0.0, cfg.source.state_bound)
         model = record.model
         train_w = Windows.from_trajectories(train, model.norm, model.config)

@@ -220,3 +220,51 @@ def test_arx_is_fitted_on_the_training_part_and_refused_with_the_reason():
     with pytest.raises(LearnerError, match='arx: ARX.4. reads 4 samples; the model history H '
                                            'is 3'):
         deep.adapt(AdaptJob('arx', 0, 0.0, 0.0, 0), samples, None)
+
+
+def test_the_gain_check_flies_the_arx_in_place_of_a_model_of_the_wrong_sign(monkeypatch):
+    """gain_check: an adapted model whose gain on the tracked output has the sign of the ARX
+    of its samples is published; negated (its B times -1) it is refused and the ARX that
+    Adapt(method='arx') fits on the same samples flies in its place, under the method's name;
+    the loop adapts that model from itself."""
+    import metampc_learner.learner_session as session_module
+    from metampc_learner.gain_check import gain_verdict
+    from metampc_model.predictor import NssmPredictor
+    cfg = _config(gain_check=True)
+    session = LearnerSession(cfg)
+    meta = session.meta_train(replace(cfg.meta, method='maml'), False).record
+    samples = _target(cfg, 40)
+    arx = session.adapt(AdaptJob('arx', 0, 0.0, 0.0, 0), samples, None)
+    assert (arx.gain_check, arx.fallback) == ('', '')           # the ARX is not checked
+
+    def latent(model, params):
+        return NssmPredictor(model.config, model.norm, params).latent
+    train, held, _ = split_target(samples, 0, 0.25, 10.0)
+    windows = [Windows.from_trajectories(p, meta.model.norm, meta.model.config)
+               for p in (train, held)]
+    plain = adapt(meta.model, meta.params, *windows, AdaptConfig(4, 0.05, 0.0))
+    sign = np.sign(gain_verdict(latent(meta.model, plain.params),
+                                latent(arx.record.model, arx.record.params), [0]).eigs.real[0])
+
+    def signed(factor):
+        def adapted(*args, **kwargs):
+            result = adapt(*args, **kwargs)
+            return replace(result, params={**result.params, 'B': factor * result.params['B']})
+        return adapted
+    monkeypatch.setattr(session_module, 'adapt', signed(sign))
+    kept = session.adapt(AdaptJob('', 4, 0.05, 0.0, 0), samples, None)
+    assert kept.fallback == '' and kept.gain_check.startswith('gain check passed')
+    assert torch.equal(kept.record.params['B'], sign * plain.params['B'])
+    assert kept.record.model.config == meta.model.config
+
+    monkeypatch.setattr(session_module, 'adapt', signed(-sign))
+    out = session.adapt(AdaptJob('', 4, 0.05, 0.0, 0), samples, None)
+    assert out.fallback == 'arx' and 'disagrees in sign' in out.gain_check
+    assert (out.record.method, out.record.stage) == ('maml', 'adapted')
+    assert out.record.model.config == arx.record.model.config
+    assert _equal(out.record.params, arx.record.params)
+    assert (out.record.train_loss, out.record.train_steps) == (arx.record.train_loss, 0)
+    assert out.result.heldout_loss == plain.heldout_loss       # what the adaptation did
+    monkeypatch.undo()
+    loop = session.loop_adapt(out.record.version, samples)
+    assert loop.record.model.config == arx.record.model.config and loop.record.method == 'maml'

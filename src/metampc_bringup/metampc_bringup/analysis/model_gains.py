@@ -1,40 +1,21 @@
 """Steady-state gain and slowest pole of a learned latent model against the plant it models.
 
-At rest the latent model of eqs. (z_next), (haty) (physical units, ``LatentModel``) holds
-``y_s = C (I - A)^{-1} (B u + e) + d``: its steady-state gain is ``G_m = C (I - A)^{-1} B``
-(n_y, n_u). The plant's, ``G_p``, is the central difference of the family's steady outputs
-around an input u_0 (``steady_state.steady_output``). An MPC with integral action (offset-free,
-docs/mpc.md) plans its steady state with ``G_m`` and corrects by the estimate: it settles only
-along directions where ``eig(G_p G_m^+)`` has a positive real part, slowly where it is small
-(integral controllability). The slowest pole: max |eig(A)| against the plant's, linearised at
-the steady state of u_0 and sampled at dt. :func:`agreement` holds a model's gain against another
-model's on the tracked outputs, e.g. the least-squares ARX of the same samples, which a
-controller can fit where no plant is known. Pure numpy / scipy; scripts/model_gains.py prints
-them per seed of a run folder (docs/mpc.md, the tank's models).
+The model's gain ``G_m`` and ``eig(G_p G_m^+)`` are :mod:`metampc_model.steady_gain`'s; the
+plant's, ``G_p``, is the central difference of the family's steady outputs around an input u_0
+(``steady_state.steady_output``). The slowest pole: max |eig(A)| against the plant's,
+linearised at the steady state of u_0 and sampled at dt. Pure numpy / scipy;
+scripts/model_gains.py prints them per seed of a run folder (docs/mpc.md, the tank's models).
 """
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Sequence
 
 import numpy as np
 from scipy.linalg import expm
 
 from metampc_model.latent_model import LatentModel
+from metampc_model.steady_gain import agreement, steady_gain
 from metampc_plant.family import PlantFamily
 from metampc_plant.steady_state import steady_output, steady_state
-
-
-def model_gain(latent: LatentModel) -> np.ndarray:
-    """G_m = C (I - A)^{-1} B (n_y, n_u), output units per input unit.
-
-    Raises:
-        ValueError: I - A is singular (a latent integrator: no finite steady state).
-    """
-    n_z = latent.n_z
-    try:
-        return latent.C @ np.linalg.solve(np.eye(n_z) - latent.A, latent.B)
-    except np.linalg.LinAlgError:
-        raise ValueError('the latent model has a pole at 1: no finite steady-state '
-                         'gain') from None
 
 
 def plant_gain(family: PlantFamily, theta: Sequence[float], u0: Sequence[float],
@@ -70,16 +51,6 @@ def time_constant(pole: float, dt: float) -> float:
     return float('inf') if abs(pole) >= 1.0 else -dt / float(np.log(abs(pole)))
 
 
-def agreement(reference: np.ndarray, model: np.ndarray,
-              rows: Optional[Sequence[int]] = None) -> np.ndarray:
-    """eig(G_ref G_m^+) (complex, len(rows)) of two steady-state gains (n_y, n_u) on the output
-    rows `rows` (None: all): 1 where they agree, negative where the model's sign is wrong on a
-    direction (integral action along it diverges). Restrict to the tracked outputs: an
-    output with no steady-state gain (a velocity) gives an eigenvalue ~0 of either sign."""
-    rows = list(range(reference.shape[0])) if rows is None else list(rows)
-    return np.linalg.eigvals(reference[rows] @ np.linalg.pinv(model[rows]))
-
-
 @dataclass
 class GainComparison:
     """A model against the plant at one input.
@@ -101,11 +72,11 @@ class GainComparison:
 def compare(latent: LatentModel, family: PlantFamily, theta: Sequence[float],
             u0: Sequence[float], dt: float) -> GainComparison:
     """:class:`GainComparison` of `latent` and the family's plant at theta and u0."""
-    g_m, g_p = model_gain(latent), plant_gain(family, theta, u0)
+    g_m, g_p = steady_gain(latent), plant_gain(family, theta, u0)
     return GainComparison(g_m, g_p, agreement(g_p, g_m),
                           float(np.max(np.abs(np.linalg.eigvals(latent.A)))),
                           float(plant_poles(family, theta, u0, dt)[0]))
 
 
-__all__ = ['agreement', 'compare', 'GainComparison', 'model_gain', 'plant_gain', 'plant_poles',
+__all__ = ['compare', 'GainComparison', 'plant_gain', 'plant_poles',
            'time_constant']

@@ -43,7 +43,8 @@ EPISODE_START_S = 3.0   # wall time for the controller to receive y_0 after a re
 HOLD_POLL_S = 0.02       # how often to ask the controller for its newest y meanwhile
 MATCH_POLL_S = 0.1       # how often to ask whether a node's side has matched the plant
 _META_RESULT = ['model_version', 'final_loss', 'loss_curve', 'message']
-_ADAPT_RESULT = ['model_version', 'loss_before', 'loss_after', 'loss_curve', 'message']
+_ADAPT_RESULT = ['model_version', 'loss_before', 'loss_after', 'loss_curve', 'message',
+                 'fallback']
 
 
 @contextlib.contextmanager
