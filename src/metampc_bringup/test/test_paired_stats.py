@@ -298,3 +298,15 @@ def test_the_arx_baseline_is_compared_with_both_meta_methods():
     text = markdown(_restore(report))
     assert '| (c) tracking cost: MAML < ARX | 0/5 | 4 [4, 4] | 0.062 | contradicted |' in text
     assert '| (c) tracking cost of ARX (escaped 0/5) |' in text
+    assert '| (c) tracking cost of iMAML (escaped 0/5) |' in text
+    # The learner's gain check flew the ARX in iMAML's place on seeds 1 and 3 (Adapt.fallback).
+    for r in reports:
+        r['methods']['imaml']['adapt'] = {'fallback': 'arx' if r['seed'] in (1, 3) else ''}
+    cl = claims(reports)
+    assert cl['c_tracking_cost']['imaml']['fallbacks'] == [1, 3]
+    assert cl['c_tracking_cost']['maml']['fallbacks'] == []
+    report['claims'] = cl
+    text = markdown(_restore(json_safe(report)))
+    assert ('| (c) tracking cost of iMAML (escaped 0/5; the ARX flew in its place on seeds '
+            '[1, 3]) |') in text
+    assert '| (c) tracking cost of MAML (escaped 0/5) |' in text

@@ -353,7 +353,9 @@ def claims(reports: List[Dict]) -> Dict[str, Any]:
             'vs_oracle': [x / _tracking_cost(r, 'oracle') for x, r in zip(costs, reports)],
             'vs_nmpc': [x / _tracking_cost(r, 'nmpc') for x, r in zip(costs, reports)],
             'escaped': sum(1 for r in reports
-                           if r['methods'].get(method, {}).get('tracking', {}).get('escaped'))}
+                           if r['methods'].get(method, {}).get('tracking', {}).get('escaped')),
+            'fallbacks': [r['seed'] for r in reports       # the learner's gain check
+                          if r['methods'].get(method, {}).get('adapt', {}).get('fallback')]}
     out['c_tracking_cost'] = c
     out['c_tracking_cost_stats'] = pairwise(
         [{m: _tracking_cost(r, m) for m in present} for r in reports], TRACKING_PAIRS)
@@ -469,8 +471,10 @@ def markdown(report: Dict[str, Any]) -> str:
     lines += [_claim_row(f'(c) tracking cost: {_claim_name(key)}', stats)
               for key, stats in cl['c_tracking_cost_stats'].items()]
     for method, entry in cl['c_tracking_cost'].items():
+        fallbacks = (f"; the ARX flew in its place on seeds {entry['fallbacks']}"
+                     if entry.get('fallbacks') else '')
         medians.append(f'| (c) tracking cost of {NAMES.get(method, method)} (escaped '
-                       f"{entry['escaped']}/{n}) | {_fmt(_median(entry['cost']))}; "
+                       f"{entry['escaped']}/{n}{fallbacks}) | {_fmt(_median(entry['cost']))}; "
                        f"vs oracle {_fmt(_median(entry['vs_oracle']))}, "
                        f"vs NMPC {_fmt(_median(entry['vs_nmpc']))} |")
     lines += medians
