@@ -5,7 +5,8 @@ The orchestrator publishes one event per phase (:meth:`ExperimentClient.event
 them with the run, and the reports read them back with :func:`read_events`. On the wire a
 std_msgs/String per event holding one JSON object ``{"event": KIND, "wall_time": s, the fields
 in the order declared}``; older recordings without ``run`` and ``theta_schedule`` read as '' and
-[]. No rclpy here: a report imports this module. The events: docs/experiments.md.
+[], without an adapt event's ``fallback`` as ''. No rclpy here: a report imports this module.
+The events: docs/experiments.md.
 """
 import json
 import time

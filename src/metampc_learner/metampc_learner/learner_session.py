@@ -5,7 +5,8 @@ loaded, numbers each model it makes with an increasing version (continuing after
 in ``checkpoint_dir``, where each is saved) and serves the node's jobs, one at a time:
 :meth:`LearnerSession.meta_train` (Algorithm 1 on the simulated source set, optionally with
 online collection, eq. (ub)), :meth:`LearnerSession.adapt` (eq. (infer) from a meta-model on
-D_target, or the 'supervised' / 'oracle' / 'arx' baselines, with a held-out loss curve) and
+D_target, or the 'supervised' / 'oracle' / 'arx' baselines, with a held-out loss curve; with
+``gain_check``, :mod:`gain_check`'s fallback to the ARX) and
 :meth:`LearnerSession.loop_adapt` (adaptation in the loop). Requests it cannot carry out raise
 :class:`LearnerError` with the reason. The node's services and versions: docs/learner.md.
 """
