@@ -83,7 +83,7 @@ def main(argv=None) -> int:
             decoded = weights_from_fields(fields_of(msg))
             models[method] = decoded, NssmPredictor(decoded.config, decoded.norm, decoded.params)
         arx = models.get('arx')
-        tracked = per['config'].get('tracked_outputs')
+        tracked = cfg.get('tracked_outputs')
         for method, (decoded, model) in models.items():
             if method not in per['methods']:
                 continue

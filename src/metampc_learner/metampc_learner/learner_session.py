@@ -18,9 +18,8 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from metampc_model.latent_model import LatentModel
 from metampc_model.nssm import init_params, Nssm, Params
-from metampc_model.predictor import NssmPredictor
+from metampc_model.predictor import latent_model
 from metampc_learner.adapt import adapt, AdaptResult, supervised
 from metampc_learner.arx import fit_arx
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
@@ -39,11 +38,6 @@ from metampc_plant.plant_description import PlantDescription
 FINAL_LOSS_STEPS = 10   # final_loss of meta_train: mean meta-test loss of the last 10 steps
 CHECKPOINT_NAME = re.compile(r'(?:meta|adapted|online)_[a-z_]+_v(\d+)\.pt')
 KEPT_RECORDS = 64       # models kept by version for adaptation in the loop (the latest)
-
-
-def _latent(model: Nssm, params: Params) -> LatentModel:
-    """The latent model in physical units (eqs. z_next, haty) of `model` with `params`."""
-    return NssmPredictor(model.config, model.norm, params).latent
 
 
 class LearnerError(RuntimeError):
@@ -344,7 +338,8 @@ class LearnerSession:
             arx_model, fitted = fit_arx(self._fresh_model(), train, held, cfg.arx_order)
         except ValueError as err:
             return f'gain check: unchecked, the ARX: {err}', None
-        verdict = gain_verdict(_latent(model, params), _latent(arx_model, fitted.params),
+        verdict = gain_verdict(latent_model(params, model.norm),
+                               latent_model(fitted.params, arx_model.norm),
                                cfg.source.plant_family.tracked)
         return verdict.reason, None if verdict.ok else (arx_model, fitted)
 
