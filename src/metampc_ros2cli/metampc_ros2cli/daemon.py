@@ -2,13 +2,14 @@
 answer at once, complete.
 
 A verb's own node discovers the graph afresh and under LOCALHOST discovery often misses nodes,
-so `ros2 node list`, `ros2 topic list|find` and `ros2 service list|find` ask a daemon whose node
-has been in the graph since it started (``--no-daemon`` bypasses it). One daemon per (user,
-ROS_DOMAIN_ID, discovery range, static peers) on a UNIX socket: a request is one JSON line
-``{"call": NAME}`` (a query of :data:`GRAPH_CALLS`, ``ping`` or ``stop``), the answer one JSON
-line ``{"result": ...}``; a daemon younger than :data:`WARMUP_S` waits until it is that old
-before it answers. It ends on ``stop``, SIGINT/SIGTERM or after :data:`IDLE_S` without a
-request, and outlives the verb that started it (no lifeline). See docs/nodes.md.
+so `ros2 node list`, `ros2 topic list|find|info` and `ros2 service list|find` ask a daemon
+whose node has been in the graph since it started (``--no-daemon`` bypasses it). One daemon per
+(user, ROS_DOMAIN_ID, discovery range, static peers) on a UNIX socket: a request is one JSON
+line ``{"call": NAME, "args": [...]}`` (a query of :data:`GRAPH_CALLS` or
+:data:`TOPIC_CALLS`, ``ping`` or ``stop``), the answer one JSON line ``{"result": ...}``; a
+daemon younger than :data:`WARMUP_S` waits until it is that old before it answers. It ends on
+``stop``, SIGINT/SIGTERM or after :data:`IDLE_S` without a request, and outlives the verb that
+started it (no lifeline). See docs/nodes.md.
 """
 import contextlib
 import fcntl
@@ -27,6 +28,11 @@ from typing import Any, Iterator
 
 GRAPH_CALLS = ('get_node_names_and_namespaces', 'get_topic_names_and_types',
                'get_service_names_and_types')
+# Queries about one topic (its name the one argument), as ros2cli's daemon answers them; the
+# endpoints come back as their text (rclpy's TopicEndpointInfo printed), what `topic info -v`
+# prints.
+TOPIC_CALLS = ('count_publishers', 'count_subscribers', 'get_publishers_info_by_topic',
+               'get_subscriptions_info_by_topic')
 WARMUP_S = 3.5          # s: the others' next announcement reaches a new participant (here: ~3)
 IDLE_S = 2 * 3600.0     # s without a request before a daemon ends (ros2cli's timeout)
 START_S = 15.0          # s for a daemon to answer after it was started (imports rclpy)
@@ -47,13 +53,13 @@ def address() -> str:
     return os.path.join(tempfile.gettempdir(), f'metampc-ros2-daemon-{os.getuid()}-{digest}')
 
 
-def request(call: str, timeout: float = ANSWER_S) -> Any:
+def request(call: str, *args: Any, timeout: float = ANSWER_S) -> Any:
     """Ask the running daemon; DaemonError if none answers."""
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
             conn.settimeout(timeout)
             conn.connect(address())
-            conn.sendall(json.dumps({'call': call}).encode() + b'\n')
+            conn.sendall(json.dumps({'call': call, 'args': list(args)}).encode() + b'\n')
             with conn.makefile('rb') as answer:
                 line = answer.readline()
     except OSError as err:
@@ -103,12 +109,25 @@ def stop() -> bool:
 
 
 class GraphProxy:
-    """Stands for a node in the list verbs: its graph queries are the daemon's answers."""
+    """Stands for a node in the verbs that read the graph: its graph queries are the daemon's
+    answers, and it has the name and namespace a verb's own node has (to expand a relative
+    name)."""
 
     def __getattr__(self, name: str) -> Any:
-        if name not in GRAPH_CALLS:
-            raise AttributeError(name)
-        return lambda: [tuple(pair) for pair in request(name)]
+        if name in GRAPH_CALLS:
+            return lambda: [tuple(pair) for pair in request(name)]
+        if name in TOPIC_CALLS:
+            return lambda topic: request(name, topic)
+        raise AttributeError(name)
+
+    @staticmethod
+    def get_name() -> str:
+        from metampc_ros2cli.direct import NODE_NAME_PREFIX
+        return f'{NODE_NAME_PREFIX}_{os.getpid()}'
+
+    @staticmethod
+    def get_namespace() -> str:
+        return '/'
 
 
 @contextlib.contextmanager
@@ -167,7 +186,8 @@ def serve() -> int:
         def handle(self) -> None:
             last[0] = time.monotonic()
             try:
-                call = json.loads(self.rfile.readline())['call']
+                asked = json.loads(self.rfile.readline())
+                call, args = asked['call'], asked.get('args', [])
                 if call == 'stop':
                     reply: Any = {'result': True}
                     threading.Thread(target=server.shutdown, daemon=True).start()
@@ -176,9 +196,14 @@ def serve() -> int:
                 elif call in GRAPH_CALLS:
                     time.sleep(max(0.0, born + WARMUP_S - time.monotonic()))
                     reply = {'result': [list(p) for p in getattr(node, call)()]}
+                elif call in TOPIC_CALLS:
+                    time.sleep(max(0.0, born + WARMUP_S - time.monotonic()))
+                    result = getattr(node, call)(*args)
+                    reply = {'result': result if isinstance(result, int)
+                             else [str(endpoint) for endpoint in result]}
                 else:
                     reply = {'error': f'unknown call {call!r}'}
-            except (ValueError, KeyError, TypeError) as err:
+            except (ValueError, KeyError, TypeError, RuntimeError) as err:
                 reply = {'error': f'bad request: {err}'}
             self.wfile.write(json.dumps(reply).encode() + b'\n')
 

@@ -48,3 +48,28 @@ def test_no_daemon_asks_the_graph_directly_and_starts_none(procs, probe, daemon)
     out = ros2('node', 'list', '--no-daemon', '--spin-time', '4')
     assert out.returncode == 0 and '/plant' in out.stdout.split(), out.stdout
     assert ros2('daemon', 'status').stdout == 'The daemon is not running\n'
+
+
+def test_topic_info_counts_every_endpoint_every_time(procs, probe, daemon):
+    """Issue 52: with 1 publisher and 2 subscribers of /y, `ros2 topic info /y` was right in 4
+    of 13 calls (its own node had not discovered them all); it answers from the daemon now."""
+    from metampc_msgs.msg import PlantOutput
+    procs.start('metampc_plant', 'plant', params={'mode': 'realtime', 'rate_hz': 10.0})
+    procs.start('metampc_controller', 'controller', params={'active': False})
+    probe.node.create_subscription(PlantOutput, 'y', lambda msg: None, 10)
+    probe.wait_for(lambda: probe.node.count_publishers('/y') == 1
+                   and probe.node.count_subscribers('/y') == 2, 60.0, "/y's endpoints")
+    expected = ['Type: metampc_msgs/msg/PlantOutput', 'Publisher count: 1',
+                'Subscription count: 2']
+    nodes = {'plant', 'controller', probe.node.get_name()}
+    right = []
+    for call in range(20):
+        verbose = call % 2 == 1
+        out = ros2('topic', 'info', '/y', *(['-v'] if verbose else []))
+        assert out.returncode == 0, out.stderr
+        lines = [line for line in out.stdout.splitlines() if line]
+        named = {line.split(': ', 1)[1] for line in lines if line.startswith('Node name: ')}
+        right.append([line for line in lines if line.split(':')[0] in (
+            'Type', 'Publisher count', 'Subscription count')] == expected
+            and (named == nodes if verbose else not named))
+    assert all(right), f'{right.count(True)} of 20 right'
