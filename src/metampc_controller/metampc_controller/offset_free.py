@@ -11,12 +11,11 @@ corrected model that best meets the reference within the input bounds. Refuses
 system is not detectable. Derivation, tests and measurements: docs/mpc.md#offset-free-tracking.
 """
 from dataclasses import dataclass
+import itertools
 import math
 from typing import Optional
 
 import numpy as np
-from scipy.optimize import lsq_linear
-
 from metampc_model.latent_model import LatentModel
 
 FORMS = ('none', 'state', 'input', 'output')
@@ -168,8 +167,24 @@ class SteadyStateTarget:
 
     ss_r (n_s, n_y), ss_e (n_s, n_z): the unconstrained target s = ss_r (r - d') + ss_e e'
     (terminal_cost's KKT map), computed as ss_r r + T_c [e'; d'] with T_c = [ss_e, -ss_r].
-    bounded: keep u_s within [u_min, u_max] (box least squares when the unconstrained u_s
-    leaves them).
+    bounded: where the unconstrained u_s leaves [u_min, u_max], u_s solves the box least squares
+
+        min_u ||W (G u - t)||^2,  u_min <= u <= u_max,   G = C_t (I - A)^{-1} B,
+        t = r_t - d'_t - C_t (I - A)^{-1} e',  W = diag(sqrt(q_t))  (t: the tracked outputs),
+
+    and z_s = (I - A)^{-1} (B u_s + e'). Solved exactly over the active sets, each input free,
+    at u_min or at u_max (3^n_u sets: 9 for the tank's two pumps). With M = G'W^2G and
+    h = G'W^2 t, a set's candidate is u_F = M_FF^{-1} (h_F - M_FB u_B), its gradient
+    g = M u - h; it is the minimiser iff it meets the KKT conditions (free inputs within the
+    box, g_i >= 0 at u_min, g_i <= 0 at u_max; convex problem). Every candidate, its s_s and
+    its KKT slacks (g_i / M_ii: in input units) are affine in (r, [e'; d']), so one map built
+    at set-up gives them all in two products per call, with the unconstrained target first;
+    the answer is the unconstrained target when within the box (to 1e-12), else the
+    candidate whose smallest slack is largest (>= 0 up to rounding: the minimiser). Some set
+    with an invertible M_FF holds a minimiser (one at a vertex of the set of minimisers where
+    M is singular), so sets whose M_FF has a relative condition above 1e12 are left out. The
+    answer is the one of an exact box least-squares solver (scipy's BVLS) at a few
+    microseconds (docs/mpc.md#offset-free-tracking).
     """
 
     def __init__(self, model: LatentModel, q: np.ndarray, ss_r: np.ndarray, ss_e: np.ndarray,
@@ -177,47 +192,101 @@ class SteadyStateTarget:
         self.ss_r = ss_r
         self._t_const = np.hstack([ss_e, -ss_r])
         self.bounded = bounded
-        self._box = list(zip(u_min.tolist(), u_max.tolist()))
         self.u_min, self.u_max = u_min, u_max
         n_z = model.n_z
-        self._n_z, self._n_y = n_z, model.n_y
-        tracked = q > 0
-        self._sq = np.sqrt(q[tracked])
-        self._c_t = model.C[tracked]
-        self._tracked = tracked
+        self._n_z = n_z
         # z_s = (I - A)^{-1} (B u + e'): exact when I - A is invertible; otherwise the box
         # case clips u_s and solves the equality in least squares.
         ima = np.eye(n_z) - model.A
-        self._ima = ima
-        self._gain = None
-        if np.linalg.cond(ima) < 1e10:
-            self._ima_inv = np.linalg.inv(ima)
-            self._gain = self._c_t @ self._ima_inv @ model.B       # (n_tracked, n_u)
-        self._B = model.B
+        self._ima, self._B = ima, model.B
+        self._map = None
+        if bounded and np.linalg.cond(ima) < 1e10:
+            self._map = self._candidate_map(model, q, ima, u_min, u_max)
+            self._v = np.empty(self._map[0].shape[0])
+
+    def _candidate_map(self, model: LatentModel, q: np.ndarray, ima: np.ndarray,
+                       u_min: np.ndarray, u_max: np.ndarray) -> tuple:
+        """(M_r (n_c m, n_y), M_c (n_c m, n_z + n_y), o (n_c m,)): rows m = n_s + 2 n_u per
+        candidate, [s_s; KKT slacks] = M_r r + M_c [e'; d'] + o, the unconstrained target
+        first, then the active sets with an invertible M_FF (class docstring)."""
+        n_z, n_u, n_y = model.n_z, model.n_u, model.n_y
+        tracked = q > 0
+        ima_inv = np.linalg.inv(ima)
+        ima_inv_b = ima_inv @ model.B                               # (n_z, n_u)
+        gain = model.C[tracked] @ ima_inv_b                         # G (n_tracked, n_u)
+        gw = gain.T * q[tracked]                                    # G'W^2 (n_u, n_tracked)
+        m = gw @ gain
+        scale = 1.0 / np.maximum(np.diag(m), 1e-300)               # g_i / M_ii: input units
+        # h = K_r r + K_c [e'; d'];  e' = E [e'; d']
+        k_r = np.zeros((n_u, n_y))
+        k_r[:, tracked] = gw
+        k_c = np.hstack([-gw @ model.C[tracked] @ ima_inv, -k_r])
+        e_sel = np.hstack([np.eye(n_z), np.zeros((n_z, n_y))])
+        box = np.r_[-u_min, u_max]
+        # The unconstrained target and its slacks u - u_min, u_max - u.
+        sign = np.vstack([np.eye(n_u), -np.eye(n_u)])
+        rows_r = [np.vstack([self.ss_r, sign @ self.ss_r[n_z:]])]
+        rows_c = [np.vstack([self._t_const, sign @ self._t_const[n_z:]])]
+        offsets = [np.r_[np.zeros(n_z + n_u), box]]
+        for code in itertools.product((0, 1, 2), repeat=n_u):     # free, at u_min, at u_max
+            code = np.array(code)
+            free = code == 0
+            fixed = np.where(code == 1, u_min, u_max)[~free]
+            t_a, c_a = np.zeros((n_u, n_u)), np.zeros(n_u)          # u = T_a h + c_a
+            c_a[~free] = fixed
+            if free.any():
+                m_ff = m[np.ix_(free, free)]
+                if np.linalg.cond(m_ff) > 1e12:
+                    continue
+                inv = np.linalg.inv(m_ff)
+                t_a[np.ix_(free, free)] = inv
+                c_a[free] = -inv @ m[np.ix_(free, ~free)] @ fixed
+            # Slacks: a free input's u - u_min and u_max - u; a fixed one's +-g_i / M_ii,
+            # twice, so that every candidate has 2 n_u of them.
+            slack_u = np.where(free, 1.0, 0.0)
+            slack_g = np.where(code == 1, scale, np.where(code == 2, -scale, 0.0))
+            s_u = np.vstack([np.diag(slack_u), -np.diag(slack_u)])
+            s_g = np.vstack([np.diag(slack_g), np.diag(slack_g)])
+            # [z; u; slacks] = P_h h + P_e e' + p_0
+            p_h = np.vstack([ima_inv_b @ t_a, t_a, s_u @ t_a + s_g @ (m @ t_a - np.eye(n_u))])
+            p_e = np.vstack([ima_inv, np.zeros((n_u + 2 * n_u, n_z))])
+            p_0 = np.r_[ima_inv_b @ c_a, c_a, s_u @ c_a + s_g @ (m @ c_a)
+                        + np.r_[slack_u, slack_u] * box]
+            rows_r.append(p_h @ k_r)
+            rows_c.append(p_h @ k_c + p_e @ e_sel)
+            offsets.append(p_0)
+        return np.vstack(rows_r), np.vstack(rows_c), np.concatenate(offsets)
 
     def __call__(self, r_n: np.ndarray, const: np.ndarray, out: np.ndarray) -> np.ndarray:
         """s_s (n_s,) into `out` for terminal reference r_n (n_y,) and the constants
         const = [e' (n_z); d' (n_y)]. Non-finite data give a non-finite s_s (solve() falls
         back on it)."""
-        np.dot(self._t_const, const, out=out)
-        out += np.dot(self.ss_r, r_n)
-        if not self.bounded:
+        if self._map is None:
+            np.dot(self._t_const, const, out=out)
+            out += np.dot(self.ss_r, r_n)
+            if self.bounded:
+                self._clipped(out, const[:self._n_z])
             return out
-        u = out[self._n_z:].tolist()
-        if all(lo - 1e-12 <= v <= hi + 1e-12 for v, (lo, hi) in zip(u, self._box)):
-            return out
-        if not all(map(math.isfinite, u)):
-            return out
-        e, d = const[:self._n_z], const[self._n_z:]
-        if self._gain is not None:
-            free = self._ima_inv @ e                 # z_s at u = 0
-            target = self._sq * (r_n[self._tracked] - d[self._tracked] - self._c_t @ free)
-            u_s = lsq_linear(self._sq[:, None] * self._gain, target,
-                             bounds=(self.u_min, self.u_max)).x
-            z_s = free + self._ima_inv @ (self._B @ u_s)
-        else:
-            u_s = np.clip(u, self.u_min, self.u_max)
-            z_s = np.linalg.lstsq(self._ima, self._B @ u_s + e, rcond=None)[0]
-        out[:self._n_z] = z_s
-        out[self._n_z:] = u_s
+        map_r, map_c, offset = self._map
+        v = self._v
+        np.dot(map_c, const, out=v)
+        v += np.dot(map_r, r_n)
+        v += offset
+        n_s = out.size
+        cand = v.reshape(-1, n_s + 2 * (n_s - self._n_z))     # per candidate: s_s, slacks
+        worst = cand[:, n_s:].min(axis=1)
+        a = 0 if worst[0] >= -1e-12 else 1 + int(worst[1:].argmax())
+        out[:] = cand[a, :n_s]
         return out
+
+    def _clipped(self, out: np.ndarray, e: np.ndarray) -> None:
+        """I - A singular (an integrating latent mode): a finite u_s beyond the box (1e-12)
+        clipped into it, z_s from (I - A) z_s = B u_s + e' in least squares, into `out`."""
+        n_z = self._n_z
+        u = out[n_z:]
+        if not np.all(np.isfinite(u)) or np.all((u >= self.u_min - 1e-12)
+                                                & (u <= self.u_max + 1e-12)):
+            return
+        u_s = np.clip(u, self.u_min, self.u_max)
+        out[:n_z] = np.linalg.lstsq(self._ima, self._B @ u_s + e, rcond=None)[0]
+        out[n_z:] = u_s

@@ -14,11 +14,13 @@ is solver tolerance times the loop's gain, far below 1e-6, while 'none' leaves o
 import numpy as np
 import pytest
 from scipy.linalg import expm
+from scipy.optimize import lsq_linear
 
 from metampc_model.latent_model import LatentModel
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.offset_free import (detectability_rank, DisturbanceEstimator,
                                             disturbance_model, SteadyStateTarget)
+from metampc_controller.terminal_cost import terminal_cost
 
 TIGHT = dict(eps_abs=1e-9, eps_rel=1e-9, max_iter=100000, time_limit=10.0)
 
@@ -145,3 +147,45 @@ def test_bounded_target_against_brute_force():
         assert s[2] == pytest.approx(best, abs=1e-4)
         z = np.linalg.solve(np.eye(2) - model.A, model.B[:, 0] * s[2])
         assert s[:2] == pytest.approx(z, abs=1e-9)
+
+
+@pytest.mark.parametrize('n_u', [1, 2])
+def test_bounded_target_equals_box_least_squares(n_u):
+    """On random models, weights, bounds and references (n_u = 1, 2: every family's), the
+    active-set target equals the box least squares of scipy's BVLS (an exact active-set
+    solver: the independent answer) to 1e-9, u_s and z_s, wherever the unconstrained u_s
+    leaves the box; a target that ignored a bound, picked a non-optimal active set or clipped
+    the unconstrained u_s (not optimal with two coupled inputs) would fail."""
+    rng = np.random.default_rng(n_u)
+    checked = 0
+    for _ in range(200):
+        n_z, n_y = int(rng.integers(2, 6)), int(rng.integers(n_u, 4))
+        a = rng.normal(size=(n_z, n_z))
+        a *= rng.uniform(0.3, 0.95) / max(abs(np.linalg.eigvals(a)))
+        model = LatentModel(A=a, B=rng.normal(size=(n_z, n_u)), C=rng.normal(size=(n_y, n_z)),
+                            e=rng.normal(size=n_z), d=rng.normal(size=n_y))
+        q = rng.uniform(0.5, 2.0, n_y)
+        q[rng.integers(n_y)] *= rng.integers(0, 2)       # sometimes an output not tracked
+        if np.count_nonzero(q) < n_u:
+            continue
+        u_min = -rng.uniform(0.1, 2.0, n_u)
+        u_max = rng.uniform(0.1, 2.0, n_u)
+        term = terminal_cost(model, q, np.full(n_u, 0.1), 1e-8)
+        target = SteadyStateTarget(model, q, term.ss_r, term.ss_e, u_min, u_max, bounded=True)
+        const = np.r_[model.e, model.d] + rng.normal(size=n_z + n_y)     # e', d'
+        r_n = 5.0 * rng.normal(size=n_y)
+        s = target(r_n, const, np.empty(n_z + n_u))
+        free = np.linalg.solve(np.eye(n_z) - a, np.c_[model.B, const[:n_z]])
+        t = q > 0
+        w = np.sqrt(q[t])[:, None]
+        gain = model.C[t] @ free[:, :n_u]
+        rhs = r_n[t] - const[n_z:][t] - model.C[t] @ free[:, n_u]
+        u_star = lsq_linear(w * gain, w[:, 0] * rhs, bounds=(u_min, u_max), method='bvls',
+                            tol=1e-14).x
+        unconstrained = term.ss_r @ r_n + np.hstack([term.ss_e, -term.ss_r]) @ const
+        if np.all((unconstrained[n_z:] >= u_min) & (unconstrained[n_z:] <= u_max)):
+            continue
+        checked += 1
+        assert s[n_z:] == pytest.approx(u_star, abs=1e-9)
+        assert s[:n_z] == pytest.approx(free @ np.r_[u_star, 1.0], abs=1e-9)
+    assert checked > 100
