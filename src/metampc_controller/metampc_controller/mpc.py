@@ -185,12 +185,13 @@ class _Problem:
         self.w = np.empty(self.Gw.shape[1])
         self.qyb = np.empty(self.Gw.shape[0])
         self.x_warm = np.empty(n if self.soft is None else n + self.soft.n_s)
-        # (z_t, u_t, r (N, n_y), [e'; d'], s_ss) slots of w; (q, y0, b) parts of qyb.
+        # (z_t, u_t, r (N, n_y), [e'; d'], s_ss) slots of w; (q, y0, b) parts of qyb;
+        # [r_{t+N}; e'; d'], the steady-state target's data.
         i_r, i_e = n_z + n_u, n_z + n_u + n_ny
         i_s = i_e + n_z + n_y
         self.views = (self.w[:n_z], self.w[n_z:i_r], self.w[i_r:i_e].reshape(self.ref_shape),
                       self.qyb[:n], self.qyb[n:n + n_ny], self.qyb[n + n_ny:],
-                      self.w[i_e:i_s], self.w[i_s:])
+                      self.w[i_e:i_s], self.w[i_s:], self.w[i_e - n_y:i_s])
         self.w[i_e:i_s] = np.concatenate([self.model.e, self.model.d])
         self.set_solver(self.solver)
 
@@ -371,7 +372,7 @@ class LatentMpc:
         pb = self._problem
         if pb is None:
             raise RuntimeError('LatentMpc.solve() before set_model()')
-        w_z, w_u, w_r, q, y0, b, w_ed, w_s = pb.views
+        w_z, w_u, w_r, q, y0, b, w_ed, w_s, w_target = pb.views
         if y_ref.shape != pb.ref_shape:
             raise ValueError(f'y_ref has shape {y_ref.shape}, expected {pb.ref_shape}')
         n_u = pb.n_u
@@ -386,7 +387,7 @@ class LatentMpc:
                 est.update(z0, u_prev, y, step)
             est.constants(w_ed)
             disturbance = est.p.copy()
-        pb.target(y_ref[-1], w_ed, w_s)
+        pb.target(w_target, w_s)
         # One dot product checks the data for nan/inf before they can reach the solver.
         valid = math.isfinite(np.dot(pb.w, pb.w))
         status, iters, x, cost = 'invalid data', 0, None, math.nan

@@ -165,8 +165,9 @@ class DisturbanceEstimator:
 class SteadyStateTarget:
     """s_s = [z_s; u_s] of the (corrected) model for a terminal reference (module docstring).
 
-    ss_r (n_s, n_y), ss_e (n_s, n_z): the unconstrained target s = ss_r (r - d') + ss_e e'
-    (terminal_cost's KKT map), computed as ss_r r + T_c [e'; d'] with T_c = [ss_e, -ss_r].
+    Data x = [r (n_y); e' (n_z); d' (n_y)]: the terminal reference and the corrected model's
+    constants, as they lie in the latent MPC's data vector. ss_r (n_s, n_y), ss_e (n_s, n_z):
+    the unconstrained target s = ss_r (r - d') + ss_e e' (terminal_cost's KKT map).
     bounded: where the unconstrained u_s leaves [u_min, u_max], u_s solves the box least squares
 
         min_u ||W (G u - t)||^2,  u_min <= u <= u_max,   G = C_t (I - A)^{-1} B,
@@ -177,38 +178,41 @@ class SteadyStateTarget:
     h = G'W^2 t, a set's candidate is u_F = M_FF^{-1} (h_F - M_FB u_B), its gradient
     g = M u - h; it is the minimiser iff it meets the KKT conditions (free inputs within the
     box, g_i >= 0 at u_min, g_i <= 0 at u_max; convex problem). Every candidate, its s_s and
-    its KKT slacks (g_i / M_ii: in input units) are affine in (r, [e'; d']), so one map built
-    at set-up gives them all in two products per call, with the unconstrained target first;
-    the answer is the unconstrained target when within the box (to 1e-12), else the
-    candidate whose smallest slack is largest (>= 0 up to rounding: the minimiser). Some set
-    with an invertible M_FF holds a minimiser (one at a vertex of the set of minimisers where
-    M is singular), so sets whose M_FF has a relative condition above 1e12 are left out. The
-    answer is the one of an exact box least-squares solver (scipy's BVLS) at a few
-    microseconds (docs/mpc.md#offset-free-tracking).
+    its KKT slacks (g_i / M_ii: in input units) are affine in x, so one map built at set-up
+    gives them all in one product per call, the unconstrained target first; the answer is the
+    unconstrained target when within the box (to 1e-12), else the candidate whose smallest
+    slack is largest (>= 0 up to rounding: the minimiser). Some set with an invertible M_FF
+    holds a minimiser (one at a vertex of the set of minimisers where M is singular), so sets
+    whose M_FF has a relative condition above 1e12 are left out. The answer is the one of an
+    exact box least-squares solver (scipy's BVLS; test_offset_free) at a few microseconds.
     """
 
     def __init__(self, model: LatentModel, q: np.ndarray, ss_r: np.ndarray, ss_e: np.ndarray,
                  u_min: np.ndarray, u_max: np.ndarray, bounded: bool):
-        self.ss_r = ss_r
-        self._t_const = np.hstack([ss_e, -ss_r])
+        self._t_x = np.hstack([ss_r, ss_e, -ss_r])                 # s = T_x x
         self.bounded = bounded
         self.u_min, self.u_max = u_min, u_max
-        n_z = model.n_z
-        self._n_z = n_z
+        n_z, n_y = model.n_z, model.n_y
+        self._n_z, self._n_y = n_z, n_y
         # z_s = (I - A)^{-1} (B u + e'): exact when I - A is invertible; otherwise the box
         # case clips u_s and solves the equality in least squares.
         ima = np.eye(n_z) - model.A
         self._ima, self._B = ima, model.B
         self._map = None
         if bounded and np.linalg.cond(ima) < 1e10:
-            self._map = self._candidate_map(model, q, ima, u_min, u_max)
-            self._v = np.empty(self._map[0].shape[0])
+            self._map, self._offset = self._candidate_map(model, q, ima, u_min, u_max)
+            # Per call, into one buffer: each candidate's s_s and slacks (views kept).
+            n_s = n_z + model.n_u
+            self._v = np.empty(self._offset.size)
+            per = self._v.reshape(-1, n_s + 2 * model.n_u)
+            self._cands, self._slacks = list(per[:, :n_s]), per[:, n_s:]
+            self._worst = np.empty(per.shape[0])
 
     def _candidate_map(self, model: LatentModel, q: np.ndarray, ima: np.ndarray,
                        u_min: np.ndarray, u_max: np.ndarray) -> tuple:
-        """(M_r (n_c m, n_y), M_c (n_c m, n_z + n_y), o (n_c m,)): rows m = n_s + 2 n_u per
-        candidate, [s_s; KKT slacks] = M_r r + M_c [e'; d'] + o, the unconstrained target
-        first, then the active sets with an invertible M_FF (class docstring)."""
+        """(M (n_c m, n_y + n_z + n_y), o (n_c m,)): m = n_s + 2 n_u rows per candidate,
+        [s_s; KKT slacks] = M x + o, the unconstrained target first, then the active sets
+        with an invertible M_FF (class docstring)."""
         n_z, n_u, n_y = model.n_z, model.n_u, model.n_y
         tracked = q > 0
         ima_inv = np.linalg.inv(ima)
@@ -217,16 +221,15 @@ class SteadyStateTarget:
         gw = gain.T * q[tracked]                                    # G'W^2 (n_u, n_tracked)
         m = gw @ gain
         scale = 1.0 / np.maximum(np.diag(m), 1e-300)               # g_i / M_ii: input units
-        # h = K_r r + K_c [e'; d'];  e' = E [e'; d']
+        # h = K x, e' = E x
         k_r = np.zeros((n_u, n_y))
         k_r[:, tracked] = gw
-        k_c = np.hstack([-gw @ model.C[tracked] @ ima_inv, -k_r])
-        e_sel = np.hstack([np.eye(n_z), np.zeros((n_z, n_y))])
+        k_x = np.hstack([k_r, -gw @ model.C[tracked] @ ima_inv, -k_r])
+        e_sel = np.hstack([np.zeros((n_z, n_y)), np.eye(n_z), np.zeros((n_z, n_y))])
         box = np.r_[-u_min, u_max]
         # The unconstrained target and its slacks u - u_min, u_max - u.
         sign = np.vstack([np.eye(n_u), -np.eye(n_u)])
-        rows_r = [np.vstack([self.ss_r, sign @ self.ss_r[n_z:]])]
-        rows_c = [np.vstack([self._t_const, sign @ self._t_const[n_z:]])]
+        rows = [np.vstack([self._t_x, sign @ self._t_x[n_z:]])]
         offsets = [np.r_[np.zeros(n_z + n_u), box]]
         for code in itertools.product((0, 1, 2), repeat=n_u):     # free, at u_min, at u_max
             code = np.array(code)
@@ -249,34 +252,25 @@ class SteadyStateTarget:
             s_g = np.vstack([np.diag(slack_g), np.diag(slack_g)])
             # [z; u; slacks] = P_h h + P_e e' + p_0
             p_h = np.vstack([ima_inv_b @ t_a, t_a, s_u @ t_a + s_g @ (m @ t_a - np.eye(n_u))])
-            p_e = np.vstack([ima_inv, np.zeros((n_u + 2 * n_u, n_z))])
-            p_0 = np.r_[ima_inv_b @ c_a, c_a, s_u @ c_a + s_g @ (m @ c_a)
-                        + np.r_[slack_u, slack_u] * box]
-            rows_r.append(p_h @ k_r)
-            rows_c.append(p_h @ k_c + p_e @ e_sel)
-            offsets.append(p_0)
-        return np.vstack(rows_r), np.vstack(rows_c), np.concatenate(offsets)
+            p_e = np.vstack([ima_inv, np.zeros((3 * n_u, n_z))])
+            rows.append(p_h @ k_x + p_e @ e_sel)
+            offsets.append(np.r_[ima_inv_b @ c_a, c_a, s_u @ c_a + s_g @ (m @ c_a)
+                                 + np.r_[slack_u, slack_u] * box])
+        return np.vstack(rows), np.concatenate(offsets)
 
-    def __call__(self, r_n: np.ndarray, const: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """s_s (n_s,) into `out` for terminal reference r_n (n_y,) and the constants
-        const = [e' (n_z); d' (n_y)]. Non-finite data give a non-finite s_s (solve() falls
-        back on it)."""
+    def __call__(self, x: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """s_s (n_s,) into `out` for the data x = [r (n_y); e' (n_z); d' (n_y)]. Non-finite
+        data give a non-finite s_s (solve() falls back on it)."""
         if self._map is None:
-            np.dot(self._t_const, const, out=out)
-            out += np.dot(self.ss_r, r_n)
+            np.dot(self._t_x, x, out=out)
             if self.bounded:
-                self._clipped(out, const[:self._n_z])
+                self._clipped(out, x[self._n_y:self._n_y + self._n_z])
             return out
-        map_r, map_c, offset = self._map
-        v = self._v
-        np.dot(map_c, const, out=v)
-        v += np.dot(map_r, r_n)
-        v += offset
-        n_s = out.size
-        cand = v.reshape(-1, n_s + 2 * (n_s - self._n_z))     # per candidate: s_s, slacks
-        worst = cand[:, n_s:].min(axis=1)
-        a = 0 if worst[0] >= -1e-12 else 1 + int(worst[1:].argmax())
-        out[:] = cand[a, :n_s]
+        v, worst = self._v, self._worst
+        np.dot(self._map, x, out=v)
+        v += self._offset
+        np.minimum.reduce(self._slacks, axis=1, out=worst)
+        out[:] = self._cands[0 if worst[0] >= -1e-12 else 1 + int(worst[1:].argmax())]
         return out
 
     def _clipped(self, out: np.ndarray, e: np.ndarray) -> None:

@@ -141,7 +141,7 @@ def test_bounded_target_against_brute_force():
     target = SteadyStateTarget(model, np.array([1.0, 0.0]), term.ss_r, term.ss_e,
                                np.array([-1.0]), np.array([1.0]), bounded=True)
     for r1 in (0.4, 2.0, -3.0):
-        s = target(np.array([r1, 0.0]), np.r_[model.e, model.d], np.empty(3))
+        s = target(np.r_[r1, 0.0, model.e, model.d], np.empty(3))
         grid = np.linspace(-1.0, 1.0, 20001)
         best = grid[np.argmin(np.abs(0.8 * grid - r1))]
         assert s[2] == pytest.approx(best, abs=1e-4)
@@ -174,7 +174,7 @@ def test_bounded_target_equals_box_least_squares(n_u):
         target = SteadyStateTarget(model, q, term.ss_r, term.ss_e, u_min, u_max, bounded=True)
         const = np.r_[model.e, model.d] + rng.normal(size=n_z + n_y)     # e', d'
         r_n = 5.0 * rng.normal(size=n_y)
-        s = target(r_n, const, np.empty(n_z + n_u))
+        s = target(np.r_[r_n, const], np.empty(n_z + n_u))
         free = np.linalg.solve(np.eye(n_z) - a, np.c_[model.B, const[:n_z]])
         t = q > 0
         w = np.sqrt(q[t])[:, None]
