@@ -6,8 +6,9 @@ Verbs handled here (semantics of ros2run / ros2pkg, Jazzy):
   ros2 pkg list                   every package on AMENT_PREFIX_PATH
   ros2 pkg executables [PKG]      'PKG EXE' lines, for one package or all
   ros2 pkg prefix PKG             the install prefix of a package
-Every other verb (node, topic, service, param, interface, bag) is the package metampc_ros2cli
-(`ros2 -h` lists them), imported only then so that `ros2 run` starts as fast as before.
+Every other verb (node, topic, service, param, interface, bag, daemon, launch) is the package
+metampc_ros2cli (`ros2 -h` lists them), imported only then so that `ros2 run` starts as fast as
+before.
 
 Lookup rules (as ros2run): the package's prefix is the first entry of AMENT_PREFIX_PATH that has
 share/ament_index/resource_index/packages/PKG; the executable is the one file named EXE that is

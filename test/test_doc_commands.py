@@ -5,11 +5,13 @@ other `ros2 VERB ...` of a code block parses as written (metampc_ros2cli's parse
 syntax), and each `ros2 run` of a command-line program names flags its --help lists. The
 commands are read from fenced and indented code blocks and from inline code spans (`python
 scripts/` and `ros2 run` only: a span may name a verb without its arguments)."""
+import contextlib
 import functools
 import glob
 import os
 import re
 import shlex
+import signal
 import subprocess
 import sys
 
@@ -124,3 +126,64 @@ def test_ros2_verbs_parse_as_written(page, command):
         parser().parse_args(shlex.split(command)[1:])
     except SystemExit:
         pytest.fail(f'{page}: `{command}` is not a valid ros2 command line')
+
+
+LAUNCH_FILES = sorted(glob.glob(os.path.join(ROOT, 'src', 'metampc_bringup', 'launch',
+                                             '*.launch.yaml')))
+
+
+@pytest.mark.parametrize('path', LAUNCH_FILES, ids=os.path.basename)
+def test_shipped_launch_files_name_declared_parameters(path):
+    from metampc_ros2cli.launch_yaml import read
+    with open(path) as f:
+        nodes = read(f.read(), [])
+    assert nodes
+    for node in nodes:
+        assert (node.pkg, node.exec) in NODES, f'{path}: no such node {node.pkg} {node.exec}'
+        unknown = [n for n in node.params if n not in NODES[node.pkg, node.exec]
+                   and n not in ROS_PARAMETERS]
+        assert not unknown, f'{path}: {node.exec} sets undeclared {unknown}'
+
+
+LAUNCHES = [(page, c) for page, c in COMMANDS if c.startswith('ros2 launch ')]
+
+
+def test_the_docs_launch_both_shipped_files():
+    launched = {c.split()[3] for _, c in LAUNCHES}
+    assert launched == {os.path.basename(p) for p in LAUNCH_FILES}, LAUNCHES
+
+
+@pytest.mark.parametrize('page, command', LAUNCHES)
+def test_documented_launches_run_their_graph_and_stop_on_ctrl_c(page, command, probe, tmp_path):
+    """The code block of the page that holds the command, run as written (its scratch folder
+    /tmp/run1 moved into the test's): the launched graph turns y into u; Ctrl-C of the
+    launcher stops every node it started, and the launcher exits 0."""
+    from metampc_bringup.orchestration.procfs import pids_with_env
+    from metampc_msgs.msg import ControlInput
+    with open(os.path.join(ROOT, page)) as f:
+        block, = [b for b in re.findall(r'```bash\n(.*?)```', f.read(), flags=re.S)
+                  if command in b.replace('\\\n', ' ')]
+    logs = str(tmp_path / 'log')
+    block = block.replace('/tmp/run1', str(tmp_path / 'run1'))
+    inputs = []
+    probe.node.create_subscription(ControlInput, 'u', inputs.append, 10)
+    shell = subprocess.Popen(['bash', '-c', f'source scripts/env.sh\n{block}'], cwd=ROOT,
+                             env={**os.environ, 'ROS_LOG_DIR': logs},
+                             stdout=open(tmp_path / 'out.log', 'w'), stderr=subprocess.STDOUT,
+                             start_new_session=True)
+    try:
+        probe.wait_for(lambda: len(inputs) > 3, 180.0, 'u from the launched controller')
+        launcher, = [p for p in pids_with_env({'ROS_LOG_DIR': logs}) if b'launch' in open(
+            f'/proc/{p}/cmdline', 'rb').read().split(b'\0')]
+        shims = set(pids_with_env({'METAMPC_LIFELINE': str(launcher)}))
+        nodes = {p for s in shims for p in pids_with_env({'METAMPC_LIFELINE': str(s)})}
+        assert len(shims) == len(nodes) >= 3, (shims, nodes)
+        os.kill(launcher, signal.SIGINT)
+        assert shell.wait(120) == 0     # the block's last command: the launcher
+        out = (tmp_path / 'out.log').read_text()
+        assert 'user interrupted with ctrl-c' in out and 'process has died' not in out, out
+        assert not (shims | nodes) & set(pids_with_env({'ROS_LOG_DIR': logs})), out
+    finally:     # the block's other jobs (bridge.md's robot) too
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(shell.pid, signal.SIGKILL)
+        shell.wait()

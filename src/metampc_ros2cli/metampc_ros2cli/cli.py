@@ -12,7 +12,7 @@ import os
 import sys
 from typing import Any, List, Optional
 
-VERBS = ('node', 'topic', 'service', 'param', 'interface', 'bag', 'daemon')
+VERBS = ('node', 'topic', 'service', 'param', 'interface', 'bag', 'daemon', 'launch')
 # Handled by the `ros2` command itself before this module is imported (fast start of a node).
 SHIM_VERBS = {'pkg': 'Various package related sub-commands (list, executables, prefix)',
               'run': 'Run a package specific executable'}
