@@ -71,7 +71,12 @@ def test_a_plain_tcp_scheduler_off_this_machine_is_refused_before_any_connection
     for extra, said in ((['--scheduler', OFF_HOST[0]], '--insecure'),
                         (['--scheduler', 'tls://192.0.2.7:8786'], 'tls:// needs --tls-ca-file'),
                         (['--scheduler', 'tls://192.0.2.7:8786', '--tls-ca-file', 'ca.pem'],
-                         '--tls-ca-file, --tls-cert and --tls-key go together')):
+                         '--tls-ca-file, --tls-cert and --tls-key go together'),
+                        # Issue 52: a traceback, exit 1 (files) and 53 lines after 20 s (port).
+                        (['--scheduler', 'tls://192.0.2.7:8786', '--tls-ca-file', 'ca.pem',
+                          '--tls-cert', 'c.pem', '--tls-key', 'c.key'],
+                         '--tls-ca-file ca.pem: cannot be read'),
+                        (['--scheduler', 'tcp://127.0.0.1'], 'expected tcp://HOST:PORT')):
         assert script.main(['--config', CI_CONFIG, '--out', str(out), '--seeds', '2',
                             *extra]) == 2
         err = capsys.readouterr().err

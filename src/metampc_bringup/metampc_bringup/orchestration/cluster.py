@@ -15,7 +15,6 @@ import contextlib
 import dataclasses
 import ipaddress
 import logging
-import os
 import signal
 import tempfile
 import time
@@ -51,11 +50,23 @@ class TlsFiles:
     cert: str
     key: str
 
-    def security(self) -> Any:
-        """The dask Security of these files (ValueError naming one that cannot be read)."""
+    def check(self) -> None:
+        """ValueError naming a file that cannot be read or is not PEM (a TLS handshake with it
+        fails only at the connection, as "no answer within 10 s (SSLError)")."""
         for name, path in dataclasses.asdict(self).items():
-            if not os.access(path, os.R_OK):
-                raise ValueError(f'--tls-{name.replace("_", "-")} {path}: cannot be read')
+            flag = f'--tls-{name.replace("_", "-")} {path}'
+            try:
+                with open(path, 'rb') as f:
+                    text = f.read(1 << 20)
+            except OSError as err:
+                raise ValueError(f'{flag}: cannot be read ({err.strerror})') from None
+            if b'-----BEGIN ' not in text:
+                raise ValueError(f'{flag}: not a PEM file (no -----BEGIN line)')
+
+    def security(self) -> Any:
+        """The dask Security of these files (ValueError naming one that cannot be read or is
+        not PEM: :meth:`check`)."""
+        self.check()
         from distributed.security import Security
         return Security(tls_ca_file=self.ca_file, tls_client_cert=self.cert,
                         tls_client_key=self.key, require_encryption=True)
@@ -86,9 +97,13 @@ def check_address(address: str, insecure: bool = False, tls: bool = False) -> No
     scheme, sep, rest = address.partition('://')
     if not sep:
         scheme, rest = 'tcp', address
-    host = rest.rsplit(':', 1)[0] if ':' in rest else rest
-    host = host.strip('[]')
-    if scheme not in ('tcp', 'tls') or not host:
+    if rest.startswith('['):    # [IPv6]:PORT
+        host, _, port = rest[1:].partition(']')
+        port = port[1:] if port.startswith(':') else ''
+    else:
+        host, _, port = rest.rpartition(':')
+    if scheme not in ('tcp', 'tls') or not host or not port.isdigit() \
+            or not 0 < int(port) < 65536:
         raise ValueError(f'--scheduler {address}: expected tcp://HOST:PORT or tls://HOST:PORT')
     if (scheme == 'tls') != tls:
         raise ValueError(f'--scheduler {address}: ' + (

@@ -41,13 +41,19 @@ def cluster_spec(args: argparse.Namespace, jobs_default: int, threads: int,
     """The cluster of the arguments of :func:`add_arguments`: embedded with --jobs (default
     `jobs_default`) workers, jobs x `threads` within the usable cores; or --scheduler, its
     address checked (:func:`.cluster.check_address`), where --jobs > 1 is refused (the
-    cluster's workers run the jobs). ValueError naming the argument, before any connection."""
+    cluster's workers run the jobs); the --tls-* files only with a scheduler, readable and
+    PEM. ValueError naming the argument, before any connection."""
     tls = tls_files(args)
     if args.scheduler is not None:
         check_address(args.scheduler, args.insecure, tls is not None)
         if args.jobs is not None and args.jobs > 1:
             raise ValueError("--jobs sets the embedded cluster's workers: not with --scheduler "
                              "(the cluster's workers run the jobs)")
+    elif tls is not None:
+        raise ValueError('the --tls-* files are for a tls:// --scheduler, not for the '
+                         'embedded cluster')
+    if tls is not None:
+        tls.check()
     jobs = (jobs_default if args.scheduler is None else 1) if args.jobs is None else args.jobs
     check_jobs(jobs, threads, threads_name)
     return ClusterSpec(jobs, args.scheduler, args.insecure, tls)
