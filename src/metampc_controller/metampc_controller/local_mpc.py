@@ -1,0 +1,93 @@
+"""The latent MPC on a nonlinear one-step model, linearised at the current state every tick.
+
+One QP per tick (eq. (mpc), the latent MPC of :mod:`metampc_controller.mpc` with its DARE
+terminal cost, Delta-u weight and bounds) on the affine model that is exact to first order at
+(s_t, u_t): the feature NARX's :meth:`~metampc_model.feature_narx.FeatureNarx.linearise` (or any
+model with ``linearise(s, u) -> LatentModel``). A calibration on the true van der Pol at
+theta* 1.0 / 1.5 / 2.0 chose the current state over the origin and over the set-point's
+equilibrium (docs/nonlinear.md). The model is rebuilt each tick, so the offset-free estimator
+would restart every tick: this planner plans with offset_free 'none' (eq. (mpc) as the paper
+writes it), and the linearisation's own constant e carries the model's steady state.
+
+Bad input: a linearisation that is not finite, or a model the QP refuses (a singular or
+non-finite DARE), leaves that tick to the shifted previous plan (held u_t on the first tick),
+as a failed solve does; counted in ``failed_linearisations`` and reported in the status.
+"""
+from dataclasses import replace
+import time
+from typing import Optional, Protocol
+
+import numpy as np
+
+from metampc_model.latent_model import LatentModel
+from metampc_controller.mpc import LatentMpc, MpcConfig
+from metampc_controller.planner import PlanResult
+
+LINEARISATION_FAILED = 'linearisation failed'
+
+
+class LocallyLinear(Protocol):
+    """A model the planner can linearise: state s (n_s,), next input u (n_u,)."""
+
+    def linearise(self, s: np.ndarray, u_next: np.ndarray) -> LatentModel:
+        """The affine model exact to first order at (s, u_next); ValueError if none."""
+
+
+class LocalLinearMpc:
+    """The planner of the module docstring (the :class:`~metampc_controller.planner.Planner`
+    protocol, with ``state`` the model's physical s_t)."""
+
+    def __init__(self, config: MpcConfig, model: LocallyLinear):
+        self._mpc = LatentMpc(replace(config, offset_free='none'))
+        self.model = model
+        self.failed_linearisations = 0
+        self._plan: Optional[np.ndarray] = None
+
+    @property
+    def config(self) -> MpcConfig:
+        return self._mpc.config
+
+    def reset(self) -> None:
+        self._mpc.reset()
+        self._plan = None
+
+    def set_time_limit(self, seconds: float) -> None:
+        self._mpc.set_time_limit(seconds)
+
+    def solve(self, state: Optional[np.ndarray], u_prev: np.ndarray, y_ref: np.ndarray,
+              y: Optional[np.ndarray] = None, step: Optional[int] = None) -> PlanResult:
+        """Linearise at (s_t, u_t), set the QP up, solve (module docstring)."""
+        start = time.perf_counter()
+        try:
+            if state is None or not (np.all(np.isfinite(state))
+                                     and np.all(np.isfinite(u_prev))):
+                raise ValueError('state or input not finite')
+            self._mpc.set_model(self.model.linearise(np.asarray(state, float),
+                                                     np.asarray(u_prev, float)))
+        except (ValueError, np.linalg.LinAlgError):
+            self.failed_linearisations += 1
+            return self._shifted(u_prev, y_ref, start)
+        res = self._mpc.solve(state, u_prev, y_ref, y, step)
+        self._plan = np.asarray(res.u_plan).reshape(-1)
+        res.solve_time = time.perf_counter() - start
+        return res
+
+    def _shifted(self, u_prev: np.ndarray, y_ref: np.ndarray, start: float) -> PlanResult:
+        """The shifted previous plan (held u_t, or 0 where it is not finite, at first)."""
+        n_u, horizon = np.size(u_prev), y_ref.shape[0]
+        lo, hi = self._mpc.config.bounds(n_u)
+        if self._plan is not None:
+            plan = np.concatenate([self._plan[n_u:], self._plan[-n_u:]])
+        else:
+            held = np.where(np.isfinite(u_prev), u_prev, 0.0)
+            plan = np.tile(held, horizon)
+        plan = np.clip(plan, np.tile(lo, horizon), np.tile(hi, horizon))
+        plan.flags.writeable = False
+        self._plan = plan
+        u_plan = plan.reshape(-1, n_u)
+        return PlanResult(u=u_plan[0], u_plan=u_plan, y_pred=np.full(y_ref.shape, np.nan),
+                          cost=float('nan'), status=LINEARISATION_FAILED, iterations=0,
+                          solve_time=time.perf_counter() - start, fallback=True)
+
+
+__all__ = ['LINEARISATION_FAILED', 'LocallyLinear', 'LocalLinearMpc']

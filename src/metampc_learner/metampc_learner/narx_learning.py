@@ -1,0 +1,232 @@
+"""Meta-training and adaptation of the feature NARX (:mod:`metampc_model.feature_narx`).
+
+Adaptation (Algorithm 2 with eq. (infer) solved exactly): the features g stay the meta-model's;
+the head is the closed-form ridge regression toward the meta-model's head
+(:func:`metampc_learner.closed_form.ridge`, strength ``gamma``) on the target's one-step
+equations. The result never has a higher training loss than the least-squares ARX(p) of the
+same samples: if the ridge fit's loss is above the ARX's, gamma is dropped (plain least
+squares over a superset of the ARX's regressors), and if rounding still leaves it above, the
+ARX's own head is taken (:func:`adapt`, ``AdaptedNarx.rule``).
+
+Meta-training (eqs. (outer), (inner_imaml)): per outer step B source systems; each system's
+trajectories split in time into D_tr and D_test; the head adapted on D_tr in closed form, the
+T-step rollout loss on D_test windows. 'imaml': the gradient flows through the solve, which
+is the exact implicit meta-gradient (the inner problem is solved exactly); 'maml': first order
+(the adapted head's dependence on g and the prior is cut, d psi / d omega = I, eq.
+(outer_maml)). Adam on g's weights and the prior head.
+"""
+from dataclasses import dataclass, field
+import math
+import time
+from typing import Callable, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from metampc_learner.closed_form import mean_loss, ridge
+from metampc_model.feature_narx import (FeatureNarx, init_params, NarxShape, Params,
+                                        regressors, rollout, state_windows)
+from metampc_model.normalisation import Normalisation
+
+Record = Tuple[np.ndarray, np.ndarray]     # (u (K, n_u), y (K, n_y)) physical, u[k] -> y[k]
+METHODS = ('imaml', 'maml')
+
+
+@dataclass
+class NarxMetaConfig:
+    """Attributes:
+        method: 'imaml' (exact meta-gradient through the solve) or 'maml' (first order).
+        iterations: outer steps.
+        batch_size: B, source systems per step.
+        windows: windows drawn per system per step, for D_tr and for D_test each.
+        horizon: T of the outer (D_test) rollout loss, samples.
+        lr: Adam step size.
+        gamma: proximal strength of the closed-form inner solve (mean-loss units).
+        seed: initial weights and the draws of systems and windows.
+    """
+
+    method: str = 'imaml'
+    iterations: int = 400
+    batch_size: int = 16
+    windows: int = 64
+    horizon: int = 10
+    lr: float = 3e-3
+    gamma: float = 1e-3
+    seed: int = 0
+
+    def validate(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f'method must be one of {METHODS}, got {self.method!r}')
+        for name in ('iterations', 'batch_size', 'windows', 'horizon'):
+            if getattr(self, name) < 1:
+                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+        if not (self.lr > 0 and self.gamma >= 0):
+            raise ValueError(f'need lr > 0 and gamma >= 0, got {self.lr}, {self.gamma}')
+
+
+@dataclass
+class MetaResult:
+    """Meta-trained parameters and the D_test loss of every outer step (normalised units)."""
+
+    params: Params
+    curve: List[float] = field(default_factory=list)
+    elapsed: float = 0.0
+
+
+def _split(records: Sequence[Record]) -> Tuple[List[Record], List[Record]]:
+    """Each record's first half to D_tr, second half to D_test (in time, as SourceSet)."""
+    tr, te = [], []
+    for u, y in records:
+        cut = len(y) // 2
+        tr.append((u[:cut], y[:cut]))
+        te.append((u[cut:], y[cut:]))
+    return tr, te
+
+
+def _windows(shape: NarxShape, norm: Normalisation, records: Sequence[Record], horizon: int):
+    parts = [state_windows(shape, *norm.normalise(u, y), horizon) for u, y in records]
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+
+
+def meta_train(shape: NarxShape, norm: Normalisation, systems: Sequence[Sequence[Record]],
+               config: NarxMetaConfig, progress: Optional[Callable[[int, float], None]] = None
+               ) -> MetaResult:
+    """Meta-train g and the prior head on source `systems` (each a list of trajectories).
+
+    Raises:
+        ValueError: a bad config, or a system too short for one window in each half.
+    """
+    config.validate()
+    rng = np.random.default_rng(config.seed)
+    tasks = []
+    for i, records in enumerate(systems):
+        tr, te = _split(records)
+        w_tr, w_te = _windows(shape, norm, tr, 1), _windows(shape, norm, te, config.horizon)
+        if len(w_tr[0]) == 0 or len(w_te[0]) == 0:
+            raise ValueError(f'source system {i} is too short for a window in each half')
+        tasks.append((w_tr, w_te))
+    params = {k: v.requires_grad_() for k, v in init_params(shape, config.seed).items()}
+    opt = torch.optim.Adam(list(params.values()), lr=config.lr)
+    first_order = config.method == 'maml'
+    result = MetaResult(params={})
+    start = time.monotonic()
+    for it in range(config.iterations):
+        batch = rng.choice(len(tasks), size=min(config.batch_size, len(tasks)), replace=False)
+        pick = [(w, rng.integers(len(w[0]), size=config.windows)) for t in batch
+                for w in tasks[t]]
+        s_tr, u_tr, y_tr = (torch.from_numpy(np.stack([w[j][idx] for w, idx in pick[0::2]]))
+                            for j in range(3))
+        s_te, u_te, y_te = (torch.from_numpy(np.stack([w[j][idx] for w, idx in pick[1::2]]))
+                            for j in range(3))
+        phi = regressors(shape, params, s_tr, u_tr[..., 0, :])
+        prior = params['head']
+        if first_order:
+            fitted = ridge(phi.detach(), y_tr[..., 0, :], prior.detach(), config.gamma)
+            head = prior + (fitted - prior.detach())
+        else:
+            head = ridge(phi, y_tr[..., 0, :], prior, config.gamma)
+        y_hat = rollout(shape, params, s_te, u_te, head[:, None])
+        loss = (y_hat - y_te).square().sum(-1).mean()
+        if not torch.isfinite(loss):
+            raise ValueError(f'meta-training loss turned non-finite at step {it}')
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        result.curve.append(float(loss.detach()))
+        if progress is not None:
+            progress(it + 1, float(loss))
+    result.params = {k: v.detach().clone() for k, v in params.items()}
+    result.elapsed = time.monotonic() - start
+    return result
+
+
+@dataclass
+class AdaptedNarx:
+    """An adapted feature NARX and how its head was found.
+
+    Attributes:
+        model: the adapted model.
+        train_loss: its one-step loss on the training samples (normalised units).
+        arx_loss: the least-squares ARX(p)'s on the same samples.
+        rule: 'ridge' (toward the meta-model), 'least_squares' (gamma dropped: the ridge fit
+            lost to the ARX) or 'arx' (the ARX's own head).
+    """
+
+    model: FeatureNarx
+    train_loss: float
+    arx_loss: float
+    rule: str
+
+
+def one_step_data(shape: NarxShape, params: Params, norm: Normalisation,
+                  records: Sequence[Record]) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(phi (M, n_phi), y_{t+1} (M, n_y)) of every one-step equation in `records`."""
+    s, u, y = (torch.from_numpy(a) for a in _windows(shape, norm, records, 1))
+    with torch.no_grad():
+        return regressors(shape, params, s, u[:, 0]), y[:, 0]
+
+
+def _arx_head(shape: NarxShape, phi: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The least-squares ARX(p) head on the one-step equations: g's columns left out (zero)."""
+    lin = torch.ones(shape.n_phi, dtype=torch.bool)
+    lin[shape.n_s:shape.n_s + shape.features] = False
+    head = torch.zeros((shape.n_y, shape.n_phi), dtype=phi.dtype)
+    head[:, lin] = ridge(phi[:, lin], y, head[:, lin], 0.0)
+    return head
+
+
+def _data(meta: FeatureNarx, records: Sequence[Record]) -> Tuple[torch.Tensor, torch.Tensor]:
+    phi, y = one_step_data(meta.shape, meta.params, meta.norm, records)
+    if len(y) == 0:
+        raise ValueError(f'no target samples: ARX({meta.shape.order}) needs records longer '
+                         f'than {meta.shape.order}')
+    return phi, y
+
+
+def arx_model(meta: FeatureNarx, records: Sequence[Record]) -> FeatureNarx:
+    """The least-squares ARX(p) of `records` as a feature NARX (its feature columns zero):
+    the linear baseline of the same samples. ValueError: no one-step equation."""
+    phi, y = _data(meta, records)
+    return FeatureNarx(meta.shape, meta.norm, {**meta.params,
+                                               'head': _arx_head(meta.shape, phi, y)})
+
+
+def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> AdaptedNarx:
+    """Algorithm 2 for the feature NARX (module docstring) on the target `records`.
+
+    Raises:
+        ValueError: no one-step equation in the records.
+    """
+    phi, y = _data(meta, records)
+    arx_head = _arx_head(meta.shape, phi, y)
+    arx_loss = float(mean_loss(phi, y, arx_head))
+    head, rule = ridge(phi, y, meta.params['head'], gamma), 'ridge'
+    loss = float(mean_loss(phi, y, head))
+    if loss > arx_loss:
+        head, rule = ridge(phi, y, meta.params['head'], 0.0), 'least_squares'
+        loss = float(mean_loss(phi, y, head))
+    if not (loss <= arx_loss) or not math.isfinite(loss):
+        head, rule, loss = arx_head, 'arx', arx_loss
+    params = {**{k: v.clone() for k, v in meta.params.items()}, 'head': head}
+    return AdaptedNarx(FeatureNarx(meta.shape, meta.norm, params), loss, arx_loss, rule)
+
+
+def fit_head(meta: FeatureNarx, records: Sequence[Record]) -> FeatureNarx:
+    """The meta-model's features with the least-squares head of `records` (the oracle of the
+    feature NARX when the records are many episodes of the target)."""
+    phi, y = _data(meta, records)
+    params = {**meta.params, 'head': ridge(phi, y, meta.params['head'], 0.0)}
+    return FeatureNarx(meta.shape, meta.norm, params)
+
+
+def heldout_loss(model: FeatureNarx, records: Sequence[Record], horizon: int) -> float:
+    """Mean T-step rollout loss (summed over outputs) on every window of `records`,
+    normalised units: the l_SSM of eq. (SSM) for this model."""
+    s, u, y = (torch.from_numpy(a) for a in _windows(model.shape, model.norm, records,
+                                                      horizon))
+    with torch.no_grad():
+        return float((rollout(model.shape, model.params, s, u) - y).square().sum(-1).mean())
+
+
+__all__ = ['METHODS', 'NarxMetaConfig', 'MetaResult', 'AdaptedNarx', 'meta_train', 'adapt',
+           'arx_model', 'fit_head', 'heldout_loss', 'one_step_data']
