@@ -8,15 +8,50 @@
 A thin layer over :mod:`.offline_adaptation`: it writes ADAPTED.pt, ADAPTED.json and
 ADAPTED.md, prints the markdown report, and logs each phase and step on stderr. Bad input (a
 wrong mapping, a topic or column missing, a checkpoint that does not fit) is one line on stderr
-and exit status 2. docs/offline_adaptation.md.
+and exit status 2; a file that does not exist, an --out that exists or whose folder does not,
+before torch is imported (:func:`check_paths`). docs/offline_adaptation.md.
 """
 import argparse
+import importlib
+import os
 import sys
+from typing import Any, List, Optional
 
-from metampc_learner.adapt import RULES
-from metampc_learner.meta_train import META_METHODS
-from metampc_learner.offline_adaptation import (ARX, OfflineConfig, report_markdown,
-                                                run_offline, SUPERVISED)
+
+class LaterChoices:
+    """The choices of an option whose names are declared in a module that imports torch
+    ('module:NAME', a tuple or one name): argparse lets every value through, main() checks it
+    (:meth:`check`) after the paths, and only a listing (the help) imports the module."""
+
+    def __init__(self, *declared: str) -> None:
+        self.declared = declared
+
+    def names(self) -> List[str]:
+        out: List[str] = []
+        for spec in self.declared:
+            module, name = spec.split(':')
+            value = getattr(importlib.import_module(module), name)
+            out += [value] if isinstance(value, str) else list(value)
+        return out
+
+    def __contains__(self, value: Any) -> bool:
+        return True
+
+    def __iter__(self) -> Any:
+        return iter(self.names())
+
+    def check(self, p: argparse.ArgumentParser, option: str, value: Optional[str]) -> None:
+        """argparse's own error (exit 2) unless `value` (None: not given) is one of them."""
+        names = self.names()
+        if value is not None and value not in names:
+            p.error(f"argument {option}: invalid choice: '{value}' (choose from "
+                    f"{', '.join(repr(n) for n in names)})")
+
+
+METHODS = LaterChoices('metampc_learner.meta_train:META_METHODS',
+                       'metampc_learner.offline_adaptation:SUPERVISED',
+                       'metampc_learner.offline_adaptation:ARX')
+RULES = LaterChoices('metampc_learner.adapt:RULES')
 
 
 def _fraction(text: str) -> float:
@@ -42,15 +77,17 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('checkpoint', help='the meta-model checkpoint (the learner\'s .pt)')
     p.add_argument('--out', required=True, help='the adapted checkpoint to write (.pt); the '
                    'report goes beside it (.json, .md)')
-    p.add_argument('--method', default='', choices=['', *META_METHODS, SUPERVISED, ARX],
-                   help="default: the checkpoint's; supervised: from random weights; arx: the "
-                   'linear ARX baseline by least squares (the checkpoint gives H and scaling)')
+    p.add_argument('--method', choices=METHODS, metavar='METHOD',
+                   help="%(choices)s; default: the checkpoint's; supervised: from random "
+                   'weights; arx: the linear ARX baseline by least squares (the checkpoint '
+                   'gives H and scaling)')
     p.add_argument('--steps', type=_count, help='adaptation steps (default: --config, else 20)')
     p.add_argument('--lr', type=float, help='step size (default: --config, else 0.05)')
     p.add_argument('--gamma', type=float, help='proximal strength of eq. (infer) (default: '
                    '--config, else 0)')
-    p.add_argument('--rule', choices=RULES, help='step rule: gradient (backtracked from --lr) or '
-                   'gauss_newton (Levenberg-Marquardt; default: --config, else gradient)')
+    p.add_argument('--rule', choices=RULES, metavar='RULE', help='step rule: gradient '
+                   '(backtracked from --lr) or gauss_newton (Levenberg-Marquardt; default: '
+                   '--config, else gradient)')
     p.add_argument('--cg-steps', type=int, help='CG iterations per gauss_newton step '
                    '(default: --config, else 30)')
     p.add_argument('--config', default='', help='an experiment configuration whose adapt.<method> '
@@ -71,11 +108,36 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_paths(opts: argparse.Namespace) -> Optional[str]:
+    """What is wrong with the paths of the command line, before any work (None: nothing):
+    a recording, mapping or checkpoint that does not exist, an --out that exists (results are
+    never overwritten) or whose folder does not exist (it was found only when the adapted
+    model was written)."""
+    for path, what in ((opts.recording, 'recording'), (opts.mapping, 'mapping file'),
+                       (opts.checkpoint, 'checkpoint')):
+        if not os.path.exists(path):
+            return f'{path}: no such {what}'
+    if os.path.exists(opts.out):
+        return f'--out {opts.out} exists; results are never overwritten'
+    folder = os.path.dirname(opts.out) or '.'
+    if not os.path.isdir(folder):
+        return f'--out {opts.out}: the folder {folder} does not exist'
+    return None
+
+
 def main(args=None) -> int:
     """Run the command; its exit status (0, or 2 for bad input)."""
-    opts = parser().parse_args(args)
-    config = OfflineConfig(method=opts.method, steps=opts.steps, lr=opts.lr, gamma=opts.gamma,
-                           rule=opts.rule, cg_steps=opts.cg_steps,
+    p = parser()
+    opts = p.parse_args(args)
+    wrong = check_paths(opts)
+    if wrong:
+        print(f'adapt_offline: error: {wrong}', file=sys.stderr)
+        return 2
+    METHODS.check(p, '--method', opts.method)
+    RULES.check(p, '--rule', opts.rule)
+    from metampc_learner.offline_adaptation import OfflineConfig, report_markdown, run_offline
+    config = OfflineConfig(method=opts.method or '', steps=opts.steps, lr=opts.lr,
+                           gamma=opts.gamma, rule=opts.rule, cg_steps=opts.cg_steps,
                            config_file=opts.config, samples=opts.samples,
                            holdout=opts.holdout, seed=opts.seed,
                            keep_saturated=opts.keep_saturated, time_column=opts.time_column,
