@@ -184,6 +184,13 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
     usable = _usable(grid)
     log(f'{recording}: {len(grid.times)} samples on the grid of dt = {mapping.dt:g} s, '
         f'{len(usable)} usable')
+    unreadable = {name: n for name, n in recorded.unreadable.items() if n}
+    if unreadable:
+        log(f'{recording}: unreadable (a mapped value that is no finite number): '
+            + ', '.join(f'{n} of {recorded.read[name]} of {name}'
+                        for name, n in unreadable.items()))
+    if config.samples > len(usable):
+        log(f'--samples {config.samples}: only {len(usable)} usable samples, all used')
     train, held, used = split_target(usable, config.samples, config.holdout, math.inf)
     dtype = next(iter(ckpt.params.values())).dtype
     train_w = Windows.from_trajectories(train, model.norm, cfg, dtype)
@@ -277,6 +284,8 @@ def report_markdown(report: Dict[str, Any]) -> str:
              f"| used: training / held out | {s['train']} / {s['heldout']} |",
              f"| usable, beyond --samples | {s['unused']} |"]
     lines += [f'| skipped: {reason} | {n} |' for reason, n in s['skipped'].items() if n]
+    lines += [f"| unreadable {name} (of {s['messages'][name]}, no finite number) | {n} |"
+              for name, n in s['unreadable'].items() if n]
     lines += ['', f"| held-out T-step error (T = {report['loss_horizon']}, "
               f"{s['heldout_windows']} windows) | meta-model | adapted |", '|---|---|---|',
               f"| l_SSM (normalised) | {h['meta']['loss']:.5g} | {h['adapted']['loss']:.5g} |"]

@@ -234,8 +234,9 @@ def read_csv(path: str, mapping: MachineMapping, time_column: Optional[str] = No
     """The mapping's outputs and inputs from the named columns of a CSV (module docstring).
 
     Raises:
-        RecordingError: no such file, a column missing, a cell that is no number, times that
-            are not finite and increasing.
+        RecordingError: no such file, a column missing, a row with fewer cells than the
+            header, a cell that is no number, a time that is not finite or not after the row
+            before.
     """
     try:
         with open(path, newline='', encoding='utf-8') as f:
@@ -247,7 +248,11 @@ def read_csv(path: str, mapping: MachineMapping, time_column: Optional[str] = No
     if not rows:
         raise RecordingError(f'{path}: empty (a header row of column names is needed)')
     header = [name.strip() for name in rows[0]]
-    body = [r for r in rows[1:] if any(cell.strip() for cell in r)]
+    body = [(n, r) for n, r in enumerate(rows[1:], 2) if any(cell.strip() for cell in r)]
+    for n, r in body:
+        if len(r) < len(header):
+            raise RecordingError(f'{path}: row {n} has {len(r)} cell(s), the header '
+                                 f'{len(header)}')
     wanted = ([(f'outputs[{i}].name', o.name) for i, o in enumerate(mapping.outputs)]
               + [(f'command.inputs[{j}].name', i.name)
                  for j, i in enumerate(mapping.command.inputs)])
@@ -260,9 +265,8 @@ def read_csv(path: str, mapping: MachineMapping, time_column: Optional[str] = No
             raise RecordingError(f'{path}: no column {name!r} ({key}; its columns: '
                                  f'{", ".join(header)})')
     where = {name: header.index(name) for _, name in wanted}
-    table = np.array([[_number(r[where[name]] if where[name] < len(r) else '', path, n + 2,
-                               name) for _, name in wanted] for n, r in enumerate(body)],
-                     dtype=float).reshape(len(body), len(wanted))
+    table = np.array([[_number(r[where[name]], path, n, name) for _, name in wanted]
+                      for n, r in body], dtype=float).reshape(len(body), len(wanted))
     n_y = len(mapping.outputs)
     n_u = len(mapping.command.inputs)
     if time_column is None:
@@ -271,8 +275,10 @@ def read_csv(path: str, mapping: MachineMapping, time_column: Optional[str] = No
         times, clock = table[:, -1], f'column {time_column!r}, s'
         bad = np.flatnonzero(~np.isfinite(times) | (np.diff(times, prepend=-np.inf) <= 0))
         if bad.size:
-            raise RecordingError(f'{path}: row {bad[0] + 2}: the time {times[bad[0]]:g} is not '
-                                 'finite and after the row before')
+            k = bad[0]
+            raise RecordingError(f'{path}: row {body[k][0]}: the time {float(times[k])!r} is '
+                                 + ('not finite' if not np.isfinite(times[k]) else
+                                    f'not after the row before ({float(times[k - 1])!r})'))
     y = table[:, :n_y] * [o.scale for o in mapping.outputs] + [o.offset
                                                                for o in mapping.outputs]
     inputs = mapping.command.inputs

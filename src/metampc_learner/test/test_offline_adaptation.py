@@ -220,3 +220,22 @@ def test_a_checkpoint_of_other_sizes_or_too_few_samples_is_one_line(robot_bag, r
                     OfflineConfig(samples=15))
     assert str(err.value).startswith('too few usable samples: 15 used (')
     assert str(err.value).endswith('each part needs H + T = 10')
+
+
+def test_unreadable_rows_and_a_short_supply_of_samples_are_said(robot_session, robot_meta,
+                                                                mapping_file, tmp_path):
+    """Issue 52: the `unreadable` count was only in the JSON; `--samples 300` with fewer
+    usable samples said nothing."""
+    from robot_recording import write_csv
+    csv = write_csv(robot_session, tmp_path / 'robot.csv', nan_row=7)
+    lines = []
+    report = run_offline(str(csv), mapping_file, robot_meta, str(tmp_path / 'a.pt'),
+                         OfflineConfig(steps=0, samples=100000), lines.append)
+    s = report['samples']
+    assert s['unreadable'] == {'outputs': 1, 'inputs': 0}
+    assert f"{csv}: unreadable (a mapped value that is no finite number): 1 of " \
+        f"{s['messages']['outputs']} of outputs" in lines
+    assert f"--samples 100000: only {s['usable']} usable samples, all used" in lines
+    with open(tmp_path / 'a.md') as f:
+        assert f"| unreadable outputs (of {s['messages']['outputs']}, no finite number) | 1 |" \
+            in f.read().splitlines()

@@ -174,8 +174,14 @@ def test_csv_rows_without_a_time_column_are_dt_apart_or_the_named_column_is_the_
     ('q,qd,tau\n1,2,3\n', {'time_column': 'stamp'},
      "no column 'stamp' (the time column; its columns: q, qd, tau)"),
     ('q,qd,tau,time\n1,2,3,0\n1,x2,3,1\n', {}, "row 3, column 'qd': 'x2' is no number"),
-    ('q,qd,tau,time\n1,2,3,1\n1,2,3,1\n', {}, 'row 3: the time 1 is not finite and after the '
-     'row before'),
+    ('q,qd,tau,time\n1,2,3,1\n1,2,3,1\n', {}, 'row 3: the time 1.0 is not after the row '
+     'before (1.0)'),
+    # Issue 52: both said 'is not finite and after the row before', the time cut to 6 digits.
+    ('q,qd,tau,time\n1,2,3,1796670000.5\n1,2,3,1796670000.25\n', {},
+     'row 3: the time 1796670000.25 is not after the row before (1796670000.5)'),
+    ('q,qd,tau,time\n1,2,3,0\n\n1,2,3,inf\n', {}, 'row 4: the time inf is not finite'),
+    # Issue 52: a short row was read as empty cells.
+    ('q,qd,tau,time\n1,2,3,0\n1,2\n', {}, 'row 3 has 2 cell(s), the header 4'),
     ('', {}, 'empty (a header row of column names is needed)'),
 ])
 def test_a_csv_that_does_not_fit_is_one_line(tmp_path, mapping, text, options, message):
