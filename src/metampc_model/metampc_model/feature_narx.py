@@ -201,6 +201,8 @@ class FeatureNarx:
         top_s = j_s.numpy() * nm.y_std[:, None] / std[None, :]
         top_u = j_u.numpy() * nm.y_std[:, None] / nm.u_std[None, :]
         y_next = y_n * nm.y_std + nm.y_mean
+        if not all(np.all(np.isfinite(v)) for v in (top_s, top_u, y_next)):
+            raise ValueError('the feature NARX has a non-finite Jacobian here')
         u_next = np.asarray(u_next, float)
         n_s, n_y, n_u, p = sh.n_s, sh.n_y, sh.n_u, sh.order
         A = np.zeros((n_s, n_s))
@@ -214,10 +216,7 @@ class FeatureNarx:
             A[p * n_y + n_u:, p * n_y:n_s - n_u] = np.eye((p - 2) * n_u)
         C = np.zeros((n_y, n_s))
         C[:, :n_y] = np.eye(n_y)
-        model = LatentModel(A, B, C, e, np.zeros(n_y))
-        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B)) and np.all(np.isfinite(e))):
-            raise ValueError('the feature NARX has a non-finite Jacobian here')
-        return model
+        return LatentModel(A, B, C, e, np.zeros(n_y))
 
 
 def physical_windows(shape: NarxShape, norm: Normalisation,

@@ -1,0 +1,109 @@
+"""The latent MPC linearised at the current state every tick (local_mpc)."""
+import numpy as np
+import pytest
+
+from metampc_bringup.studies.nonlinear_regime import collect, RegimeConfig, track
+from metampc_controller.local_mpc import LINEARISATION_FAILED, LocalLinearMpc
+from metampc_controller.mpc import MpcConfig
+from metampc_controller.nmpc import Nmpc, NmpcConfig
+from metampc_model.latent_model import LatentModel
+from metampc_plant.integrate import rk4_sample
+from metampc_plant.registry import get_family
+from metampc_plant.simulator import Plant, PlantConfig
+
+CONFIG = MpcConfig(horizon=20, q=(1.0, 0.0), r=0.05, u_min=-1.0, u_max=1.0)
+
+
+class TrueVanDerPol:
+    """The plant's own sampled map x+ = F(x, u) (RK4, 10 sub-steps) as a locally linear model,
+    its Jacobian by central differences; state s = x = y."""
+
+    def __init__(self, theta: float):
+        self.family, self.theta = get_family('vanderpol'), np.array([[theta]])
+
+    def step(self, x, u):
+        return rk4_sample(self.family, x[None], np.atleast_1d(u)[None], self.theta, 0.1, 10)[0]
+
+    def linearise(self, s, u):
+        eps = 1e-6
+        a = np.stack([(self.step(s + eps * e, u) - self.step(s - eps * e, u)) / (2 * eps)
+                      for e in np.eye(2)], axis=1)
+        b = ((self.step(s, u + eps) - self.step(s, u - eps)) / (2 * eps))[:, None]
+        return LatentModel(a, b, np.eye(2), self.step(s, u) - a @ s - b @ u, np.zeros(2))
+
+    @staticmethod
+    def state(u_hist, y_hist):
+        return y_hist[-1]
+
+
+def _cost(planner, theta, setpoints, model=None):
+    config = RegimeConfig(setpoints=setpoints, order=1, mpc=CONFIG)
+    plant = Plant(PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,),
+                              u_max=(1.0,)))
+    return track(planner, plant, (theta,), (0.0, 0.0), config,
+                 None if model is None else model.state)
+
+
+def test_on_the_true_model_it_holds_the_set_points_where_the_nmpc_does():
+    """theta* 1.5, the paper's first two set-points (the step to -0.5 is where every fixed
+    linear model fell into the limit cycle): the cost within 1.15 of the true-model NMPC's
+    (measured 1.115 over the whole reference: docs/nonlinear.md)."""
+    model = TrueVanDerPol(1.5)
+    local = _cost(LocalLinearMpc(CONFIG, model), 1.5, (0.8, -0.5), model)
+    fam = get_family('vanderpol')
+    nmpc = _cost(Nmpc(NmpcConfig(**CONFIG.shared(), dt=0.1), fam, (1.5,)), 1.5, (0.8, -0.5))
+    assert local <= 1.15 * nmpc
+    # while one linear model fitted by least squares on 300 open-loop samples (which lie on
+    # the limit cycle, so the fit averages the damping over it) falls into the limit cycle
+    plant_cfg = PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,),
+                            u_max=(1.0,))
+    u, y = collect('vanderpol', (1.5,), (0.5, 0.0), 300, 0, plant_cfg)
+    reg = np.hstack([y[:-1], u[1:], np.ones((len(u) - 1, 1))])
+    w = np.linalg.lstsq(reg, y[1:], rcond=None)[0].T
+    fixed = LatentModel(w[:, :2], w[:, 2:3], np.eye(2), w[:, 3], np.zeros(2))
+
+    class Fixed:
+        def linearise(self, s, u):
+            return fixed
+    assert _cost(LocalLinearMpc(CONFIG, Fixed()), 1.5, (0.8, -0.5), model) > 3 * local
+
+
+class _Failing:
+    def __init__(self, fail_after):
+        self.calls, self.fail_after = 0, fail_after
+        self.inner = TrueVanDerPol(1.0)
+
+    def linearise(self, s, u):
+        self.calls += 1
+        if self.calls > self.fail_after:
+            a = np.full((2, 2), np.nan)
+            return LatentModel(a, np.ones((2, 1)), np.eye(2), np.zeros(2), np.zeros(2))
+        return self.inner.linearise(s, u)
+
+
+def test_a_failed_linearisation_shifts_the_previous_plan_and_is_counted():
+    planner = LocalLinearMpc(CONFIG, _Failing(fail_after=1))
+    ref = np.tile([0.8, 0.0], (20, 1))
+    first = planner.solve(np.zeros(2), np.zeros(1), ref, np.zeros(2), 0)
+    assert not first.fallback
+    second = planner.solve(np.array([0.1, 0.0]), first.u, ref, np.array([0.1, 0.0]), 1)
+    assert second.fallback and second.status == LINEARISATION_FAILED
+    np.testing.assert_array_equal(second.u_plan[:-1], first.u_plan[1:])
+    assert planner.failed_linearisations == 1
+    third = planner.solve(np.array([np.nan, 0.0]), second.u, ref, None, 2)
+    assert third.fallback and np.all(np.isfinite(third.u_plan))
+    assert np.all(np.abs(third.u_plan) <= 1.0) and planner.failed_linearisations == 2
+
+
+def test_a_first_tick_failure_holds_the_input_within_bounds():
+    planner = LocalLinearMpc(CONFIG, _Failing(fail_after=0))
+    res = planner.solve(np.zeros(2), np.array([3.0]), np.zeros((20, 2)), None, 0)
+    assert res.fallback
+    np.testing.assert_array_equal(res.u_plan, np.ones((20, 1)))
+
+
+@pytest.mark.parametrize('form', ['state', 'none'])
+def test_the_planner_plans_without_an_offset_free_estimator(form):
+    from dataclasses import replace
+    planner = LocalLinearMpc(replace(CONFIG, offset_free=form), TrueVanDerPol(1.0))
+    assert planner.config.offset_free == 'none'

@@ -1,0 +1,166 @@
+"""The closed-form inner solve (closed_form) and the feature NARX's learning (narx_learning)."""
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from metampc_learner.closed_form import mean_loss, ridge
+from metampc_learner.narx_learning import (adapt, arx_model, meta_train, NarxMetaConfig,
+                                           one_step_data)
+from metampc_model.feature_narx import FeatureNarx, init_params, NarxShape, regressors
+from metampc_model.normalisation import Normalisation
+
+
+def _random_meta(shape, seed, norm=None):
+    params = init_params(shape, seed)
+    gen = torch.Generator().manual_seed(seed + 7)
+    params['head'] = torch.randn(params['head'].shape, generator=gen, dtype=torch.float64)
+    norm = norm or Normalisation(np.zeros(shape.n_u), np.ones(shape.n_u), np.zeros(shape.n_y),
+                                 np.ones(shape.n_y))
+    return FeatureNarx(shape, norm, params)
+
+
+def _arx2_records(seed, n=300, noise=0.0):
+    """A plant that is exactly an ARX(2), 2 outputs, 1 input (stable), and its coefficients
+    [a_1, a_2, b_1 (u_t), b_0 (u_{t+1}), c] as the head's linear columns."""
+    rng = np.random.default_rng(seed)
+    a1 = np.array([[0.5, 0.2], [-0.1, 0.6]])
+    a2 = np.array([[0.1, 0.0], [0.05, -0.2]])
+    b0, b1, c = np.array([1.0, -0.5]), np.array([0.3, 0.2]), np.array([0.1, -0.3])
+    u = rng.uniform(-1, 1, (n, 1))
+    y = np.zeros((n, 2))
+    for t in range(2, n):
+        y[t] = a1 @ y[t - 1] + a2 @ y[t - 2] + b0 * u[t, 0] + b1 * u[t - 1, 0] + c
+        y[t] += noise * rng.normal(size=2)
+    return [(u, y)], np.hstack([a1, a2, b1[:, None], b0[:, None], c[:, None]])
+
+
+@pytest.mark.parametrize('gamma', [0.0, 0.3])
+def test_the_closed_form_equals_a_dense_least_squares(gamma):
+    rng = np.random.default_rng(1)
+    phi, y = rng.normal(size=(50, 6)), rng.normal(size=(50, 3))
+    prior = rng.normal(size=(3, 6))
+    got = ridge(torch.from_numpy(phi), torch.from_numpy(y), torch.from_numpy(prior),
+                gamma).numpy()
+    # min 1/M ||Y - Phi Theta'||^2 + gamma/2 ||Theta - prior||^2 as one stacked lstsq
+    k = np.sqrt(gamma / 2)
+    lhs = np.vstack([phi / np.sqrt(50), k * np.eye(6)])
+    rhs = np.vstack([y / np.sqrt(50), k * prior.T])
+    want = np.linalg.lstsq(lhs, rhs, rcond=None)[0].T
+    np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def test_the_closed_form_is_batched():
+    rng = np.random.default_rng(2)
+    phi, y, prior = (torch.from_numpy(rng.normal(size=s)) for s in
+                     ((4, 30, 5), (4, 30, 2), (2, 5)))
+    batched = ridge(phi, y, prior, 0.1)
+    for b in range(4):
+        torch.testing.assert_close(batched[b], ridge(phi[b], y[b], prior, 0.1))
+
+
+def test_collinear_samples_warn_once_and_stay_finite():
+    phi = torch.ones((40, 3), dtype=torch.float64)        # a constant input beside the bias
+    phi[:, 0] = torch.linspace(-1, 1, 40, dtype=torch.float64)
+    y = 2 * phi[:, :1]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        head = ridge(phi, y, torch.zeros((1, 3), dtype=torch.float64), 0.0)
+    assert len([w for w in caught if 'collinear' in str(w.message)]) == 1
+    assert torch.all(torch.isfinite(head))
+    assert float(mean_loss(phi, y, head)) < 1e-12
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_an_exact_arx2_plant_is_recovered_from_any_meta_model(seed):
+    records, theta = _arx2_records(seed)
+    shape = NarxShape(1, 2, order=2, features=6, hidden=(8,))
+    adapted = adapt(_random_meta(shape, seed), records, gamma=1e-3)
+    head = adapted.model.params['head'].numpy()
+    lin = np.r_[0:shape.n_s, shape.n_s + shape.features:shape.n_phi]
+    np.testing.assert_allclose(head[:, lin], theta, atol=1e-6)
+    np.testing.assert_allclose(head[:, shape.n_s:shape.n_s + shape.features], 0, atol=1e-6)
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_the_adapted_training_loss_is_never_above_the_arxs(seed):
+    rng = np.random.default_rng(seed)
+    records, _ = _arx2_records(seed, n=120, noise=float(rng.uniform(0, 0.2)))
+    u, y = records[0]
+    y = y + 0.3 * np.tanh(np.roll(y, 1, axis=0))            # not an ARX any more
+    shape = NarxShape(1, 2, order=2, features=4, hidden=(5,))
+    meta = _random_meta(shape, seed)
+    for gamma in (0.0, 1e-6, 1e-2, 10.0):
+        adapted = adapt(meta, [(u, y)], gamma)
+        phi, target = one_step_data(shape, meta.params, meta.norm, [(u, y)])
+        arx = arx_model(meta, [(u, y)])
+        arx_loss = float(mean_loss(phi, target, arx.params['head']))
+        assert adapted.arx_loss == pytest.approx(arx_loss, rel=1e-12)
+        assert adapted.train_loss <= arx_loss
+        assert adapted.train_loss == pytest.approx(
+            float(mean_loss(phi, target, adapted.model.params['head'])), rel=1e-12)
+
+
+def test_a_strong_prior_that_loses_to_the_arx_is_dropped():
+    records, theta = _arx2_records(0)
+    shape = NarxShape(1, 2, order=2, features=3, hidden=(4,))
+    adapted = adapt(_random_meta(shape, 0), records, gamma=1e3)
+    assert adapted.rule == 'least_squares'
+    adapted = adapt(_random_meta(shape, 0), records, gamma=1e-12)
+    assert adapted.rule in ('ridge', 'least_squares')
+
+
+def _toy_systems(ks, seed):
+    """Scalar systems y+ = 0.7 y + 0.5 k tanh(2 y) + 0.5 u with task parameters `ks`."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in ks:
+        u = rng.uniform(-1, 1, (80, 1))
+        y = np.zeros((80, 1))
+        for t in range(1, 80):
+            y[t] = 0.7 * y[t - 1] + 0.5 * k * np.tanh(2 * y[t - 1]) + 0.5 * u[t]
+        out.append([(u, y)])
+    return out
+
+
+def test_imaml_meta_gradient_is_the_exact_gradient_through_the_solve():
+    """One outer step's loss gradient (what meta_train backpropagates) against central
+    differences of the same outer loss in a head entry and a feature weight."""
+    shape = NarxShape(1, 1, order=1, features=3, hidden=(4,))
+    params = _random_meta(shape, 3).params
+    rng = np.random.default_rng(0)
+    s_tr, u_tr, y_tr = (torch.from_numpy(rng.normal(size=sz)) for sz in
+                        ((20, 1), (20, 1), (20, 1)))
+    s_te, u_te, y_te = (torch.from_numpy(rng.normal(size=sz)) for sz in
+                        ((10, 1), (10, 1), (10, 1)))
+
+    def outer(p):
+        head = ridge(regressors(shape, p, s_tr, u_tr), y_tr, p['head'], 0.5)
+        return (regressors(shape, p, s_te, u_te) @ head.T - y_te).square().sum(-1).mean()
+
+    leaves = {k: v.clone().requires_grad_() for k, v in params.items()}
+    outer(leaves).backward()
+    for name, idx in (('head', (0, 2)), ('g.0.weight', (1, 0))):
+        eps = 1e-6
+        plus = {k: v.clone() for k, v in params.items()}
+        minus = {k: v.clone() for k, v in params.items()}
+        plus[name][idx] += eps
+        minus[name][idx] -= eps
+        fd = (float(outer(plus)) - float(outer(minus))) / (2 * eps)
+        assert float(leaves[name].grad[idx]) == pytest.approx(fd, rel=1e-5, abs=1e-9)
+
+
+def test_imaml_meta_training_learns_features_that_beat_the_arx_on_unseen_systems():
+    systems = _toy_systems(np.random.default_rng(5).normal(size=30), 0)
+    norm = Normalisation(np.zeros(1), np.ones(1), np.zeros(1), np.ones(1))
+    shape = NarxShape(1, 1, order=1, features=4, hidden=(16,))
+    res = meta_train(shape, norm, systems, NarxMetaConfig(method='imaml', iterations=150,
+                                                          batch_size=8, windows=32,
+                                                          horizon=5, lr=1e-2, gamma=1e-4))
+    assert np.mean(res.curve[-10:]) < 0.5 * np.mean(res.curve[:10])
+    meta = FeatureNarx(shape, norm, res.params)
+    # unseen systems where the nonlinearity matters (|k| >= 0.8): the ARX averages it
+    for records in _toy_systems([-1.2, -0.8, 0.8, 1.2, 1.5], 99):
+        adapted = adapt(meta, records, 1e-4)
+        assert adapted.train_loss < 0.5 * adapted.arx_loss
