@@ -131,3 +131,26 @@ def test_a_bad_mapping_is_one_line_and_exit_status_2(procs, tmp_path, change, li
     assert bridge.wait(60.0) == 2
     lines = own_lines(procs.output(bridge))
     assert len(lines) == 1 and 'invalid parameter: ' in lines[0] and line in lines[0], lines
+
+
+def test_a_topic_of_another_type_is_named_and_first_samples_are_fresh_not_fresh_again(
+        procs, probe, tmp_path):
+    """Issue 52: a machine publishing /joint_states in another type than the mapping's left the
+    bridge silent in its safe state ('no sample yet'); and the first samples were logged as
+    'fresh again'."""
+    from std_msgs.msg import Float64
+    node = probe.node
+    wrong = node.create_publisher(Float64, '/joint_states', 10)
+    bridge = procs.start('metampc_plant', 'bridge', params={'mapping_file': MAPPING})
+    said = ('/joint_states carries std_msgs/msg/Float64, not sensor_msgs/msg/JointState as the '
+            'mapping says')
+    probe.wait_for(lambda: said in procs.output(bridge), 60.0, 'the type mismatch in the log')
+    node.destroy_publisher(wrong)
+    with example_script([ROBOT, '50'], tmp_path / 'robot.log'):     # the right type
+        probe.wait_for(lambda: "the machine's samples are fresh" in procs.output(bridge), 60.0,
+                       'fresh samples in the log')
+        assert procs.interrupt(bridge) == 0
+    out = procs.output(bridge)
+    assert out.count(said) == 1, out
+    assert "the machine's samples are fresh; the safe value" in out, out
+    assert 'fresh again' not in out, out

@@ -11,7 +11,7 @@ docs/bridge.md.
 """
 from dataclasses import dataclass
 import math
-from typing import Any, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -166,3 +166,26 @@ class BridgeCore:
         if silent > self.mapping.stale_timeout:
             return WAITING, f'no input from the controller for {silent:.3f} s'
         return FOLLOWING, ''
+
+
+def type_mismatches(mapping: MachineMapping, writers: Dict[str, Sequence[str]],
+                    readers: Sequence[str]) -> List[str]:
+    """One line for each topic of `mapping` that the graph carries in another type than the
+    mapping's: an output topic whose writers (`writers`: topic -> the types of its publishers)
+    all use other types (no sample of it can come: the bridge waits in its safe state), the
+    command topic with a reader of another type (`readers`: the types of its subscriptions; it
+    gets no command)."""
+    lines = []
+    for topic in mapping.topics:
+        types = sorted(set(writers.get(topic.topic, ())))
+        if types and topic.type not in types:
+            lines.append(f'{topic.topic} carries {", ".join(types)}, not {topic.type} as the '
+                         'mapping says: no sample of it can come (is the type in the mapping '
+                         'right?)')
+    command = mapping.command
+    others = sorted(set(readers) - {command.type})
+    if others:
+        lines.append(f'{command.topic} is read as {", ".join(others)}: the commands go out as '
+                     f'{command.type}, as the mapping says, and reach no reader of another '
+                     'type (is the type in the mapping right?)')
+    return lines

@@ -6,14 +6,16 @@ the input held over (k-1, k], clipped or not) and, once, the latched ``plant_inf
 mapping's dt, bounds, names and units; no theta; clock mode realtime). Takes ``u``
 (ControlInput) and writes the machine's command topic in its type; writes the safe value while
 the machine's samples or the controller's answers are stale, says so in the log and on
-``diagnostics`` (diagnostic_msgs/DiagnosticArray). Rules: :mod:`metampc_plant.bridge_core`;
+``diagnostics`` (diagnostic_msgs/DiagnosticArray). A mapped topic that the graph carries in
+another type is warned about once (and listed in the diagnostics while it lasts).
+Rules: :mod:`metampc_plant.bridge_core`;
 refuses a bad mapping (one error line, exit 2). Parameters: :data:`PARAMETERS`; docs/bridge.md.
 """
 from array import array
 from dataclasses import dataclass
 import math
 import sys
-from typing import Dict
+from typing import Dict, List, Set
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -25,7 +27,8 @@ from metampc_msgs.msg import ControlInput, PlantInfo, PlantOutput
 from rclpy.node import Node
 from std_msgs.msg import Header
 
-from metampc_plant.bridge_core import BridgeCore, DROPPED, FOLLOWING, OFFSET, STALE, Tick
+from metampc_plant.bridge_core import (BridgeCore, DROPPED, FOLLOWING, OFFSET, STALE, Tick,
+                                       type_mismatches)
 from metampc_plant.machine_mapping import load_mapping, MappingError
 
 DIAGNOSTICS_PERIOD_S = 1.0     # how often the bridge's status goes out besides its changes
@@ -76,6 +79,9 @@ class BridgeNode(Node):
         self.create_subscription(ControlInput, 'u', self._on_input, STREAM)
         self._y_msg = PlantOutput()
         self._last_diagnostics = -math.inf
+        self._mismatches: List[str] = []    # type_mismatches at the last diagnostics
+        self._warned_types: Set[str] = set()
+        self._ever_fresh = False
         self._pub_info.publish(PlantInfo(
             header=self._stamp(), family=mapping.name, dt=mapping.dt,
             u_min=mapping.u_min.tolist(), u_max=mapping.u_max.tolist(),
@@ -125,8 +131,22 @@ class BridgeNode(Node):
             self._write(tick.write)
         if tick.changed:
             self._log_change(tick)
+        self._ever_fresh |= tick.state != STALE
         if tick.changed or tick.time - self._last_diagnostics >= DIAGNOSTICS_PERIOD_S:
+            self._check_types()
             self._diagnose(tick.state, tick.reason, tick.step, tick.ages)
+
+    def _check_types(self) -> None:
+        """The mapped topics the graph carries in another type: each warned about once."""
+        writers = {t.topic: [e.topic_type for e in self.get_publishers_info_by_topic(t.topic)]
+                   for t in self.mapping.topics}
+        readers = [e.topic_type for e in
+                   self.get_subscriptions_info_by_topic(self.mapping.command.topic)]
+        self._mismatches = type_mismatches(self.mapping, writers, readers)
+        for line in self._mismatches:
+            if line not in self._warned_types:
+                self._warned_types.add(line)
+                self.get_logger().warning(line)
 
     def _log_change(self, tick: Tick) -> None:
         log = self.get_logger()
@@ -135,8 +155,9 @@ class BridgeNode(Node):
             log.warning(f'step {tick.step}: command -> safe value {tick.write.tolist()} '
                         f'({tick.reason})')
         elif tick.previous == STALE:
-            log.info(f'step {tick.step}: the machine\'s samples are fresh again; the safe value '
-                     'until the controller answers')
+            again = ' again' if self._ever_fresh else ''
+            log.info(f'step {tick.step}: the machine\'s samples are fresh{again}; the safe '
+                     'value until the controller answers')
         else:
             log.info(f'step {tick.step}: safe value {tick.write.tolist()} until the controller '
                      f'answers ({tick.reason})')
@@ -155,6 +176,7 @@ class BridgeNode(Node):
         values = [KeyValue(key='step', value=str(step)), KeyValue(key='state', value=state)]
         values += [KeyValue(key=f'age {topic.topic}', value=f'{age:.3f}')
                    for topic, age in zip(self.mapping.topics, ages)]
+        values += [KeyValue(key='type mismatch', value=line) for line in self._mismatches]
         status = DiagnosticStatus(
             level=LEVELS.get(state, DiagnosticStatus.WARN), name=f'bridge: {self.mapping.name}',
             message=reason or 'following the controller', hardware_id=self.mapping.name,

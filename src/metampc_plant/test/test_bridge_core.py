@@ -139,3 +139,19 @@ def test_bad_samples_are_dropped_and_a_clock_offset_is_reported():
     kind, why = core.sample(0, joints(11.0, 0.5), 1.0)     # stamped 10 s after its arrival
     assert kind == OFFSET and '+10.000 s from its arrival' in why
     assert core.tick(11.0).y.tolist() == [0.5, -0.5]       # taken all the same
+
+
+def test_a_mapped_topic_the_graph_carries_in_another_type_is_named():
+    """Issue 52: a mapping naming the wrong type logged 'no sample yet' and stayed safe."""
+    from metampc_plant.bridge_core import type_mismatches
+    right = {'/joint_states': ['sensor_msgs/msg/JointState']}
+    assert type_mismatches(MAPPING, right, ['std_msgs/msg/Float64MultiArray']) == []
+    assert type_mismatches(MAPPING, {}, []) == []      # nothing yet: no sample, no mismatch
+    wrong = {'/joint_states': ['sensor_msgs/msg/Imu']}
+    assert type_mismatches(MAPPING, wrong, ['std_msgs/msg/Float64MultiArray',
+                                            'std_msgs/msg/Float64']) == [
+        '/joint_states carries sensor_msgs/msg/Imu, not sensor_msgs/msg/JointState as the '
+        'mapping says: no sample of it can come (is the type in the mapping right?)',
+        '/effort_controller/commands is read as std_msgs/msg/Float64: the commands go out as '
+        'std_msgs/msg/Float64MultiArray, as the mapping says, and reach no reader of another '
+        'type (is the type in the mapping right?)']
