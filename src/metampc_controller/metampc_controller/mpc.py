@@ -362,7 +362,8 @@ class LatentMpc:
 
         y: the measured y_t (n_y,), which the offset-free estimator takes (with the sample's
         index `step`, so that a skipped tick is not read as one step); without it the
-        disturbance estimate stays as it is.
+        disturbance estimate stays as it is. A sample it refuses (not finite) fails the tick
+        as non-finite z_t does: status 'invalid data', the fallback, the estimate unchanged.
 
         Per call: copies into the data vector w, one finiteness check, one product
         [q; y0; b] = Gw w, OSQP (q, primal warm start, solve), the clip into the bounds, the
@@ -380,16 +381,21 @@ class LatentMpc:
         w_u[:] = u_prev
         w_r[:] = y_ref
         est = pb.estimator
+        refused = 0 if est is None else est.refused
         if est is None:
             disturbance = _NO_DISTURBANCE      # w_ed holds the model's e, d (set-up)
         else:
             if y is not None:
-                est.update(z0, u_prev, y, step)
+                est.update(z0, u_prev, y, step)     # refuses (and counts) a non-finite sample
             est.constants(w_ed)
             disturbance = est.p.copy()
-        pb.target(w_target, w_s)
-        # One dot product checks the data for nan/inf before they can reach the solver.
-        valid = math.isfinite(np.dot(pb.w, pb.w))
+        # One dot product checks the data for nan/inf before they can reach the steady-state
+        # target and the solver; a sample the estimator refused fails the tick alike.
+        data = pb.w[:pb.w.size - w_s.size]
+        valid = math.isfinite(np.dot(data, data)) and (est is None or est.refused == refused)
+        if valid:
+            pb.target(w_target, w_s)
+            valid = math.isfinite(np.dot(w_s, w_s))
         status, iters, x, cost = 'invalid data', 0, None, math.nan
         prev = self._plan
         if valid:
