@@ -2,14 +2,18 @@
 import numpy as np
 import pytest
 
-from metampc_bringup.studies.nonlinear_regime import collect, RegimeConfig, track
+from metampc_bringup.analysis.retrack import fly
+from metampc_bringup.experiment_config import load
+from metampc_bringup.studies.nonlinear_regime import collect, track
+from metampc_common.excitation import ExcitationConfig
 from metampc_controller.local_mpc import LINEARISATION_FAILED, LocalLinearMpc
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_model.latent_model import LatentModel
 from metampc_plant.integrate import rk4_sample
 from metampc_plant.registry import get_family
-from metampc_plant.simulator import Plant, PlantConfig
+from metampc_controller.references import make_reference
+from metampc_plant.simulator import PlantConfig
 
 CONFIG = MpcConfig(horizon=20, q=(1.0, 0.0), r=0.05, u_min=-1.0, u_max=1.0)
 
@@ -36,11 +40,13 @@ class TrueVanDerPol:
         return y_hist[-1]
 
 
+PLANT = PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,), u_max=(1.0,))
+
+
 def _cost(planner, theta, setpoints, model=None):
-    config = RegimeConfig(setpoints=setpoints, order=1, mpc=CONFIG)
-    plant = Plant(PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,),
-                              u_max=(1.0,)))
-    return track(planner, plant, (theta,), (0.0, 0.0), config,
+    ref = make_reference('setpoint_sequence', setpoints=setpoints, segment=7.5, outputs=(0,),
+                         n_y=2)
+    return track(planner, PLANT, (theta,), (0.0, 0.0), ref, int(len(setpoints) * 75), (0,),
                  None if model is None else model.state)
 
 
@@ -55,9 +61,8 @@ def test_on_the_true_model_it_holds_the_set_points_where_the_nmpc_does():
     assert local <= 1.15 * nmpc
     # while one linear model fitted by least squares on 300 open-loop samples (which lie on
     # the limit cycle, so the fit averages the damping over it) falls into the limit cycle
-    plant_cfg = PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,),
-                            u_max=(1.0,))
-    u, y = collect('vanderpol', (1.5,), (0.5, 0.0), 300, 0, plant_cfg)
+    exc = ExcitationConfig(u_min=(-1.0,), u_max=(1.0,))
+    u, y = collect(exc, PLANT, (1.5,), (0.5, 0.0), 300, 0)
     reg = np.hstack([y[:-1], u[1:], np.ones((len(u) - 1, 1))])
     w = np.linalg.lstsq(reg, y[1:], rcond=None)[0].T
     fixed = LatentModel(w[:, :2], w[:, 2:3], np.eye(2), w[:, 3], np.zeros(2))
@@ -107,3 +112,18 @@ def test_the_planner_plans_without_an_offset_free_estimator(form):
     from dataclasses import replace
     planner = LocalLinearMpc(replace(CONFIG, offset_free=form), TrueVanDerPol(1.0))
     assert planner.config.offset_free == 'none'
+
+
+def test_the_studys_loop_is_the_experiments_loop():
+    """The study's episode (its own loop over a planner) against the experiment's controller
+    core (retrack.fly) on the same NMPC: the same tracking cost, so the study's ratios divide
+    by the experiment's yardstick."""
+    exp = load(None, {'theta': [1.5], 'track_duration': 4.0})
+    ctrl = exp.node_config('controller', 0)
+    nmpc = fly(exp.node_parameters('controller', 0), exp.node_parameters('plant', 0), (1.5,),
+               exp.track_x0, exp.track_steps())
+    planner = Nmpc(NmpcConfig(**ctrl.mpc.shared(), dt=0.1, tail=ctrl.nmpc_tail),
+                   get_family('vanderpol'), (1.5,))
+    ref = make_reference(ctrl.reference_kind, **ctrl.reference_params)
+    ours = track(planner, PLANT, (1.5,), exp.track_x0, ref, exp.track_steps(), (0,))
+    assert ours == pytest.approx(nmpc.tracking_cost([0]), rel=1e-9)

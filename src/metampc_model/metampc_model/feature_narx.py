@@ -7,7 +7,7 @@ The model class of the nonlinear-control issue (docs/nonlinear.md). In normalise
 
 (u_k the input held over ((k-1) dt, k dt] that produced y_k, the data convention), one step is
 
-    y_{t+1} = Theta phi(s_t, u_{t+1}),   phi = [s_t; g(s_t); u_{t+1}; 1]   (n_phi = n_s + F + n_u + 1)
+    y_{t+1} = Theta phi(s_t, u_{t+1}),   phi = [s_t; g(s_t); u_{t+1}; 1]   (n_phi = n_s+F+n_u+1)
 
 g a tanh MLP of F features (meta-learned, fixed during adaptation) and Theta (n_y, n_phi) the
 head, linear in its parameters: adaptation solves it in closed form (eq. (inner_imaml) with a
@@ -173,18 +173,32 @@ class FeatureNarx:
         std = np.concatenate([nm.y_std] * p + [nm.u_std] * (p - 1))
         return mean, std
 
-    def _one_step(self, s_n: torch.Tensor, u_n: torch.Tensor) -> torch.Tensor:
-        return self.params['head'] @ regressors(self.shape, self.params, s_n, u_n)
+    def _normalised(self, s: np.ndarray, u_next: np.ndarray) -> Tuple[np.ndarray, ...]:
+        """(s_n, u_n, layers of g) for the numpy evaluation: the layers' (weight, bias) as
+        arrays sharing memory with the tensors."""
+        mean, std = self._scales()
+        nm = self.norm
+        layers = [(self.params[f'g.{i}.weight'].detach().numpy(),
+                   self.params[f'g.{i}.bias'].detach().numpy())
+                  for i in range(len(self.shape.hidden) + 1)] if self.shape.features else []
+        return ((s - mean) / std, (np.asarray(u_next, float) - nm.u_mean) / nm.u_std, layers)
+
+    def _one_step(self, s_n: np.ndarray, u_n: np.ndarray, layers
+                  ) -> Tuple[np.ndarray, np.ndarray]:
+        """(y_n (n_y,), dg/ds_n (F, n_s)): g and its Jacobian through the tanh layers,
+        prod_i diag(1 - h_{i+1}^2) W_i, in float64 numpy (no autograd on the tick)."""
+        h, jac = s_n, np.eye(s_n.size)
+        for w, b in layers:
+            h = np.tanh(w @ h + b)
+            jac = (1.0 - h * h)[:, None] * (w @ jac)
+        head = self.params['head'].detach().numpy()
+        phi = np.concatenate([s_n, h if layers else np.zeros(0), u_n, [1.0]])
+        return head @ phi, jac if layers else np.zeros((0, s_n.size))
 
     def step(self, s: np.ndarray, u_next: np.ndarray) -> np.ndarray:
         """y_{t+1} (n_y,) physical from s_t (n_s,) and u_{t+1} (n_u,) physical."""
-        mean, std = self._scales()
-        nm = self.norm
-        s_n = torch.from_numpy((s - mean) / std)
-        u_n = torch.from_numpy((np.asarray(u_next, float) - nm.u_mean) / nm.u_std)
-        with torch.no_grad():
-            y_n = self._one_step(s_n, u_n).numpy()
-        return y_n * nm.y_std + nm.y_mean
+        s_n, u_n, layers = self._normalised(s, u_next)
+        return self._one_step(s_n, u_n, layers)[0] * self.norm.y_std + self.norm.y_mean
 
     def linearise(self, s: np.ndarray, u_next: np.ndarray) -> LatentModel:
         """The affine model of s_{t+1} = F(s_t, u_{t+1}) at (s, u_next), physical units:
@@ -192,19 +206,19 @@ class FeatureNarx:
         first n_y rows are dF/ds), y = C z (C selects y_t), d = 0. ValueError if the
         Jacobian is not finite."""
         sh, nm = self.shape, self.norm
-        mean, std = self._scales()
-        s_n = torch.from_numpy((s - mean) / std)
-        u_n = torch.from_numpy((np.asarray(u_next, float) - nm.u_mean) / nm.u_std)
-        j_s, j_u = torch.func.jacrev(self._one_step, argnums=(0, 1))(s_n, u_n)
-        with torch.no_grad():
-            y_n = self._one_step(s_n, u_n).numpy()
-        top_s = j_s.numpy() * nm.y_std[:, None] / std[None, :]
-        top_u = j_u.numpy() * nm.y_std[:, None] / nm.u_std[None, :]
+        _, std = self._scales()
+        s_n, u_n, layers = self._normalised(s, u_next)
+        y_n, jac_g = self._one_step(s_n, u_n, layers)
+        head = self.params['head'].detach().numpy()
+        n_s, n_f, n_y, n_u, p = sh.n_s, sh.features, sh.n_y, sh.n_u, sh.order
+        j_s = head[:, :n_s] + head[:, n_s:n_s + n_f] @ jac_g
+        j_u = head[:, n_s + n_f:n_s + n_f + n_u]
+        top_s = j_s * nm.y_std[:, None] / std[None, :]
+        top_u = j_u * nm.y_std[:, None] / nm.u_std[None, :]
         y_next = y_n * nm.y_std + nm.y_mean
         if not all(np.all(np.isfinite(v)) for v in (top_s, top_u, y_next)):
             raise ValueError('the feature NARX has a non-finite Jacobian here')
         u_next = np.asarray(u_next, float)
-        n_s, n_y, n_u, p = sh.n_s, sh.n_y, sh.n_u, sh.order
         A = np.zeros((n_s, n_s))
         B = np.zeros((n_s, n_u))
         e = np.zeros(n_s)
