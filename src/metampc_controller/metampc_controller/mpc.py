@@ -492,7 +492,10 @@ def _setup_solver(P: sp.csc_matrix, A: sp.csc_matrix, lo: np.ndarray, hi: np.nda
                   config: MpcConfig) -> osqp.OSQP:
     """A new OSQP instance of the condensed QP. q = 0 at set-up: OSQP scales the cost once from
     (P, q), so the scaling stays independent of the first tick's data."""
-    solver = osqp.OSQP()
+    # The builtin algebra named: OSQP's default looks for its MKL and CUDA modules on every
+    # construction (a failed import each, ~1 ms: the locally linear MPC builds one per tick),
+    # and would pick MKL where installed, so the same QP could solve differently per machine.
+    solver = osqp.OSQP(algebra='builtin')
     solver.setup(P=P, q=np.zeros(P.shape[0]), A=A, l=lo, u=hi, **config.osqp_settings())
     return solver
 
