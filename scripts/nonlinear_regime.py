@@ -34,7 +34,8 @@ def main(argv=None) -> int:
     ap.add_argument('--set', action='append', default=[], metavar='KEY=YAML',
                     help='a configuration key on top of the file (section.key merges into '
                          'the section), e.g. controller.reference_values=[1.2,-1.2]')
-    ap.add_argument('--iterations', type=int, default=1000, help='meta-training outer steps')
+    ap.add_argument('--iterations', type=int,
+                    help="meta-training outer steps (default: NarxMetaConfig's)")
     ap.add_argument('--features', type=int, default=32, help='meta-learned features F')
     ap.add_argument('--out', help='write the rows as JSON to this file (refused if it exists)')
     args = ap.parse_args(argv)
@@ -71,7 +72,8 @@ def main(argv=None) -> int:
     if args.config and not os.path.isfile(args.config):
         print(f'nonlinear_regime: no configuration {args.config}', file=sys.stderr)
         return 2
-    if args.seeds < 1 or args.first_seed < 0 or args.iterations < 1 or args.features < 0:
+    if (args.seeds < 1 or args.first_seed < 0 or args.features < 0
+            or (args.iterations is not None and args.iterations < 1)):
         print('nonlinear_regime: --seeds and --iterations must be >= 1, --features >= 0',
               file=sys.stderr)
         return 2
@@ -85,7 +87,8 @@ def main(argv=None) -> int:
     config = RegimeConfig(experiment=args.config, thetas=tuple(thetas),
                           seeds=tuple(range(args.first_seed, args.first_seed + args.seeds)),
                           methods=tuple(methods), features=args.features,
-                          meta=NarxMetaConfig(iterations=args.iterations, gamma=1e-5),
+                          meta=NarxMetaConfig(**({} if args.iterations is None
+                                                 else {'iterations': args.iterations})),
                           oracle=not args.no_oracle, overrides=overrides)
     try:
         rows = run(config, log=lambda line: print(line, flush=True))

@@ -41,17 +41,22 @@ class NarxMetaConfig:
         windows: windows drawn per system per step, for D_tr and for D_test each.
         horizon: T of the outer (D_test) rollout loss, samples.
         lr: Adam step size.
-        gamma: proximal strength of the closed-form inner solve (mean-loss units).
+        gamma: proximal strength of the closed-form inner solve (mean-loss units), in
+            meta-training and in the adaptation to the target alike.
         seed: initial weights and the draws of systems and windows.
+
+    Defaults: the van der Pol calibration of docs/nonlinear.md (gamma 1e-3 made the prior
+    dominate the target's samples: the ridge fit lost to the ARX and fell back to least
+    squares; 400 steps left the D_test loss at 8e-4 against 6e-5 after 1000).
     """
 
     method: str = 'imaml'
-    iterations: int = 400
+    iterations: int = 1000
     batch_size: int = 16
     windows: int = 64
     horizon: int = 10
     lr: float = 3e-3
-    gamma: float = 1e-3
+    gamma: float = 1e-5
     seed: int = 0
 
     def validate(self) -> None:

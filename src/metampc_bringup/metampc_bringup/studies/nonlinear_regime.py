@@ -50,8 +50,8 @@ class RegimeConfig:
         seeds: test seeds (with thetas: the data seeds of every target).
         methods: meta-learning methods of the feature NARX ('imaml', 'maml').
         order, features, hidden: the feature NARX's sizes (:class:`NarxShape`).
-        meta: meta-training settings (method overridden per method).
-        gamma: proximal strength of the adaptation (mean-loss units).
+        meta: meta-training settings (method overridden per method; its gamma is the
+            adaptation's too).
         oracle: also fly the oracle of each method's features.
         overrides: configuration keys set on top of the file's; a value for a section
             ('learner', 'controller', 'plant') is merged into it (a declared regime's
@@ -65,9 +65,7 @@ class RegimeConfig:
     order: int = 2
     features: int = 32
     hidden: Tuple[int, ...] = (64,)
-    meta: NarxMetaConfig = field(
-        default_factory=lambda: NarxMetaConfig(iterations=1000, gamma=1e-5))
-    gamma: float = 1e-5
+    meta: NarxMetaConfig = field(default_factory=NarxMetaConfig)
     oracle: bool = True
     overrides: Dict[str, Any] = field(default_factory=dict)
 
@@ -185,7 +183,7 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print) -> List[Dict]:
                         10_000 + tgt.seed)]
         models = {}
         for method, meta in metas.items():
-            ad = adapt(meta, recs, config.gamma)
+            ad = adapt(meta, recs, config.meta.gamma)
             models[method] = (ad.model, ad.train_loss, ad.rule)
         first = next(iter(metas.values()))
         models['arx'] = (arx_model(first, recs), ad.arx_loss, 'least_squares')
