@@ -79,9 +79,9 @@ def main(argv=None) -> int:
         return 2
     import torch
     from metampc_bringup.studies.nonlinear_regime import RegimeConfig, run
-    from metampc_learner.narx_learning import METHODS, NarxMetaConfig
-    if not methods or set(methods) - set(METHODS):
-        print(f'nonlinear_regime: --methods takes {",".join(METHODS)}', file=sys.stderr)
+    from metampc_learner.narx_learning import NARX_METHODS, NarxMetaConfig
+    if not methods or set(methods) - set(NARX_METHODS):
+        print(f'nonlinear_regime: --methods takes {",".join(NARX_METHODS)}', file=sys.stderr)
         return 2
     torch.set_num_threads(1)
     config = RegimeConfig(experiment=args.config, thetas=tuple(thetas),

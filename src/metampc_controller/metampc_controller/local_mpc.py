@@ -1,19 +1,11 @@
 """The latent MPC on a nonlinear one-step model, linearised at the current state every tick.
 
-One QP per tick (eq. (mpc), the latent MPC of :mod:`metampc_controller.mpc` with its DARE
-terminal cost, Delta-u weight and bounds) on the affine model that is exact to first order at
-(s_t, u_t): the feature NARX's :meth:`~metampc_model.feature_narx.FeatureNarx.linearise` (or any
-model with ``linearise(s, u) -> LatentModel``). Why the current state: a calibration on
-the true van der Pol (docs/nonlinear.md) put it within 1.03-1.05x of the origin's
-linearisation (van der Pol's own centre, which no generic rule picks) and far ahead of the
-set-point's equilibrium (x1 RMSE 0.188 / 0.224 against 0.316 / 0.459 at theta* 1.5 / 2.0).
-The model is rebuilt each tick, so the offset-free estimator would restart every tick: this
-planner plans with offset_free 'none' (eq. (mpc) as the paper writes it), and the
-linearisation's own constant e carries the model's steady state.
-
-Bad input: a linearisation that is not finite, or a model the QP refuses (a singular or
-non-finite DARE), leaves that tick to the shifted previous plan (held u_t on the first tick),
-as a failed solve does; counted in ``failed_linearisations`` and reported in the status.
+One QP per tick (eq. (mpc): :class:`~metampc_controller.mpc.LatentMpc`, its DARE terminal cost,
+Delta-u weight and bounds) on the affine model exact to first order at (s_t, u_t): any model
+with ``linearise(s, u) -> LatentModel`` (the feature NARX). The offset-free estimator would
+restart with every model, so this planner plans with offset_free 'none'. A linearisation that
+is not finite, or that the QP refuses, leaves the tick to the shifted previous plan (held u_t
+at first), counted in ``failed_linearisations``. Why the current state: docs/nonlinear.md.
 """
 from dataclasses import replace
 import time

@@ -2,8 +2,6 @@
 import numpy as np
 import pytest
 
-from metampc_bringup.analysis.retrack import fly
-from metampc_bringup.experiment_config import load
 from metampc_bringup.studies.nonlinear_regime import collect, track
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.local_mpc import LINEARISATION_FAILED, LocalLinearMpc
@@ -112,18 +110,3 @@ def test_the_planner_plans_without_an_offset_free_estimator(form):
     from dataclasses import replace
     planner = LocalLinearMpc(replace(CONFIG, offset_free=form), TrueVanDerPol(1.0))
     assert planner.config.offset_free == 'none'
-
-
-def test_the_studys_loop_is_the_experiments_loop():
-    """The study's episode (its own loop over a planner) against the experiment's controller
-    core (retrack.fly) on the same NMPC: the same tracking cost, so the study's ratios divide
-    by the experiment's yardstick."""
-    exp = load(None, {'theta': [1.5], 'track_duration': 4.0})
-    ctrl = exp.node_config('controller', 0)
-    nmpc = fly(exp.node_parameters('controller', 0), exp.node_parameters('plant', 0), (1.5,),
-               exp.track_x0, exp.track_steps())
-    planner = Nmpc(NmpcConfig(**ctrl.mpc.shared(), dt=0.1, tail=ctrl.nmpc_tail),
-                   get_family('vanderpol'), (1.5,))
-    ref = make_reference(ctrl.reference_kind, **ctrl.reference_params)
-    ours = track(planner, PLANT, (1.5,), exp.track_x0, ref, exp.track_steps(), (0,))
-    assert ours == pytest.approx(nmpc.tracking_cost([0]), rel=1e-9)

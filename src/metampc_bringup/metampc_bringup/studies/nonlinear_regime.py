@@ -1,23 +1,13 @@
 """The nonlinear-regime study: the feature NARX on its planner against the true-model NMPC.
 
-One process, no ROS (``scripts/nonlinear_regime.py``; protocol and figures:
-docs/nonlinear.md). Everything a run of the experiment would use comes from its configuration
-(``config/<family>.yaml``): the family, the controller's tracking problem and reference, the
-pre-model excitation that collects D_target, the learner's source systems, collect_x0,
-track_x0, the tracked outputs, the run length. Per meta-learning method the feature NARX
-(:mod:`metampc_model.feature_narx`) is meta-trained once on the source systems of the first
-test seed (the experiment meta-trains per seed; one source set keeps the study's time for the
-targets), then per test target (theta* given, or the seed's draw as the experiment draws it)
-and data seed: ``target_samples`` samples from collect_x0 under the controller's excitation,
-the closed-form adaptation (:func:`metampc_learner.narx_learning.adapt`), its held-out l_SSM on
-HELDOUT_SAMPLES other samples, and one tracking episode with the planner that linearises it each
-tick (:class:`metampc_controller.local_mpc.LocalLinearMpc`). Beside it: the least-squares
-ARX(p) of the same samples on the same planner, the oracle of the class (the meta-features
-with the least-squares head of ORACLE_EPISODES target episodes), and the yardstick: the
-experiment's own true-model NMPC through the controller core
-(:func:`metampc_bringup.analysis.retrack.fly`). The tracking cost is the experiment's:
-sum_k ||y_{k+1} - r_{k+1}||^2 over the tracked outputs, r_{k+1} the first reference row of the
-tick that answered step k; an episode whose plant diverges costs inf (an escape).
+One process, no ROS (``scripts/nonlinear_regime.py``). Everything comes from the family's
+experiment configuration (controller tuning and reference, the excitation that collects
+D_target, source systems, x0, tracked outputs, run length). Per method the feature NARX is
+meta-trained once (the first seed's source systems), then per target: adapted to
+``target_samples`` samples, scored on HELDOUT_SAMPLES others, flown by the locally linear MPC
+beside the ARX(p) of the same samples and the class's oracle; the yardstick is the
+experiment's own NMPC (:func:`~metampc_bringup.analysis.retrack.fly`), the cost the
+experiment's (sum of squared tracking errors; an escape costs inf). Protocol: docs/nonlinear.md.
 """
 from dataclasses import dataclass, field
 import math
