@@ -47,8 +47,9 @@ def ridge(phi: torch.Tensor, y: torch.Tensor, prior: torch.Tensor, gamma: float
         floor = RIDGE_FLOOR * scale * eye
         cond = torch.linalg.cond(gram.detach())
         if torch.any(~torch.isfinite(cond) | (cond > COLLINEAR_COND)):
-            warnings.warn('closed-form fit: the regressors are collinear (a constant input or '
-                          'too few distinct samples); solved as a ridge regression',
+            warnings.warn('closed-form fit: the regressors are collinear (a constant input, '
+                          'too few distinct samples, or features that are linear in the lags '
+                          'on these samples); solved as a ridge regression',
                           RuntimeWarning, stacklevel=2)
         reg = torch.maximum(reg, floor)
     rhs = cross + (gamma / 2) * prior
