@@ -14,11 +14,9 @@ Prints a line per episode and a summary per model (cost / NMPC median and worst,
 """
 import argparse
 import json
-import math
 import os
 import sys
 
-import numpy as np
 import yaml
 
 
@@ -78,7 +76,7 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     import torch
-    from metampc_bringup.studies.nonlinear_regime import RegimeConfig, run
+    from metampc_bringup.studies.nonlinear_regime import RegimeConfig, run, summary
     from metampc_learner.narx_learning import NARX_METHODS, NarxMetaConfig
     if not methods or set(methods) - set(NARX_METHODS):
         print(f'nonlinear_regime: --methods takes {",".join(NARX_METHODS)}', file=sys.stderr)
@@ -95,19 +93,7 @@ def main(argv=None) -> int:
     except ValueError as err:        # a configuration or theta the family refuses
         print(f'nonlinear_regime: {err}', file=sys.stderr)
         return 2
-    print('\nmodel            cost / NMPC median   worst   escapes   held-out l_SSM median')
-    for name in dict.fromkeys(r['model'] for r in rows):
-        ratios = [r['ratio'] for r in rows if r['model'] == name]
-        held = [r['heldout'] for r in rows if r['model'] == name]
-        esc = sum(not math.isfinite(r['cost']) for r in rows if r['model'] == name)
-        print(f'{name:>14}   {np.median(ratios):18.3f}   {max(ratios):6.3f}   {esc:7d}   '
-              f'{np.median(held):.2e}')
-    for name in methods:          # paired with the ARX of the same samples
-        own = [r for r in rows if r['model'] == name]
-        arx = [r for r in rows if r['model'] == 'arx']
-        paired = [m['cost'] / a['cost'] for m, a in zip(own, arx)]
-        print(f'{name} / arx (paired): median {np.median(paired):.3f}, cheaper on '
-              f'{sum(p < 1 for p in paired)}/{len(paired)}')
+    print('\n' + '\n'.join(summary(rows)))
     if args.out:
         with open(args.out, 'w') as f:
             json.dump(rows, f, indent=1)

@@ -15,6 +15,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from metampc_bringup.analysis.paired_stats import format_claim, paired_claim
 from metampc_bringup.analysis.retrack import fly, plant_config
 from metampc_bringup.experiment_config import ExperimentConfig, load
 from metampc_common.excitation import excitation, ExcitationConfig
@@ -200,4 +201,28 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print) -> List[Dict]:
     return rows
 
 
-__all__ = ['RegimeConfig', 'Target', 'collect', 'track', 'targets', 'meta_models', 'run']
+def summary(rows: Sequence[Dict]) -> List[str]:
+    """Markdown lines: per model the cost / NMPC median and worst, escapes and the median
+    held-out l_SSM; then each method against the ARX of the same samples, paired by target
+    (:func:`~metampc_bringup.analysis.paired_stats.paired_claim` on the cost ratio)."""
+    models = list(dict.fromkeys(r['model'] for r in rows))
+    lines = ['| model | cost / NMPC median | worst | escapes | held-out l_SSM median |',
+             '|---|---|---|---|---|']
+    for name in models:
+        own = [r for r in rows if r['model'] == name]
+        ratios = [r['ratio'] for r in own]
+        lines.append(f'| {name} | {np.median(ratios):.3f} | {max(ratios):.3f} | '
+                     f'{sum(not math.isfinite(r["cost"]) for r in own)}/{len(own)} | '
+                     f'{np.median([r["heldout"] for r in own]):.2e} |')
+    arx = [r['cost'] for r in rows if r['model'] == 'arx']
+    for name in models:
+        if name == 'arx' or name.startswith('oracle'):
+            continue
+        own = [r['cost'] for r in rows if r['model'] == name]
+        lines.append(f'\n{name} < arx (paired): '
+                     f'{format_claim(paired_claim(own, arx, log=True))}')
+    return lines
+
+
+__all__ = ['RegimeConfig', 'Target', 'collect', 'track', 'targets', 'meta_models', 'run',
+           'summary']
