@@ -30,6 +30,7 @@ from metampc_plant.simulator import Plant, PlantConfig, simulate
 Record = Tuple[np.ndarray, np.ndarray]
 HELDOUT_SAMPLES = 2000
 ORACLE_EPISODES = 100
+ORACLE_SAMPLES = 200        # per episode
 HELDOUT_HORIZON = 10
 
 
@@ -182,8 +183,11 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print) -> List[Dict]:
             fam = exp.plant_family
             starts = np.random.default_rng([tgt.seed, 77]).uniform(
                 fam.x0_low, fam.x0_high, (ORACLE_EPISODES, fam.n_x))
-            many = [collect(ctrl.excitation, plant, tgt.theta, x0, 200, 20_000 + i)
-                    for i, x0 in enumerate(starts)]
+            # as the source set keeps them: whole episodes only, an escaping one dropped
+            many = [r for r in (collect(ctrl.excitation, plant, tgt.theta, x0,
+                                        ORACLE_SAMPLES, 20_000 + i)
+                                for i, x0 in enumerate(starts))
+                    if len(r[1]) == ORACLE_SAMPLES]
             for method, meta in metas.items():
                 models[f'oracle_{method}'] = (fit_head(meta, many), math.nan, 'oracle')
         reference = make_reference(ctrl.reference_kind, **ctrl.reference_params)
