@@ -35,6 +35,8 @@ def main(argv=None) -> int:
     ap.add_argument('--iterations', type=int,
                     help="meta-training outer steps (default: NarxMetaConfig's)")
     ap.add_argument('--features', type=int, default=32, help='meta-learned features F')
+    ap.add_argument('--cache', help='a folder where meta-models are kept and read back (the '
+                    'same source systems, sizes and settings: the same file)')
     ap.add_argument('--out', help='write the rows as JSON to this file (refused if it exists)')
     args = ap.parse_args(argv)
     try:
@@ -67,6 +69,9 @@ def main(argv=None) -> int:
             overrides.setdefault(section, {})[name] = parsed
         else:
             overrides[key] = parsed
+    if args.cache and not os.path.isdir(args.cache):
+        print(f'nonlinear_regime: no folder {args.cache} for --cache', file=sys.stderr)
+        return 2
     if args.config and not os.path.isfile(args.config):
         print(f'nonlinear_regime: no configuration {args.config}', file=sys.stderr)
         return 2
@@ -89,7 +94,7 @@ def main(argv=None) -> int:
                                                  else {'iterations': args.iterations})),
                           oracle=not args.no_oracle, overrides=overrides)
     try:
-        rows = run(config, log=lambda line: print(line, flush=True))
+        rows = run(config, log=lambda line: print(line, flush=True), cache=args.cache)
     except ValueError as err:        # a configuration or theta the family refuses
         print(f'nonlinear_regime: {err}', file=sys.stderr)
         return 2

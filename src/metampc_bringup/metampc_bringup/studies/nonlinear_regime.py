@@ -10,10 +10,13 @@ experiment's own NMPC (:func:`~metampc_bringup.analysis.retrack.fly`), the cost 
 experiment's (sum of squared tracking errors; an escape costs inf). Protocol: docs/nonlinear.md.
 """
 from dataclasses import dataclass, field
+import hashlib
 import math
+import os
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+import torch
 
 from metampc_bringup.analysis.paired_stats import format_claim, paired_claim
 from metampc_bringup.analysis.retrack import fly, plant_config
@@ -137,8 +140,11 @@ def targets(config: RegimeConfig) -> List[Target]:
     return out
 
 
-def meta_models(config: RegimeConfig, log: Callable[[str], None]) -> Dict[str, FeatureNarx]:
-    """The feature NARX meta-trained by each method on the first seed's source systems."""
+def meta_models(config: RegimeConfig, log: Callable[[str], None],
+                cache: Optional[str] = None) -> Dict[str, FeatureNarx]:
+    """The feature NARX meta-trained by each method on the first seed's source systems;
+    with `cache` (a folder) each meta-model is kept there under a hash of everything it
+    depends on (source systems, sizes, meta-training settings) and read back when present."""
     exp = experiment(config)
     source = exp.node_config('learner', config.seeds[0]).source
     data = simulate_source(source)
@@ -149,17 +155,27 @@ def meta_models(config: RegimeConfig, log: Callable[[str], None]) -> Dict[str, F
     out = {}
     for method in config.methods:
         meta_cfg = NarxMetaConfig(**{**config.meta.__dict__, 'method': method})
-        res = meta_train(shape, norm, systems, meta_cfg)
-        log(f'meta-trained {method}: D_test loss {np.mean(res.curve[:20]):.2e} -> '
-            f'{np.mean(res.curve[-20:]):.2e} in {res.elapsed:.0f} s')
-        out[method] = FeatureNarx(shape, norm, res.params)
+        key = hashlib.sha256(repr((source, shape, meta_cfg)).encode()).hexdigest()[:16]
+        path = cache and os.path.join(cache, f'narx_{method}_{key}.pt')
+        if path and os.path.exists(path):
+            params = torch.load(path)
+            log(f'meta-model {method}: {path}')
+        else:
+            res = meta_train(shape, norm, systems, meta_cfg)
+            log(f'meta-trained {method}: D_test loss {np.mean(res.curve[:20]):.2e} -> '
+                f'{np.mean(res.curve[-20:]):.2e} in {res.elapsed:.0f} s')
+            params = res.params
+            if path:
+                torch.save(params, path)
+        out[method] = FeatureNarx(shape, norm, params)
     return out
 
 
-def run(config: RegimeConfig, log: Callable[[str], None] = print) -> List[Dict]:
+def run(config: RegimeConfig, log: Callable[[str], None] = print,
+        cache: Optional[str] = None) -> List[Dict]:
     """Every row of the study (module docstring): one dict per (target, model) with the
     tracking cost, its ratio to the NMPC's, held-out and training losses."""
-    metas = meta_models(config, log)
+    metas = meta_models(config, log, cache)
     rows = []
     for tgt in targets(config):
         exp, ctrl, plant = tgt.experiment, tgt.controller(), tgt.plant()
