@@ -60,7 +60,7 @@ class NmpcConfig(PlannerConfig):
     solver: str = 'ipopt'
     max_iter: int = 50
     fd_step: float = 1e-6
-    ipopt_max_iter: int = 500
+    ipopt_max_iter: int = 200
     ipopt_tol: float = 1e-10
     tail: int = 0
 
@@ -232,21 +232,19 @@ class Nmpc:
 
     def _solve_shooting(self, x0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
                         guess: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple:
-        """IPOPT multiple shooting from the shifted plan and states (the first solve of an
-        episode: the states of the plan rolled out from x0): (plan (N n_u,) within [lo, hi],
-        or `guess` itself where the solution is not finite; status; iterations; residual)."""
-        cfg, n_u = self.config, self.family.n_u
-        u_guess = guess.reshape(-1, n_u)
-        states = self._states
-        if states is None:
-            held = np.concatenate([u_guess, np.repeat(u_guess[-1:], cfg.tail, axis=0)])
-            states = np.empty((len(held), self.family.n_x))
-            x = x0
-            for k, u in enumerate(held):
-                x = states[k] = self.rollout_state(x, u)
+        """IPOPT multiple shooting from the shifted plan and states (without planned states,
+        the first solve of an episode or after a fallback: every state at x0, which measured
+        better than the plan's own rollout: from rest the tank's rollout drains an upper tank
+        through sqrt's infinite slope at 0, where IPOPT stalled at its cap, while from x0 held
+        it converged in 7 iterations to L-BFGS-B's cost): (plan (N n_u,) within [lo, hi], or
+        `guess` itself where the solution is not finite; status; iterations; residual)."""
+        u_guess = guess.reshape(-1, self.family.n_u)
+        if self._states is None:
+            states = np.tile(x0, (self.config.horizon + self.config.tail, 1))
         else:
-            states = np.vstack([states[1:], self.rollout_state(states[-1], u_guess[-1])])
-        states = np.where(np.isfinite(states), states, x0)     # an escaped guess: x0 held
+            states = np.vstack([self._states[1:],
+                                self.rollout_state(self._states[-1], u_guess[-1])])
+            states = np.where(np.isfinite(states), states, x0)
         res = self._shooting.solve(x0, u_prev, y_ref, self.theta, u_guess, states)
         plan = res.u.reshape(-1)
         if not np.all(np.isfinite(plan)):
