@@ -1,14 +1,16 @@
 """The nonlinear-regime study's pieces (nonlinear_regime): its loop, targets and collection."""
 import numpy as np
 import pytest
+import torch
 
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.experiment_config import load
 from metampc_bringup.studies.nonlinear_regime import (
-    collect, experiment, RegimeConfig, summary, targets, track)
+    collect, experiment, meta_models, RegimeConfig, summary, targets, track)
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.references import make_reference
+from metampc_learner.narx_learning import NarxMetaConfig
 from metampc_plant.registry import get_family
 from metampc_plant.simulator import PlantConfig, simulate
 
@@ -66,3 +68,18 @@ def test_the_summary_gives_median_worst_escapes_and_the_paired_claim():
     assert lines[2] == '| imaml | 1.500 | inf | 1/3 | 2.00e-03 |'
     assert lines[3] == '| arx | 2.000 | 4.500 | 0/3 | 3.00e-02 |'
     assert lines[4].startswith('\nimaml < arx (paired): 1/3; median ratio 1.2')
+
+
+def test_the_cache_gives_back_the_same_meta_model_and_keys_on_its_settings(tmp_path):
+    config = RegimeConfig(seeds=(0,), features=2, hidden=(3,),
+                          meta=NarxMetaConfig(iterations=2, batch_size=2, windows=4))
+    said = []
+    first = meta_models(config, said.append, str(tmp_path))['imaml']
+    again = meta_models(config, said.append, str(tmp_path))['imaml']
+    assert said[0].startswith('meta-trained') and said[1].startswith('meta-model imaml')
+    for name, value in first.params.items():
+        assert torch.equal(value, again.params[name])
+    other = RegimeConfig(seeds=(0,), features=2, hidden=(3,),
+                         meta=NarxMetaConfig(iterations=3, batch_size=2, windows=4))
+    meta_models(other, said.append, str(tmp_path))
+    assert said[2].startswith('meta-trained') and len(list(tmp_path.iterdir())) == 2
