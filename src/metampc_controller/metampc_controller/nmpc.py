@@ -222,7 +222,8 @@ class Nmpc:
         def fun(u):
             # Row 0 is the plan itself, the others perturb one input each (forward differences).
             j = self.costs(x0, u_prev, y_ref, np.vstack([u, u + eye]))
-            return j[0], (j[1:] - j[0]) / cfg.fd_step
+            with np.errstate(invalid='ignore'):     # inf - inf: data that are not finite
+                return j[0], (j[1:] - j[0]) / cfg.fd_step
 
         res = minimize(fun, guess, jac=True, method='L-BFGS-B', bounds=list(zip(lo, hi)),
                        options={'maxiter': cfg.max_iter})
