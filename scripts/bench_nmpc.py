@@ -8,8 +8,10 @@ core (:func:`metampc_bringup.analysis.retrack.track_models`: what the NMPC node 
 under a lockstep plant, without ROS), once per solver (``nmpc_solver``), the solvers in turn
 per seed so that both see the same machine load. Per run: the tracking cost (the
 experiment's), whether it escaped, steps/s (episode steps over its wall time, the planner's
-set-up included), the ticks whose solve converged ('solved'), fell back to the shifted plan,
-and the mean and largest iteration counts. Progress on stderr.
+set-up included; and over the process's CPU time, which other processes on a loaded machine
+inflate less: run with OMP_NUM_THREADS=1 so that it is one core's), the ticks whose solve
+converged ('solved') and that fell back to the shifted plan, and the mean and largest
+iteration counts. Progress on stderr.
 
 Usage: python scripts/bench_nmpc.py [--families vanderpol,duffing,pendulum,quadruple_tank]
                                     [--seeds 0 1 2] [--solvers ipopt,lbfgsb]
@@ -33,13 +35,14 @@ def config_path(family: str) -> str:
 def run(family: str, seed: int, solver: str) -> dict:
     cfg = experiment_config.load(config_path(family))
     episodes = {}
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     res = track_models(cfg, seed, {'nmpc_solver': solver}, {'nmpc': None}, episodes)['nmpc']
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu
     ticks = episodes['nmpc'].ticks
     iters = np.array([t.iterations for t in ticks])
     return {'cost': res.cost, 'escaped': res.escaped, 'steps': len(ticks),
             'steps_per_s': round(len(ticks) / wall, 2), 'wall_s': round(wall, 1),
+            'steps_per_cpu_s': round(len(ticks) / cpu, 2),
             'solved': sum(t.solver_status == 'solved' for t in ticks),
             'fallbacks': sum(bool(t.fallback) for t in ticks),
             'iter_mean': round(float(iters.mean()), 2), 'iter_max': int(iters.max())}
