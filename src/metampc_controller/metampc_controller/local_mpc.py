@@ -31,11 +31,20 @@ class LocalLinearMpc:
     """The planner of the module docstring (the :class:`~metampc_controller.planner.Planner`
     protocol, with ``state`` the model's physical s_t)."""
 
-    def __init__(self, config: MpcConfig, model: LocallyLinear):
+    def __init__(self, config: MpcConfig, model: LocallyLinear, rebuild_tol: float = 0.0):
+        """rebuild_tol: the QP is set up again (DARE, condensing, OSQP) only when an entry of
+        A or B moved by more than this (relative to the largest entry of the model in use);
+        otherwise the new constant e alone is written into the data (LatentMpc.set_constants).
+        0: a new QP every tick."""
+        if not rebuild_tol >= 0:
+            raise ValueError(f'rebuild_tol must be >= 0, got {rebuild_tol}')
         self._mpc = LatentMpc(replace(config, offset_free='none'))
         self.model = model
+        self.rebuild_tol = rebuild_tol
         self.failed_linearisations = 0
+        self.rebuilds = 0
         self._plan: Optional[np.ndarray] = None
+        self._built: Optional[LatentModel] = None
 
     @property
     def config(self) -> MpcConfig:
@@ -44,6 +53,7 @@ class LocalLinearMpc:
     def reset(self) -> None:
         self._mpc.reset()
         self._plan = None
+        self._built = None
 
     def set_time_limit(self, seconds: float) -> None:
         self._mpc.set_time_limit(seconds)
@@ -56,8 +66,8 @@ class LocalLinearMpc:
             if state is None or not (np.all(np.isfinite(state))
                                      and np.all(np.isfinite(u_prev))):
                 raise ValueError('state or input not finite')
-            self._mpc.set_model(self.model.linearise(np.asarray(state, float),
-                                                     np.asarray(u_prev, float)))
+            self._set(self.model.linearise(np.asarray(state, float),
+                                           np.asarray(u_prev, float)))
         except (ValueError, np.linalg.LinAlgError):
             self.failed_linearisations += 1
             return self._shifted(u_prev, y_ref, start)
@@ -65,6 +75,21 @@ class LocalLinearMpc:
         self._plan = np.asarray(res.u_plan).reshape(-1)
         res.solve_time = time.perf_counter() - start
         return res
+
+    def _set(self, lin: LatentModel) -> None:
+        """Plan on `lin` from now on: its constants only, where A and B are those of the QP
+        in use within rebuild_tol, else a new QP."""
+        built = self._built
+        if built is not None and built.A.shape == lin.A.shape and built.B.shape == lin.B.shape:
+            scale = self.rebuild_tol * max(np.max(np.abs(built.A)), np.max(np.abs(built.B)))
+            if (np.max(np.abs(lin.A - built.A)) <= scale
+                    and np.max(np.abs(lin.B - built.B)) <= scale):
+                self._mpc.set_constants(lin.e, lin.d)
+                return
+        self._built = None
+        self._mpc.set_model(lin)
+        self._built = lin
+        self.rebuilds += 1
 
     def _shifted(self, u_prev: np.ndarray, y_ref: np.ndarray, start: float) -> PlanResult:
         """The shifted previous plan (held u_t, or 0 where it is not finite, at first)."""

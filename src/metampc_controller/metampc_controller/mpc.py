@@ -355,6 +355,20 @@ class LatentMpc:
         if self._plan is not None and self._plan.shape != (n,):
             self.reset()
 
+    def set_constants(self, e: np.ndarray, d: np.ndarray) -> None:
+        """The constants e (n_z,) and d (n_y,) of the model in use replaced in place, nothing
+        rebuilt: the QP, its terminal cost and the steady-state target's map depend on A, B, C
+        only, and e, d reach each solve through the data vector. Without offset-free tracking
+        (the estimator is set up with the model's constants). ValueError: no model, offset-free
+        on, or shapes that differ or values that are not finite."""
+        pb = self._problem
+        if pb is None or pb.estimator is not None:
+            raise ValueError('set_constants needs a model set up without offset-free tracking')
+        model = replace(pb.model, e=np.asarray(e, dtype=float), d=np.asarray(d, dtype=float))
+        model.validate()
+        pb.model = model
+        pb.views[6][:] = np.concatenate([model.e, model.d])
+
     def solve(self, z0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
               y: Optional[np.ndarray] = None, step: Optional[int] = None) -> PlanResult:
         """Plan u_{t+1..t+N} from z_t (n_z,), the applied input u_t (n_u,) and the references

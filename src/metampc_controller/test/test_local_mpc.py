@@ -110,3 +110,49 @@ def test_the_planner_plans_without_an_offset_free_estimator(form):
     from dataclasses import replace
     planner = LocalLinearMpc(replace(CONFIG, offset_free=form), TrueVanDerPol(1.0))
     assert planner.config.offset_free == 'none'
+
+
+def test_new_constants_move_the_prediction_as_a_rollout_of_the_new_model_does():
+    """set_constants (the rebuild-free path): the plan's prediction is a rollout of the model
+    with the new e under the returned plan (fails if the data vector kept the old e)."""
+    from dataclasses import replace as swap
+    from metampc_controller.mpc import LatentMpc
+    model = TrueVanDerPol(0.5).linearise(np.array([0.2, 0.1]), np.zeros(1))
+    mpc = LatentMpc(swap(CONFIG, offset_free='none'))
+    mpc.set_model(model)
+    e_new = model.e + np.array([0.01, -0.02])
+    mpc.set_constants(e_new, model.d)
+    z0, ref = np.array([0.3, -0.1]), np.tile([0.5, 0.0], (20, 1))
+    res = mpc.solve(z0, np.zeros(1), ref)
+    moved = swap(model, e=e_new)
+    z, pred = z0, []
+    for u in res.u_plan:
+        z = moved.step(z, u)
+        pred.append(moved.output(z))
+    np.testing.assert_allclose(res.y_pred, np.array(pred), atol=1e-9)
+    with pytest.raises(ValueError, match='offset-free'):
+        on = LatentMpc(swap(CONFIG, offset_free='state'))
+        on.set_model(model)
+        on.set_constants(e_new, model.d)
+
+
+def test_a_linear_model_is_set_up_once_and_a_tolerance_skips_small_moves():
+    class Linear:
+        def __init__(self):
+            self.fixed = TrueVanDerPol(0.5).linearise(np.zeros(2), np.zeros(1))
+
+        def linearise(self, s, u):
+            return self.fixed
+    planner = LocalLinearMpc(CONFIG, Linear())
+    for k in range(5):
+        planner.solve(np.full(2, 0.1 * k), np.zeros(1), np.zeros((20, 2)), None, k)
+    assert planner.rebuilds == 1
+    model = TrueVanDerPol(1.0)
+    exact, loose = LocalLinearMpc(CONFIG, model), LocalLinearMpc(CONFIG, model, 0.05)
+    for k in range(5):
+        for planner in (exact, loose):
+            planner.solve(np.array([0.5 + 0.001 * k, 0.0]), np.zeros(1), np.zeros((20, 2)),
+                          None, k)
+    assert exact.rebuilds == 5 and loose.rebuilds == 1
+    with pytest.raises(ValueError, match='rebuild_tol'):
+        LocalLinearMpc(CONFIG, model, -1.0)
