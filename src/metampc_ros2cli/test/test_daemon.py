@@ -94,3 +94,16 @@ def test_an_unknown_name_is_refused_as_soon_as_the_daemon_s_graph_says_so(procs,
         assert took < DISCOVERY_GRACE_S, f'{verb}: {took:.2f} s'
     out = ros2('param', 'get', '/plant', 'rate_hz')   # answered through the daemon's node
     assert out.returncode == 0 and out.stdout == 'Double value is: 10.0\n', out
+
+
+def test_the_ros2_parser_imports_neither_numpy_nor_rclpy():
+    """Issue 52 (the verbs' answer times): every verb builds the whole `ros2` parser, which
+    imported numpy (message_yaml) and rclpy (the --qos-* choices): 0.4 s of an idle start of
+    0.6 s, five times that on the loaded machine, before a verb that the daemon answers asked
+    anything."""
+    import sys
+    probe = ('import sys\nfrom metampc_ros2cli.cli import parser\nparser()\n'
+             "print(sorted(m for m in ('numpy', 'rclpy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0 and out.stdout == '[]\n', out
