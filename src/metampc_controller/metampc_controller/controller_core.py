@@ -328,6 +328,7 @@ class TickResult:
     request: the adaptation request this tick made (:mod:`adaptation_trigger`), if any.
     disturbance: the latent MPC's offset-free disturbance estimate (empty otherwise);
     slack: its largest planned violation of the soft output bounds.
+    residual: the solver's optimality residual (:class:`~planner.PlanResult`; NaN: none).
     verdict: the check's line on an answer whose trial this tick ended ('' if none): it
         flies from this tick (``check passed``) or was refused (model_status says so too).
     config_version: the :class:`Tuning` the tick used; q: its output weights.
@@ -354,6 +355,7 @@ class TickResult:
     disturbance: np.ndarray = field(default_factory=lambda: np.zeros(0))
     slack: float = 0.0
     verdict: str = ''
+    residual: float = math.nan
 
 
 # No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
@@ -831,4 +833,4 @@ class ControllerCore:
                           iterations=int(res.iterations), solve_time=res.solve_time,
                           u_plan=res.u_plan, y_pred=res.y_pred, prediction_errors=errors,
                           request=request, disturbance=res.disturbance, slack=res.slack,
-                          verdict=verdict)
+                          verdict=verdict, residual=res.residual)

@@ -205,6 +205,7 @@ class ControllerNode(Node):
         status.tick_time = tick_time
         status.solver_status = res.solver_status
         status.iterations = res.iterations
+        status.residual = res.residual
         status.fallback = res.fallback
         status.terminal_fallback = res.terminal_fallback
         status.disturbance = _doubles(res.disturbance)

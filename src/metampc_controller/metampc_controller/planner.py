@@ -99,7 +99,8 @@ class PlanResult:
         slack: latent MPC: the largest planned violation of the soft output bounds (0 without
             them, or when the plan meets them).
         residual: the solver's optimality residual where it reports one (the NMPC's IPOPT:
-            max of its primal and dual infeasibility at the last iterate), else NaN.
+            max of its primal and dual infeasibility at the last iterate), else NaN
+            (MpcStatus.residual).
     """
 
     u: np.ndarray

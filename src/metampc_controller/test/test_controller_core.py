@@ -236,6 +236,7 @@ def test_nmpc_planner_waits_for_plant_info_then_predicts_the_plant():
         res = closed_loop(core, plant, 1, start=k)[0]
         assert (res.planner, res.solver_status, res.model_version) == ('nmpc', 'solved', 0)
         assert (res.iterations > 0 or k > 1) and np.abs(res.u_plan).max() <= 1.0
+        assert res.residual < 1e-8                        # IPOPT's, at its tolerance 1e-10
         np.testing.assert_allclose(res.y_pred[0], plant.output(), atol=1e-5)
         assert np.abs(res.y_pred[0] - y_before).max() > 1e-2   # it did move
     core.observe(4, [float(res.u[0])], plant.output(), (0.0,))
