@@ -22,6 +22,9 @@ from metampc_model.feature_narx import (FeatureNarx, init_params, NarxShape, Par
 from metampc_model.normalisation import Normalisation
 
 Record = Tuple[np.ndarray, np.ndarray]     # (u (K, n_u), y (K, n_y)) physical, u[k] -> y[k]
+# adapt's validation in time: the share of each record held back, and its rollout horizon.
+VALIDATION_SHARE = 1.0 / 3.0
+VALIDATION_HORIZON = 10
 NARX_METHODS = ('imaml', 'maml')
 
 
@@ -71,14 +74,15 @@ class MetaResult:
     elapsed: float = 0.0
 
 
-def _split(records: Sequence[Record]) -> Tuple[List[Record], List[Record]]:
-    """Each record's first half to D_tr, second half to D_test (in time, as SourceSet)."""
-    tr, te = [], []
+def _split(records: Sequence[Record], share: float) -> Tuple[List[Record], List[Record]]:
+    """Each record's first 1 - share and its last share, in time (meta-training: D_tr and
+    D_test, share 1/2, as SourceSet; adaptation: its validation)."""
+    first, last = [], []
     for u, y in records:
-        cut = len(y) // 2
-        tr.append((u[:cut], y[:cut]))
-        te.append((u[cut:], y[cut:]))
-    return tr, te
+        cut = len(y) - int(round(len(y) * share))
+        first.append((u[:cut], y[:cut]))
+        last.append((u[cut:], y[cut:]))
+    return first, last
 
 
 def _windows(shape: NarxShape, norm: Normalisation, records: Sequence[Record], horizon: int):
@@ -98,7 +102,7 @@ def meta_train(shape: NarxShape, norm: Normalisation, systems: Sequence[Sequence
     rng = np.random.default_rng(config.seed)
     tasks = []
     for i, records in enumerate(systems):
-        tr, te = _split(records)
+        tr, te = _split(records, 0.5)
         w_tr, w_te = _windows(shape, norm, tr, 1), _windows(shape, norm, te, config.horizon)
         if len(w_tr[0]) == 0 or len(w_te[0]) == 0:
             raise ValueError(f'source system {i} is too short for a window in each half')
@@ -147,8 +151,9 @@ class AdaptedNarx:
         train_loss: its one-step loss on the training samples (normalised units).
         arx_loss: the least-squares ARX(p)'s on the same samples.
         rule: 'ridge' (toward the meta-model), 'ridge_to_arx' (toward the ARX's head: the
-            fit toward the meta-model lost to the ARX) or 'arx' (the ARX's own head, where
-            rounding left even that above).
+            fit toward the meta-model lost to the ARX), 'arx' (the ARX's own head, where
+            rounding left even that above) or 'arx_validated' (the ARX's head: the fit lost to
+            it on the held-back part of the samples, :func:`adapt`).
     """
 
     model: FeatureNarx
@@ -190,13 +195,10 @@ def arx_model(meta: FeatureNarx, records: Sequence[Record]) -> FeatureNarx:
                                                'head': _arx_head(meta.shape, phi, y)})
 
 
-def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> AdaptedNarx:
-    """Algorithm 2 for the feature NARX (module docstring) on the target `records`.
-
-    Raises:
-        ValueError: no one-step equation in the records.
-    """
-    phi, y = _data(meta, records)
+def _fit(meta: FeatureNarx, phi: torch.Tensor, y: torch.Tensor, gamma: float
+         ) -> Tuple[torch.Tensor, str, float, torch.Tensor, float]:
+    """(head, rule, its loss, the ARX's head, its loss) on the one-step equations (phi, y):
+    the ridge fit toward the meta-model, toward the ARX's head where that loses to the ARX."""
     arx_head = _arx_head(meta.shape, phi, y)
     arx_loss = float(mean_loss(phi, y, arx_head))
     head, rule = ridge(phi, y, meta.params['head'], gamma), 'ridge'
@@ -210,6 +212,33 @@ def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> Adapted
         loss = float(mean_loss(phi, y, head))
     if not (loss <= arx_loss) or not math.isfinite(loss):
         head, rule, loss = arx_head, 'arx', arx_loss
+    return head, rule, loss, arx_head, arx_loss
+
+
+def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> AdaptedNarx:
+    """Algorithm 2 for the feature NARX (module docstring) on the target `records`.
+
+    Then the validation in time: both fits (this rule and the ARX's) again on each record's
+    first VALIDATION_SHARE-complement, their VALIDATION_HORIZON-step rollout loss on its last
+    VALIDATION_SHARE; where the feature NARX's is the higher, the ARX's head (of all samples)
+    flies, rule 'arx_validated': a fit that wins on its own samples and loses off them (the
+    features extrapolating) is not flown. Skipped where the last part holds no window.
+
+    Raises:
+        ValueError: no one-step equation in the records.
+    """
+    phi, y = _data(meta, records)
+    head, rule, loss, arx_head, arx_loss = _fit(meta, phi, y, gamma)
+    fit_part, check_part = _split(records, VALIDATION_SHARE)
+    windows = _windows(meta.shape, meta.norm, check_part, VALIDATION_HORIZON)
+    if rule != 'arx' and len(windows[0]) and len(_data(meta, fit_part)[1]):
+        part_head, _, _, part_arx, _ = _fit(meta, *_data(meta, fit_part), gamma)
+        s, u, y_check = (torch.from_numpy(a) for a in windows)
+        with torch.no_grad():
+            own, arx = ((rollout(meta.shape, meta.params, s, u, h) - y_check)
+                        .square().sum(-1).mean() for h in (part_head, part_arx))
+        if float(own) > float(arx):
+            head, rule, loss = arx_head, 'arx_validated', arx_loss
     params = {**{k: v.clone() for k, v in meta.params.items()}, 'head': head}
     return AdaptedNarx(FeatureNarx(meta.shape, meta.norm, params), loss, arx_loss, rule)
 

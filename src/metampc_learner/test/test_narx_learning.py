@@ -141,3 +141,19 @@ def test_imaml_meta_training_learns_features_that_beat_the_arx_on_unseen_systems
     for records in _toy_systems([-1.2, -0.8, 0.8, 1.2, 1.5], 99):
         adapted = adapt(meta, records, 1e-4)
         assert adapted.train_loss < 0.5 * adapted.arx_loss
+
+
+def test_features_that_fit_the_noise_lose_the_validation_and_the_arx_flies():
+    """An ARX(2) plant with noise and many random, steep features: the fit wins on its own
+    samples (lower training loss) and loses to the ARX on the held-back part, so the ARX's
+    head flies (fails without the validation: rule 'ridge' or 'ridge_to_arx')."""
+    records, theta = _arx2_records(5, n=120, noise=0.3)
+    shape = NarxShape(1, 2, order=2, features=40, hidden=(40,))
+    meta = _random_meta(shape, 5)
+    for name in ('g.0.weight', 'g.1.weight'):
+        meta.params[name] = meta.params[name] * 8.0
+    adapted = adapt(meta, records, gamma=1e-6)
+    assert adapted.rule == 'arx_validated'
+    assert adapted.train_loss == adapted.arx_loss
+    np.testing.assert_allclose(adapted.model.params['head'].numpy(),
+                               arx_model(meta, records).params['head'].numpy())
