@@ -7,9 +7,9 @@ references at (k + 1..k + N) dt since the last reset (eq. (mpc)). Pieces, each t
 alone: :class:`History` (the last H samples), :class:`AnswerRule` (which tick answers which
 sample), :class:`PreModelInput` (the input before a model), :func:`build_model` (weights ->
 predictor + latent MPC, outside the tick; a feature NARX's: its regressor state s_t in place
-of z_t, planned on its linearisation at each tick, :mod:`local_mpc`), :class:`Tuning` (what a live change replaces),
-:class:`ControllerCore` (samples in; tick -> :class:`TickResult` through the configured
-:class:`~metampc_controller.planner.Planner`).
+of z_t, planned on its linearisation at each tick, :mod:`local_mpc`), :class:`Tuning` (what
+a live change replaces), :class:`ControllerCore` (samples in; tick -> :class:`TickResult`
+through the configured :class:`~metampc_controller.planner.Planner`).
 """
 from dataclasses import dataclass, field, replace
 import math

@@ -262,4 +262,5 @@ def resolve_adapt_request(request, adapt: AdaptConfig, oracle: OracleConfig) -> 
 
 
 __all__ = ['PARAMETERS', 'LearnerNodeConfig', 'parse_params', 'resolve_meta_request',
-           'resolve_narx_request', 'AdaptJob', 'resolve_adapt_request', 'ADAPT_METHODS', 'ParameterError']
+           'resolve_narx_request', 'AdaptJob', 'resolve_adapt_request', 'ADAPT_METHODS',
+           'ParameterError']

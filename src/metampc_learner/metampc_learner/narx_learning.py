@@ -235,8 +235,8 @@ def one_step_loss(model: FeatureNarx, records: Sequence[Record]) -> float:
 def heldout_loss(model: FeatureNarx, records: Sequence[Record], horizon: int) -> float:
     """Mean T-step rollout loss (summed over outputs) on every window of `records`,
     normalised units: the l_SSM of eq. (SSM) for this model."""
-    s, u, y = (torch.from_numpy(a) for a in _windows(model.shape, model.norm, records,
-                                                      horizon))
+    windows = _windows(model.shape, model.norm, records, horizon)
+    s, u, y = (torch.from_numpy(a) for a in windows)
     with torch.no_grad():
         return float((rollout(model.shape, model.params, s, u) - y).square().sum(-1).mean())
 

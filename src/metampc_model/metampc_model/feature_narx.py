@@ -7,7 +7,7 @@ The model class of the nonlinear-control issue (docs/nonlinear.md). In normalise
 
 (u_k the input held over ((k-1) dt, k dt] that produced y_k, the data convention), one step is
 
-    y_{t+1} = Theta phi(s_t, u_{t+1}),   phi = [s_t; g(s_t); u_{t+1}; 1]   (n_phi = n_s + F + n_u + 1)
+    y_{t+1} = Theta phi(s_t, u_{t+1}),   phi = [s_t; g(s_t); u_{t+1}; 1]   (n_phi = n_s+F+n_u+1)
 
 g a tanh MLP of F features (meta-learned, fixed during adaptation) and Theta (n_y, n_phi) the
 head, linear in its parameters: adaptation solves it in closed form (eq. (inner_imaml) with a
