@@ -374,7 +374,7 @@ class LearnerSession:
         systems = [[(t.u, t.y) for t in ts] for ts in data.trajectories if ts]
         if not systems:
             raise LearnerError('source set: no source system kept an episode')
-        start = time.monotonic()
+        norm, start = self._source_norm(), time.monotonic()
 
         def report(iteration: int, loss: float) -> None:
             if progress is not None:
@@ -382,12 +382,11 @@ class LearnerSession:
                                   time.monotonic() - start))
 
         try:
-            result = narx_learning.meta_train(self.config.narx, self._source_norm(), systems,
-                                              config, report)
+            result = narx_learning.meta_train(self.config.narx, norm, systems, config, report)
         except ValueError as err:
             raise LearnerError(f'feature NARX meta-training: {err}') from None
         final = float(np.mean(result.curve[-FINAL_LOSS_STEPS:]))
-        model = FeatureNarx(self.config.narx, self._source_norm(), result.params)
+        model = FeatureNarx(self.config.narx, norm, result.params)
         record = self._new_record(
             model=model, params=model.params, method=config.method, stage='meta',
             train_loss=final, train_steps=config.iterations,
