@@ -64,7 +64,7 @@ def load_checkpoint(path: str) -> Checkpoint:
         return Checkpoint(FeatureNarx(shape, Normalisation(**blob['norm']), params), params,
                           blob['info'])
     if not isinstance(blob, dict) or blob.get('format') != FORMAT:
-        raise ValueError(f'{path}: not a {FORMAT} or {NARX_FORMAT} checkpoint')
+        raise ValueError(f'{path}: not a {FORMAT} checkpoint')
     # files from before the stable latent parameterisation hold a free A; those from before
     # the rename of T call it horizon
     stored = {('loss_horizon' if k == 'horizon' else k): v for k, v in blob['config'].items()}
