@@ -1,33 +1,48 @@
 #!/usr/bin/env python3
 """The feature NARX on its locally linear MPC against the true-model NMPC, in one process.
 
-    python scripts/nonlinear_regime.py                       # van der Pol theta* 1.0 .. 2.0
+    python scripts/nonlinear_regime.py --thetas 1.0,1.25,1.5,1.75,2.0   # van der Pol, 2 seeds
+    python scripts/nonlinear_regime.py --config config/duffing.yaml --seeds 10   # the draws
     python scripts/nonlinear_regime.py --thetas 1.5 --seeds 1 --iterations 300   # quick
+
+Targets: --thetas (a one-component family: comma-separated targets; several components: the
+targets separated by ';', their values by ','), each with data seeds 0..--seeds-1; without
+--thetas, test seeds --first-seed.. with theta* drawn as the experiment draws it.
 
 Prints a line per episode and a summary per model (cost / NMPC median and worst, escapes);
 --out FILE writes every row as JSON. Protocol: docs/nonlinear.md.
 """
 import argparse
 import json
-import math
 import os
 import sys
 
-import numpy as np
+import yaml
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--thetas', default='1.0,1.25,1.5,1.75,2.0',
-                    help='test targets theta*, comma-separated (default: %(default)s)')
-    ap.add_argument('--seeds', type=int, default=2, help='data seeds per target (0..N-1)')
-    ap.add_argument('--methods', default='imaml,maml', help='meta-learning methods')
-    ap.add_argument('--iterations', type=int, default=1000, help='meta-training outer steps')
+    ap.add_argument('--config', help='experiment configuration (default: config/default.yaml)')
+    ap.add_argument('--thetas', default='', help='test targets theta* (see above; default: '
+                    "each seed's draw)")
+    ap.add_argument('--seeds', type=int, default=2, help='seeds (per target with --thetas)')
+    ap.add_argument('--first-seed', type=int, default=0, help='first seed')
+    ap.add_argument('--methods', default='imaml', help='meta-learning methods (imaml, maml)')
+    ap.add_argument('--no-oracle', action='store_true', help='leave the oracle out')
+    ap.add_argument('--set', action='append', default=[], metavar='KEY=YAML',
+                    help='a configuration key on top of the file (section.key merges into '
+                         'the section), e.g. controller.reference_values=[1.2,-1.2]')
+    ap.add_argument('--iterations', type=int,
+                    help="meta-training outer steps (default: NarxMetaConfig's)")
     ap.add_argument('--features', type=int, default=32, help='meta-learned features F')
+    ap.add_argument('--cache', help='a folder where meta-models are kept and read back (the '
+                    'same source systems, sizes and settings: the same file)')
     ap.add_argument('--out', help='write the rows as JSON to this file (refused if it exists)')
     args = ap.parse_args(argv)
     try:
-        thetas = [float(v) for v in args.thetas.split(',')]
+        parts = args.thetas.split(';') if ';' in args.thetas else args.thetas.split(',')
+        thetas = [[float(v) for v in p.split(',')] if ';' in args.thetas else [float(p)]
+                  for p in parts if p.strip()]
     except ValueError:
         print(f'nonlinear_regime: --thetas needs numbers, got {args.thetas!r}', file=sys.stderr)
         return 2
@@ -38,28 +53,52 @@ def main(argv=None) -> int:
     if args.out and not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
         print(f'nonlinear_regime: no folder for {args.out}', file=sys.stderr)
         return 2
-    if args.seeds < 1 or args.iterations < 1 or args.features < 0:
+    overrides = {}
+    for item in args.set:
+        key, eq, value = item.partition('=')
+        if not eq or not key:
+            print(f'nonlinear_regime: --set needs KEY=VALUE, got {item!r}', file=sys.stderr)
+            return 2
+        section, dot, name = key.partition('.')
+        try:
+            parsed = yaml.safe_load(value)
+        except yaml.YAMLError:
+            print(f'nonlinear_regime: --set {key}: not a YAML value', file=sys.stderr)
+            return 2
+        if dot:
+            overrides.setdefault(section, {})[name] = parsed
+        else:
+            overrides[key] = parsed
+    if args.cache and not os.path.isdir(args.cache):
+        print(f'nonlinear_regime: no folder {args.cache} for --cache', file=sys.stderr)
+        return 2
+    if args.config and not os.path.isfile(args.config):
+        print(f'nonlinear_regime: no configuration {args.config}', file=sys.stderr)
+        return 2
+    if (args.seeds < 1 or args.first_seed < 0 or args.features < 0
+            or (args.iterations is not None and args.iterations < 1)):
         print('nonlinear_regime: --seeds and --iterations must be >= 1, --features >= 0',
               file=sys.stderr)
         return 2
     import torch
-    from metampc_bringup.studies.nonlinear_regime import RegimeConfig, run
-    from metampc_learner.narx_learning import METHODS, NarxMetaConfig
-    if not methods or set(methods) - set(METHODS):
-        print(f'nonlinear_regime: --methods takes {",".join(METHODS)}', file=sys.stderr)
+    from metampc_bringup.studies.nonlinear_regime import RegimeConfig, run, summary
+    from metampc_learner.narx_learning import NARX_METHODS, NarxMetaConfig
+    if not methods or set(methods) - set(NARX_METHODS):
+        print(f'nonlinear_regime: --methods takes {",".join(NARX_METHODS)}', file=sys.stderr)
         return 2
     torch.set_num_threads(1)
-    config = RegimeConfig(thetas=tuple(thetas), data_seeds=tuple(range(args.seeds)),
+    config = RegimeConfig(experiment=args.config, thetas=tuple(thetas),
+                          seeds=tuple(range(args.first_seed, args.first_seed + args.seeds)),
                           methods=tuple(methods), features=args.features,
-                          meta=NarxMetaConfig(iterations=args.iterations, gamma=1e-5))
-    rows = run(config, log=lambda line: print(line, flush=True))
-    print('\nmodel            cost / NMPC median   worst   escapes   held-out l_SSM median')
-    for name in dict.fromkeys(r['model'] for r in rows):
-        ratios = [r['ratio'] for r in rows if r['model'] == name]
-        held = [r['heldout'] for r in rows if r['model'] == name]
-        esc = sum(not math.isfinite(r['cost']) for r in rows if r['model'] == name)
-        print(f'{name:>14}   {np.median(ratios):18.3f}   {max(ratios):6.3f}   {esc:7d}   '
-              f'{np.median(held):.2e}')
+                          meta=NarxMetaConfig(**({} if args.iterations is None
+                                                 else {'iterations': args.iterations})),
+                          oracle=not args.no_oracle, overrides=overrides)
+    try:
+        rows = run(config, log=lambda line: print(line, flush=True), cache=args.cache)
+    except ValueError as err:        # a configuration or theta the family refuses
+        print(f'nonlinear_regime: {err}', file=sys.stderr)
+        return 2
+    print('\n' + '\n'.join(summary(rows)))
     if args.out:
         with open(args.out, 'w') as f:
             json.dump(rows, f, indent=1)

@@ -30,7 +30,7 @@ def main(argv=None) -> int:
                         help='seconds between creating publishers and the first message')
     parser.add_argument('--wait-subscribers', type=float, default=0.0, metavar='SECONDS',
                         help='then wait up to SECONDS until every volatile topic has a '
-                        'subscriber')
+                        'subscriber, and as long until its first message is acknowledged')
     parser.add_argument('--topics', nargs='+', default=[], help='topics to play (default all)')
     args = parser.parse_args(argv)
     try:

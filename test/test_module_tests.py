@@ -65,7 +65,6 @@ TESTED_ELSEWHERE: Dict[str, Tuple[str, str]] = {
     'metampc_bringup.analysis.plots': (
         'src/metampc_bringup/test/test_run_report.py', 'the plots of a real recording'),
     'metampc_recording.synthetic_run': _RUN_SERIES,
-    'metampc_recording.player': _RUN_SERIES,
     'metampc_recording.recording_reader': (
         'src/metampc_recording/test/test_mcap_writer.py', 'what the writer wrote, read back'),
     'metampc_recording.foxglove_node': _FOXGLOVE,

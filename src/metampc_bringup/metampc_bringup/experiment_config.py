@@ -23,7 +23,7 @@ from metampc_controller import controller_params
 from metampc_learner import learner_params
 from metampc_learner.learner_params import ADAPT_METHODS
 from metampc_learner.meta_train import META_METHODS
-from metampc_learner.narx_learning import METHODS as NARX_METHODS
+from metampc_learner.narx_learning import NARX_METHODS
 from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family

@@ -83,3 +83,18 @@ def test_the_rule_agrees_with_optunas_median_pruner():
                 optunas = (i + 1) * REPORT_EVERY
                 break
         assert pruned_at(given, thresholds) == optunas, given
+
+
+def test_a_nan_report_of_a_complete_trial_is_left_out_of_the_median_as_optuna_does():
+    """Complete trials reporting 1, NaN and 3 at a step: the threshold is 2 (the median of
+    1 and 3), and a running trial reporting 2.5 there is pruned, by the rule and by Optuna's
+    MedianPruner alike; with NaN counted, the median would be NaN and nothing pruned."""
+    rule = MedianRule(iterations=REPORT_EVERY, startup_trials=1)
+    study = _study(rule, [[1.0], [math.nan], [3.0]])
+    assert rule.thresholds(study) == (2.0,)
+    for report, pruned in ((2.5, True), (1.5, False)):
+        trial = create_trial(state=TrialState.RUNNING, params={'x': 0.5},
+                             distributions={'x': FloatDistribution(0.0, 1.0)},
+                             intermediate_values={REPORT_EVERY: report})
+        assert rule.pruner().prune(study, trial) == pruned
+        assert pruned_at([report], rule.thresholds(study)) == (REPORT_EVERY if pruned else None)

@@ -8,6 +8,7 @@ import json
 import math
 import os
 from pathlib import Path
+import warnings
 
 import pytest
 
@@ -183,3 +184,29 @@ def test_bad_arguments_exit_2(tmp_path, capsys, args, tiny_config):
     assert _script().main(['--config', str(config), '--out', out, *args]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not os.path.exists(tmp_path / 'out')
+
+
+def test_the_plots_take_a_log_axis_only_for_positive_values(tmp_path, monkeypatch):
+    """A tiny run's time per step rounds to 0 s (and a loss could be 0): that axis stays
+    linear, without matplotlib's 'no positive values' warning; positive values get a log
+    axis."""
+    import matplotlib.axes
+    from metampc_bringup.studies.sweep import plot_loss, plot_memory
+    scales, set_yscale = [], matplotlib.axes.Axes.set_yscale
+
+    def recorded(ax, value, **kwargs):
+        scales.append(value)
+        return set_yscale(ax, value, **kwargs)
+    monkeypatch.setattr(matplotlib.axes.Axes, 'set_yscale', recorded)
+
+    def row(m, value):
+        stat = {'median': value, 'ci_low': value, 'ci_high': value}
+        return {'method': 'maml', 'M': m, 'peak_rss_mb': 300.0, 'rss_before_meta_mb': 200.0,
+                's_per_step': value, 'heldout': {'0': stat, '20': stat}}
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        for value, log in ((0.0, False), (0.5, True)):
+            scales.clear()
+            plot_memory([row(1, value), row(5, value)], str(tmp_path / 'memory.png'))
+            plot_loss([row(1, value), row(5, value)], str(tmp_path / 'loss.png'))
+            assert scales == (['log'] * 3 if log else [])

@@ -224,7 +224,11 @@ def _stop_executor(ex: Executor, node: Optional[Node]) -> None:
       (one that started after ``shutdown`` failed on the destroyed guard condition, "The
       following exception was never retrieved: cannot use Destroyable because destruction
       was requested", seen in the learner's test);
-    - then the executor is shut down.
+    - then the executor is shut down;
+    - and the tasks it made and never ran are cancelled, which closes their coroutines (rclpy
+      makes a task's coroutine when an entity is ready, and a spin that ended before running
+      it left "RuntimeWarning: coroutine ... was never awaited" on the learner's Ctrl-C after
+      service calls by hand).
     """
     stop_work = getattr(node, 'stop_work', None)
     if stop_work is not None:
@@ -235,6 +239,9 @@ def _stop_executor(ex: Executor, node: Optional[Node]) -> None:
     if isinstance(pool, concurrent.futures.ThreadPoolExecutor):
         pool.shutdown(wait=finished, cancel_futures=True)
     ex.shutdown()
+    for task, *_ in getattr(ex, '_tasks', ()):     # Executor's; the EventsExecutor has none
+        if not task.done():
+            task.cancel()
 
 
 def run_node(make_node: Callable[[], Node], name: str, args: Optional[Sequence[str]] = None,

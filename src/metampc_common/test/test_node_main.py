@@ -198,3 +198,31 @@ def test_a_renamed_choice_works_at_start_and_live_with_one_warning(renamed_node,
     assert applied == [Renamed(mode='slow'), Renamed(mode='fast')]
     assert capsys.readouterr().err == ("warning: my_mode: 'quick' is renamed 'fast'; the old "
                                        'value will be removed in the next release\n')
+
+
+def test_a_task_made_but_not_run_before_the_stop_leaves_no_unawaited_coroutine():
+    """Issue 52: the learner printed 'RuntimeWarning: coroutine ... was never awaited' on
+    Ctrl-C after service calls by hand: rclpy makes a task's coroutine when an entity is
+    ready, and a spin that ended before running it left the coroutine to the garbage
+    collector."""
+    import gc
+    import warnings
+    from rclpy.executors import SingleThreadedExecutor
+    from metampc_common.node_main import _stop_executor
+
+    async def callback():
+        pass
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        executor = SingleThreadedExecutor(context=context)
+        executor.create_task(callback)      # made, as for a ready service, never run
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter('always')
+            _stop_executor(executor, None)
+            del executor
+            gc.collect()
+        assert not [w for w in caught if 'was never awaited' in str(w.message)], caught
+    finally:
+        rclpy.try_shutdown(context=context)

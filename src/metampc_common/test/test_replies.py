@@ -83,3 +83,13 @@ def test_a_repeat_of_a_running_coroutine_awaits_its_answer():
 
     assert asyncio.run(scenario()) == ('model v1', 'model v1')
     assert runs == ['m']
+
+
+def test_exactly_keep_answers_are_kept():
+    """keep 2: ids a, b, a, b run twice (a and b), the repeats answered from the first."""
+    handler, runs = counting()
+    replies = Replies(Future, keep=2)
+    callback = replies.wrap(handler)
+    assert [callback(request(rid), None) for rid in 'abab'] == [
+        'answer 1', 'answer 2', 'answer 1', 'answer 2']
+    assert runs == ['a', 'b'] and replies.repeats == 2

@@ -19,6 +19,7 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_common.excitation import amplitude_param, center_param, ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.nmpc import SOLVERS as NMPC_SOLVERS
 from metampc_controller.planner_registry import REGISTRY
 from metampc_controller.references import make_reference, SetpointSequenceConfig
 
@@ -133,6 +134,7 @@ class ControllerConfig:
             input, so 1 when all are single values).
         planner: a name of :data:`~metampc_controller.planner_registry.REGISTRY`.
         nmpc_tail: the NMPC's tail (:class:`~metampc_controller.nmpc.NmpcConfig`), samples.
+        nmpc_solver: the NMPC's solver (:data:`~metampc_controller.nmpc.SOLVERS`).
         reference_kind, reference_params: arguments of references.make_reference.
         pre_model_input: 'zero' or 'excitation'.
         excitation: the pre-model excitation (kind, bounds = [u_min, u_max] within the
@@ -155,6 +157,10 @@ class ControllerConfig:
     nmpc_tail: int = param(0, 'planner nmpc: samples predicted past the horizon with the last '
                               'input held, scored against the last reference (its terminal '
                               'cost; 0: none)', ge=0, le=1000, live=True)
+    nmpc_solver: str = param('ipopt', 'planner nmpc: ipopt (multiple shooting on CasADi, exact '
+                                      'derivatives) or lbfgsb (single shooting, finite '
+                                      'differences: the yardstick until 2026-12-07)',
+                             choices=NMPC_SOLVERS)
     reference_kind: str = 'setpoint_sequence'
     reference_params: Dict[str, Any] = field(default_factory=dict)
     pre_model_input: str = param('zero', 'input before a model (excitation: seeded, within the '

@@ -1,19 +1,11 @@
 """The latent MPC on a nonlinear one-step model, linearised at the current state every tick.
 
-One QP per tick (eq. (mpc), the latent MPC of :mod:`metampc_controller.mpc` with its DARE
-terminal cost, Delta-u weight and bounds) on the affine model that is exact to first order at
-(s_t, u_t): the feature NARX's :meth:`~metampc_model.feature_narx.FeatureNarx.linearise` (or any
-model with ``linearise(s, u) -> LatentModel``). Why the current state: a calibration on
-the true van der Pol (docs/nonlinear.md) put it within 1.03-1.05x of the origin's
-linearisation (van der Pol's own centre, which no generic rule picks) and far ahead of the
-set-point's equilibrium (x1 RMSE 0.188 / 0.224 against 0.316 / 0.459 at theta* 1.5 / 2.0).
-The model is rebuilt each tick, so the offset-free estimator would restart every tick: this
-planner plans with offset_free 'none' (eq. (mpc) as the paper writes it), and the
-linearisation's own constant e carries the model's steady state.
-
-Bad input: a linearisation that is not finite, or a model the QP refuses (a singular or
-non-finite DARE), leaves that tick to the shifted previous plan (held u_t on the first tick),
-as a failed solve does; counted in ``failed_linearisations`` and reported in the status.
+One QP per tick (eq. (mpc): :class:`~metampc_controller.mpc.LatentMpc`, its DARE terminal cost,
+Delta-u weight and bounds) on the affine model exact to first order at (s_t, u_t): any model
+with ``linearise(s, u) -> LatentModel`` (the feature NARX). The offset-free estimator would
+restart with every model, so this planner plans with offset_free 'none'. A linearisation that
+is not finite, or that the QP refuses, leaves the tick to the shifted previous plan (held u_t
+at first), counted in ``failed_linearisations``. Why the current state: docs/nonlinear.md.
 """
 from dataclasses import replace
 import time
@@ -39,11 +31,20 @@ class LocalLinearMpc:
     """The planner of the module docstring (the :class:`~metampc_controller.planner.Planner`
     protocol, with ``state`` the model's physical s_t)."""
 
-    def __init__(self, config: MpcConfig, model: LocallyLinear):
+    def __init__(self, config: MpcConfig, model: LocallyLinear, rebuild_tol: float = 0.0):
+        """rebuild_tol: the QP is set up again (DARE, condensing, OSQP) only when an entry of
+        A or B moved by more than this (relative to the largest entry of the model in use);
+        otherwise the new constant e alone is written into the data (LatentMpc.set_constants).
+        0: a new QP every tick."""
+        if not rebuild_tol >= 0:
+            raise ValueError(f'rebuild_tol must be >= 0, got {rebuild_tol}')
         self._mpc = LatentMpc(replace(config, offset_free='none'))
         self.model = model
+        self.rebuild_tol = rebuild_tol
         self.failed_linearisations = 0
+        self.rebuilds = 0
         self._plan: Optional[np.ndarray] = None
+        self._built: Optional[LatentModel] = None
 
     @property
     def config(self) -> MpcConfig:
@@ -52,6 +53,7 @@ class LocalLinearMpc:
     def reset(self) -> None:
         self._mpc.reset()
         self._plan = None
+        self._built = None
 
     def set_time_limit(self, seconds: float) -> None:
         self._mpc.set_time_limit(seconds)
@@ -64,8 +66,8 @@ class LocalLinearMpc:
             if state is None or not (np.all(np.isfinite(state))
                                      and np.all(np.isfinite(u_prev))):
                 raise ValueError('state or input not finite')
-            self._mpc.set_model(self.model.linearise(np.asarray(state, float),
-                                                     np.asarray(u_prev, float)))
+            self._set(self.model.linearise(np.asarray(state, float),
+                                           np.asarray(u_prev, float)))
         except (ValueError, np.linalg.LinAlgError):
             self.failed_linearisations += 1
             return self._shifted(u_prev, y_ref, start)
@@ -73,6 +75,21 @@ class LocalLinearMpc:
         self._plan = np.asarray(res.u_plan).reshape(-1)
         res.solve_time = time.perf_counter() - start
         return res
+
+    def _set(self, lin: LatentModel) -> None:
+        """Plan on `lin` from now on: its constants only, where A and B are those of the QP
+        in use within rebuild_tol, else a new QP."""
+        built = self._built
+        if built is not None and built.A.shape == lin.A.shape and built.B.shape == lin.B.shape:
+            scale = self.rebuild_tol * max(np.max(np.abs(built.A)), np.max(np.abs(built.B)))
+            if (np.max(np.abs(lin.A - built.A)) <= scale
+                    and np.max(np.abs(lin.B - built.B)) <= scale):
+                self._mpc.set_constants(lin.e, lin.d)
+                return
+        self._built = None
+        self._mpc.set_model(lin)
+        self._built = lin
+        self.rebuilds += 1
 
     def _shifted(self, u_prev: np.ndarray, y_ref: np.ndarray, start: float) -> PlanResult:
         """The shifted previous plan (held u_t, or 0 where it is not finite, at first)."""

@@ -355,6 +355,20 @@ class LatentMpc:
         if self._plan is not None and self._plan.shape != (n,):
             self.reset()
 
+    def set_constants(self, e: np.ndarray, d: np.ndarray) -> None:
+        """The constants e (n_z,) and d (n_y,) of the model in use replaced in place, nothing
+        rebuilt: the QP, its terminal cost and the steady-state target's map depend on A, B, C
+        only, and e, d reach each solve through the data vector. Without offset-free tracking
+        (the estimator is set up with the model's constants). ValueError: no model, offset-free
+        on, or shapes that differ or values that are not finite."""
+        pb = self._problem
+        if pb is None or pb.estimator is not None:
+            raise ValueError('set_constants needs a model set up without offset-free tracking')
+        model = replace(pb.model, e=np.asarray(e, dtype=float), d=np.asarray(d, dtype=float))
+        model.validate()
+        pb.model = model
+        pb.views[6][:] = np.concatenate([model.e, model.d])
+
     def solve(self, z0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
               y: Optional[np.ndarray] = None, step: Optional[int] = None) -> PlanResult:
         """Plan u_{t+1..t+N} from z_t (n_z,), the applied input u_t (n_u,) and the references
@@ -362,7 +376,8 @@ class LatentMpc:
 
         y: the measured y_t (n_y,), which the offset-free estimator takes (with the sample's
         index `step`, so that a skipped tick is not read as one step); without it the
-        disturbance estimate stays as it is.
+        disturbance estimate stays as it is. A sample it refuses (not finite) fails the tick
+        as non-finite z_t does: status 'invalid data', the fallback, the estimate unchanged.
 
         Per call: copies into the data vector w, one finiteness check, one product
         [q; y0; b] = Gw w, OSQP (q, primal warm start, solve), the clip into the bounds, the
@@ -380,16 +395,21 @@ class LatentMpc:
         w_u[:] = u_prev
         w_r[:] = y_ref
         est = pb.estimator
+        refused = 0 if est is None else est.refused
         if est is None:
             disturbance = _NO_DISTURBANCE      # w_ed holds the model's e, d (set-up)
         else:
             if y is not None:
-                est.update(z0, u_prev, y, step)
+                est.update(z0, u_prev, y, step)     # refuses (and counts) a non-finite sample
             est.constants(w_ed)
             disturbance = est.p.copy()
-        pb.target(w_target, w_s)
-        # One dot product checks the data for nan/inf before they can reach the solver.
-        valid = math.isfinite(np.dot(pb.w, pb.w))
+        # One dot product checks the data for nan/inf before they can reach the steady-state
+        # target and the solver; a sample the estimator refused fails the tick alike.
+        data = pb.w[:pb.w.size - w_s.size]
+        valid = math.isfinite(np.dot(data, data)) and (est is None or est.refused == refused)
+        if valid:
+            pb.target(w_target, w_s)
+            valid = math.isfinite(np.dot(w_s, w_s))
         status, iters, x, cost = 'invalid data', 0, None, math.nan
         prev = self._plan
         if valid:
@@ -486,7 +506,10 @@ def _setup_solver(P: sp.csc_matrix, A: sp.csc_matrix, lo: np.ndarray, hi: np.nda
                   config: MpcConfig) -> osqp.OSQP:
     """A new OSQP instance of the condensed QP. q = 0 at set-up: OSQP scales the cost once from
     (P, q), so the scaling stays independent of the first tick's data."""
-    solver = osqp.OSQP()
+    # The builtin algebra named: OSQP's default looks for its MKL and CUDA modules on every
+    # construction (a failed import each, ~1 ms: the locally linear MPC builds one per tick),
+    # and would pick MKL where installed, so the same QP could solve differently per machine.
+    solver = osqp.OSQP(algebra='builtin')
     solver.setup(P=P, q=np.zeros(P.shape[0]), A=A, l=lo, u=hi, **config.osqp_settings())
     return solver
 

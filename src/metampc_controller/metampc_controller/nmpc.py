@@ -2,26 +2,37 @@
 
 The latent MPC's horizon, weights and bounds (:class:`~planner.PlannerConfig`) and eq. (mpc)'s
 cost with Q on the terminal output (no DARE: no linear model), J(u) = sum_k ||y_{t+k} -
-r_{t+k}||_Q^2 + ||u_{t+k+1} - u_{t+k}||_R^2, predicted by the plant family's own equations
-(``metampc_plant``, RK4) with the true theta: the physical limit for this cost. Single
-shooting over u_{t+1..t+N} by L-BFGS-B, forward-difference gradient (N n_u + 1 rollouts as one
-batch), warm-started from the shifted previous plan. Contract: a :class:`~planner.Planner`;
-theta may change between solves (:meth:`Nmpc.set_theta`, no rebuild); the state is estimated
-from y (``PlantFamily.state_from_output``: unmeasured components from the model's one-step
+r_{t+k}||_Q^2 + ||u_{t+k+1} - u_{t+k}||_R^2 (and the tail), predicted by the plant family's own
+equations (``metampc_plant``, RK4) with the true theta: the physical limit for this cost.
+Two solvers (``NmpcConfig.solver``): 'ipopt', multiple shooting on CasADi with exact
+derivatives (:mod:`nmpc_shooting`), warm-started from the shifted previous plan and states;
+'lbfgsb', single shooting over u_{t+1..t+N} by L-BFGS-B with forward-difference gradients
+(N n_u + 1 rollouts as one batch), warm-started from the shifted plan (the yardstick until
+2026-12-07; a family whose equations take no CasADi symbols keeps it). Where IPOPT stops
+unconverged, L-BFGS-B runs from the same start too and the cheapest of the two plans and the
+shifted previous one flies (status '<IPOPT's> (L-BFGS-B plan)' where L-BFGS-B's did); the
+shifted plan is the ``fallback``, as where L-BFGS-B alone finds no finite cost. Contract: a
+:class:`~planner.Planner`; theta may change between solves (:meth:`Nmpc.set_theta`, no
+rebuild); the state is estimated from y
+(``PlantFamily.state_from_output``: unmeasured components from the model's one-step
 prediction, from the family's x0 at each episode).
 """
 from dataclasses import dataclass
+import math
 import time
 from typing import Optional, Sequence
 
 import numpy as np
 from scipy.optimize import minimize
 
+from metampc_controller.nmpc_shooting import MultipleShooting, SymbolicError
 from metampc_controller.planner import PlannerConfig, PlanResult
 # The plant's equations (the controller's other import of the plant package is closed_loop's
 # plant core, a harness outside the node).
 from metampc_plant.family import PlantFamily
 from metampc_plant.integrate import rk4_sample
+
+SOLVERS = ('ipopt', 'lbfgsb')
 
 
 @dataclass
@@ -33,8 +44,11 @@ class NmpcConfig(PlannerConfig):
         dt: sample time, s.
         substeps: RK4 steps per sample of the prediction (why 2: docs/controller.md,
             Planners).
+        solver: one of SOLVERS (module docstring).
         max_iter: L-BFGS-B iteration cap per solve.
-        fd_step: forward-difference step on u.
+        fd_step: forward-difference step on u (L-BFGS-B).
+        ipopt_max_iter: IPOPT iteration cap per solve.
+        ipopt_tol: IPOPT's convergence tolerance (its scaled NLP error).
         tail: samples predicted past N with the last planned input held, each output scored
             against the last reference with Q (no Delta-u: the input is held): a terminal
             cost on the true model that stands for the cost-to-go, as the DARE's does for the
@@ -43,8 +57,11 @@ class NmpcConfig(PlannerConfig):
 
     dt: float = 0.1
     substeps: int = 2
+    solver: str = 'ipopt'
     max_iter: int = 50
     fd_step: float = 1e-6
+    ipopt_max_iter: int = 200
+    ipopt_tol: float = 1e-10
     tail: int = 0
 
 
@@ -61,7 +78,22 @@ class Nmpc:
             for v in (config.r, config.u_min, config.u_max))
         self.config = config
         self.q = np.asarray(config.q, dtype=float).reshape(family.n_y)
+        if config.solver not in SOLVERS:
+            raise ValueError(f'NMPC solver must be one of {", ".join(SOLVERS)}, got '
+                             f'{config.solver!r}')
+        # The solver in use, and why where it is not the one asked for.
+        self.solver, self.solver_note = config.solver, ''
+        self._shooting: Optional[MultipleShooting] = None
+        if config.solver == 'ipopt':
+            try:
+                self._shooting = MultipleShooting(
+                    family, config.horizon, config.tail, self.q, self.r, self.u_min,
+                    self.u_max, config.dt, config.substeps, config.ipopt_max_iter,
+                    config.ipopt_tol)
+            except SymbolicError as err:
+                self.solver, self.solver_note = 'lbfgsb', f'{err}: L-BFGS-B instead'
         self._plan: Optional[np.ndarray] = None     # (N n_u,)
+        self._states: Optional[np.ndarray] = None   # ipopt: planned x_{t+1..t+N+T}
         self._x: Optional[np.ndarray] = None        # state estimate at the last solve
 
     def set_theta(self, theta: Sequence[float]) -> None:
@@ -73,10 +105,12 @@ class Nmpc:
         """Forget the previous plan and state estimate: the next solve starts from u_prev held
         (a new episode)."""
         self._plan = None
+        self._states = None
         self._x = None
 
     def set_time_limit(self, seconds: float) -> None:
-        """L-BFGS-B runs without a wall-clock cap (``maxiter`` bounds it): nothing to set."""
+        """Both solvers run without a wall-clock cap (their iteration caps bound them):
+        nothing to set."""
 
     def rollout(self, x0: np.ndarray, plans: np.ndarray) -> np.ndarray:
         """Outputs y_{t+1..t+N} for a batch of input plans (P, N, n_u); returns (P, N, n_y)."""
@@ -142,27 +176,80 @@ class Nmpc:
             raise ValueError('Nmpc.solve needs the state or the measured y')
         lo, hi = np.tile(self.u_min, n), np.tile(self.u_max, n)
         if self._plan is None:
-            guess = np.tile(np.clip(u_prev, self.u_min, self.u_max), n)
+            held = np.where(np.isfinite(u_prev), u_prev, 0.0)
+            guess = np.tile(np.clip(held, self.u_min, self.u_max), n)
         else:
             guess = np.concatenate([self._plan[n_u:], self._plan[-n_u:]])
-        eye = cfg.fd_step * np.eye(n * n_u)
+        solve = self._solve_shooting if self._shooting is not None else self._solve_lbfgsb
+        plan, status, iterations, residual = solve(x0, u_prev, y_ref, guess, lo, hi)
+        if self._shooting is not None and status != 'solved':
+            # IPOPT stopped unconverged: today's L-BFGS-B from the same start too, and the
+            # cheapest of its plan, IPOPT's and the shifted one flies.
+            rescue = self._solve_lbfgsb(x0, u_prev, y_ref, guess, lo, hi)[0]
+            plans = [p for p in (plan, rescue) if p is not guess] + [guess]
+            costs = [self._evaluate(x0, u_prev, y_ref, p)[0] for p in plans]
+            plan = plans[int(np.argmin(costs))] if np.isfinite(min(costs)) else guess
+            if plan is rescue and rescue is not guess:
+                status, self._states = f'{status} (L-BFGS-B plan)', None
+        fallback = plan is guess
+        if fallback:
+            plan, self._states = np.clip(guess, lo, hi), None
+        cost, y_pred = self._evaluate(x0, u_prev, y_ref, plan)
+        self._plan = plan
+        return PlanResult(u=plan[:n_u].copy(), u_plan=plan.reshape(n, n_u), y_pred=y_pred,
+                          cost=cost, status=status, iterations=iterations,
+                          solve_time=time.perf_counter() - start, fallback=fallback,
+                          residual=residual)
+
+    def _evaluate(self, x0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
+                  plan: np.ndarray) -> tuple:
+        """(J (+inf where not finite), y_pred (N, n_y)) of plan (N n_u,): on CasADi's
+        compiled equations with the ipopt solver (the same numbers, in microseconds), else
+        :meth:`costs` and :meth:`rollout`."""
+        if self._shooting is not None:
+            return self._shooting.evaluate(plan, x0, u_prev, y_ref, self.theta)
+        plans = plan.reshape(1, -1, self.family.n_u)
+        return (float(self.costs(x0, u_prev, y_ref, plan[None])[0]),
+                self.rollout(x0, plans)[0])
+
+    def _solve_lbfgsb(self, x0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
+                      guess: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple:
+        """L-BFGS-B single shooting: (plan (N n_u,) within [lo, hi], or `guess` itself where
+        the cost is not finite; status; iterations; residual: NaN, none reported)."""
+        cfg = self.config
+        eye = cfg.fd_step * np.eye(guess.size)
 
         def fun(u):
             # Row 0 is the plan itself, the others perturb one input each (forward differences).
             j = self.costs(x0, u_prev, y_ref, np.vstack([u, u + eye]))
-            return j[0], (j[1:] - j[0]) / cfg.fd_step
+            with np.errstate(invalid='ignore'):     # inf - inf: data that are not finite
+                return j[0], (j[1:] - j[0]) / cfg.fd_step
 
         res = minimize(fun, guess, jac=True, method='L-BFGS-B', bounds=list(zip(lo, hi)),
                        options={'maxiter': cfg.max_iter})
-        plan = np.clip(res.x, lo, hi)
-        fallback = not np.isfinite(res.fun)
-        if fallback:
-            plan = np.clip(guess, lo, hi)
-        self._plan = plan
-        plans = plan.reshape(1, n, n_u)
-        y_pred = self.rollout(x0, plans)[0]
-        return PlanResult(u=plan[:n_u].copy(), u_plan=plans[0].copy(), y_pred=y_pred,
-                          cost=float(self.costs(x0, u_prev, y_ref, plan[None])[0]),
-                          status='solved' if res.success else f'stopped: {res.message}',
-                          iterations=int(res.nit), solve_time=time.perf_counter() - start,
-                          fallback=fallback)
+        plan = np.clip(res.x, lo, hi) if np.isfinite(res.fun) else guess
+        return (plan, 'solved' if res.success else f'stopped: {res.message}', int(res.nit),
+                math.nan)
+
+    def _solve_shooting(self, x0: np.ndarray, u_prev: np.ndarray, y_ref: np.ndarray,
+                        guess: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple:
+        """IPOPT multiple shooting from the shifted plan and states (without planned states,
+        the first solve of an episode or after a fallback: every state at x0, which measured
+        better than the plan's own rollout: from rest the tank's rollout drains an upper tank
+        through sqrt's infinite slope at 0, where IPOPT stalled at its cap, while from x0 held
+        it converged in 7 iterations to L-BFGS-B's cost): (plan (N n_u,) within [lo, hi], or
+        `guess` itself where the solution is not finite; status; iterations; residual)."""
+        u_guess = guess.reshape(-1, self.family.n_u)
+        if self._states is None:
+            states = np.tile(x0, (self.config.horizon + self.config.tail, 1))
+        else:
+            states = np.vstack([self._states[1:],
+                                self.rollout_state(self._states[-1], u_guess[-1])])
+            states = np.where(np.isfinite(states), states, x0)
+        res = self._shooting.solve(x0, u_prev, y_ref, self.theta, u_guess, states)
+        plan = res.u.reshape(-1)
+        if not np.all(np.isfinite(plan)):
+            self._states = None
+            return guess, res.status, res.iterations, res.residual
+        self._states = res.x
+        return np.clip(plan, lo, hi), res.status, res.iterations, res.residual

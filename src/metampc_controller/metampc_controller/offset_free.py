@@ -109,6 +109,7 @@ class DisturbanceEstimator:
         self.model, self.dist, self.gain = model, dist, gain
         n_z, n_u, n_y = model.n_z, model.n_u, model.n_y
         self.p = np.zeros(dist.n_d)
+        self.refused = 0        # samples refused (not finite), over the estimator's life
         pred = np.block([[model.A, model.B], [model.C @ model.A, model.C @ model.B]])
         self._k_meas = dist.H_pinv
         self._k_pred = dist.H_pinv @ pred
@@ -134,10 +135,16 @@ class DisturbanceEstimator:
 
         `step`: the sample's index; when it does not follow the previous update's (a tick was
         skipped) the residual would span two steps, so p is kept and only z_t is stored.
-        Non-finite data leave p unchanged.
+        A sample with a non-finite value (or a residual too large to be finite) is refused:
+        p unchanged, counted in ``refused``; a finite z_t is still kept for the next residual.
         """
         n_z, prev = self._n_z, self._prev
-        if self._have_prev and (step is None or self._step is None or step == self._step + 1):
+        z_finite = math.isfinite(np.dot(z, z))
+        finite = z_finite and math.isfinite(np.dot(u, u) + np.dot(y, y))
+        if not finite:
+            self.refused += 1
+        elif self._have_prev and (step is None or self._step is None
+                                  or step == self._step + 1):
             meas, p_inst = self._meas, self._p_inst
             meas[:n_z] = z
             meas[n_z:] = y
@@ -149,8 +156,10 @@ class DisturbanceEstimator:
                 p_inst -= self.p
                 p_inst *= self.gain
                 self.p += p_inst
-        self._have_prev = math.isfinite(np.dot(z, z))
-        if self._have_prev:
+            else:
+                self.refused += 1
+        self._have_prev = z_finite
+        if z_finite:
             prev[:n_z] = z
         self._step = step
         return self.p

@@ -8,6 +8,7 @@ those settings once. Each is a :class:`Planner`, built by name outside the tick
 tick, MpcStatus and the reports read one type whichever planner answered.
 """
 from dataclasses import dataclass, field, fields
+import math
 from typing import Optional, Protocol, Sequence, Tuple, Union
 
 import numpy as np
@@ -86,7 +87,7 @@ class PlanResult:
             if the data were not finite; NMPC: J of the plan on the true model.
         status: the solver's status: OSQP's, or 'invalid data' when z_t, u_t or the reference
             were not finite (then OSQP does not run; pass finite values for untracked outputs
-            too); the NMPC's 'solved' or 'stopped: <L-BFGS-B's message>'.
+            too); the NMPC's 'solved' or 'stopped: <IPOPT's status or L-BFGS-B's message>'.
         iterations: solver iterations (0 when OSQP did not run).
         solve_time: wall-clock time of the whole solve() call, s.
         fallback: True when u_plan is the shifted previous plan (or held u_t), not a solution
@@ -97,6 +98,8 @@ class PlanResult:
             (empty with 'none', and for the NMPC).
         slack: latent MPC: the largest planned violation of the soft output bounds (0 without
             them, or when the plan meets them).
+        residual: the solver's optimality residual where it reports one (the NMPC's IPOPT:
+            max of its primal and dual infeasibility at the last iterate), else NaN.
     """
 
     u: np.ndarray
@@ -110,6 +113,7 @@ class PlanResult:
     terminal_fallback: bool = False
     disturbance: np.ndarray = field(default_factory=lambda: np.zeros(0))
     slack: float = 0.0
+    residual: float = math.nan
 
 
 class Planner(Protocol):

@@ -2,7 +2,7 @@
 
 A :class:`PlannerKind` says how a planner is built (outside the tick) from the controller's
 config (:class:`~metampc_controller.controller_params.ControllerConfig`: its ``mpc`` section,
-and the NMPC's ``nmpc_tail``) and the model it predicts with, and which model
+and the NMPC's ``nmpc_tail`` and ``nmpc_solver``) and the model it predicts with, and which model
 that is: the learned NSSM (weights from the learner) or the plant's own equations (plant_info's
 family and dt, the samples' theta). The controller looks its kind up once, at start.
 """
@@ -68,17 +68,19 @@ def learned_mpc(config: MpcConfig, predictor: Union[NssmPredictor, NarxPredictor
     return latent_mpc(config, predictor.latent)
 
 
-def nmpc(config: MpcConfig, model: TrueModel, tail: int = 0) -> Nmpc:
-    """The NMPC of `config`'s horizon, weights and bounds and a `tail` (samples) on the plant's
-    equations (no set-up: cheap). ValueError if theta does not fit the family."""
-    return Nmpc(NmpcConfig(**config.shared(), dt=model.dt, tail=tail), model.family,
-                model.theta)
+def nmpc(config: MpcConfig, model: TrueModel, tail: int = 0, solver: str = 'ipopt') -> Nmpc:
+    """The NMPC of `config`'s horizon, weights and bounds, a `tail` (samples) and a `solver`
+    on the plant's equations (ipopt: its NLP built on CasADi, about 0.1-0.5 s, outside the
+    tick). ValueError if theta does not fit the family."""
+    return Nmpc(NmpcConfig(**config.shared(), dt=model.dt, tail=tail, solver=solver),
+                model.family, model.theta)
 
 
 REGISTRY: Dict[str, PlannerKind] = {
     'latent_mpc': PlannerKind(lambda config, model: latent_mpc(config.mpc, model),
                               learned=True, waiting='no_model'),
-    'nmpc': PlannerKind(lambda config, model: nmpc(config.mpc, model, config.nmpc_tail),
+    'nmpc': PlannerKind(lambda config, model: nmpc(config.mpc, model, config.nmpc_tail,
+                                                   config.nmpc_solver),
                         learned=False, waiting='no_plant_info'),
 }
 

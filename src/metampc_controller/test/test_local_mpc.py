@@ -2,14 +2,16 @@
 import numpy as np
 import pytest
 
-from metampc_bringup.studies.nonlinear_regime import collect, RegimeConfig, track
+from metampc_bringup.studies.nonlinear_regime import collect, track
+from metampc_common.excitation import ExcitationConfig
 from metampc_controller.local_mpc import LINEARISATION_FAILED, LocalLinearMpc
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_model.latent_model import LatentModel
 from metampc_plant.integrate import rk4_sample
 from metampc_plant.registry import get_family
-from metampc_plant.simulator import Plant, PlantConfig
+from metampc_controller.references import make_reference
+from metampc_plant.simulator import PlantConfig
 
 CONFIG = MpcConfig(horizon=20, q=(1.0, 0.0), r=0.05, u_min=-1.0, u_max=1.0)
 
@@ -36,11 +38,13 @@ class TrueVanDerPol:
         return y_hist[-1]
 
 
+PLANT = PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,), u_max=(1.0,))
+
+
 def _cost(planner, theta, setpoints, model=None):
-    config = RegimeConfig(setpoints=setpoints, order=1, mpc=CONFIG)
-    plant = Plant(PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,),
-                              u_max=(1.0,)))
-    return track(planner, plant, (theta,), (0.0, 0.0), config,
+    ref = make_reference('setpoint_sequence', setpoints=setpoints, segment=7.5, outputs=(0,),
+                         n_y=2)
+    return track(planner, PLANT, (theta,), (0.0, 0.0), ref, int(len(setpoints) * 75), (0,),
                  None if model is None else model.state)
 
 
@@ -55,9 +59,8 @@ def test_on_the_true_model_it_holds_the_set_points_where_the_nmpc_does():
     assert local <= 1.15 * nmpc
     # while one linear model fitted by least squares on 300 open-loop samples (which lie on
     # the limit cycle, so the fit averages the damping over it) falls into the limit cycle
-    plant_cfg = PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,),
-                            u_max=(1.0,))
-    u, y = collect('vanderpol', (1.5,), (0.5, 0.0), 300, 0, plant_cfg)
+    exc = ExcitationConfig(u_min=(-1.0,), u_max=(1.0,))
+    u, y = collect(exc, PLANT, (1.5,), (0.5, 0.0), 300, 0)
     reg = np.hstack([y[:-1], u[1:], np.ones((len(u) - 1, 1))])
     w = np.linalg.lstsq(reg, y[1:], rcond=None)[0].T
     fixed = LatentModel(w[:, :2], w[:, 2:3], np.eye(2), w[:, 3], np.zeros(2))
@@ -107,3 +110,49 @@ def test_the_planner_plans_without_an_offset_free_estimator(form):
     from dataclasses import replace
     planner = LocalLinearMpc(replace(CONFIG, offset_free=form), TrueVanDerPol(1.0))
     assert planner.config.offset_free == 'none'
+
+
+def test_new_constants_move_the_prediction_as_a_rollout_of_the_new_model_does():
+    """set_constants (the rebuild-free path): the plan's prediction is a rollout of the model
+    with the new e under the returned plan (fails if the data vector kept the old e)."""
+    from dataclasses import replace as swap
+    from metampc_controller.mpc import LatentMpc
+    model = TrueVanDerPol(0.5).linearise(np.array([0.2, 0.1]), np.zeros(1))
+    mpc = LatentMpc(swap(CONFIG, offset_free='none'))
+    mpc.set_model(model)
+    e_new = model.e + np.array([0.01, -0.02])
+    mpc.set_constants(e_new, model.d)
+    z0, ref = np.array([0.3, -0.1]), np.tile([0.5, 0.0], (20, 1))
+    res = mpc.solve(z0, np.zeros(1), ref)
+    moved = swap(model, e=e_new)
+    z, pred = z0, []
+    for u in res.u_plan:
+        z = moved.step(z, u)
+        pred.append(moved.output(z))
+    np.testing.assert_allclose(res.y_pred, np.array(pred), atol=1e-9)
+    with pytest.raises(ValueError, match='offset-free'):
+        on = LatentMpc(swap(CONFIG, offset_free='state'))
+        on.set_model(model)
+        on.set_constants(e_new, model.d)
+
+
+def test_a_linear_model_is_set_up_once_and_a_tolerance_skips_small_moves():
+    class Linear:
+        def __init__(self):
+            self.fixed = TrueVanDerPol(0.5).linearise(np.zeros(2), np.zeros(1))
+
+        def linearise(self, s, u):
+            return self.fixed
+    planner = LocalLinearMpc(CONFIG, Linear())
+    for k in range(5):
+        planner.solve(np.full(2, 0.1 * k), np.zeros(1), np.zeros((20, 2)), None, k)
+    assert planner.rebuilds == 1
+    model = TrueVanDerPol(1.0)
+    exact, loose = LocalLinearMpc(CONFIG, model), LocalLinearMpc(CONFIG, model, 0.05)
+    for k in range(5):
+        for planner in (exact, loose):
+            planner.solve(np.array([0.5 + 0.001 * k, 0.0]), np.zeros(1), np.zeros((20, 2)),
+                          None, k)
+    assert exact.rebuilds == 5 and loose.rebuilds == 1
+    with pytest.raises(ValueError, match='rebuild_tol'):
+        LocalLinearMpc(CONFIG, model, -1.0)

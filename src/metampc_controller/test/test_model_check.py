@@ -291,3 +291,52 @@ def test_the_controller_scores_as_planned_when_asked():
         reason = core.vet(build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2))
         assert reason.startswith('check: its 20-step prediction error') and (
             ('(offset-free state, as planned)' in reason) == planned), reason
+
+
+def error_by_hand(model, u, y, horizon, scored, stride):
+    """E of `model` (None: persistence) on the last `scored` samples of u, y, by the module's
+    definition written out: starts t = K - scored - 1, ... (stride) with t + N < K, each
+    output scaled by its std over the scored samples and the H before them."""
+    k, h = len(y), model.config.history if model is not None else 1
+    scale = np.std(y[k - scored - h:], axis=0)
+    errors = []
+    for t in range(k - scored - 1, k - horizon, stride):
+        if model is None:
+            pred = np.repeat(y[t:t + 1], horizon, axis=0)
+        else:
+            pred = model.predict(u[t - h + 1:t + 1], y[t - h + 1:t + 1],
+                                 u[t + 1:t + 1 + horizon])
+        errors.append((y[t + 1:t + 1 + horizon] - pred) / scale)
+    return float(np.mean(np.square(errors)))
+
+
+def test_the_errors_are_those_of_exactly_the_scored_samples():
+    """Both errors equal the definition worked out by hand on the last 100 samples: a check
+    that scored one sample more or fewer (its starts shifted by one) would not."""
+    u, y = plant_data()
+    good, bad = predictor(), predictor(flip=True)
+    verdict = check(bad, good, u, y, 20, ModelCheckConfig(), scored=100)
+    assert verdict.candidate == pytest.approx(error_by_hand(bad, u, y, 20, 100, 5), rel=1e-9)
+    assert verdict.reference == pytest.approx(error_by_hand(good, u, y, 20, 100, 5), rel=1e-9)
+    assert 'on 100 samples' in verdict.reason
+
+
+def test_the_margin_lets_a_candidate_a_known_factor_worse_fly_just_above_that_factor():
+    """The flipped model's error is F times the good one's (by hand): it flies at a margin
+    just above F - 1 and is refused just below it."""
+    u, y = plant_data()
+    good, bad = predictor(), predictor(flip=True)
+    factor = error_by_hand(bad, u, y, 20, 100, 5) / error_by_hand(good, u, y, 20, 100, 5)
+    assert factor > 1.25
+    above = check(bad, good, u, y, 20, ModelCheckConfig(model_check_margin=factor - 1 + 1e-6),
+                  scored=100)
+    below = check(bad, good, u, y, 20, ModelCheckConfig(model_check_margin=factor - 1 - 1e-6),
+                  scored=100)
+    assert above.ok and not below.ok
+    assert f'exceeds {factor - 1e-6:g} x ' in below.reason
+
+
+def test_a_candidate_exactly_as_good_as_the_model_in_use_passes_at_margin_0():
+    u, y = plant_data()
+    verdict = check(predictor(), predictor(), u, y, 20, ModelCheckConfig(), scored=100)
+    assert verdict.candidate == verdict.reference and verdict.ok

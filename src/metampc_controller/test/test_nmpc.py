@@ -1,13 +1,19 @@
 """The nonlinear MPC yardstick, checked where the answer is known independently."""
-from dataclasses import replace
+from dataclasses import dataclass, fields, replace
+import math
 
 import numpy as np
+import pytest
+import scipy.special
 from scipy.linalg import expm
 from scipy.optimize import lsq_linear
 
 from metampc_controller.nmpc import Nmpc, NmpcConfig
+from metampc_controller.nmpc_shooting import symbolic_sample
+from metampc_plant.integrate import rk4_sample
 from metampc_plant.registry import get_family
 from metampc_plant.simulator import Plant, PlantConfig
+from metampc_plant.steady_state import steady_output, steady_state
 
 VDP = get_family('vanderpol')
 
@@ -112,3 +118,187 @@ def test_the_tail_costs_the_plan_held_past_the_horizon():
     untailed = Nmpc(replace(short, tail=0), tank, theta).costs(
         x0, u_prev, y_ref, plans.reshape(5, -1))
     assert np.all(got > untailed)
+
+
+# --- the CasADi multiple-shooting solver (solver='ipopt') -------------------------------------
+
+FAMILIES = ('vanderpol', 'duffing', 'pendulum', 'quadruple_tank', 'cascaded_tanks')
+
+
+@pytest.mark.parametrize('name', FAMILIES)
+def test_symbolic_sample_equals_the_simulators(name):
+    """The families' equations on CasADi symbols (one RK4 sample and the output) against the
+    numpy RK4 the simulator runs, on random states around the initial-state box (beyond it
+    too: the tanks' max(h, 0) and the overflow's clip on both sides), inputs and thetas: to
+    1e-12. A symbolic twin with a sign, a constant or the output's timing wrong would fail."""
+    fam = get_family(name)
+    rng = np.random.default_rng(7)
+    n = 200
+    lo, hi = np.asarray(fam.x0_low) - 1.0, np.asarray(fam.x0_high) + 2.0
+    x = rng.uniform(lo, hi, (n, fam.n_x))
+    u = rng.uniform(fam.u_min, fam.u_max, (n, fam.n_u))
+    theta = fam.sample_theta(rng, n)
+    sample = symbolic_sample(fam, 0.3 * fam.dt, 2)
+    x_sym, y_sym = sample.map(n)(x.T, u.T, theta.T)
+    x_num = rk4_sample(fam, x, u, theta, 0.3 * fam.dt, 2)
+    y_num = np.stack(fam.output(x_num.T, u.T, theta.T), axis=1)
+    np.testing.assert_allclose(np.asarray(x_sym).T, x_num, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(y_sym).T, y_num, rtol=1e-12, atol=1e-12)
+
+
+def test_linear_plant_equals_the_lq_tracking_answer():
+    """theta = 0: van der Pol is a linear oscillator, and the NMPC's RK4 prediction a linear
+    map x+ = A x + B u (read off the simulator's RK4 on unit vectors). Without bounds the
+    problem is linear least squares over u_1..u_N (N = 15, tail 5, both outputs weighted),
+    solved here by lstsq; the NMPC's plan equals it to 1e-6 (IPOPT's tolerance 1e-8). A wrong
+    tail, Delta-u from the wrong u_0, outputs a sample off or weights swapped would not."""
+    cfg = NmpcConfig(horizon=15, q=(1.0, 0.3), r=0.05, u_min=-np.inf, u_max=np.inf, tail=5)
+    n, t = cfg.horizon, cfg.tail
+
+    def step(x, u):
+        return rk4_sample(VDP, np.atleast_2d(x), np.atleast_2d(u), np.zeros((1, 1)), cfg.dt,
+                          cfg.substeps)[0]
+
+    a = np.stack([step(e, [0.0]) for e in np.eye(2)], axis=1)
+    b = step(np.zeros(2), [1.0])
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        x0, u_prev = rng.uniform(-1.0, 1.0, 2), rng.uniform(-1.0, 1.0, 1)
+        y_ref = rng.uniform(-1.0, 1.0, (n, 2))
+        # Rows: sqrt(q) (y_k - r_k), k = 1..N+T (u_N held past N); sqrt(r) (u_k - u_{k-1}).
+        sel = np.minimum(np.arange(n + t), n - 1)
+        g, f, x = np.zeros((2 * (n + t), n)), np.zeros(2 * (n + t)), x0.copy()
+        m = np.zeros((2, n))
+        for k in range(n + t):
+            x = a @ x
+            m = a @ m
+            m[:, sel[k]] += b
+            g[2 * k:2 * k + 2], f[2 * k:2 * k + 2] = m, x
+        sq = np.sqrt(np.tile(cfg.q, n + t))
+        d = np.eye(n) - np.eye(n, k=-1)
+        rows = np.vstack([sq[:, None] * g, np.sqrt(cfg.r) * d])
+        rhs = np.r_[sq * (y_ref[sel].reshape(-1) - f),
+                    np.sqrt(cfg.r) * np.r_[u_prev, np.zeros(n - 1)]]
+        expected = np.linalg.lstsq(rows, rhs, rcond=None)[0]
+        res = Nmpc(cfg, VDP, [0.0]).solve(x0, u_prev, y_ref)
+        assert res.status == 'solved' and res.iterations >= 1 and res.residual < 1e-6
+        np.testing.assert_allclose(res.u_plan[:, 0], expected, atol=1e-6)
+        assert res.cost == pytest.approx(np.sum((rows @ expected - rhs) ** 2), rel=1e-9)
+
+
+@pytest.mark.parametrize('name, theta, tail', [
+    ('vanderpol', (1.8,), 0), ('vanderpol', (-0.8,), 0), ('pendulum', (1.2, 1.4, 0.1), 0),
+    ('quadruple_tank', (0.45, 0.4), 10), ('quadruple_tank', (0.7, 0.6), 10)])
+def test_ipopt_costs_no_more_than_lbfgsb(name, theta, tail):
+    """On the same state, reference and bounds, the CasADi solution's cost is at most the
+    L-BFGS-B yardstick's (its 50 iterations on forward differences), both from a cold start,
+    over 20 samples (the tank: N = 10 and a tail of 10, L-BFGS-B's seconds kept short).
+    Oscillators: random states of the initial-state box, set-points that are steady states
+    at random inputs. The tank (with its tail; non-minimum-phase, g1 + g2 < 1, and not) as
+    its experiment meets it: at the steady state of one row of its reference inputs, the
+    set-point the steady output of another, u_t = 0 (the first tick) or random. (Both solve a
+    non-convex problem: from a cold start far from the operating point, IPOPT may settle in a
+    costlier local minimum, e.g. 3.53 against 3.39 from a random tank state; docs/mpc.md.)"""
+    fam = get_family(name)
+    rng = np.random.default_rng(1)
+    lo, hi = np.asarray(fam.u_min), np.asarray(fam.u_max)
+    if name == 'quadruple_tank':
+        q, rows = (1.0, 1.0), [(3.0, 3.0), (2.6, 2.6), (3.4, 3.0), (2.8, 3.4)]
+        cases = [(steady_state(fam, theta, rows[i]), steady_output(fam, theta, rows[j]), u)
+                 for i, j, u in ((0, 1, np.zeros(2)), (1, 2, rng.uniform(lo, hi)),
+                                 (2, 3, rng.uniform(lo, hi)))]
+    else:
+        q = (1.0, 0.0)
+        cases = [(rng.uniform(fam.x0_low, fam.x0_high),
+                  steady_output(fam, theta, rng.uniform(lo + 0.2 * (hi - lo),
+                                                        hi - 0.4 * (hi - lo))),
+                  rng.uniform(lo, hi)) for _ in range(3)]
+    for x0, setpoint, u_prev in cases:
+        y_ref = np.tile(setpoint, (20, 1))
+        costs = {}
+        for solver in ('ipopt', 'lbfgsb'):
+            cfg = NmpcConfig(horizon=20 - tail, q=q, r=0.05, u_min=fam.u_min, u_max=fam.u_max,
+                             dt=fam.dt, tail=tail, solver=solver)
+            res = Nmpc(cfg, fam, theta).solve(x0, u_prev, y_ref[tail:])
+            costs[solver] = res.cost, res.status
+        assert costs['ipopt'][0] <= costs['lbfgsb'][0] * (1.0 + 1e-9), costs
+
+
+def _vdp_after_one_solve(solver='ipopt'):
+    cfg = NmpcConfig(horizon=10, r=0.05, solver=solver)
+    ctrl = Nmpc(cfg, VDP, [1.0])
+    ref = np.tile([0.8, 0.0], (cfg.horizon, 1))
+    first = ctrl.solve(np.array([0.0, 0.0]), [0.0], ref)
+    shifted = np.r_[first.u_plan[1:, 0], first.u_plan[-1, 0]]
+    return ctrl, ref, shifted
+
+
+def _break_ipopt(ctrl, outcome):
+    """IPOPT's answer replaced: NaN (an evaluation gone wrong), or a finite plan that stopped
+    unconverged at a cost above the shifted plan's (every input at its lower bound, from near
+    rest towards 0.8)."""
+    real = ctrl._shooting.solve
+
+    def broken(*args, **kwargs):
+        res = real(*args, **kwargs)
+        u = np.full_like(res.u, np.nan if outcome == 'not finite' else -1.0)
+        return replace(res, u=u, status='stopped: Maximum_Iterations_Exceeded', success=False)
+
+    ctrl._shooting.solve = broken
+
+
+@pytest.mark.parametrize('outcome', ['not finite', 'unconverged and worse'])
+def test_an_unconverged_solve_flies_lbfgsb_from_the_same_start(outcome):
+    """IPOPT fails (_break_ipopt): the plan is the one today's L-BFGS-B solver finds from the
+    same shifted start (an NMPC of solver lbfgsb in the same state), the status says both."""
+    ctrl, ref, shifted = _vdp_after_one_solve()
+    old, _, _ = _vdp_after_one_solve('lbfgsb')
+    old._plan = ctrl._plan
+    _break_ipopt(ctrl, outcome)
+    x1 = ctrl.rollout_state(np.zeros(2), [shifted[0]])
+    res = ctrl.solve(x1, shifted[:1], ref)
+    want = old.solve(x1, shifted[:1], ref)
+    assert res.status == 'stopped: Maximum_Iterations_Exceeded (L-BFGS-B plan)'
+    assert not res.fallback and res.cost == want.cost < np.inf
+    np.testing.assert_array_equal(res.u_plan, want.u_plan)
+
+
+def test_a_failed_solve_falls_back_to_the_shifted_plan():
+    """IPOPT's plan and L-BFGS-B's both costlier than the shifted previous plan (every input
+    at its lower bound): the shifted plan flies, fallback said, IPOPT's status reported."""
+    ctrl, ref, shifted = _vdp_after_one_solve()
+    _break_ipopt(ctrl, 'unconverged and worse')
+    ctrl._solve_lbfgsb = lambda *args: (np.full_like(shifted, -1.0), 'solved', 1, math.nan)
+    res = ctrl.solve(ctrl.rollout_state(np.zeros(2), [shifted[0]]), shifted[:1], ref)
+    assert res.fallback and res.status == 'stopped: Maximum_Iterations_Exceeded'
+    np.testing.assert_array_equal(res.u_plan[:, 0], shifted)
+    assert np.isfinite(res.cost)
+
+
+def test_a_measurement_that_is_not_finite_gives_a_finite_input_within_the_bounds():
+    ctrl, ref, shifted = _vdp_after_one_solve()
+    res = ctrl.solve(None, shifted[:1], ref, y=np.array([np.nan, 0.0]))
+    assert res.fallback and res.status == 'stopped: invalid data'
+    assert np.all(np.isfinite(res.u_plan)) and np.all(np.abs(res.u_plan) <= 1.0)
+    np.testing.assert_array_equal(res.u_plan[:, 0], shifted)
+
+
+@pytest.mark.parametrize('term, why', [
+    (lambda v: scipy.special.expit(v), 'do not take CasADi symbols'),
+    (np.vectorize(math.tanh), 'differ from the simulator')])
+def test_a_family_without_a_symbolic_form_keeps_lbfgsb(term, why):
+    """Equations through a function that takes arrays but no CasADi symbol: scipy's expit
+    raises on one; np.vectorize(math.tanh) takes it silently and gives NaN, which the check
+    against the simulator refuses. The NMPC says why and solves by L-BFGS-B, as before."""
+    vdp = type(VDP)
+
+    @dataclass(frozen=True)
+    class Damped(vdp):
+        def rhs(self, x, u, theta):
+            return x[1], -x[0] - term(x[1]) + u[0]
+
+    fam = Damped(**{f.name: getattr(VDP, f.name) for f in fields(VDP)})
+    ctrl = Nmpc(NmpcConfig(horizon=5), fam, [0.0])
+    assert ctrl.solver == 'lbfgsb' and why in ctrl.solver_note
+    res = ctrl.solve(np.array([0.5, 0.0]), [0.0], np.zeros((5, 2)))
+    assert res.status == 'solved' and np.isnan(res.residual)

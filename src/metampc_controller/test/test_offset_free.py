@@ -11,6 +11,8 @@ left after 400 steps of a loop whose slowest pole is ~0.95: 0.95^400 ~ 1e-9), so
 is solver tolerance times the loop's gain, far below 1e-6, while 'none' leaves offsets of
 1e-2..1e-1 in the same runs.
 """
+import warnings
+
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -189,3 +191,117 @@ def test_bounded_target_equals_box_least_squares(n_u):
         assert s[n_z:] == pytest.approx(u_star, abs=1e-9)
         assert s[:n_z] == pytest.approx(free @ np.r_[u_star, 1.0], abs=1e-9)
     assert checked > 100
+
+
+def test_bounded_target_with_an_output_disturbance_against_brute_force():
+    """With d' = d + p != 0 the target must meet r - d' (the plant's output is the model's
+    plus d'): y1 at steady state is 0.8 u + d'_1 (the oscillator's gain, by hand), u_s the
+    grid point closest to it in the box. At r = 0 with d'_1 = 1.5 the bound is -1 (a target
+    that added d' would pick +1); at r = 1.7, u_s = 0.25 inside the box."""
+    model = oscillator(0.8)
+    mpc = LatentMpc(MpcConfig(q=(1.0, 0.0), u_min=-1.0, u_max=1.0))
+    mpc.set_model(model)
+    term = mpc.terminal
+    target = SteadyStateTarget(model, np.array([1.0, 0.0]), term.ss_r, term.ss_e,
+                               np.array([-1.0]), np.array([1.0]), bounded=True)
+    d_out = np.array([1.5, -0.4])
+    grid = np.linspace(-1.0, 1.0, 20001)
+    for r1, want in ((0.0, -1.0), (1.7, 0.25), (3.0, 1.0), (-2.0, -1.0)):
+        s = target(np.r_[r1, 0.0, model.e, d_out], np.empty(3))
+        best = grid[np.argmin(np.abs(0.8 * grid + d_out[0] - r1))]
+        assert best == pytest.approx(want, abs=1e-12)
+        assert s[2] == pytest.approx(best, abs=1e-4)
+        z = np.linalg.solve(np.eye(2) - model.A, model.B[:, 0] * s[2])
+        assert s[:2] == pytest.approx(z, abs=1e-9)
+
+
+def biased_oscillator() -> LatentModel:
+    """The oscillator with its own constants e, d != 0."""
+    plain = oscillator()
+    return LatentModel(A=plain.A, B=plain.B, C=plain.C, e=np.array([0.05, -0.02]),
+                       d=np.array([0.3, -0.2]))
+
+
+@pytest.mark.parametrize('form', ['state', 'input', 'output'])
+def test_a_model_fed_its_own_outputs_estimates_no_disturbance(form):
+    """The residual's constant holds the model's own e and d: on the model's exact outputs
+    (e, d != 0) every form estimates p = 0; one that left out e or d would estimate them."""
+    model = biased_oscillator()
+    est = DisturbanceEstimator(model, disturbance_model(model, form), gain=0.5)
+    x = np.array([0.2, -0.1])
+    rng = np.random.default_rng(5)
+    for t in range(20):
+        u = rng.uniform(-1.0, 1.0, 1)
+        x = model.step(x, u)
+        p = est.update(x, u, model.output(x), step=t)
+    assert p == pytest.approx(np.zeros_like(p), abs=1e-12)
+
+
+def test_the_estimate_moves_by_g_of_the_residual_per_step():
+    """A constant latent disturbance w on the model's own data ('state' form: p = [w; v],
+    the one-step residual gives [w; 0]): after n updates p = (1 - (1 - g)^n) [w; 0], at
+    g = 0.3 (where g and 1 - g differ)."""
+    model = biased_oscillator()
+    est = DisturbanceEstimator(model, disturbance_model(model, 'state'), gain=0.3)
+    w = np.array([0.1, -0.05])
+    x, u = np.array([0.2, -0.1]), np.array([0.4])
+    est.update(x, u, model.output(x), step=0)
+    for n in range(1, 4):
+        x = model.step(x, u) + w
+        p = est.update(x, u, model.output(x), step=n)
+        assert p == pytest.approx(np.r_[(1 - 0.7 ** n) * w, 0.0, 0.0], abs=1e-12)
+
+
+def test_a_non_finite_sample_is_refused_counted_and_leaves_no_trace():
+    """nan or inf in z, u or y at step 2: p unchanged, each refusal counted, no numpy
+    warning. The last refused sample's z_2 is finite, so with steps 3 and 4 the estimate has
+    taken the residuals of steps 1, 3 and 4 of a constant w: p = (1 - 0.5^3) [w; 0]."""
+    model = biased_oscillator()
+    est = DisturbanceEstimator(model, disturbance_model(model, 'state'), gain=0.5)
+    x, u, w = np.array([0.2, -0.1]), np.array([0.4]), np.array([0.1, -0.05])
+    xs = [x]
+    for _ in range(4):
+        xs.append(model.step(xs[-1], u) + w)
+    bad = ((np.array([np.inf, 0.0]), u, model.output(xs[2])),
+           (xs[2], np.array([np.nan]), model.output(xs[2])),
+           (xs[2], u, np.array([-np.inf, np.inf])))
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        for t in (0, 1):
+            est.update(xs[t], u, model.output(xs[t]), step=t)
+        p = est.p.copy()
+        for k, (z, u_bad, y) in enumerate(bad, start=1):
+            est.update(z, u_bad, y, step=2)
+            assert est.refused == k and np.all(est.p == p)
+        for t in (3, 4):
+            est.update(xs[t], u, model.output(xs[t]), step=t)
+    assert est.refused == 3
+    assert est.p == pytest.approx(np.r_[(1 - 0.5 ** 3) * w, 0.0, 0.0], abs=1e-12)
+
+
+def test_a_non_finite_measurement_or_reference_fails_the_tick_and_nothing_else():
+    """Offset-free MPC: a nan y_t is refused by the estimator and the tick falls back
+    ('invalid data', the shifted plan, the estimate unchanged) as for a nan z_t; an inf
+    reference never reaches the steady-state target (no numpy warning); the next finite tick
+    solves."""
+    model = oscillator()
+    mpc = LatentMpc(MpcConfig(horizon=10, q=(1.0, 0.0), u_min=-1.0, u_max=1.0,
+                              offset_free='state'))
+    mpc.set_model(model)
+    ref = np.tile([0.5, 0.0], (10, 1))
+    x, u = np.array([0.1, 0.0]), np.zeros(1)
+    first = mpc.solve(x, u, ref, model.output(x), 0)
+    assert not first.fallback
+    x = model.step(x, first.u) + 0.05
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        nan_y = mpc.solve(x, first.u, ref, np.array([np.nan, 0.0]), 1)
+        inf_ref = mpc.solve(x, first.u, np.full((10, 2), np.inf), model.output(x), 1)
+    for res in (nan_y, inf_ref):
+        assert res.fallback and res.status == 'invalid data'
+        assert np.all(np.isfinite(res.u_plan)) and np.all(np.isfinite(res.disturbance))
+    np.testing.assert_array_equal(nan_y.disturbance, first.disturbance)
+    assert mpc._problem.estimator.refused == 1
+    x = model.step(x, inf_ref.u)
+    after = mpc.solve(x, inf_ref.u, ref, model.output(x), 2)
+    assert not after.fallback and after.status == 'solved'

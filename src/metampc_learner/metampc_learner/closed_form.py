@@ -1,16 +1,13 @@
 """The proximal inner problem solved in closed form where the model is linear in its head.
 
-Eq. (inner_imaml) with the one-step loss of a model y = Theta phi (the feature NARX,
-:mod:`metampc_model.feature_narx`)::
+Eq. (inner_imaml) with the one-step loss of y = Theta phi (the feature NARX), a ridge regression
+with the meta-model's head Theta_bar as prior mean (Bertinetto et al., ICLR 2019; ALPaCA):
 
-    Theta* = argmin_Theta 1/M sum_m ||y_m - Theta phi_m||^2 + gamma/2 ||Theta - Theta_bar||_F^2
-           = (Y'Phi / M + gamma/2 Theta_bar) (Phi'Phi / M + gamma/2 I)^{-1}
+    Theta* = (Y'Phi / M + gamma/2 Theta_bar) (Phi'Phi / M + gamma/2 I)^{-1}
 
-a ridge regression with the meta-model's head Theta_bar as prior mean (Bertinetto et al.,
-ICLR 2019; ALPaCA). Differentiable in Phi, Y and Theta_bar (torch), so the exact meta-gradient
-of eq. (outer) is autograd through this solve: no CG, no Hessian-vector products. gamma = 0 is
-ordinary least squares; where Phi'Phi is singular (collinear samples, a constant input) a
-floor of RIDGE_FLOOR times its mean diagonal regularises it, with one warning per call site.
+Differentiable (torch): autograd through it is the exact meta-gradient of eq. (outer). gamma = 0
+is least squares; a singular Phi'Phi (collinear samples, a constant input) is regularised by a
+floor of RIDGE_FLOOR times its mean diagonal, with one warning.
 """
 import warnings
 
@@ -50,8 +47,9 @@ def ridge(phi: torch.Tensor, y: torch.Tensor, prior: torch.Tensor, gamma: float
         floor = RIDGE_FLOOR * scale * eye
         cond = torch.linalg.cond(gram.detach())
         if torch.any(~torch.isfinite(cond) | (cond > COLLINEAR_COND)):
-            warnings.warn('closed-form fit: the regressors are collinear (a constant input or '
-                          'too few distinct samples); solved as a ridge regression',
+            warnings.warn('closed-form fit: the regressors are collinear (a constant input, '
+                          'too few distinct samples, or features that are linear in the lags '
+                          'on these samples); solved as a ridge regression',
                           RuntimeWarning, stacklevel=2)
         reg = torch.maximum(reg, floor)
     rhs = cross + (gamma / 2) * prior

@@ -24,7 +24,7 @@ from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig
 from metampc_learner.loop_adaptation import LoopConfig
 from metampc_learner.meta_train import META_METHODS, MetaConfig
-from metampc_learner.narx_learning import METHODS as NARX_METHODS, NarxMetaConfig
+from metampc_learner.narx_learning import NARX_METHODS, NarxMetaConfig
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
 

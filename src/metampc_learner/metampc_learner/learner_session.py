@@ -407,7 +407,7 @@ class LearnerSession:
         episodes; the held-out curve is [the meta-model's, the model's] T-step loss (the arx:
         its own only)."""
         cfg, start = self.config, time.monotonic()
-        methods = ('', *narx_learning.METHODS, 'arx', 'oracle')
+        methods = ('', *narx_learning.NARX_METHODS, 'arx', 'oracle')
         if job.method not in methods:
             raise LearnerError(f'model_class feature_narx adapts with '
                                f'{", ".join(repr(m) for m in methods)}, not {job.method!r}')

@@ -98,3 +98,22 @@ def test_arx_nssm_refuses_what_it_cannot_write():
         arx_nssm([traj], 2, NssmConfig(n_u=1, n_y=2, history=4, hidden=(8,)), scale)
     with pytest.raises(ValueError, match='pole at 1'):
         equilibrium([np.eye(2)], [np.ones((2, 1))], np.zeros(2), np.zeros(1))
+
+
+def test_the_nssm_of_an_arx_of_order_3_predicts_exactly_what_the_arx_does():
+    """Order 3: z_t holds u_t and u_{t-1}, so the companion matrix shifts the inputs too
+    (at order 2 there is one input in z and no shift to get wrong)."""
+    order, n_y, n_u, hist = 3, 1, 2, 5
+    a, b, c = known_arx(order, n_y, n_u, seed=5)
+    assert companion_radius(a) < 1.0
+    base = NssmConfig(n_u=n_u, n_y=n_y, n_z=7, history=hist, hidden=(16,), loss_horizon=6)
+    scale = Normalisation(np.zeros(n_u), np.array([2.0, 0.5]), np.zeros(n_y), np.array([3.0]))
+    config, norm, params = as_nssm(a, b, c, np.array([0.3, -0.2]), base, scale)
+    assert config.n_z == 3 * n_y + 2 * n_u
+    rng = np.random.default_rng(12)
+    u = rng.uniform(-1, 1, size=(30, n_u))
+    y = simulate(a, b, c, u, rng.normal(size=(order, n_y)))
+    predictor = NssmPredictor(config, norm, params)
+    t = 12
+    got = predictor.predict(u[t - hist + 1:t + 1], y[t - hist + 1:t + 1], u[t + 1:t + 9])
+    np.testing.assert_allclose(got, y[t + 1:t + 9], rtol=1e-5, atol=1e-5)   # float32 weights

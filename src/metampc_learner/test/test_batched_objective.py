@@ -17,7 +17,6 @@ from metampc_learner.objective import FlatObjective
 from metampc_learner.task_gradient import TaskGradient
 
 torch.set_num_threads(1)
-pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
 TINY = NssmConfig(history=4, loss_horizon=5, hidden=(16, 16), n_z=3)
 SRC = SourceConfig(n_systems=6, episodes_per_system=1, episode_samples=60, seed=3)
 CUDA = torch.cuda.is_available()

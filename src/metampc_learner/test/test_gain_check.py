@@ -45,3 +45,11 @@ def test_a_latent_integrator_is_left_unchecked():
     assert verdict.ok and verdict.eigs.size == 0
     assert verdict.reason == 'gain check: unchecked, the model: the latent model has a pole ' \
                              'at 1: no finite steady-state gain'
+
+
+def test_an_arx_that_found_no_effect_of_the_input_refuses_the_model():
+    """An ARX with b = 0 has gain 0: eig(G_arx G_m^+) is exactly 0, which is not > 0 (no sign
+    to agree with): the model is refused, whatever its own gain."""
+    verdict = gain_verdict(_latent(0.9, 3.0, 1.0), _latent(0.5, 0.0, 1.0), [0])
+    np.testing.assert_array_equal(verdict.eigs, [0.0])
+    assert not verdict.ok and 'disagrees in sign' in verdict.reason

@@ -19,7 +19,6 @@ from metampc_learner.meta_train import batch_gradient_fn, MetaConfig
 from metampc_learner.objective import FlatObjective
 
 torch.set_num_threads(1)
-pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
 F64 = torch.float64
 SMALL = NssmConfig(history=3, loss_horizon=4, hidden=(16,), n_z=3)
 GAMMA = 5.0       # makes I + H/gamma positive definite here (checked) and the inner problem

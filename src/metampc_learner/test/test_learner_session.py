@@ -22,7 +22,6 @@ from metampc_model.weights_codec import DecodedNarx, model_from_fields
 from metampc_plant.plant_description import PlantDescription
 
 torch.set_num_threads(1)
-pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
 TINY = {'n_systems': 4, 'episodes_per_system': 1, 'episode_samples': 40, 'history': 3,
         'loss_horizon': 3, 'hidden': [16], 'n_z': 3, 'batch_size': 2, 'inner_steps': 2,
         'cg_steps': 2, 'windows_per_task': 8, 'iterations': 12, 'target_buffer_size': 40,

@@ -5,7 +5,6 @@ on 300 samples of each unseen target from the meta-trained weights and from a ra
 initialisation; held-out target loss after the steps must be lower for iMAML.
 """
 import numpy as np
-import pytest
 import torch
 
 from metampc_model.nssm import Nssm
@@ -15,7 +14,6 @@ from metampc_learner.data import (normalisation_from, simulate_source, simulate_
                                   SourceConfig, SourceSet, Windows)
 from metampc_learner.meta_train import meta_train, MetaConfig
 
-pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
 TARGETS = (-0.4, 0.7, 1.5)    # not among the source systems (continuous thetas)
 
 

@@ -16,7 +16,6 @@ from metampc_learner.meta_train import (meta_train, MetaConfig, MetaTrainingErro
 from metampc_learner.objective import FlatObjective
 
 torch.set_num_threads(1)
-pytestmark = pytest.mark.filterwarnings('ignore:`torch.jit.script` is deprecated')
 TINY = NssmConfig(history=4, loss_horizon=5, hidden=(16, 16), n_z=3)
 SRC = SourceConfig(n_systems=6, episodes_per_system=1, episode_samples=60, seed=3)
 

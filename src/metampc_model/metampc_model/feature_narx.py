@@ -1,24 +1,17 @@
 """The feature NARX: a one-step model linear in its head over lags and meta-learned features.
 
-The model class of the nonlinear-control issue (docs/nonlinear.md). In normalised units
-(:class:`~metampc_model.normalisation.Normalisation`), with s_t the ARX's regressor state
-
-    s_t = [y_t, .., y_{t-p+1}, u_t, .., u_{t-p+2}]              (n_s = p n_y + (p - 1) n_u)
-
-(u_k the input held over ((k-1) dt, k dt] that produced y_k, the data convention), one step is
+In normalised units, with s_t = [y_t .. y_{t-p+1}, u_t .. u_{t-p+2}] the ARX's regressor state
+(n_s = p n_y + (p - 1) n_u; u_k the input that produced y_k):
 
     y_{t+1} = Theta phi(s_t, u_{t+1}),   phi = [s_t; g(s_t); u_{t+1}; 1]   (n_phi = n_s+F+n_u+1)
 
-g a tanh MLP of F features (meta-learned, fixed during adaptation) and Theta (n_y, n_phi) the
-head, linear in its parameters: adaptation solves it in closed form (eq. (inner_imaml) with a
-quadratic inner loss, :mod:`metampc_model.ridge`). With g's weight on the output zero it is
-the least-squares ARX(p) exactly, so the class holds the project's linear baseline. g is smooth
-(tanh), so the model has a Jacobian everywhere: the MPC plans on its linearisation at the
-current state each tick (:meth:`FeatureNarx.linearise`, :mod:`metampc_controller.local_mpc`),
-where a fixed linear latent model averages the nonlinearity over the data (docs/nonlinear.md).
+g a tanh MLP of F features (fixed during adaptation), Theta (n_y, n_phi) the head, solved in
+closed form (:mod:`metampc_learner.closed_form`); with g's columns zero it is the ARX(p). Smooth,
+so the MPC plans on its linearisation at the current state (:meth:`FeatureNarx.linearise`,
+:mod:`metampc_controller.local_mpc`); its numpy evaluation (the controller's, no torch) is
+:mod:`metampc_model.narx_predictor`. Why and what it measured: docs/nonlinear.md.
 """
 from dataclasses import dataclass
-from functools import cached_property
 from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
@@ -118,10 +111,10 @@ class FeatureNarx:
     norm: Normalisation
     params: Params
 
-    @cached_property
+    @property
     def predictor(self) -> NarxPredictor:
-        """The numpy evaluation of this model (float64; built once: params are not changed
-        in place)."""
+        """The numpy evaluation of this model (float64, :mod:`metampc_model.narx_predictor`:
+        the controller's), of its params as they are now."""
         return NarxPredictor(self.shape, self.norm, self.params)
 
     def state(self, u_hist: np.ndarray, y_hist: np.ndarray) -> np.ndarray:

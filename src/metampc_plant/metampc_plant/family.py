@@ -6,7 +6,10 @@ which a system counts as diverged, a default dt, x0 and reference, and the name 
 every component. The equations are written on components (``rhs(x, u, theta)`` -> n_x
 components, ``output(x, u, theta)`` -> n_y), each a Python float (one system) or a numpy array
 of shape (B,) (B systems), so the RK4 core of :mod:`metampc_plant.integrate` gives a batch the
-single systems' bits. A frozen dataclass (``dataclasses.replace`` makes a variant); found by
+single systems' bits; written with operators and numpy functions (np.sin, np.sqrt, np.maximum,
+np.clip, ...), the same code takes CasADi symbols, which is how the true-model NMPC
+differentiates them (``metampc_controller.nmpc_shooting``; a family that uses math.* or
+branches on values keeps the NMPC's derivative-free solver). A frozen dataclass (``dataclasses.replace`` makes a variant); found by
 name through :mod:`metampc_plant.registry`. How to write one: docs/families.md.
 """
 from abc import ABC, abstractmethod
@@ -17,6 +20,10 @@ import numpy as np
 
 DISTRIBUTIONS = ('normal', 'uniform', 'fixed')
 SUPPORT_STDS = 4.0     # a normal prior's range: mean +- 4 std (6e-5 of the draws beyond)
+# What sqrt(max(h, .)) of an empty tank takes in place of 0: the outflow there is 0 to every
+# digit (sqrt(1e-100) = 1e-50), and its derivatives (0 below, through the max) are finite,
+# where 0 * sqrt'(0) is NaN: the true-model NMPC differentiates the equations exactly.
+SQRT_FLOOR = 1e-100
 
 
 @dataclass(frozen=True)
@@ -219,4 +226,4 @@ class PlantFamily(ABC):
         return np.array(y, dtype=float)
 
 
-__all__ = ['DISTRIBUTIONS', 'Signal', 'ThetaComponent', 'PlantFamily']
+__all__ = ['DISTRIBUTIONS', 'SQRT_FLOOR', 'Signal', 'ThetaComponent', 'PlantFamily']

@@ -2,6 +2,7 @@
 stamps, ticks every 0.1 s, a controller answering each step; y_k, u_applied_k and the command
 against values worked out from the stamps, and the safe value when the machine or the
 controller falls silent."""
+import dataclasses
 import math
 import os
 
@@ -155,3 +156,30 @@ def test_a_mapped_topic_the_graph_carries_in_another_type_is_named():
         '/effort_controller/commands is read as std_msgs/msg/Float64: the commands go out as '
         'std_msgs/msg/Float64MultiArray, as the mapping says, and reach no reader of another '
         'type (is the type in the mapping right?)']
+
+
+def test_a_tick_that_fires_late_holds_the_sample_of_t_k_not_of_its_firing_time():
+    """Step 1 is due at T0 + 0.1; its timer fires 35 ms late, when a newer sample has come:
+    y_1 is still the newest sample stamped at or before t_1."""
+    core = BridgeCore(MAPPING)
+    core.sample(0, joints(T0 - 0.01, 1.0), T0 - 0.009)
+    assert core.tick(T0).y.tolist() == [1.0, -1.0]
+    core.sample(0, joints(T0 + 0.09, 2.0), T0 + 0.091)     # before t_1
+    core.sample(0, joints(T0 + 0.13, 3.0), T0 + 0.131)     # after t_1, before the firing
+    late = core.tick(T0 + 0.135)
+    assert late.step == 1 and late.time == pytest.approx(T0 + 0.1, abs=1e-9)
+    assert late.y.tolist() == [2.0, -2.0]
+    assert late.ages[0] == pytest.approx(0.01, abs=1e-9)
+
+
+def test_a_sample_exactly_stale_timeout_old_is_fresh():
+    """Ages at t_k, in binary-exact times (dt 0.25, stale_timeout 0.5): the sample stamped at
+    t_0 is exactly stale_timeout old at t_2 and still fresh (as the offline sampling holds
+    it); at t_3 it is stale."""
+    mapping = dataclasses.replace(MAPPING, dt=0.25, stale_timeout=0.5)
+    core = BridgeCore(mapping)
+    core.sample(0, joints(16.0, 1.0), 16.0)
+    ticks = [core.tick(16.0 + 0.25 * k) for k in range(4)]
+    assert [t.ages[0] for t in ticks] == [0.0, 0.25, 0.5, 0.75]
+    assert ticks[2].state != STALE and ticks[2].y.tolist() == [1.0, -1.0]
+    assert ticks[3].state == STALE and ticks[3].y is None

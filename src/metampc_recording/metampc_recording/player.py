@@ -6,8 +6,8 @@ latched; the recorded CDR bytes are published unchanged at the recorded log-time
 divided by ``rate``, from ``start_offset`` s, once or (``loop``) until interrupted.
 :func:`run_player` streams the file in recorded order rather than holding it. ``delay`` gives
 discovery a fixed time and ``wait_for_subscribers`` (not in ``ros2 bag play``) waits until
-every volatile topic has a subscriber. Used by ``scripts/replay.py --play`` and ``ros2 bag
-play``; see docs/recording.md.
+every volatile topic has a subscriber that receives its first message. Used by
+``scripts/replay.py --play`` and ``ros2 bag play``; see docs/recording.md.
 """
 import time
 from dataclasses import dataclass, field
@@ -34,7 +34,9 @@ class PlayConfig:
         topics: topics to play (default: all).
         ack_timeout: seconds to wait at the end for reliable subscribers to acknowledge.
         wait_for_subscribers: after the delay, wait up to this many seconds until every
-            volatile topic played has at least one matched subscriber (0: do not wait).
+            volatile topic played has at least one matched subscriber, then (as long again)
+            until each topic's first message is acknowledged by its reliable subscribers, so
+            that none loses a message (0: do not wait).
         start_offset: seconds of the recording to skip: playback starts at the log time of
             the first message played plus this (``ros2 bag play --start-offset``).
         loop: start again from the beginning at the end, until interrupted (``--loop``); the
@@ -84,6 +86,13 @@ def play(recording: Recording, node: Node, config: PlayConfig) -> Dict[str, int]
     while (time.monotonic() < deadline
            and any(p.get_subscription_count() == 0 for p in volatile)):
         time.sleep(0.01)
+    # A match counted above is the publisher's side of it; the subscriber's side can come
+    # later, and what is published before that reaches the subscriber only from the
+    # publisher's history (10 deep). So the first message of each volatile topic waits until
+    # every matched reliable subscriber has acknowledged it (up to wait_for_subscribers s),
+    # and the playback's clock waits with it.
+    unconfirmed = {name for name, publisher in publishers.items()
+                   if config.wait_for_subscribers and publisher in volatile}
     counts = {name: 0 for name in names}
     first = next(recording.raw(publishers), None)
     start_log = (first.log_time if first else 0) + round(config.start_offset * 1e9)
@@ -95,7 +104,13 @@ def play(recording: Recording, node: Node, config: PlayConfig) -> Dict[str, int]
             due = start_wall + (message.log_time - start_log) * 1e-9 / config.rate
             if due > time.monotonic():
                 time.sleep(due - time.monotonic())
-            publishers[message.topic].publish(message.data)
+            publisher = publishers[message.topic]
+            publisher.publish(message.data)
+            if message.topic in unconfirmed:
+                unconfirmed.discard(message.topic)
+                paused = time.monotonic()
+                publisher.wait_for_all_acked(Duration(seconds=config.wait_for_subscribers))
+                start_wall += time.monotonic() - paused
             counts[message.topic] += 1
             played += 1
         if not (config.loop and played):

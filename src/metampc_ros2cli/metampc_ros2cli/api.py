@@ -53,24 +53,45 @@ def positive_float(text: str) -> float:
     return value
 
 
+class QosKeys:
+    """The short keys of an rclpy.qos enum (`name`) as argparse choices, read when first
+    asked (a value given, the help): building the `ros2` parser imports no rclpy (0.1 s of an
+    idle start, more on a loaded machine)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def keys(self) -> List[str]:
+        import rclpy.qos
+        return list(getattr(rclpy.qos, self.name).short_keys())
+
+    def __contains__(self, value: Any) -> bool:
+        return value in self.keys()
+
+    def __iter__(self) -> Any:
+        return iter(self.keys())
+
+
 def add_qos_arguments(parser: argparse.ArgumentParser, verb: str, default: str) -> None:
-    """ros2cli's --qos-* options (profile, depth, history, reliability, durability)."""
-    from rclpy.qos import (QoSDurabilityPolicy, QoSHistoryPolicy, QoSPresetProfiles,
-                           QoSReliabilityPolicy)
-    parser.add_argument('--qos-profile', choices=QoSPresetProfiles.short_keys(),
-                        default=default, help=f'Quality of service preset profile to {verb} '
-                        f'with (default: {default})')
+    """ros2cli's --qos-* options (profile, depth, history, reliability, durability); the
+    choices are listed in each help (a metavar keeps argparse from reading them at once)."""
+    parser.add_argument('--qos-profile', choices=QosKeys('QoSPresetProfiles'),
+                        metavar='PROFILE', default=default,
+                        help=f'Quality of service preset profile to {verb} with: %(choices)s '
+                        f'(default: {default})')
     parser.add_argument('--qos-depth', metavar='N', type=int,
                         help=f'Queue size setting to {verb} with (overrides depth value of '
                         '--qos-profile option)')
-    parser.add_argument('--qos-history', choices=QoSHistoryPolicy.short_keys(),
-                        help=f'History of samples setting to {verb} with')
-    parser.add_argument('--qos-reliability', choices=QoSReliabilityPolicy.short_keys(),
-                        help=f'Quality of service reliability setting to {verb} with '
-                        '(default: compatible with the running endpoints)')
-    parser.add_argument('--qos-durability', choices=QoSDurabilityPolicy.short_keys(),
-                        help=f'Quality of service durability setting to {verb} with '
-                        '(default: compatible with the running endpoints)')
+    parser.add_argument('--qos-history', choices=QosKeys('QoSHistoryPolicy'), metavar='HISTORY',
+                        help=f'History of samples setting to {verb} with: %(choices)s')
+    parser.add_argument('--qos-reliability', choices=QosKeys('QoSReliabilityPolicy'),
+                        metavar='RELIABILITY', help=f'Quality of service reliability setting '
+                        f'to {verb} with: %(choices)s (default: compatible with the running '
+                        'endpoints)')
+    parser.add_argument('--qos-durability', choices=QosKeys('QoSDurabilityPolicy'),
+                        metavar='DURABILITY', help=f'Quality of service durability setting '
+                        f'to {verb} with: %(choices)s (default: compatible with the running '
+                        'endpoints)')
 
 
 def qos_from_args(args: argparse.Namespace, publishers: List[Any] = ()) -> Any:

@@ -1,16 +1,19 @@
 """ros2cli's daemon: one process per ROS domain that keeps the graph, so that the list verbs
 answer at once, complete.
 
-A verb's own node discovers the graph afresh and under LOCALHOST discovery often misses nodes,
-so `ros2 node list`, `ros2 topic list|find|info` and `ros2 service list|find` ask a daemon
-whose node has been in the graph since it started (``--no-daemon`` bypasses it). One daemon per
+A verb's own node discovers the graph afresh and under LOCALHOST discovery often misses nodes
+(and waits for the services it calls to be discovered: 2.4-3.3 s for a `param get`), so
+`ros2 node list|info`, `ros2 topic list|find|info` and `ros2 service list|find` ask a daemon
+whose node has been in the graph since it started, and `ros2 param` has the daemon's node call
+the parameter services (:func:`call_service`; ``--no-daemon`` bypasses it). One daemon per
 (user, ROS_DOMAIN_ID, discovery range, static peers) on a UNIX socket: a request is one JSON
-line ``{"call": NAME, "args": [...]}`` (a query of :data:`GRAPH_CALLS` or
-:data:`TOPIC_CALLS`, ``ping`` or ``stop``), the answer one JSON line ``{"result": ...}``; a
-daemon younger than :data:`WARMUP_S` waits until it is that old before it answers. It ends on
-``stop``, SIGINT/SIGTERM or after :data:`IDLE_S` without a request, and outlives the verb that
-started it (no lifeline). See docs/nodes.md.
+line ``{"call": NAME, "args": [...]}`` (a query of :data:`GRAPH_CALLS`, :data:`TOPIC_CALLS` or
+:data:`NODE_CALLS`, :data:`SERVICE_CALL`, ``ping`` or ``stop``), the answer one JSON line
+``{"result": ...}``; a daemon younger than :data:`WARMUP_S` waits until it is that old before
+it answers. It ends on ``stop``, SIGINT/SIGTERM or after :data:`IDLE_S` without a request, and
+outlives the verb that started it (no lifeline). See docs/nodes.md.
 """
+import base64
 import contextlib
 import fcntl
 import hashlib
@@ -24,7 +27,7 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Any, Iterator
+from typing import Any, Iterator, Optional
 
 GRAPH_CALLS = ('get_node_names_and_namespaces', 'get_topic_names_and_types',
                'get_service_names_and_types')
@@ -33,6 +36,16 @@ GRAPH_CALLS = ('get_node_names_and_namespaces', 'get_topic_names_and_types',
 # prints.
 TOPIC_CALLS = ('count_publishers', 'count_subscribers', 'get_publishers_info_by_topic',
                'get_subscriptions_info_by_topic')
+# Queries about one node (its name and namespace the arguments), as `ros2 node info` asks
+# them; the action ones are rclpy.action's functions of the daemon's node.
+NODE_CALLS = ('get_subscriber_names_and_types_by_node', 'get_publisher_names_and_types_by_node',
+              'get_service_names_and_types_by_node', 'get_client_names_and_types_by_node',
+              'get_action_server_names_and_types_by_node',
+              'get_action_client_names_and_types_by_node')
+# A service call by the daemon's node: (service name, 'pkg/srv/Type', the request serialized
+# (CDR, base64), timeout s) -> the response serialized, or None: no answer within the timeout.
+SERVICE_CALL = 'call_service'
+SERVICE_POLL_S = 0.01   # s between two looks at whether a new client has matched its service
 WARMUP_S = 3.5          # s: the others' next announcement reaches a new participant (here: ~3)
 IDLE_S = 2 * 3600.0     # s without a request before a daemon ends (ros2cli's timeout)
 START_S = 15.0          # s for a daemon to answer after it was started (imports rclpy)
@@ -108,6 +121,44 @@ def stop() -> bool:
     return True
 
 
+def call_service(service: str, srv: Any, request_msg: Any, timeout: float) -> Optional[Any]:
+    """The response of `service` (of service class `srv`) to `request_msg`, called by the
+    daemon's node, which knows the graph already (DaemonError if no daemon answers); None if
+    the service does not answer within `timeout` s."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    type_name = f'{srv.__module__.split(".")[0]}/srv/{srv.__name__}'
+    answer = request(SERVICE_CALL, service, type_name,
+                     base64.b64encode(serialize_message(request_msg)).decode(), timeout,
+                     timeout=timeout + ANSWER_S)
+    return None if answer is None else deserialize_message(base64.b64decode(answer),
+                                                           srv.Response)
+
+
+def _serve_call(node: Any, clients: dict, lock: threading.Lock, service: str, type_name: str,
+                payload: str, timeout: float) -> Optional[str]:
+    """:data:`SERVICE_CALL` in the daemon: one client per (service, type), kept."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from metampc_common.message_types import message_class
+    srv = message_class(type_name)
+    with lock:
+        client = clients.get((service, type_name))
+        if client is None:
+            client = clients[service, type_name] = node.create_client(srv, service)
+    deadline = time.monotonic() + timeout
+    while not client.service_is_ready():
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(SERVICE_POLL_S)
+    done = threading.Event()
+    future = client.call_async(deserialize_message(base64.b64decode(payload), srv.Request))
+    future.add_done_callback(lambda _: done.set())
+    if not done.wait(max(0.0, deadline - time.monotonic())):
+        client.remove_pending_request(future)
+        return None
+    return base64.b64encode(serialize_message(future.result())).decode()
+
+
 class GraphProxy:
     """Stands for a node in the verbs that read the graph: its graph queries are the daemon's
     answers, and it has the name and namespace a verb's own node has (to expand a relative
@@ -118,6 +169,8 @@ class GraphProxy:
             return lambda: [tuple(pair) for pair in request(name)]
         if name in TOPIC_CALLS:
             return lambda topic: request(name, topic)
+        if name in NODE_CALLS:
+            return lambda *node: [tuple(pair) for pair in request(name, *node)]
         raise AttributeError(name)
 
     @staticmethod
@@ -144,6 +197,15 @@ def graph(args: Any) -> Iterator[Any]:
             print(f'ros2: {err}; asking the graph directly', file=sys.stderr)
     with DirectNode(args) as node:
         yield node
+
+
+def by_node(node: Any, call: str) -> Any:
+    """The query `call` of :data:`NODE_CALLS` of an rclpy node: (name, namespace) -> (name,
+    types) pairs."""
+    if call.startswith('get_action_'):
+        import rclpy.action
+        return lambda name, namespace: getattr(rclpy.action, call)(node, name, namespace)
+    return getattr(node, call)
 
 
 def add_arguments(parser: Any) -> None:
@@ -181,6 +243,8 @@ def serve() -> int:
     threading.Thread(target=executor.spin, daemon=True).start()
     born = time.monotonic()
     last = [time.monotonic()]
+    clients: dict = {}
+    clients_lock = threading.Lock()
 
     class Handler(socketserver.StreamRequestHandler):
         def handle(self) -> None:
@@ -201,9 +265,16 @@ def serve() -> int:
                     result = getattr(node, call)(*args)
                     reply = {'result': result if isinstance(result, int)
                              else [str(endpoint) for endpoint in result]}
+                elif call == SERVICE_CALL:
+                    time.sleep(max(0.0, born + WARMUP_S - time.monotonic()))
+                    reply = {'result': _serve_call(node, clients, clients_lock, *args)}
+                elif call in NODE_CALLS:
+                    time.sleep(max(0.0, born + WARMUP_S - time.monotonic()))
+                    reply = {'result': [list(p) for p in by_node(node, call)(*args)]}
                 else:
                     reply = {'error': f'unknown call {call!r}'}
-            except (ValueError, KeyError, TypeError, RuntimeError) as err:
+            except (ValueError, KeyError, TypeError, RuntimeError, ImportError,
+                    AttributeError) as err:
                 reply = {'error': f'bad request: {err}'}
             self.wfile.write(json.dumps(reply).encode() + b'\n')
 

@@ -13,13 +13,22 @@ import sys
 from collections import OrderedDict
 from typing import Any, List, Mapping, Optional, Tuple
 
-import numpy as np
 import yaml
 from rosidl_parser.definition import (AbstractNestedType, AbstractString, AbstractWString, Array,
                                       BasicType, BoundedSequence, NamedType, NamespacedType)
 
 DEFAULT_TRUNCATE_LENGTH = 128     # ros2 topic echo's default --truncate-length
-_SEQUENCES = (list, tuple, array.array, np.ndarray)
+
+
+def _np() -> Any:
+    """numpy, imported at the first conversion: the `ros2` parser imports this module, and the
+    verbs that convert no message need not pay for numpy (0.2 s of an idle start)."""
+    import numpy
+    return numpy
+
+
+def _is_sequence(value: Any) -> bool:
+    return isinstance(value, (list, tuple, array.array, _np().ndarray))
 
 
 class _Dumper(yaml.SafeDumper):
@@ -69,13 +78,13 @@ def _value(value: Any, t: Any, limit: Optional[int], no_arr: bool, no_str: bool)
         if no_str:
             return f'<string length: <{len(value)}>>'
         return value[:limit] + '...' if limit is not None and len(value) > limit else value
-    if isinstance(value, _SEQUENCES):
+    if _is_sequence(value):
         if no_arr and t is not None:
             return _array_info(value, t)
         kind = tuple if isinstance(value, tuple) else list
         items = [_value(v, None, limit, no_arr, no_str) for v in value[:limit]]
         return kind(items + ['...'] if limit is not None and len(value) > limit else items)
-    if isinstance(value, np.generic):
+    if isinstance(value, _np().generic):
         return value.item()
     if isinstance(value, (bool, int, float)):
         return value
@@ -102,7 +111,7 @@ def to_csv(msg: Any, *, truncate_length: Optional[int] = None, no_arr: bool = Fa
            no_str: bool = False) -> str:
     """What `ros2 topic echo --csv` prints: every leaf value, depth first, comma-separated."""
     def leaf(value: Any, t: Any) -> str:
-        if isinstance(value, _SEQUENCES):
+        if _is_sequence(value):
             if no_arr and t is not None:
                 return _array_info(value, t)
             parts = [leaf(v, None) for v in value[:truncate_length]]
@@ -115,7 +124,7 @@ def to_csv(msg: Any, *, truncate_length: Optional[int] = None, no_arr: bool = Fa
             if truncate_length is not None and len(value) > truncate_length:
                 value = value[:truncate_length] + (b'...' if isinstance(value, bytes) else '...')
             return str(value)
-        if isinstance(value, (bool, int, float, np.generic)):
+        if isinstance(value, (bool, int, float, _np().generic)):
             return str(value)
         return to_csv(value, truncate_length=truncate_length, no_arr=no_arr, no_str=no_str)
     return ','.join(leaf(getattr(msg, name), t) for name, t in fields(msg).items())
@@ -196,6 +205,7 @@ def _typed(current: Any, t: Any, value: Any,
                 out.append(sub)
             return out
         items = [_basic(t.value_type, v) for v in value]
+        np = _np()
         if isinstance(current, np.ndarray):
             return np.array(items, dtype=current.dtype)
         if isinstance(current, array.array):

@@ -73,3 +73,37 @@ def test_topic_info_counts_every_endpoint_every_time(procs, probe, daemon):
             'Type', 'Publisher count', 'Subscription count')] == expected
             and (named == nodes if verbose else not named))
     assert all(right), f'{right.count(True)} of 20 right'
+
+
+def test_an_unknown_name_is_refused_as_soon_as_the_daemon_s_graph_says_so(procs, probe, daemon):
+    """Issue 52: a missing node or topic was refused after 6 s (a node of the verb's own waited
+    direct.DISCOVERY_GRACE_S for it to appear); the daemon's graph is complete, so the refusal
+    comes at once (`param` after ros2param's --timeout, 1 s)."""
+    import time
+    from metampc_ros2cli.direct import DISCOVERY_GRACE_S
+    procs.start('metampc_plant', 'plant', params={'mode': 'realtime', 'rate_hz': 10.0})
+    probe.wait_for_node('plant', 60.0)
+    assert ros2('daemon', 'start').returncode == 0
+    for verb, said in ((('node', 'info', '/nope'), "Unable to find node '/nope'"),
+                       (('topic', 'info', '/nope'), "Unknown topic '/nope'"),
+                       (('param', 'get', '/nope', 'theta'), 'Node not found')):
+        start = time.monotonic()
+        out = ros2(*verb)
+        took = time.monotonic() - start
+        assert out.returncode == 1 and out.stderr == said + '\n', out
+        assert took < DISCOVERY_GRACE_S, f'{verb}: {took:.2f} s'
+    out = ros2('param', 'get', '/plant', 'rate_hz')   # answered through the daemon's node
+    assert out.returncode == 0 and out.stdout == 'Double value is: 10.0\n', out
+
+
+def test_the_ros2_parser_imports_neither_numpy_nor_rclpy():
+    """Issue 52 (the verbs' answer times): every verb builds the whole `ros2` parser, which
+    imported numpy (message_yaml) and rclpy (the --qos-* choices): 0.4 s of an idle start of
+    0.6 s, five times that on the loaded machine, before a verb that the daemon answers asked
+    anything."""
+    import sys
+    probe = ('import sys\nfrom metampc_ros2cli.cli import parser\nparser()\n'
+             "print(sorted(m for m in ('numpy', 'rclpy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0 and out.stdout == '[]\n', out

@@ -160,12 +160,14 @@ def _wait_gone(tmp_path, timeout):
     return left
 
 
-def test_ctrl_c_stops_every_node_and_reports_each(tmp_path, probe):
+@pytest.mark.parametrize('signum, said', [
+    (signal.SIGINT, 'user interrupted with ctrl-c'), (signal.SIGTERM, 'signal SIGTERM')])
+def test_ctrl_c_or_sigterm_stops_every_node_and_reports_each(tmp_path, probe, signum, said):
     proc = _by_hand(tmp_path, probe)
-    os.killpg(proc.pid, signal.SIGINT)
+    os.kill(proc.pid, signum)
     out = proc.communicate(timeout=120)[0]
     assert proc.returncode == 0, out
-    assert 'user interrupted with ctrl-c (SIGINT)' in out
+    assert f'[WARNING] [launch]: {said}' in out
     for label in ('recorder-1', 'plant-2', 'controller-3', 'learner-4'):
         assert f'[INFO] [{label}]: process has finished cleanly' in out, out
     assert '[plant-2] [INFO]' in out    # output: screen

@@ -32,7 +32,7 @@ from metampc_model.weights_codec import (DecodedNarx, DecodedWeights, fields_of,
 from metampc_plant.plant_description import PlantDescription
 from metampc_plant.plant_params import parse_params as parse_plant
 from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
-from metampc_plant.simulator import Plant
+from metampc_plant.simulator import Plant, PlantConfig
 from metampc_recording.recording_reader import read_recording
 
 NSSM_WEIGHTS = 'metampc_msgs/msg/NssmWeights'
@@ -107,6 +107,12 @@ def controller_config(experiment: ExperimentConfig, seed: int, overrides: Mappin
                                            controller_values(experiment, seed, overrides)))
 
 
+def plant_config(plant: Mapping[str, Any], theta: Sequence[float]) -> PlantConfig:
+    """The plant core's settings from the plant node's parameter values `plant` (its declared
+    defaults filled in) at `theta`, checked as the node checks them."""
+    return parse_plant(_with_defaults(PLANT_PARAMETERS, {**plant, 'theta': list(theta)})).plant
+
+
 def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence[float],
         x0: Sequence[float], steps: int,
         weights: Optional[Union[DecodedWeights, DecodedNarx]] = None) -> Episode:
@@ -122,8 +128,7 @@ def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence
     values = _with_defaults(CONTROLLER_PARAMETERS, controller)
     values.update(planner='nmpc' if weights is None else 'latent_mpc', active=True)
     core = ControllerCore(parse_controller(values))
-    plant_cfg = parse_plant(_with_defaults(PLANT_PARAMETERS,
-                                           {**plant, 'theta': list(theta)})).plant
+    plant_cfg = plant_config(plant, theta)
     core.set_plant(PlantDescription(plant_cfg.family, plant_cfg.dt,
                                     plant_cfg.u_min, plant_cfg.u_max, core.n_y, True))
     if weights is not None:

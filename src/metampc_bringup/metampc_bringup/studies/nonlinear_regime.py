@@ -1,35 +1,30 @@
 """The nonlinear-regime study: the feature NARX on its planner against the true-model NMPC.
 
-One process, no ROS (``scripts/nonlinear_regime.py``; protocol and figures:
-docs/nonlinear.md, docs/studies/2026-12-07-nonlinear-regime.md). Per meta-learning method the
-feature NARX (:mod:`metampc_model.feature_narx`) is meta-trained on the family's simulated
-source systems (:func:`metampc_learner.data.simulate_source`, seed 0 unless told), then per
-test target theta* and data seed: ``target_samples`` samples collected as the experiment does
-(one episode from ``collect_x0`` under the random-hold exploration), the closed-form adaptation
-(:func:`metampc_learner.narx_learning.adapt`), its held-out l_SSM on 2000 other samples, and
-one tracking episode of the paper's reference from ``track_x0`` with the planner that
-linearises it each tick (:class:`metampc_controller.local_mpc.LocalLinearMpc`). Beside it: the
-least-squares ARX(p) of the same samples on the same planner (a linear model: one QP set-up),
-the oracle of the class (the meta-features with the least-squares head of 100 target episodes)
-and the true-model NMPC (:class:`metampc_controller.nmpc.Nmpc`, the yardstick; once per
-theta*, its episode does not depend on the data seed). The tracking cost is the experiment's:
-sum_k ||y_{k+1} - r_{k+1}||^2 over the tracked outputs, r_{k+1} the first reference row of the
-tick that answered step k. An episode whose state leaves the family's bound costs inf (an
-escape).
+One process, no ROS (``scripts/nonlinear_regime.py``). Everything comes from the family's
+experiment configuration (controller tuning and reference, the excitation that collects
+D_target, source systems, x0, tracked outputs, run length). Per method the feature NARX is
+meta-trained once (the first seed's source systems), then per target: adapted to
+``target_samples`` samples, scored on HELDOUT_SAMPLES others, flown by the locally linear MPC
+beside the ARX(p) of the same samples and the class's oracle; the yardstick is the
+experiment's own NMPC (:func:`~metampc_bringup.analysis.retrack.fly`), the cost the
+experiment's (sum of squared tracking errors; an escape costs inf). Protocol: docs/nonlinear.md.
 """
 from dataclasses import dataclass, field
+import hashlib
 import math
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+import os
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
+from metampc_bringup.analysis.paired_stats import format_claim, paired_claim
+from metampc_bringup.analysis.retrack import fly, plant_config
+from metampc_bringup.experiment_config import ExperimentConfig, load
 from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.local_mpc import LocalLinearMpc
-from metampc_controller.mpc import MpcConfig
-from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.references import make_reference
-from metampc_learner.data import normalisation_from, SourceConfig, simulate_source
+from metampc_learner.data import normalisation_from, simulate_source
 from metampc_learner.narx_learning import (adapt, arx_model, fit_head, heldout_loss,
                                            meta_train, NarxMetaConfig)
 from metampc_model.feature_narx import FeatureNarx, NarxShape
@@ -38,143 +33,216 @@ from metampc_plant.simulator import Plant, PlantConfig, simulate
 Record = Tuple[np.ndarray, np.ndarray]
 HELDOUT_SAMPLES = 2000
 ORACLE_EPISODES = 100
+ORACLE_SAMPLES = 200        # per episode
+HELDOUT_HORIZON = 10
 
 
 @dataclass
 class RegimeConfig:
     """Attributes:
-        family: plant family (registered name).
-        thetas: test targets theta* (one value per target for a one-component family).
-        data_seeds: seeds of each target's adaptation data (one run per theta* and seed).
+        experiment: the experiment configuration file (None: config/default.yaml's settings).
+        thetas: test targets theta* (each a row of n_theta values); empty: each seed's draw.
+        seeds: test seeds (with thetas: the data seeds of every target).
         methods: meta-learning methods of the feature NARX ('imaml', 'maml').
         order, features, hidden: the feature NARX's sizes (:class:`NarxShape`).
-        meta: meta-training settings (method overridden per method).
-        gamma: proximal strength of the adaptation (mean-loss units).
-        source_seed, n_systems: the source systems.
-        target_samples: adaptation samples per target.
-        collect_x0, track_x0: initial states of collection and tracking.
-        setpoints, segment: the reference (set-points of the tracked output, s each).
-        tracked: tracked output.
-        mpc: the planners' tracking problem (horizon, weights, bounds).
+        meta: meta-training settings (method overridden per method; its gamma is the
+            adaptation's too).
+        oracle: also fly the oracle of each method's features.
+        overrides: configuration keys set on top of the file's; a value for a section
+            ('learner', 'controller', 'plant') is merged into it (a declared regime's
+            reference, for example).
     """
 
-    family: str = 'vanderpol'
-    thetas: Sequence[float] = (1.0, 1.25, 1.5, 1.75, 2.0)
-    data_seeds: Sequence[int] = (0, 1)
-    methods: Sequence[str] = ('imaml', 'maml')
+    experiment: Optional[str] = None
+    thetas: Sequence[Sequence[float]] = ()
+    seeds: Sequence[int] = (0, 1)
+    methods: Sequence[str] = ('imaml',)
     order: int = 2
     features: int = 32
     hidden: Tuple[int, ...] = (64,)
-    meta: NarxMetaConfig = field(default_factory=lambda: NarxMetaConfig(iterations=1000,
-                                                                         gamma=1e-5))
-    gamma: float = 1e-5
-    source_seed: int = 0
-    n_systems: int = 100
-    target_samples: int = 300
-    collect_x0: Sequence[float] = (0.5, 0.0)
-    track_x0: Sequence[float] = (0.0, 0.0)
-    setpoints: Sequence[float] = (0.8, -0.5, 0.3, -0.8)
-    segment: float = 7.5
-    tracked: int = 0
-    mpc: MpcConfig = field(default_factory=lambda: MpcConfig(horizon=20, q=(1.0, 0.0), r=0.05,
-                                                             u_min=-1.0, u_max=1.0))
+    meta: NarxMetaConfig = field(default_factory=NarxMetaConfig)
+    oracle: bool = True
+    overrides: Dict[str, Any] = field(default_factory=dict)
 
 
-def collect(family: str, theta: Sequence[float], x0: Sequence[float], samples: int,
-            seed: int, plant: PlantConfig) -> Record:
-    """One open-loop episode under the random-hold exploration of the plant's bounds, as the
-    experiment collects D_target: (u (K, n_u), y (K, n_y)), u[k] produced y[k], cut at the
-    first diverged sample."""
-    exc = ExcitationConfig(u_min=tuple(plant.u_min), u_max=tuple(plant.u_max))
-    u_seq = excitation(exc, 1, samples, plant.dt, seed)
+def experiment(config: RegimeConfig, theta: Optional[Sequence[float]] = None
+               ) -> ExperimentConfig:
+    """The experiment configuration with the study's overrides (and theta* when given)."""
+    base = load(config.experiment)
+    merged = {key: ({**getattr(base, key), **value} if isinstance(value, dict) else value)
+              for key, value in config.overrides.items()}
+    if theta is not None:
+        merged['theta'] = [float(v) for v in theta]
+    return load(config.experiment, merged)
+
+
+def collect(excitation_config: ExcitationConfig, plant: PlantConfig, theta: Sequence[float],
+            x0: Sequence[float], samples: int, seed: int) -> Record:
+    """One open-loop episode under `excitation_config` (seeded), as the experiment collects
+    D_target: (u (K, n_u), y (K, n_y)), u[k] produced y[k], cut before a diverged sample."""
+    u_seq = excitation(excitation_config, 1, samples, plant.dt, seed)
     u, y, valid = simulate(np.array([theta], float), np.array([x0], float), u_seq, plant)
-    n = int(np.argmin(valid[0])) if not valid[0].all() else len(valid[0])
+    n = len(valid[0]) if valid[0].all() else int(np.argmin(valid[0]))
     return u[0, 1:n], y[0, 1:n]
 
 
-def track(planner, plant: Plant, theta: Sequence[float], x0: Sequence[float],
-          config: RegimeConfig, state_of: Optional[Callable] = None) -> float:
-    """The tracking cost of one episode (module docstring); `state_of(u_hist, y_hist)` gives
-    the planner's state (None: the planner gets y only, as the NMPC estimates its state)."""
-    ref = make_reference('setpoint_sequence', setpoints=tuple(config.setpoints),
-                         segment=config.segment, outputs=(config.tracked,),
-                         n_y=plant.family.n_y)
-    dt, horizon = plant.config.dt, config.mpc.horizon
-    y = plant.reset(tuple(theta), tuple(x0))
-    n_u = plant.family.n_u
+def track(planner, plant: PlantConfig, theta: Sequence[float], x0: Sequence[float],
+          reference, steps: int, tracked: Sequence[int],
+          state_of: Optional[Callable] = None, lags: int = 1) -> float:
+    """The tracking cost of one episode (module docstring). `reference` evaluates the
+    planner's (N, n_y) rows; `state_of(u_hist, y_hist)` gives the planner's state from the last
+    `lags` inputs and outputs (None: the planner gets y only, as the NMPC estimates x)."""
+    sim = Plant(plant)
+    y = sim.reset(tuple(theta), tuple(x0))
+    n_u, dt, n = sim.family.n_u, plant.dt, planner.config.horizon
     u = np.zeros(n_u)
-    u_hist, y_hist = [np.zeros(n_u)] * config.order, [y] * config.order
+    u_hist, y_hist = [u] * lags, [y] * lags
     planner.reset()
-    steps = int(round(len(config.setpoints) * config.segment / dt))
-    cost = 0.0
+    cost, tracked = 0.0, list(tracked)
     for k in range(steps):
-        r = ref.evaluate(k * dt, dt, horizon)
+        r = reference.evaluate(k * dt, dt, n)
         state = None if state_of is None else state_of(np.array(u_hist), np.array(y_hist))
-        res = planner.solve(state, u, r, y, k)
-        u = np.asarray(res.u, float).copy()
-        y = plant.step(u)
-        if plant.diverged or not np.all(np.isfinite(y)):
+        u = np.clip(np.asarray(planner.solve(state, u, r, y, k).u, float), plant.u_min,
+                    plant.u_max)
+        y = sim.step(u)
+        if sim.diverged:
             return math.inf
         u_hist, y_hist = u_hist[1:] + [u], y_hist[1:] + [y]
-        cost += float((y[config.tracked] - r[0, config.tracked]) ** 2)
+        cost += float(np.sum((y[tracked] - r[0, tracked]) ** 2))
     return cost
 
 
-def run(config: RegimeConfig, log: Callable[[str], None] = print) -> List[Dict]:
-    """Every row of the study (module docstring): one dict per (theta*, data seed, model)
-    with the tracking cost, its ratio to the NMPC's, held-out and training losses."""
-    torch.manual_seed(0)
-    source = SourceConfig(family=config.family, n_systems=config.n_systems,
-                          seed=config.source_seed).resolved()
+@dataclass
+class Target:
+    """One test target of the study and everything the experiment's configuration says of
+    its run: theta*, seed, the configuration at theta*, controller and plant settings."""
+
+    theta: Tuple[float, ...]
+    seed: int
+    experiment: ExperimentConfig
+
+    def controller(self):
+        return self.experiment.node_config('controller', self.seed)
+
+    def plant(self) -> PlantConfig:
+        return plant_config(self.experiment.node_parameters('plant', self.seed), self.theta)
+
+
+def targets(config: RegimeConfig) -> List[Target]:
+    """The study's targets in order (config.thetas x seeds, or each seed's own draw)."""
+    if not config.thetas:
+        base = experiment(config)
+        return [Target(tuple(base.target_theta(s)), s, base) for s in config.seeds]
+    out = []
+    for theta in config.thetas:
+        exp = experiment(config, theta)
+        out += [Target(tuple(float(v) for v in theta), s, exp) for s in config.seeds]
+    return out
+
+
+def meta_models(config: RegimeConfig, log: Callable[[str], None],
+                cache: Optional[str] = None) -> Dict[str, FeatureNarx]:
+    """The feature NARX meta-trained by each method on the first seed's source systems;
+    with `cache` (a folder) each meta-model is kept there under a hash of everything it
+    depends on (source systems, sizes, meta-training settings) and read back when present."""
+    exp = experiment(config)
+    source = exp.node_config('learner', config.seeds[0]).source
     data = simulate_source(source)
     norm = normalisation_from([t for ts in data.trajectories for t in ts])
-    fam = source.plant_family
+    fam = exp.plant_family
     shape = NarxShape(fam.n_u, fam.n_y, config.order, config.features, tuple(config.hidden))
     systems = [[(t.u, t.y) for t in ts] for ts in data.trajectories if ts]
-    metas = {}
+    out = {}
     for method in config.methods:
         meta_cfg = NarxMetaConfig(**{**config.meta.__dict__, 'method': method})
-        res = meta_train(shape, norm, systems, meta_cfg)
-        log(f'meta-trained {method}: D_test loss {np.mean(res.curve[:20]):.2e} -> '
-            f'{np.mean(res.curve[-20:]):.2e} in {res.elapsed:.0f} s')
-        metas[method] = FeatureNarx(shape, norm, res.params)
-    plant_cfg = source.plant_config()
-    plant_cfg = PlantConfig(**{**plant_cfg.__dict__, 'u_min': tuple(config.mpc.bounds(1)[0]),
-                               'u_max': tuple(config.mpc.bounds(1)[1])})
-    plant = Plant(plant_cfg)
+        key = hashlib.sha256(repr((source, shape, meta_cfg)).encode()).hexdigest()[:16]
+        path = cache and os.path.join(cache, f'narx_{method}_{key}.pt')
+        if path and os.path.exists(path):
+            params = torch.load(path)
+            log(f'meta-model {method}: {path}')
+        else:
+            res = meta_train(shape, norm, systems, meta_cfg)
+            log(f'meta-trained {method}: D_test loss {np.mean(res.curve[:20]):.2e} -> '
+                f'{np.mean(res.curve[-20:]):.2e} in {res.elapsed:.0f} s')
+            params = res.params
+            if path:
+                torch.save(params, path)
+        out[method] = FeatureNarx(shape, norm, params)
+    return out
+
+
+def run(config: RegimeConfig, log: Callable[[str], None] = print,
+        cache: Optional[str] = None) -> List[Dict]:
+    """Every row of the study (module docstring): one dict per (target, model) with the
+    tracking cost, its ratio to the NMPC's, held-out and training losses."""
+    metas = meta_models(config, log, cache)
     rows = []
-    for theta in config.thetas:
-        th = tuple(np.atleast_1d(theta).astype(float))
-        nmpc = Nmpc(NmpcConfig(**config.mpc.shared(), dt=plant_cfg.dt), fam, th)
-        c_nmpc = track(nmpc, plant, th, config.track_x0, config)
-        log(f'theta* {th}: NMPC cost {c_nmpc:.3f}')
-        oracle_data = [collect(config.family, th, x0, 200, 9000 + i, plant_cfg) for i, x0 in
-                       enumerate(np.random.default_rng(77).uniform(-1, 1, (ORACLE_EPISODES,
-                                                                            fam.n_x)))]
-        for seed in config.data_seeds:
-            recs = [collect(config.family, th, config.collect_x0, config.target_samples,
-                            seed, plant_cfg)]
-            held = [collect(config.family, th, config.collect_x0, HELDOUT_SAMPLES,
-                            10_000 + seed, plant_cfg)]
-            models = {}
+    for tgt in targets(config):
+        exp, ctrl, plant = tgt.experiment, tgt.controller(), tgt.plant()
+        steps, tracked = exp.track_steps(), list(exp.tracked_outputs)
+        nmpc = fly(exp.node_parameters('controller', tgt.seed),
+                   exp.node_parameters('plant', tgt.seed), tgt.theta, exp.track_x0, steps)
+        c_nmpc = (math.inf if nmpc.escaped_at is not None
+                  else nmpc.tracking_cost(tracked))
+        log(f'theta* {list(tgt.theta)} seed {tgt.seed}: NMPC cost {c_nmpc:.4g}')
+        recs = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0,
+                        exp.target_samples, tgt.seed)]
+        held = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0, HELDOUT_SAMPLES,
+                        10_000 + tgt.seed)]
+        models = {}
+        for method, meta in metas.items():
+            ad = adapt(meta, recs, config.meta.gamma)
+            models[method] = (ad.model, ad.train_loss, ad.rule)
+        first = next(iter(metas.values()))
+        models['arx'] = (arx_model(first, recs), ad.arx_loss, 'least_squares')
+        if config.oracle:
+            fam = exp.plant_family
+            starts = np.random.default_rng([tgt.seed, 77]).uniform(
+                fam.x0_low, fam.x0_high, (ORACLE_EPISODES, fam.n_x))
+            # as the source set keeps them: whole episodes only, an escaping one dropped
+            many = [r for r in (collect(ctrl.excitation, plant, tgt.theta, x0,
+                                        ORACLE_SAMPLES, 20_000 + i)
+                                for i, x0 in enumerate(starts))
+                    if len(r[1]) == ORACLE_SAMPLES]
             for method, meta in metas.items():
-                ad = adapt(meta, recs, config.gamma)
-                models[method] = (ad.model, ad.train_loss, ad.rule)
-            models['arx'] = (arx_model(next(iter(metas.values())), recs), ad.arx_loss,
-                             'least_squares')
-            for method, meta in metas.items():
-                models[f'oracle_{method}'] = (fit_head(meta, oracle_data), math.nan, 'oracle')
-            for name, (model, train, rule) in models.items():
-                planner = LocalLinearMpc(config.mpc, model)
-                cost = track(planner, plant, th, config.track_x0, config, model.state)
-                row = dict(theta=list(th), seed=seed, model=name, rule=rule, cost=cost,
-                           nmpc=c_nmpc, ratio=cost / c_nmpc, train_loss=train,
-                           heldout=heldout_loss(model, held, 10),
-                           failed_linearisations=planner.failed_linearisations)
-                rows.append(row)
-                log(f'  seed {seed} {name:>13}: cost {cost:8.3f} ratio {cost / c_nmpc:6.3f} '
-                    f'held-out {row["heldout"]:.2e} ({rule})')
+                models[f'oracle_{method}'] = (fit_head(meta, many), math.nan, 'oracle')
+        reference = make_reference(ctrl.reference_kind, **ctrl.reference_params)
+        for name, (model, train, rule) in models.items():
+            planner = LocalLinearMpc(ctrl.mpc, model)
+            cost = track(planner, plant, tgt.theta, exp.track_x0, reference, steps, tracked,
+                         model.state, config.order)
+            row = dict(theta=list(tgt.theta), seed=tgt.seed, model=name, rule=rule,
+                       cost=cost, nmpc=c_nmpc, ratio=cost / c_nmpc, train_loss=train,
+                       heldout=heldout_loss(model, held, HELDOUT_HORIZON),
+                       failed_linearisations=planner.failed_linearisations)
+            rows.append(row)
+            log(f'  {name:>13}: cost {cost:9.4g} ratio {cost / c_nmpc:7.3f} held-out '
+                f'{row["heldout"]:.2e} ({rule})')
     return rows
 
 
-__all__ = ['RegimeConfig', 'collect', 'track', 'run']
+def summary(rows: Sequence[Dict]) -> List[str]:
+    """Markdown lines: per model the cost / NMPC median and worst, escapes and the median
+    held-out l_SSM; then each method against the ARX of the same samples, paired by target
+    (:func:`~metampc_bringup.analysis.paired_stats.paired_claim` on the cost ratio)."""
+    models = list(dict.fromkeys(r['model'] for r in rows))
+    lines = ['| model | cost / NMPC median | worst | escapes | held-out l_SSM median |',
+             '|---|---|---|---|---|']
+    for name in models:
+        own = [r for r in rows if r['model'] == name]
+        ratios = [r['ratio'] for r in own]
+        lines.append(f'| {name} | {np.median(ratios):.3f} | {max(ratios):.3f} | '
+                     f'{sum(not math.isfinite(r["cost"]) for r in own)}/{len(own)} | '
+                     f'{np.median([r["heldout"] for r in own]):.2e} |')
+    arx = [r['cost'] for r in rows if r['model'] == 'arx']
+    for name in models:
+        if name == 'arx' or name.startswith('oracle'):
+            continue
+        own = [r['cost'] for r in rows if r['model'] == name]
+        lines.append(f'\n{name} < arx (paired): '
+                     f'{format_claim(paired_claim(own, arx, log=True))}')
+    return lines
+
+
+__all__ = ['RegimeConfig', 'Target', 'collect', 'track', 'targets', 'meta_models', 'run',
+           'summary']

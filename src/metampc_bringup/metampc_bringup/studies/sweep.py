@@ -267,6 +267,7 @@ def plot_loss(summary: Sequence[dict], path: str) -> str:
     ks = [k for k in REPORT_K if all(str(k) in row['heldout'] for row in summary)]
     fig, axes = plt.subplots(1, len(ks), figsize=(5.5 * len(ks), 4.2), squeeze=False)
     for ax, k in zip(axes[0], ks):
+        drawn = []
         for method in methods:
             rows = [r for r in summary if r['method'] == method
                     and math.isfinite(r['heldout'][str(k)]['median'])]
@@ -281,8 +282,9 @@ def plot_loss(summary: Sequence[dict], path: str) -> str:
             high = np.array([s['ci_high'] - s['median'] if _finite(s['ci_high']) else 0.0
                              for s in stats])
             ax.errorbar(x, y, yerr=[low, high], marker='o', capsize=3, label=NAMES[method])
+            drawn += list(y)
         _m_axis(ax, [row['M'] for row in summary])
-        ax.set_yscale('log')
+        _log_y_if_positive(ax, drawn)
         ax.set_ylabel('held-out target loss (normalised)')
         ax.set_title(f'after K = {k} adaptation steps (median, 95 % CI)')
     return _save(fig, path)
@@ -307,8 +309,17 @@ def plot_memory(summary: Sequence[dict], path: str) -> str:
     sec.set_title('meta-training wall time per outer step')
     for ax in (mem, sec):
         _m_axis(ax, [row['M'] for row in summary])
-    sec.set_yscale('log')
+    _log_y_if_positive(sec, [r['s_per_step'] for r in summary])
     return _save(fig, path)
+
+
+def _log_y_if_positive(ax, values: Sequence[float]) -> None:
+    """A log y axis where every finite value drawn (the points, not their bars) is positive,
+    else linear: a time per step rounded to 0 (meta_seconds has 0.1 s resolution) has no
+    place on a log axis."""
+    finite = [v for v in values if math.isfinite(v)]
+    if finite and min(finite) > 0:
+        ax.set_yscale('log')
 
 
 def _m_axis(ax, ms: Sequence[int]) -> None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from metampc_plant.family import PlantFamily, Signal, ThetaComponent
+from metampc_plant.family import PlantFamily, Signal, SQRT_FLOOR, ThetaComponent
 
 TOP = 10.0      # V, the level sensors' reading of a full tank (the measured y saturates there)
 RIM = 0.1       # V, the band below TOP over which a tank's overflow sets in
@@ -31,8 +31,9 @@ FIT_X0 = (6.904, 5.089)
 
 
 def _root(h):
-    """s(h) = sqrt(max(h, 0)), V^0.5; floats and arrays alike."""
-    return np.sqrt(np.maximum(h, 0.0))
+    """s(h) = sqrt(max(h, 0)), V^0.5 (max(h, SQRT_FLOOR)); floats, arrays and CasADi
+    symbols."""
+    return np.sqrt(np.maximum(h, SQRT_FLOOR))
 
 
 def _rim(h):

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from metampc_plant.family import PlantFamily, Signal, ThetaComponent
+from metampc_plant.family import PlantFamily, Signal, SQRT_FLOOR, ThetaComponent
 
 GRAVITY = 981.0                      # cm/s^2
 AREA = (28.0, 32.0, 28.0, 32.0)      # A1..A4, cm^2
@@ -25,8 +25,9 @@ SENSOR = 0.5                         # V/cm
 
 
 def _outflow(h):
-    """s(h) = sqrt(2 g max(h, 0)), cm/s; floats and arrays alike."""
-    return np.sqrt(2.0 * GRAVITY * np.maximum(h, 0.0))
+    """s(h) = sqrt(2 g max(h, 0)), cm/s (max(h, SQRT_FLOOR)); floats, arrays and CasADi
+    symbols."""
+    return np.sqrt(2.0 * GRAVITY * np.maximum(h, SQRT_FLOOR))
 
 
 @dataclass(frozen=True)

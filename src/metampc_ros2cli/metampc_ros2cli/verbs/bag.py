@@ -93,7 +93,8 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument('--wait-subscribers', type=check_not_negative_float, default=0.0,
                    metavar='SECONDS',
                    help='(not in rosbag2) after the delay, wait up to SECONDS until every '
-                   'volatile topic played has a subscriber')
+                   'volatile topic played has a subscriber, and as long until its first '
+                   'message is acknowledged')
     p.set_defaults(main=play)
 
     p = verbs.add_parser('record', help='Record ROS data to a bag')

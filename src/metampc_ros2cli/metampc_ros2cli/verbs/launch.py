@@ -140,10 +140,14 @@ def main(args: Any) -> int:
     return run(specs)
 
 
+def _terminated(_signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt('signal SIGTERM')
+
+
 def run(specs: List[Any]) -> int:
     """Start the nodes, report each end, stop them all on Ctrl-C or SIGTERM."""
     from metampc_bringup.orchestration.processes import ProcessGroup
-    signal.signal(signal.SIGTERM, signal.default_int_handler)   # stops the nodes as Ctrl-C
+    signal.signal(signal.SIGTERM, _terminated)      # stops the nodes as Ctrl-C does
     folder = log_folder()
     print(f'[INFO] [launch]: All log files can be found below {folder}')
     group = ProcessGroup(folder)
@@ -169,8 +173,8 @@ def run(specs: List[Any]) -> int:
                     running.remove(entry)
             time.sleep(POLL_S)
         return int(failed)
-    except KeyboardInterrupt:
-        print('[WARNING] [launch]: user interrupted with ctrl-c (SIGINT)')
+    except KeyboardInterrupt as stop:
+        print('[WARNING] [launch]: ' + (str(stop) or 'user interrupted with ctrl-c (SIGINT)'))
         return 0
     finally:
         for s in (signal.SIGINT, signal.SIGTERM):   # the nodes are being stopped already

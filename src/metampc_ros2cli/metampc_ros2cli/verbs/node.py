@@ -24,6 +24,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument('--include-hidden', action='store_true',
                    help='Display hidden topics, services, and actions as well')
     direct.add_arguments(p)
+    daemon.add_arguments(p)
     p.set_defaults(main=info)
 
 
@@ -47,12 +48,23 @@ def list_nodes(args: Any) -> int:
     return 0
 
 
+SECTIONS = (('Subscribers', 'get_subscriber_names_and_types_by_node'),
+            ('Publishers', 'get_publisher_names_and_types_by_node'),
+            ('Service Servers', 'get_service_names_and_types_by_node'),
+            ('Service Clients', 'get_client_names_and_types_by_node'),
+            ('Action Servers', 'get_action_server_names_and_types_by_node'),
+            ('Action Clients', 'get_action_client_names_and_types_by_node'))
+
+
 def info(args: Any) -> Any:
-    from rclpy.action import (get_action_client_names_and_types_by_node,
-                              get_action_server_names_and_types_by_node)
-    with direct.DirectNode(args) as node:
-        count = direct.wait_for(node, lambda: full_names(node, args.include_hidden).count(
-            args.node_name))
+    """From the daemon's graph, as ros2cli's: an unknown node is refused at once (a node of
+    the verb's own, --no-daemon, waits up to direct.DISCOVERY_GRACE_S for it)."""
+    with daemon.graph(args) as node:
+        proxy = isinstance(node, daemon.GraphProxy)
+        count = full_names(node, args.include_hidden).count(args.node_name)
+        if not count and not proxy:
+            count = direct.wait_for(node, lambda: full_names(node, args.include_hidden).count(
+                args.node_name))
         if not count:
             return f"Unable to find node '{args.node_name}'"
         if count > 1:
@@ -62,16 +74,9 @@ def info(args: Any) -> Any:
         namespace, _, name = args.node_name.rpartition('/')
         namespace = namespace or '/'
         print(args.node_name)
-        for title, query in (
-                ('Subscribers', node.get_subscriber_names_and_types_by_node),
-                ('Publishers', node.get_publisher_names_and_types_by_node),
-                ('Service Servers', node.get_service_names_and_types_by_node),
-                ('Service Clients', node.get_client_names_and_types_by_node),
-                ('Action Servers', lambda n, ns: get_action_server_names_and_types_by_node(
-                    node, n, ns)),
-                ('Action Clients', lambda n, ns: get_action_client_names_and_types_by_node(
-                    node, n, ns))):
+        for title, call in SECTIONS:
             print(f'  {title}:')
+            query = getattr(node, call) if proxy else daemon.by_node(node, call)
             rows = api.visible(query(name, namespace), args.include_hidden)
             print(*[f'    {n}: {", ".join(t)}' for n, t in rows], sep='\n')
     return 0

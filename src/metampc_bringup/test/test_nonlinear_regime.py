@@ -1,0 +1,85 @@
+"""The nonlinear-regime study's pieces (nonlinear_regime): its loop, targets and collection."""
+import numpy as np
+import pytest
+import torch
+
+from metampc_bringup.analysis.retrack import fly
+from metampc_bringup.experiment_config import load
+from metampc_bringup.studies.nonlinear_regime import (
+    collect, experiment, meta_models, RegimeConfig, summary, targets, track)
+from metampc_common.excitation import ExcitationConfig
+from metampc_controller.nmpc import Nmpc, NmpcConfig
+from metampc_controller.references import make_reference
+from metampc_learner.narx_learning import NarxMetaConfig
+from metampc_plant.registry import get_family
+from metampc_plant.simulator import PlantConfig, simulate
+
+PLANT = PlantConfig(family='vanderpol', dt=0.1, substeps=10, u_min=(-1.0,), u_max=(1.0,))
+
+
+def test_the_studys_loop_is_the_experiments_loop():
+    """The study's episode (its own loop over a planner) against the experiment's controller
+    core (retrack.fly) on the same NMPC: the same tracking cost, so the study's ratios divide
+    by the experiment's yardstick."""
+    exp = load(None, {'theta': [1.5], 'track_duration': 4.0})
+    ctrl = exp.node_config('controller', 0)
+    nmpc = fly(exp.node_parameters('controller', 0), exp.node_parameters('plant', 0), (1.5,),
+               exp.track_x0, exp.track_steps())
+    planner = Nmpc(NmpcConfig(**ctrl.mpc.shared(), dt=0.1, tail=ctrl.nmpc_tail),
+                   get_family('vanderpol'), (1.5,))
+    ref = make_reference(ctrl.reference_kind, **ctrl.reference_params)
+    ours = track(planner, PLANT, (1.5,), exp.track_x0, ref, exp.track_steps(), (0,))
+    assert ours == pytest.approx(nmpc.tracking_cost([0]), rel=1e-9)
+
+
+def test_targets_are_the_given_thetas_by_seed_or_each_seeds_draw():
+    given = targets(RegimeConfig(thetas=((1.5,), (2.0,)), seeds=(0, 1)))
+    assert [(t.theta, t.seed) for t in given] == [((1.5,), 0), ((1.5,), 1), ((2.0,), 0),
+                                                  ((2.0,), 1)]
+    assert given[2].experiment.theta == [2.0]
+    drawn = targets(RegimeConfig(seeds=(3, 4)))
+    assert [t.theta for t in drawn] == [tuple(load(None).target_theta(s)) for s in (3, 4)]
+
+
+def test_a_section_override_merges_into_the_section():
+    cfg = experiment(RegimeConfig(experiment='config/pendulum.yaml',
+                                  overrides={'controller': {'reference_values': [1.2, -1.2]}}))
+    own = load('config/pendulum.yaml')
+    assert cfg.controller['reference_values'] == [1.2, -1.2]
+    assert cfg.controller['disturbance_gain'] == own.controller['disturbance_gain']
+
+
+def test_collection_is_the_simulators_episode_cut_before_an_escape():
+    exc = ExcitationConfig(u_min=(-1.0,), u_max=(1.0,))
+    u, y = collect(exc, PLANT, (0.5,), (0.5, 0.0), 50, 3)
+    assert u.shape == (50, 1) and y.shape == (50, 2)
+    _, y_sim, _ = simulate(np.array([[0.5]]), np.array([[0.5, 0.0]]), u[None], PLANT)
+    np.testing.assert_allclose(y_sim[0, 1:], y, atol=1e-12)   # u[k] produced y[k]
+    # theta < 0 pushed outward escapes: the record stops before the first diverged sample
+    u, y = collect(exc, PLANT, (-3.0,), (2.5, 2.5), 400, 0)
+    assert len(y) < 400 and np.all(np.isfinite(y))
+
+
+def test_the_summary_gives_median_worst_escapes_and_the_paired_claim():
+    rows = [dict(model=m, cost=c, ratio=c / 2.0, heldout=h) for m, c, h in
+            [('imaml', 2.0, 1e-3), ('arx', 4.0, 1e-2), ('imaml', 3.0, 2e-3),
+             ('arx', 2.5, 3e-2), ('imaml', float('inf'), 3e-3), ('arx', 9.0, 5e-2)]]
+    lines = summary(rows)
+    assert lines[2] == '| imaml | 1.500 | inf | 1/3 | 2.00e-03 |'
+    assert lines[3] == '| arx | 2.000 | 4.500 | 0/3 | 3.00e-02 |'
+    assert lines[4].startswith('\nimaml < arx (paired): 1/3; median ratio 1.2')
+
+
+def test_the_cache_gives_back_the_same_meta_model_and_keys_on_its_settings(tmp_path):
+    config = RegimeConfig(seeds=(0,), features=2, hidden=(3,),
+                          meta=NarxMetaConfig(iterations=2, batch_size=2, windows=4))
+    said = []
+    first = meta_models(config, said.append, str(tmp_path))['imaml']
+    again = meta_models(config, said.append, str(tmp_path))['imaml']
+    assert said[0].startswith('meta-trained') and said[1].startswith('meta-model imaml')
+    for name, value in first.params.items():
+        assert torch.equal(value, again.params[name])
+    other = RegimeConfig(seeds=(0,), features=2, hidden=(3,),
+                         meta=NarxMetaConfig(iterations=3, batch_size=2, windows=4))
+    meta_models(other, said.append, str(tmp_path))
+    assert said[2].startswith('meta-trained') and len(list(tmp_path.iterdir())) == 2
