@@ -5,12 +5,14 @@ import numpy as np
 import pytest
 import torch
 
-from metampc_bringup.studies.nonlinear_regime import collect, RegimeConfig, track
+from metampc_bringup.studies.nonlinear_regime import collect, track
+from metampc_common.excitation import ExcitationConfig
 from metampc_controller.closed_loop import run_episode
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.local_mpc import LINEARISATION_FAILED, LocalLinearMpc
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.references import make_reference
 from metampc_learner.narx_learning import fit_head
 from metampc_model.feature_narx import FeatureNarx, init_params, NarxShape
 from metampc_model.normalisation import Normalisation
@@ -32,7 +34,8 @@ def _narx() -> FeatureNarx:
     20 excitation episodes; its parameters rounded to float32 as the message carries them."""
     shape = NarxShape(1, 2, order=2, features=16, hidden=(16,))
     norm = Normalisation(np.zeros(1), np.full(1, 0.6), np.zeros(2), np.ones(2))
-    records = [collect('vanderpol', THETA, x0, 200, seed, PLANT) for seed, x0 in
+    exc = ExcitationConfig(u_min=(-1.0,), u_max=(1.0,))
+    records = [collect(exc, PLANT, THETA, x0, 200, seed) for seed, x0 in
                enumerate(np.random.default_rng(0).uniform(-1, 1, (20, 2)))]
     model = fit_head(FeatureNarx(shape, norm, init_params(shape, 0)), records)
     return FeatureNarx(shape, norm, {k: v.float().double() for k, v in model.params.items()})
@@ -54,7 +57,7 @@ def test_the_core_flies_a_feature_narx_as_the_study_does():
     assert all(t.solver_status == 'solved' for t in ticks)
     # The study's loop (its own history of p samples, FeatureNarx.state, LocalLinearMpc on
     # the torch-side model) answers the same inputs: the core builds s_t and plans as it does.
-    config = RegimeConfig(order=2, mpc=MPC, segment=SEGMENT)
+    reference = make_reference('setpoint_sequence', segment=SEGMENT, outputs=(0,), n_y=2)
     answered = []
 
     class Recording(LocalLinearMpc):
@@ -63,8 +66,8 @@ def test_the_core_flies_a_feature_narx_as_the_study_does():
             answered.append(np.array(res.u))
             return res
 
-    cost = track(Recording(MPC, model), Plant(PLANT), THETA, (0.0, 0.0),
-                 config, model.state)
+    cost = track(Recording(MPC, model), PLANT, THETA, (0.0, 0.0), reference, STEPS, (0,),
+                 model.state, lags=2)
     np.testing.assert_allclose(episode.u[1:, 0], np.array(answered)[:, 0], atol=1e-6)
     assert episode.tracking_cost([0]) == pytest.approx(cost, rel=1e-6)
     # It tracks: x1 within 0.1 of each set-point late in its segment, before the horizon
