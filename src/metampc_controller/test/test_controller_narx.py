@@ -13,7 +13,7 @@ from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.local_mpc import LINEARISATION_FAILED, LocalLinearMpc
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.references import make_reference
-from metampc_learner.narx_learning import fit_head
+from metampc_learner.narx_learning import adapt
 from metampc_model.feature_narx import FeatureNarx, init_params, NarxShape
 from metampc_model.normalisation import Normalisation
 from metampc_model.weights_codec import fields_from_narx, model_from_fields
@@ -30,14 +30,14 @@ PLANT = PlantConfig(family='vanderpol', theta=THETA, dt=0.1, substeps=10, u_min=
 
 
 def _narx() -> FeatureNarx:
-    """A feature NARX of van der Pol theta 1: random tanh features, the least-squares head of
-    20 excitation episodes; its parameters rounded to float32 as the message carries them."""
+    """A feature NARX of van der Pol theta 1: random tanh features, the head adapted to 20
+    excitation episodes; its parameters rounded to float32 as the message carries them."""
     shape = NarxShape(1, 2, order=2, features=16, hidden=(16,))
     norm = Normalisation(np.zeros(1), np.full(1, 0.6), np.zeros(2), np.ones(2))
     exc = ExcitationConfig(u_min=(-1.0,), u_max=(1.0,))
     records = [collect(exc, PLANT, THETA, x0, 200, seed) for seed, x0 in
                enumerate(np.random.default_rng(0).uniform(-1, 1, (20, 2)))]
-    model = fit_head(FeatureNarx(shape, norm, init_params(shape, 0)), records)
+    model = adapt(FeatureNarx(shape, norm, init_params(shape, 0)), records, 1e-5).model
     return FeatureNarx(shape, norm, {k: v.float().double() for k, v in model.params.items()})
 
 

@@ -115,7 +115,7 @@ class AdaptOutcome:
     ``gain_check`` on, its verdict (`gain_check`: one line, '' when not checked) and the
     method whose model flies in the adapted one's place (`fallback`: 'arx' or ''); a feature
     NARX's closed-form fit (`rule`: :class:`~metampc_learner.narx_learning.AdaptedNarx`'s,
-    'least_squares' for the arx and the oracle; '' for an NSSM)."""
+    'least_squares' for the arx; '' for an NSSM)."""
 
     record: ModelRecord
     result: AdaptResult
@@ -403,9 +403,8 @@ class LearnerSession:
         """Adapt a feature NARX on D_target in closed form: '' / 'imaml' / 'maml' the head of
         that meta-model (:func:`narx_learning.adapt`, ridge strength ``narx_gamma``, or the
         request's gamma when > 0), 'arx' the least-squares ARX(p) of the samples, 'oracle' the
-        latest meta-model's features with the least-squares head of simulated target
-        episodes; the held-out curve is [the meta-model's, the model's] T-step loss (the arx:
-        its own only)."""
+        same adaptation of the latest meta-model on simulated target episodes; the held-out
+        curve is [the meta-model's, the model's] T-step loss (the arx: its own only)."""
         cfg, start = self.config, time.monotonic()
         methods = ('', *narx_learning.NARX_METHODS, 'arx', 'oracle')
         if job.method not in methods:
@@ -422,7 +421,7 @@ class LearnerSession:
                 f'the held-out part one of p + T = {window}; the longest runs are '
                 f'{longest_run(train)} and {longest_run(held)} samples')
         records = [(t.u, t.y) for t in train]
-        rule = 'least_squares'
+        rule = 'least_squares'      # the arx's
         if job.method == 'arx':
             base = (self.meta_models[self.latest_meta].model if self.latest_meta else
                     FeatureNarx(shape, self._source_norm(), narx_init_params(shape, seed)))
@@ -430,6 +429,7 @@ class LearnerSession:
             curve = [self._narx_heldout(model, held)]
         else:
             meta = self._meta_for('' if job.method == 'oracle' else job.method).model
+            gamma = job.gamma if job.gamma > 0 else cfg.narx_meta.gamma
             if job.method == 'oracle':
                 episodes = oracle_data(plant.theta, self._plant_source(plant),
                                        cfg.oracle.episodes, seed)
@@ -437,13 +437,11 @@ class LearnerSession:
                 if not train:
                     raise LearnerError(f'oracle: all {cfg.oracle.episodes} simulated episodes '
                                        f'of theta = {list(plant.theta)} left the state box')
-                model = narx_learning.fit_head(meta, [(t.u, t.y) for t in train])
-            else:
-                gamma = job.gamma if job.gamma > 0 else cfg.narx_meta.gamma
-                adapted = narx_learning.adapt(meta, records, gamma)
-                model, rule = adapted.model, adapted.rule
+                records = [(t.u, t.y) for t in train]
+            adapted = narx_learning.adapt(meta, records, gamma)
+            model, rule = adapted.model, adapted.rule
             curve = [self._narx_heldout(meta, held), self._narx_heldout(model, held)]
-        loss = narx_learning.one_step_loss(model, [(t.u, t.y) for t in train])
+        loss = narx_learning.one_step_loss(model, records)
         result = AdaptResult(params=model.params, train_loss=[loss], heldout_loss=curve,
                              elapsed=time.monotonic() - start)
         record = self._new_record(

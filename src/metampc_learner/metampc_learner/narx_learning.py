@@ -2,8 +2,8 @@
 
 Adaptation (Algorithm 2, eq. (infer) solved exactly): g stays the meta-model's, the head is the
 closed-form ridge fit toward the meta-model's head on the target's one-step equations; never a
-higher training loss than the least-squares ARX(p) of the same samples (:func:`adapt`: gamma
-dropped, then the ARX's head, if it would be). Meta-training (eqs. (outer), (inner_imaml)): per
+higher training loss than the least-squares ARX(p) of the same samples (:func:`adapt`: toward
+the ARX's head instead, if it would be). Meta-training (eqs. (outer), (inner_imaml)): per
 outer step B source systems, the head adapted on D_tr in closed form, the T-step rollout loss on
 D_test; 'imaml' differentiates through the solve (the exact implicit meta-gradient), 'maml' is
 first order (eq. (outer_maml): d psi / d omega = I). Measured: docs/nonlinear.md.
@@ -150,8 +150,9 @@ class AdaptedNarx:
         model: the adapted model.
         train_loss: its one-step loss on the training samples (normalised units).
         arx_loss: the least-squares ARX(p)'s on the same samples.
-        rule: 'ridge' (toward the meta-model), 'least_squares' (gamma dropped: the ridge fit
-            lost to the ARX) or 'arx' (the ARX's own head).
+        rule: 'ridge' (toward the meta-model), 'ridge_to_arx' (toward the ARX's head: the
+            fit toward the meta-model lost to the ARX) or 'arx' (the ARX's own head, where
+            rounding left even that above).
     """
 
     model: FeatureNarx
@@ -205,20 +206,16 @@ def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> Adapted
     head, rule = ridge(phi, y, meta.params['head'], gamma), 'ridge'
     loss = float(mean_loss(phi, y, head))
     if loss > arx_loss:
-        head, rule = ridge(phi, y, meta.params['head'], 0.0), 'least_squares'
+        # Toward the ARX's head instead: the minimum of loss + gamma/2 ||Theta - Theta_arx||^2
+        # is at most the ARX's loss (Theta_arx is a candidate), and gamma keeps it
+        # regularised where the features are collinear with the lags (plain least squares
+        # there gave heads that cancel on the samples and not off them).
+        head, rule = ridge(phi, y, arx_head, gamma), 'ridge_to_arx'
         loss = float(mean_loss(phi, y, head))
     if not (loss <= arx_loss) or not math.isfinite(loss):
         head, rule, loss = arx_head, 'arx', arx_loss
     params = {**{k: v.clone() for k, v in meta.params.items()}, 'head': head}
     return AdaptedNarx(FeatureNarx(meta.shape, meta.norm, params), loss, arx_loss, rule)
-
-
-def fit_head(meta: FeatureNarx, records: Sequence[Record]) -> FeatureNarx:
-    """The meta-model's features with the least-squares head of `records` (the oracle of the
-    feature NARX when the records are many episodes of the target)."""
-    phi, y = _data(meta, records)
-    params = {**meta.params, 'head': ridge(phi, y, meta.params['head'], 0.0)}
-    return FeatureNarx(meta.shape, meta.norm, params)
 
 
 def one_step_loss(model: FeatureNarx, records: Sequence[Record]) -> float:
@@ -238,4 +235,4 @@ def heldout_loss(model: FeatureNarx, records: Sequence[Record], horizon: int) ->
 
 
 __all__ = ['NARX_METHODS', 'NarxMetaConfig', 'MetaResult', 'AdaptedNarx', 'meta_train', 'adapt',
-           'arx_model', 'fit_head', 'heldout_loss', 'one_step_data', 'one_step_loss']
+           'arx_model', 'heldout_loss', 'one_step_data', 'one_step_loss']

@@ -9,8 +9,9 @@ of shape (B,) (B systems), so the RK4 core of :mod:`metampc_plant.integrate` giv
 single systems' bits; written with operators and numpy functions (np.sin, np.sqrt, np.maximum,
 np.clip, ...), the same code takes CasADi symbols, which is how the true-model NMPC
 differentiates them (``metampc_controller.nmpc_shooting``; a family that uses math.* or
-branches on values keeps the NMPC's derivative-free solver). A frozen dataclass (``dataclasses.replace`` makes a variant); found by
-name through :mod:`metampc_plant.registry`. How to write one: docs/families.md.
+scipy functions keeps the NMPC's derivative-free solver). A frozen dataclass
+(``dataclasses.replace`` makes a variant); found by name through :mod:`metampc_plant.registry`.
+How to write one: docs/families.md.
 """
 from abc import ABC, abstractmethod
 from dataclasses import dataclass

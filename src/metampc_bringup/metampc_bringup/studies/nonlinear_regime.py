@@ -25,8 +25,8 @@ from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.local_mpc import LocalLinearMpc
 from metampc_controller.references import make_reference
 from metampc_learner.data import normalisation_from, simulate_source
-from metampc_learner.narx_learning import (adapt, arx_model, fit_head, heldout_loss,
-                                           meta_train, NarxMetaConfig)
+from metampc_learner.narx_learning import (adapt, arx_model, heldout_loss, meta_train,
+                                           NarxMetaConfig)
 from metampc_model.feature_narx import FeatureNarx, NarxShape
 from metampc_plant.simulator import Plant, PlantConfig, simulate
 
@@ -205,7 +205,8 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print,
                                 for i, x0 in enumerate(starts))
                     if len(r[1]) == ORACLE_SAMPLES]
             for method, meta in metas.items():
-                models[f'oracle_{method}'] = (fit_head(meta, many), math.nan, 'oracle')
+                oracle = adapt(meta, many, config.meta.gamma)
+                models[f'oracle_{method}'] = (oracle.model, math.nan, f'oracle {oracle.rule}')
         reference = make_reference(ctrl.reference_kind, **ctrl.reference_params)
         for name, (model, train, rule) in models.items():
             planner = LocalLinearMpc(ctrl.mpc, model)
