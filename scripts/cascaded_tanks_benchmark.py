@@ -11,16 +11,21 @@ NSSM from random weights, ARX, grey-box (these two do not depend on the seed). E
 (adaptation step size and steps, ARX orders) is made on the estimation record: fitted on its
 head (samples 0..299, or 0..767 for the full record's choice), scored on samples 768..1023.
 The test record is then predicted once: free-run simulation RMSE and T-step prediction RMSE,
-volts. The twin (the family at the grey-box fit to all 1024 samples) is tracked by the latent
-MPC of --config's controller section on each fitted NSSM and by the true-model NMPC
-(docs/real_data.md says how each model runs and where its initial state comes from).
+volts. Beside them, the feature NARX of docs/nonlinear.md (iMAML through its closed-form
+solve, on the same simulated systems) and the least-squares ARX(p) of its class: the head
+adapted in closed form on every one-step equation of the fitted samples, the order p of
+NARX_ORDERS chosen on the estimation record as the ARX orders are (simulation RMSE of
+samples 768..1023), the test record simulated from its first p pairs. The twin (the family
+at the grey-box fit to all 1024 samples) is tracked by the latent MPC of --config's
+controller section on each fitted NSSM and by the true-model NMPC (docs/real_data.md says how
+each model runs and where its initial state comes from).
 
 Usage: python scripts/cascaded_tanks_benchmark.py --out runs/cts [--seed 0 1 2 3 4]
        [--config config/cascaded_tanks.yaml] [--figure docs/img/cascaded_tanks_test.png]
        [--twin-figure docs/img/cascaded_tanks_twin.png]
-Writes OUT/seed_<s>/benchmark.json per seed and OUT/summary.json, prints the tables; every
-step is cached in OUT (run the same command again to resume). Exit status: 0 done, 2 bad
-arguments.
+Writes OUT/seed_<s>/benchmark.json and narx.json per seed and OUT/summary.json, prints the
+tables; every step is cached in OUT (run the same command again to resume). Exit status: 0
+done, 2 bad arguments.
 """
 import argparse
 import dataclasses
@@ -34,16 +39,21 @@ from typing import Dict, List, Tuple
 import numpy as np
 import torch
 
+from metampc_bringup.analysis.narx_records import free_run, predict
 from metampc_bringup.analysis.retrack import summarise
 from metampc_bringup.analysis.twin import nssm_weights, track_twin
 from metampc_bringup.experiment_config import ConfigError, learner_config, load
+from metampc_bringup.studies.nonlinear_regime import meta_models as narx_meta_models, \
+    RegimeConfig
 from metampc_bringup.studies.offline import request_meta_config
 from metampc_learner.adapt import adapt, AdaptConfig, supervised
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import normalisation_from, simulate_source, SourceSet, Trajectory, \
     Windows
 from metampc_learner.meta_train import meta_train
+from metampc_learner.narx_learning import adapt as adapt_narx, arx_model
 from metampc_learner.offline_adaptation import tstep_rmse
+from metampc_model.feature_narx import FeatureNarx
 from metampc_model.nssm import Nssm, Params
 from metampc_model.weights_codec import DecodedWeights
 from metampc_plant.cascaded_tanks_data import load_cascaded_tanks
@@ -264,6 +274,86 @@ def fit_all(args, seed: int, model, meta, family, data, protocol
     return rows, sims, fitted
 
 
+NARX_ORDERS = (2, 3, 4, 5)    # the feature NARX's orders p tried (the tanks are slow)
+# The feature NARX's sizes (order replaced), meta-training (iMAML through the closed-form solve)
+# and adaptation strength: docs/nonlinear.md's defaults, not tuned for this family.
+NARX = RegimeConfig()
+
+
+def narx_record(u: np.ndarray, y: np.ndarray, start: int, stop: int
+                ) -> Tuple[np.ndarray, np.ndarray]:
+    """Record samples start..stop-1 in the feature NARX's convention: (u (K, 1), y (K, 1)),
+    u[k] produced y[k] (the pairs of `trajectory`)."""
+    t = trajectory(u, y, start, stop)
+    return t.u, t.y
+
+
+def narx_metas(args, seed: int) -> Dict[int, FeatureNarx]:
+    """The feature NARX of each order in NARX_ORDERS, meta-trained by iMAML on this seed's
+    simulated source systems of the family (the NSSMs' source set)."""
+    meta = dataclasses.replace(NARX.meta, seed=seed, **(
+        {'iterations': args.meta_iterations} if args.meta_iterations else {}))
+    overrides = {'learner': {'n_systems': args.n_systems}} if args.n_systems else {}
+    return {p: narx_meta_models(dataclasses.replace(
+        NARX, experiment=args.config, seeds=(seed,), order=p, meta=meta, overrides=overrides),
+        log)['imaml'] for p in NARX_ORDERS}
+
+
+def narx_simulation(model: FeatureNarx, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Free-run simulation over a whole record (N,): from the model's first p pairs (record
+    samples 1..p), its own outputs after; NaN at sample 0 (not predicted)."""
+    return np.concatenate([[np.nan], free_run(model, *narx_record(u, y, 0, len(y)))[:, 0]])
+
+
+def _narx_adapted(meta: FeatureNarx, record) -> Tuple[FeatureNarx, str]:
+    """The closed-form adaptation of docs/nonlinear.md and its rule."""
+    adapted = adapt_narx(meta, [record], NARX.meta.gamma)
+    return adapted.model, adapted.rule
+
+
+def narx_rows(args, experiment, seed: int, data) -> List[dict]:
+    """The feature NARX (iMAML, adapted with its closed-form head) and the ARX(p) of its class
+    fitted on each of FITS and scored on the test record once, as the NSSMs are (the same
+    samples scored, the same 10-step origins); OUT/seed_<s>/narx.json when it holds this
+    run's settings, else computed. The order of each: the p of NARX_ORDERS whose fit to the
+    choice head simulates the estimation record with the least RMSE on samples TAIL..1023."""
+    path = os.path.join(args.out, f'seed_{seed}', 'narx.json')
+    wanted = {'seed': seed, 'config': args.config, 'orders': list(NARX_ORDERS),
+              'narx': repr(NARX), 'meta_iterations': args.meta_iterations,
+              'n_systems': args.n_systems}
+    found = cached(path, wanted)
+    if found is not None:
+        log(f'seed {seed}: feature NARX cached in {path}')
+        return found['rows']
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    metas = narx_metas(args, seed)
+    fits = {'feature NARX': _narx_adapted,
+            'ARX(p), NARX class': lambda meta, rec: (arx_model(meta, [rec]), 'arx')}
+    u, y, ut, yt = data.u_est, data.y_est, data.u_test, data.y_test
+    nssm = learner_config(experiment, seed).nssm
+    n_h, n_t = nssm.history, nssm.loss_horizon
+    origins = np.arange(n_h, len(yt) - n_t)
+    rows = []
+    for n in FITS:
+        for name, fit in fits.items():
+            validation = {}
+            for p, meta in metas.items():
+                sim = narx_simulation(fit(meta, narx_record(u, y, 0, CHOOSE_HEAD[n]))[0], u, y)
+                validation[p] = rmse(sim[TAIL:], y[TAIL:])
+            p = min(validation, key=lambda q: (not math.isfinite(validation[q]), validation[q]))
+            model, rule = fit(metas[p], narx_record(u, y, 0, n))
+            predicted = predict(model, *narx_record(ut, yt, 0, len(yt)), origins - 1, n_t)
+            rows.append({'fit': n, 'model': name, 'rule': rule,
+                         'choice': {'order': p, 'validation_sim_rmse': {
+                             str(q): v for q, v in validation.items()}},
+                         'test': scores(yt, narx_simulation(model, ut, yt), predicted[..., 0],
+                                        origins, n_t, n_h + 1)})
+            log(f'{name} on 0..{n - 1}: order {p} ({rule}); test simulation RMSE '
+                f'{rows[-1]["test"]["simulation_rmse"]:.4f} V')
+    save(path, {**wanted, 'rows': rows})
+    return rows
+
+
 def series(episode) -> Dict[str, np.ndarray]:
     """A tracking run's level y (K + 1,), pump voltage u (K + 1,) and reference (K,), V."""
     return {'y': episode.y[:, 0], 'u': episode.u[:, 0], 'y_ref': episode.y_ref[:, 0]}
@@ -462,7 +552,8 @@ def main(argv=None) -> int:
     parser.add_argument('--max-steps', type=int, default=200,
                         help='adaptation steps searched (0..this) on the estimation record')
     parser.add_argument('--meta-iterations', type=int, default=0,
-                        help='outer steps of both methods (0: the config\'s)')
+                        help='outer steps of every meta-training (0: the config\'s for '
+                             'the NSSMs, 1000 for the feature NARX)')
     parser.add_argument('--n-systems', type=int, default=0,
                         help='source systems (0: the config\'s)')
     parser.add_argument('--candidates', type=int, default=512, help='grey-box candidates')
@@ -497,6 +588,8 @@ def main(argv=None) -> int:
     nmpc, nmpc_series = twin_nmpc(args, experiment, grey)
     reports = [run_seed(args, experiment, seed, data, protocol, grey, nmpc)
                for seed in args.seed]
+    for report in reports:
+        report['rows'] = report['rows'] + narx_rows(args, experiment, report['seed'], data)
     result = summary(reports, nmpc)
     save(os.path.join(args.out, 'summary.json'), result)
     if args.figure or args.twin_figure:

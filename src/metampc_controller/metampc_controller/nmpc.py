@@ -195,6 +195,7 @@ class Nmpc:
         if fallback:
             plan, self._states = np.clip(guess, lo, hi), None
         cost, y_pred = self._evaluate(x0, u_prev, y_ref, plan)
+        plan.flags.writeable = False    # the next warm start; u_plan is a view of it
         self._plan = plan
         return PlanResult(u=plan[:n_u].copy(), u_plan=plan.reshape(n, n_u), y_pred=y_pred,
                           cost=cost, status=status, iterations=iterations,

@@ -5,8 +5,9 @@ The plant family's own equations, evaluated on CasADi symbols: ``PlantFamily.rhs
 np.clip) that CasADi's SX symbols take as well, and the RK4 of :mod:`metampc_plant.integrate`
 runs on them unchanged, so one statement of the equations serves the simulator and the
 planner (the symbolic sample map equals the numpy one to rounding: test_nmpc). A family whose
-equations do not take symbols (a Python ``if`` on the state, a scipy call) raises
-:class:`SymbolicError` here, and the NMPC keeps its L-BFGS-B solver (:mod:`nmpc`).
+equations do not take symbols (a Python ``if`` on the state, a scipy call) or give other
+numbers on them (math.* turns a symbol into NaN) raises :class:`SymbolicError` here, and the
+NMPC keeps its L-BFGS-B solver (:mod:`nmpc`).
 
 The NLP over w = [u_1..u_N (N n_u); x_1..x_{N+T} ((N+T) n_x)], parameters
 p = [x_0; u_0; r_1..r_N; theta], is eq. (mpc)'s cost on the true model with the NMPC's tail

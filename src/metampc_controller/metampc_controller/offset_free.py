@@ -192,7 +192,8 @@ class SteadyStateTarget:
     unconstrained target when within the box (to 1e-12), else the candidate whose smallest
     slack is largest (>= 0 up to rounding: the minimiser). Some set with an invertible M_FF
     holds a minimiser (one at a vertex of the set of minimisers where M is singular), so sets
-    whose M_FF has a relative condition above 1e12 are left out. The answer is the one of an
+    whose M_FF has a relative condition above 1e12 are left out, and those that hold an input
+    at an infinite bound. The answer is the one of an
     exact box least-squares solver (scipy's BVLS; test_offset_free) at a few microseconds.
     """
 
@@ -244,6 +245,8 @@ class SteadyStateTarget:
             code = np.array(code)
             free = code == 0
             fixed = np.where(code == 1, u_min, u_max)[~free]
+            if not np.all(np.isfinite(fixed)):          # an input at an infinite bound
+                continue
             t_a, c_a = np.zeros((n_u, n_u)), np.zeros(n_u)          # u = T_a h + c_a
             c_a[~free] = fixed
             if free.any():
@@ -264,7 +267,7 @@ class SteadyStateTarget:
             p_e = np.vstack([ima_inv, np.zeros((3 * n_u, n_z))])
             rows.append(p_h @ k_x + p_e @ e_sel)
             offsets.append(np.r_[ima_inv_b @ c_a, c_a, s_u @ c_a + s_g @ (m @ c_a)
-                                 + np.r_[slack_u, slack_u] * box])
+                                 + np.where(np.r_[free, free], box, 0.0)])
         return np.vstack(rows), np.concatenate(offsets)
 
     def __call__(self, x: np.ndarray, out: np.ndarray) -> np.ndarray:

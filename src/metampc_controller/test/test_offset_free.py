@@ -156,8 +156,9 @@ def test_bounded_target_equals_box_least_squares(n_u):
     """On random models, weights, bounds and references (n_u = 1, 2: every family's), the
     active-set target equals the box least squares of scipy's BVLS (an exact active-set
     solver: the independent answer) to 1e-9, u_s and z_s, wherever the unconstrained u_s
-    leaves the box; a target that ignored a bound, picked a non-optimal active set or clipped
-    the unconstrained u_s (not optimal with two coupled inputs) would fail."""
+    leaves the box (some inputs bounded on one side only); a target that ignored a bound,
+    picked a non-optimal active set or clipped the unconstrained u_s (not optimal with two
+    coupled inputs) would fail."""
     rng = np.random.default_rng(n_u)
     checked = 0
     for _ in range(200):
@@ -172,6 +173,8 @@ def test_bounded_target_equals_box_least_squares(n_u):
             continue
         u_min = -rng.uniform(0.1, 2.0, n_u)
         u_max = rng.uniform(0.1, 2.0, n_u)
+        if rng.random() < 0.2:
+            u_min[rng.integers(n_u)] = -np.inf        # an input bounded on one side only
         term = terminal_cost(model, q, np.full(n_u, 0.1), 1e-8)
         target = SteadyStateTarget(model, q, term.ss_r, term.ss_e, u_min, u_max, bounded=True)
         const = np.r_[model.e, model.d] + rng.normal(size=n_z + n_y)     # e', d'

@@ -48,10 +48,10 @@ class LaterChoices:
                     f"{', '.join(repr(n) for n in names)})")
 
 
-METHODS = LaterChoices('metampc_learner.meta_train:META_METHODS',
-                       'metampc_learner.offline_adaptation:SUPERVISED',
-                       'metampc_learner.offline_adaptation:ARX')
-RULES = LaterChoices('metampc_learner.adapt:RULES')
+METHOD_CHOICES = LaterChoices('metampc_learner.meta_train:META_METHODS',
+                              'metampc_learner.offline_adaptation:SUPERVISED',
+                              'metampc_learner.offline_adaptation:ARX')
+RULE_CHOICES = LaterChoices('metampc_learner.adapt:RULES')
 
 
 def _fraction(text: str) -> float:
@@ -77,7 +77,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('checkpoint', help='the meta-model checkpoint (the learner\'s .pt)')
     p.add_argument('--out', required=True, help='the adapted checkpoint to write (.pt); the '
                    'report goes beside it (.json, .md)')
-    p.add_argument('--method', choices=METHODS, metavar='METHOD',
+    p.add_argument('--method', choices=METHOD_CHOICES, metavar='METHOD',
                    help="%(choices)s; default: the checkpoint's; supervised: from random "
                    'weights; arx: the linear ARX baseline by least squares (the checkpoint '
                    'gives H and scaling)')
@@ -85,7 +85,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--lr', type=float, help='step size (default: --config, else 0.05)')
     p.add_argument('--gamma', type=float, help='proximal strength of eq. (infer) (default: '
                    '--config, else 0)')
-    p.add_argument('--rule', choices=RULES, metavar='RULE', help='step rule: gradient '
+    p.add_argument('--rule', choices=RULE_CHOICES, metavar='RULE', help='step rule: gradient '
                    '(backtracked from --lr) or gauss_newton (Levenberg-Marquardt; default: '
                    '--config, else gradient)')
     p.add_argument('--cg-steps', type=int, help='CG iterations per gauss_newton step '
@@ -133,8 +133,8 @@ def main(args=None) -> int:
     if wrong:
         print(f'adapt_offline: error: {wrong}', file=sys.stderr)
         return 2
-    METHODS.check(p, '--method', opts.method)
-    RULES.check(p, '--rule', opts.rule)
+    METHOD_CHOICES.check(p, '--method', opts.method)
+    RULE_CHOICES.check(p, '--rule', opts.rule)
     from metampc_learner.offline_adaptation import OfflineConfig, report_markdown, run_offline
     config = OfflineConfig(method=opts.method or '', steps=opts.steps, lr=opts.lr,
                            gamma=opts.gamma, rule=opts.rule, cg_steps=opts.cg_steps,

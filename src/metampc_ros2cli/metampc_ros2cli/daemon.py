@@ -1,17 +1,13 @@
 """ros2cli's daemon: one process per ROS domain that keeps the graph, so that the list verbs
-answer at once, complete.
+answer at once, complete (a verb's own node discovers the graph afresh and often misses nodes).
 
-A verb's own node discovers the graph afresh and under LOCALHOST discovery often misses nodes
-(and waits for the services it calls to be discovered: 2.4-3.3 s for a `param get`), so
-`ros2 node list|info`, `ros2 topic list|find|info` and `ros2 service list|find` ask a daemon
-whose node has been in the graph since it started, and `ros2 param` has the daemon's node call
-the parameter services (:func:`call_service`; ``--no-daemon`` bypasses it). One daemon per
-(user, ROS_DOMAIN_ID, discovery range, static peers) on a UNIX socket: a request is one JSON
-line ``{"call": NAME, "args": [...]}`` (a query of :data:`GRAPH_CALLS`, :data:`TOPIC_CALLS` or
-:data:`NODE_CALLS`, :data:`SERVICE_CALL`, ``ping`` or ``stop``), the answer one JSON line
-``{"result": ...}``; a daemon younger than :data:`WARMUP_S` waits until it is that old before
-it answers. It ends on ``stop``, SIGINT/SIGTERM or after :data:`IDLE_S` without a request, and
-outlives the verb that started it (no lifeline). See docs/nodes.md.
+`ros2 node list|info`, `topic list|find|info` and `service list|find` ask the daemon, and
+`ros2 param` has its node call the parameter services (:func:`call_service`; ``--no-daemon``
+bypasses it). One daemon per (user, ROS_DOMAIN_ID, discovery range, static peers) on a UNIX
+socket: a request is one JSON line ``{"call": NAME, "args": [...]}`` (:data:`GRAPH_CALLS`,
+:data:`TOPIC_CALLS`, :data:`NODE_CALLS`, :data:`SERVICE_CALL`, ``ping``, ``stop``), the answer
+``{"result": ...}``; it answers once :data:`WARMUP_S` old, ends on ``stop``, SIGINT/SIGTERM or
+after :data:`IDLE_S` idle, and outlives the verb that started it. See docs/nodes.md.
 """
 import base64
 import contextlib

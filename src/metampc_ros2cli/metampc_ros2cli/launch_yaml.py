@@ -1,26 +1,12 @@
 """ROS 2's YAML launch format (launch_yaml, launch_ros; Jazzy), the subset that brings up a
 graph of nodes, read by the format's rules so that the same file runs with the real
-`ros2 launch`:
-
-```yaml
-launch:
-- arg: {name: theta, default: '0.5'}
-- node:
-    pkg: metampc_plant
-    exec: plant
-    name: plant                 # -r __node:=plant
-    namespace: robot1           # -r __ns:=/robot1
-    output: screen              # the node's output on the launcher's (default: log)
-    param: [{name: theta, value: $(var theta)}]
-    remap: [{from: y, to: y_measured}]
-```
-
-`$(var NAME)` is the value of an `arg` (its `default`, or `NAME:=VALUE` on the command line).
-A parameter's value is typed as launch_ros types it: a string (after substitution) is read as
-YAML (`'0.5'` is 0.5, `'[1, 2]'` a list, `"'2'"` the string '2'), any other YAML value is kept,
-the strings of a list stay strings. Everything else of the format (`include`, `group`, `let`,
-`executable`, other substitutions, parameter files...) is refused by name: :class:`LaunchError`,
-one line. No rclpy here.
+`ros2 launch`: a `launch:` list of `arg` (name, default, description) and `node` (pkg, exec,
+name, namespace, output, param [{name, value}], remap [{from, to}]); `$(var NAME)` is an arg's
+value (its default, or `NAME:=VALUE` on the command line). A parameter value is typed as
+launch_ros types it: a string (after substitution) read as YAML, any other YAML value kept, the
+strings of a list left strings. Everything else of the format (`include`, `group`, `let`,
+`executable`, other substitutions, parameter files...) is refused by name (:class:`LaunchError`,
+one line). An example and the shipped files: docs/nodes.md. No rclpy here.
 """
 import re
 from dataclasses import dataclass, field
