@@ -240,6 +240,39 @@ def _interrupt_after_collection(args, collections: int, timeout: float,
     return proc.returncode, ''.join(lines) + rest
 
 
+def test_a_feature_narx_experiment_flies_the_class_end_to_end(tmp_path):
+    """learner.model_class feature_narx (config/feature_narx.yaml's class, CI-sized): the
+    learner meta-trains and adapts it, the recorded weights are of that class, the report
+    scores them on the held-out set, the adapted model's training loss is not above the
+    ARX's, and the same tracking in one process (retrack) gives the recorded costs."""
+    base = load(CI_CONFIG)
+    learner = {**base.learner, 'model_class': 'feature_narx', 'narx_features': 8,
+               'narx_hidden': [16], 'narx_iterations': 20, 'narx_batch_size': 4,
+               'narx_windows': 16}
+    config = load(CI_CONFIG, {'methods': ['imaml', 'arx', 'nmpc'], 'learner': learner,
+                              'meta_train': {'imaml': {}},
+                              'adapt': {'imaml': {}, 'arx': {}}})
+    out = str(tmp_path / 'run')
+    per_seed = run_experiment(config, out, progress=False)['per_seed'][0]
+    assert per_seed['complete']
+    mcap = os.path.join(out, 'seed_0', 'recording.mcap')
+    for method in config.methods:
+        tracking = per_seed['methods'][method]['tracking']
+        assert not tracking['escaped'] and tracking['steps'] == config.track_steps(), method
+        assert set(tracking['planner']) == {'nmpc' if method == 'nmpc' else 'latent_mpc'}
+    models = {m: _weights(mcap, per_seed['methods'][m]['adapt']['model_version'])
+              for m in ('imaml', 'arx')}
+    assert {(w.model_class, w.features, w.history) for w in models.values()} == {
+        ('feature_narx', 8, 2)}
+    assert models['imaml'].train_loss <= models['arx'].train_loss * (1 + 1e-9)
+    for method in ('imaml', 'arx'):
+        assert math.isfinite(per_seed['methods'][method]['heldout']['adapted']), method
+    again = retrack_seed(config, per_seed['seed'], mcap, {})
+    for method, result in again.items():
+        recorded = per_seed['methods'][method]['tracking']['tracking']['cost']
+        assert result.cost == pytest.approx(recorded, rel=1e-9, abs=1e-12), method
+
+
 def test_a_run_without_meta_training_adapts_on_the_whole_collection(tmp_path):
     """`--methods arx`: nothing trains between the collection and the first adapt, so the
     learner is asked to stop buffering while it is still taking the collection in. The stop

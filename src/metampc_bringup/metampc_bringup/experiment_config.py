@@ -23,6 +23,7 @@ from metampc_controller import controller_params
 from metampc_learner import learner_params
 from metampc_learner.learner_params import ADAPT_METHODS
 from metampc_learner.meta_train import META_METHODS
+from metampc_learner.narx_learning import NARX_METHODS
 from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
@@ -36,6 +37,8 @@ SCENARIOS = ('adapt_once', 'drift')
 _RENAMED = {'protocol': {'paper': 'paper_settings'}, 'scenario': {'paper': 'adapt_once'}}
 DRIFT_MODES = ('none', 'periodic', 'triggered')
 METHODS = (*ADAPT_METHODS, 'nmpc')       # what an experiment compares
+# ... with learner.model_class feature_narx (no supervised or unrolled MAML of that class)
+NARX_EXPERIMENT_METHODS = (*NARX_METHODS, 'arx', 'oracle', 'nmpc')
 SHARED = ('family', 'dt', 'u_min', 'u_max')
 _TAKES_SHARED = {'plant': SHARED, 'learner': SHARED, 'controller': ('u_min', 'u_max')}
 # The request fields a config may set: the services' own (method and seed are the run's).
@@ -321,6 +324,12 @@ class ExperimentConfig:
         _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
         for node in _NODE_PARAMS:
             self.node_config(node, self.first_seed)
+        if self.node_config('learner', self.first_seed).model_class == 'feature_narx':
+            unfit = [m for m in self.methods if m not in NARX_EXPERIMENT_METHODS]
+            if unfit:
+                raise ConfigError(f'methods {", ".join(unfit)}: not of learner.model_class '
+                                  f'feature_narx (its methods: '
+                                  f'{", ".join(NARX_EXPERIMENT_METHODS)})')
         return cfg
 
 

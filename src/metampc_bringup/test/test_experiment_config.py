@@ -138,3 +138,20 @@ def test_reference_inputs_give_each_seed_the_set_points_its_target_can_hold():
 def test_bad_reference_inputs_are_one_config_error(changes, message):
     with pytest.raises(ConfigError, match=re.escape(message)):
         from_mapping({'family': 'quadruple_tank', **changes}).validate()
+
+
+def test_the_feature_narx_config_loads_and_methods_not_of_its_class_are_refused():
+    """config/feature_narx.yaml: the learner's model class; supervised has none of it."""
+    import os
+    from metampc_bringup.experiment_config import load
+    path = os.path.join(os.path.dirname(__file__), '..', '..', '..', 'config',
+                        'feature_narx.yaml')
+    config = load(path)
+    learner = config.node_config('learner', 0)
+    assert (learner.model_class, learner.gain_check) == ('feature_narx', False)
+    assert config.methods == ['imaml', 'maml', 'oracle', 'arx', 'nmpc']
+    with pytest.raises(ConfigError, match='methods supervised: not of learner.model_class '
+                                          'feature_narx'):
+        load(path, {'methods': ['imaml', 'supervised', 'nmpc']})
+    with pytest.raises(ConfigError, match="gain_check: the NSSM's only"):
+        load(path, {'learner': {**config.learner, 'gain_check': True}})

@@ -6,14 +6,15 @@ u_{k+1..k+N} from z_k = f_enc(u_{k-H+1..k}, y_{k-H+1..k}) (eq. (z)), the applied
 references at (k + 1..k + N) dt since the last reset (eq. (mpc)). Pieces, each testable
 alone: :class:`History` (the last H samples), :class:`AnswerRule` (which tick answers which
 sample), :class:`PreModelInput` (the input before a model), :func:`build_model` (weights ->
-predictor + latent MPC, outside the tick), :class:`Tuning` (what a live change replaces),
-:class:`ControllerCore` (samples in; tick -> :class:`TickResult` through the configured
-:class:`~metampc_controller.planner.Planner`).
+predictor + latent MPC, outside the tick; a feature NARX's: its regressor state s_t in place
+of z_t, planned on its linearisation at each tick, :mod:`local_mpc`), :class:`Tuning` (what
+a live change replaces), :class:`ControllerCore` (samples in; tick -> :class:`TickResult`
+through the configured :class:`~metampc_controller.planner.Planner`).
 """
 from dataclasses import dataclass, field, replace
 import math
 import threading
-from typing import Any, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -21,15 +22,18 @@ from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.model_check import applies, check, Verdict
+from metampc_controller.local_mpc import LocalLinearMpc
 from metampc_controller.model_swap import ModelSwap
 from metampc_controller.mpc import LatentMpc, MpcConfig, NO_TIME_LIMIT
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.planner import Planner, PlanResult
-from metampc_controller.planner_registry import latent_mpc, planner_kind, TrueModel
+from metampc_controller.planner_registry import learned_mpc, planner_kind, TrueModel
 from metampc_controller.prediction_error import PredictionError
+from metampc_model.latent_model import LatentModel
+from metampc_model.narx_predictor import NarxPredictor
 from metampc_model.predictor import NssmPredictor
 from metampc_controller.references import make_reference
-from metampc_model.weights_codec import DecodedWeights, WeightsError
+from metampc_model.weights_codec import DecodedNarx, DecodedWeights, WeightsError
 from metampc_plant.plant_description import PlantDescription
 from metampc_plant.registry import get_family
 
@@ -224,52 +228,82 @@ class PreModelInput:
 
 @dataclass
 class ModelBundle:
-    """A model ready for the tick: the NSSM predictor, the latent MPC built on it, and the
-    monitor of its prediction errors (None: the ticks neither measure them nor ask for
-    adaptation; online collection, which reads neither, saves ~5 % of its time)."""
+    """A model ready for the tick: its predictor (the NSSM's, or a feature NARX's), the MPC
+    built on it (the latent MPC; a feature NARX's relinearised each tick), and the monitor of
+    its prediction errors (None: the ticks neither measure them nor ask for adaptation; online
+    collection, which reads neither, saves ~5 % of its time; a feature NARX has none)."""
 
     version: int
     method: str
     stage: str
-    predictor: NssmPredictor
-    mpc: LatentMpc
+    predictor: Union[NssmPredictor, NarxPredictor]
+    mpc: Union[LatentMpc, LocalLinearMpc]
     prediction: Optional[PredictionError]
 
     @property
     def history(self) -> int:
-        return self.predictor.config.history
+        return self.predictor.history
+
+    @property
+    def latent(self) -> Optional[LatentModel]:
+        """The NSSM's latent model (fixed), or None for a feature NARX, whose linearisation
+        changes every tick: the model check, the prediction-error monitor (and adaptation
+        requests) and offset-free tracking are the NSSM's."""
+        return getattr(self.predictor, 'latent', None)
+
+    @property
+    def failed_linearisations(self) -> int:
+        """Ticks of this model whose linearisation failed (a feature NARX's; 0 otherwise)."""
+        return getattr(self.mpc, 'failed_linearisations', 0)
+
+    def describe(self) -> str:
+        """One line: the model's sizes and how it is planned on (the node's log)."""
+        p = self.predictor
+        if self.latent is None:
+            sh = p.shape
+            return (f'feature NARX p={sh.order}, F={sh.features}, features {list(sh.hidden)}; '
+                    'planned on its linearisation at each tick (offset-free none; no model '
+                    'check, prediction-error monitor or adaptation request: the NSSM\'s)')
+        cfg, term = p.config, self.mpc.terminal
+        return (f'H={cfg.history}, n_z={cfg.n_z}, encoder {list(cfg.hidden)}'
+                + (f'; terminal cost fallback: {term.reason}' if term.fallback else '')
+                + f'; offset-free {self.mpc.describe_offset_free()}')
 
     @classmethod
-    def of(cls, predictor: NssmPredictor, version: int, method: str, stage: str,
-           mpc_config: MpcConfig, monitor: bool = True) -> 'ModelBundle':
-        """The bundle of a predictor: its latent MPC (OSQP set-up and DARE: outside the tick)
-        and, with `monitor`, its prediction-error monitor. ValueError if the MPC rejects the
-        model."""
-        latent = predictor.latent
+    def of(cls, predictor: Union[NssmPredictor, NarxPredictor], version: int, method: str,
+           stage: str, mpc_config: MpcConfig, monitor: bool = True) -> 'ModelBundle':
+        """The bundle of a predictor: its MPC (the NSSM's: OSQP set-up and DARE, outside the
+        tick) and, with `monitor` and an NSSM, its prediction-error monitor. ValueError if the
+        MPC rejects the model."""
+        latent = getattr(predictor, 'latent', None)
         prediction = PredictionError(latent, predictor.norm.y_std,
-                                     predictor.config.loss_horizon) if monitor else None
-        return cls(version, method, stage, predictor, latent_mpc(mpc_config, latent),
+                                     predictor.config.loss_horizon) if (
+            monitor and latent is not None) else None
+        return cls(version, method, stage, predictor, learned_mpc(mpc_config, predictor),
                    prediction)
 
 
-def build_model(decoded: DecodedWeights, version: int, method: str, stage: str,
-                mpc_config: MpcConfig, n_u: int, n_y: int, history: int = 0) -> ModelBundle:
-    """Check a decoded NSSM against the plant and the controller, then build predictor + QP.
+def build_model(decoded: Union[DecodedWeights, DecodedNarx], version: int, method: str,
+                stage: str, mpc_config: MpcConfig, n_u: int, n_y: int, history: int = 0
+                ) -> ModelBundle:
+    """Check a decoded model (an NSSM or a feature NARX) against the plant and the controller,
+    then build predictor + planner.
 
-    Runs outside the tick (it sets up OSQP and solves the DARE). history: the H the weights
-    must have (0: any up to MAX_HISTORY).
+    Runs outside the tick (it sets up OSQP and solves the DARE). history: the H (a feature
+    NARX: its order p) the weights must have (0: any up to MAX_HISTORY).
 
     Raises:
         WeightsError: one-line reason (dimensions, history, or a model the MPC rejects).
     """
-    cfg = decoded.config
+    narx = isinstance(decoded, DecodedNarx)
+    cfg = decoded.shape if narx else decoded.config
     if (cfg.n_u, cfg.n_y) != (n_u, n_y):
         raise WeightsError(f'model has n_u = {cfg.n_u}, n_y = {cfg.n_y}; the plant has '
                            f'{n_u} input(s), {n_y} output(s)')
-    if cfg.history > MAX_HISTORY or (history and cfg.history != history):
+    predictor = (NarxPredictor if narx else NssmPredictor)(cfg, decoded.norm, decoded.params)
+    if predictor.history > MAX_HISTORY or (history and predictor.history != history):
         need = history or f'<= {MAX_HISTORY}'
-        raise WeightsError(f'history H = {cfg.history}, the controller needs {need}')
-    predictor = NssmPredictor(cfg, decoded.norm, decoded.params)
+        raise WeightsError(f'history H = {predictor.history}, the controller needs {need}')
     try:
         return ModelBundle.of(predictor, version, method, stage, mpc_config)
     except ValueError as err:
@@ -329,6 +363,8 @@ class TickResult:
     disturbance: the latent MPC's offset-free disturbance estimate (empty otherwise);
     slack: its largest planned violation of the soft output bounds.
     residual: the solver's optimality residual (:class:`~planner.PlanResult`; NaN: none).
+    failed_linearisations: the model in use's ticks whose linearisation failed (a feature
+        NARX's planner; 0 otherwise).
     verdict: the check's line on an answer whose trial this tick ended ('' if none): it
         flies from this tick (``check passed``) or was refused (model_status says so too).
     config_version: the :class:`Tuning` the tick used; q: its output weights.
@@ -356,6 +392,7 @@ class TickResult:
     slack: float = 0.0
     verdict: str = ''
     residual: float = math.nan
+    failed_linearisations: int = 0
 
 
 # No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
@@ -479,7 +516,8 @@ class ControllerCore:
         config = self.tuning.config
         # Any answer to one of our requests, also a late one (its request given up or
         # forgotten by a reset), which is then used from the next tick like any model.
-        if not applies(config.model_check, bool(request_step)) or self.tried(request_step):
+        if (not applies(config.model_check, bool(request_step)) or self.tried(request_step)
+                or bundle.latent is None):     # a feature NARX: unchecked (describe())
             return ''
         verdict = self._verdict(bundle)
         if verdict.ok:
@@ -548,9 +586,9 @@ class ControllerCore:
             if exceeding:
                 return f'{exceeding} (plant_info): a change must stay within them'
         model = self.model
-        if model is not None and config.mpc.offset_free != 'none':
+        if model is not None and model.latent is not None and config.mpc.offset_free != 'none':
             try:
-                disturbance_model(model.predictor.latent, config.mpc.offset_free)
+                disturbance_model(model.latent, config.mpc.offset_free)
             except ValueError as err:
                 return f'{err}, for the model in use (version {model.version})'
         return ''
@@ -563,7 +601,7 @@ class ControllerCore:
         new planner starts cold, as on a new model. ValueError if the model does not fit
         (check_tuning first)."""
         def rebuilt(bundle: ModelBundle) -> ModelBundle:
-            mpc = latent_mpc(config.mpc, bundle.predictor.latent)
+            mpc = learned_mpc(config.mpc, bundle.predictor)
             mpc.set_time_limit(limit)
             return replace(bundle, mpc=mpc)
 
@@ -756,7 +794,7 @@ class ControllerCore:
         tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)
-        errors, request, version, state = NO_ERRORS, None, 0, None
+        errors, request, version, state, failed = NO_ERRORS, None, 0, None, 0
         if self.kind.learned:
             planner = None
             if model is not None:
@@ -771,12 +809,14 @@ class ControllerCore:
             planner = self._true_planner
         if planner is not None:
             res = planner.solve(state, u_prev, y_ref, history.y, step)
+            if model is not None:
+                failed = model.failed_linearisations
         else:
             res = PlanResult(u=tuning.pre_model.value(step, self.dt), u_plan=np.zeros(
                 (0, self.n_u)), y_pred=np.zeros((0, self.n_y)), cost=math.nan,
                 status=self.kind.waiting, iterations=-1, solve_time=0.0)
         return self._answer(step, tuning, model_status, y_ref, u_prev, res, version, errors,
-                            request, verdict)
+                            request, verdict, failed)
 
     def _end_trial(self, step: int) -> str:
         """Judge the answer whose trial the tick of `step` ends (under the set-up lock): it
@@ -815,7 +855,7 @@ class ControllerCore:
     @staticmethod
     def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,
                 u_prev: np.ndarray, res: PlanResult, version: int, errors: tuple,
-                request: Optional[Request], verdict: str = '') -> TickResult:
+                request: Optional[Request], verdict: str = '', failed: int = 0) -> TickResult:
         """The tick's result from any planner's plan, with u checked: finite (else u_prev, or
         0, and `fallback`) and clipped into the tuning's bounds (the planners promise both;
         the plant must get it)."""
@@ -833,4 +873,5 @@ class ControllerCore:
                           iterations=int(res.iterations), solve_time=res.solve_time,
                           u_plan=res.u_plan, y_pred=res.y_pred, prediction_errors=errors,
                           request=request, disturbance=res.disturbance, slack=res.slack,
-                          verdict=verdict, residual=res.residual)
+                          verdict=verdict, residual=res.residual,
+                          failed_linearisations=failed)

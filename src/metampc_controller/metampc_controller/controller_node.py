@@ -38,7 +38,7 @@ from metampc_controller.adaptation_trigger import Request
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
                                                 ModelRefused, TickResult)
 from metampc_controller.controller_params import ControllerConfig, PARAMETERS, parse_params
-from metampc_model.weights_codec import fields_of, weights_from_fields, WeightsError
+from metampc_model.weights_codec import fields_of, model_from_fields, WeightsError
 from metampc_plant.plant_description import PlantDescription
 
 COUNTERS = ('answered', 'pre_model', 'fallbacks', 'models', 'rejected_weights', 'ignored_y',
@@ -214,6 +214,7 @@ class ControllerNode(Node):
         status.config_version = res.config_version
         status.planner = res.planner
         status.model_status = res.model_status
+        status.failed_linearisations = res.failed_linearisations
         status.u_plan = _doubles(res.u_plan)
         status.y_pred = _doubles(res.y_pred)
         status.y_ref = _doubles(res.y_ref)
@@ -370,7 +371,7 @@ class ControllerNode(Node):
         """Check and build a model on the builder thread; the next tick uses it."""
         core = self.core
         try:    # with the latest tuning: retune() runs on this thread too, in order
-            bundle = build_model(weights_from_fields(fields_of(msg)), msg.version, msg.method,
+            bundle = build_model(model_from_fields(fields_of(msg)), msg.version, msg.method,
                                  msg.stage, core.config.mpc, core.n_u, core.n_y,
                                  core.config.history)
         except WeightsError as err:
@@ -390,8 +391,6 @@ class ControllerNode(Node):
             self._reject(msg, refused)
             return
         self._counts['models'] += 1
-        term = bundle.mpc.terminal
-        cfg = bundle.predictor.config
         if requested is None:
             when = 'in use from the next tick'
         else:
@@ -399,11 +398,8 @@ class ControllerNode(Node):
             when = (f'tried from {where} for {trial} samples, in use after if it passes the '
                     f'check' if trial else f'in use from {where}')
             when += f' (it answers the request of step {msg.request_step})'
-        self.get_logger().info(
-            f'model version {msg.version} ({msg.method}, {msg.stage}; H={cfg.history}, '
-            f'n_z={cfg.n_z}, encoder {list(cfg.hidden)}) {when}'
-            + (f'; terminal cost fallback: {term.reason}' if term.fallback else '')
-            + f'; offset-free {bundle.mpc.describe_offset_free()}')
+        self.get_logger().info(f'model version {msg.version} ({msg.method}, {msg.stage}) {when}; '
+                               f'{bundle.describe()}')
 
     def _reject(self, msg: NssmWeights, reason: str) -> None:
         """Keep the model in use; report the reason in model_status and one log line."""

@@ -7,10 +7,13 @@ that is: the learned NSSM (weights from the learner) or the plant's own equation
 family and dt, the samples' theta). The controller looks its kind up once, at start.
 """
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, NamedTuple, Sequence
+from typing import Any, Callable, Dict, NamedTuple, Sequence, Union
 
 from metampc_model.latent_model import LatentModel
+from metampc_model.narx_predictor import NarxPredictor
+from metampc_model.predictor import NssmPredictor
 from metampc_plant.family import PlantFamily
+from metampc_controller.local_mpc import LocalLinearMpc
 from metampc_controller.mpc import LatentMpc, MpcConfig
 from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.planner import Planner
@@ -54,6 +57,17 @@ def latent_mpc(config: MpcConfig, model: LatentModel) -> LatentMpc:
     return mpc
 
 
+def learned_mpc(config: MpcConfig, predictor: Union[NssmPredictor, NarxPredictor]
+                ) -> Union[LatentMpc, LocalLinearMpc]:
+    """The planner of a learned model of either class: the latent MPC on an NSSM's latent
+    model (:func:`latent_mpc`), or on a feature NARX the same QP on its linearisation at the
+    current state, rebuilt each tick (:class:`~metampc_controller.local_mpc.LocalLinearMpc`,
+    offset-free none). ValueError if the model does not fit."""
+    if isinstance(predictor, NarxPredictor):
+        return LocalLinearMpc(config, predictor)
+    return latent_mpc(config, predictor.latent)
+
+
 def nmpc(config: MpcConfig, model: TrueModel, tail: int = 0, solver: str = 'ipopt') -> Nmpc:
     """The NMPC of `config`'s horizon, weights and bounds, a `tail` (samples) and a `solver`
     on the plant's equations (ipopt: its NLP built on CasADi, about 0.1-0.5 s, outside the
@@ -79,4 +93,5 @@ def planner_kind(name: str) -> PlannerKind:
         raise ValueError(f'unknown planner {name!r} (known: {", ".join(REGISTRY)})') from None
 
 
-__all__ = ['TrueModel', 'PlannerKind', 'REGISTRY', 'planner_kind', 'latent_mpc', 'nmpc']
+__all__ = ['TrueModel', 'PlannerKind', 'REGISTRY', 'planner_kind', 'latent_mpc', 'learned_mpc',
+           'nmpc']

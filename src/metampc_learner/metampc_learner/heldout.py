@@ -11,13 +11,15 @@ normalised units). How it enters the report: docs/experiments.md. No rclpy here.
 """
 import math
 from dataclasses import replace
-from typing import List, Mapping, Sequence
+from typing import List, Mapping, Sequence, Union
 
 import numpy as np
 import torch
 
 from metampc_model.nssm import Nssm, prediction_loss, torch_params
-from metampc_model.weights_codec import DecodedWeights
+from metampc_model.feature_narx import FeatureNarx
+from metampc_model.weights_codec import DecodedNarx, DecodedWeights
+from metampc_learner import narx_learning
 from metampc_learner.data import simulate_target, SourceConfig, Trajectory, Windows
 
 HELDOUT_SAMPLES = 2000
@@ -67,14 +69,20 @@ def heldout_loss(model: Nssm, params: Mapping[str, torch.Tensor], windows: Windo
         return float(prediction_loss(model, params, windows.u, windows.y))
 
 
-def model_heldout_loss(weights: DecodedWeights, trajectories: List[Trajectory],
-                       loss_horizon: int) -> float:
+def model_heldout_loss(weights: Union[DecodedWeights, DecodedNarx],
+                       trajectories: List[Trajectory], loss_horizon: int) -> float:
     """l_SSM of a decoded model on windows of H + `loss_horizon` samples of `trajectories`
-    (physical units), normalised with the model's own normalisation.
+    (physical units), normalised with the model's own normalisation; a feature NARX's: its
+    T-step rollout loss from every state of p samples (:func:`narx_learning.heldout_loss`).
 
     The message carries no T, so the learner's is passed; the published A is the effective
     one (bounded already when ``stable_latent``), so the parameters are used as they are.
     """
+    if isinstance(weights, DecodedNarx):
+        params = {k: torch.from_numpy(v.astype(np.float64)) for k, v in weights.params.items()}
+        return narx_learning.heldout_loss(FeatureNarx(weights.shape, weights.norm, params),
+                                          [(t.u, t.y) for t in trajectories],
+                                          int(loss_horizon))
     config = replace(weights.config, loss_horizon=int(loss_horizon))
     windows = Windows.from_trajectories(trajectories, weights.norm, config)
     return heldout_loss(Nssm(config, weights.norm), torch_params(weights.params), windows)

@@ -31,10 +31,10 @@ from rclpy.node import Node
 from rclpy.task import Future
 import torch
 
-from metampc_model.weights_codec import fields_from_weights
 from metampc_learner.job_slot import JobCancelled, JobSlot, JobStatus
 from metampc_learner.learner_params import (LearnerNodeConfig, parse_params, PARAMETERS,
-                                            resolve_adapt_request, resolve_meta_request)
+                                            resolve_adapt_request, resolve_meta_request,
+                                            resolve_narx_request)
 from metampc_learner.learner_session import LearnerError, LearnerSession, ModelRecord
 from metampc_learner.loop_adaptation import BEYOND_WINDOW, RecentSamples
 from metampc_learner.meta_train import MetaTrainingError
@@ -102,7 +102,7 @@ class LearnerNode(Node):
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         LiveParameters(self, PARAMETERS, values, self.cfg, parse_params, self._on_params)
-        nssm, src = self.cfg.nssm, self.cfg.source
+        nssm, narx, src = self.cfg.nssm, self.cfg.narx, self.cfg.source
         if self.cfg.meta_model_path:
             try:
                 record = self.session.load_meta(self.cfg.meta_model_path)
@@ -111,10 +111,15 @@ class LearnerNode(Node):
             self._publish_weights(record)
             self.get_logger().info(f'loaded {record.method} meta-model '
                                    f'{self.cfg.meta_model_path!r}: published as v{record.version}')
-            nssm = record.model.config      # the model that adapts is the loaded one
+            # the model that adapts is the loaded one
+            nssm, narx = ((nssm, record.model.shape) if self.cfg.model_class == 'feature_narx'
+                          else (record.model.config, narx))
+        model = (f'feature NARX p={narx.order}, F={narx.features}, features {list(narx.hidden)}'
+                 if self.cfg.model_class == 'feature_narx' else
+                 f'NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.loss_horizon}, encoder '
+                 f'{list(nssm.hidden)}')
         self.get_logger().info(
-            f'learner up: NSSM n_z={nssm.n_z}, H={nssm.history}, T={nssm.loss_horizon}, encoder '
-            f'{list(nssm.hidden)}; {src.n_systems} source systems; D_target of '
+            f'learner up: {model}; {src.n_systems} source systems; D_target of '
             f'{self.buffer.capacity} samples, buffering '
             + ('on' if self.buffer.enabled else 'off until set_buffering true'))
 
@@ -192,12 +197,11 @@ class LearnerNode(Node):
     # --- publication ----------------------------------------------------------------------
 
     def _publish_weights(self, record: ModelRecord, request_step: int = 0) -> None:
-        model = record.model
         msg = NssmWeights(version=record.version, method=record.method, stage=record.stage,
                           train_loss=float(record.train_loss), train_steps=record.train_steps,
                           train_samples=record.train_samples, seed=record.seed,
                           train_time=float(record.train_time), request_step=request_step,
-                          **fields_from_weights(model.config, model.norm, record.params))
+                          **record.fields())
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_weights.publish(msg)
 
@@ -273,9 +277,12 @@ class LearnerNode(Node):
                              ) -> MetaTrain.Response:
         if not self._slot.claim_after('loop_adapt', LOOP_JOB_WAIT_S):
             return self._refuse(response, self._slot.busy_reason())
+        narx = self.cfg.model_class == 'feature_narx'
         try:
-            config, online = resolve_meta_request(request, self.cfg.meta,
-                                                  self.cfg.online_collection)
+            config, online = ((resolve_narx_request(request, self.cfg.narx_meta, self.cfg.meta),
+                               False) if narx else
+                              resolve_meta_request(request, self.cfg.meta,
+                                                   self.cfg.online_collection))
         except ValueError as err:
             self._slot.release(False)
             return self._refuse(response, f'meta_train: bad request: {err}')
@@ -283,8 +290,10 @@ class LearnerNode(Node):
         def train():
             out = self.session.meta_train(config, online, self._slot.report)
             rec = out.record
+            inner = (f'closed-form heads, gamma {config.gamma:g}' if narx
+                     else f'M={config.inner_steps}')
             text = (f'{rec.method} meta-model v{rec.version}: {config.iterations} outer steps '
-                    f'(B={config.batch_size}, M={config.inner_steps}, seed {config.seed}) in '
+                    f'(B={config.batch_size}, {inner}, seed {config.seed}) in '
                     f'{out.elapsed:.1f} s, final meta-test loss {out.final_loss:.4g}, '
                     f'{out.skipped} tasks skipped')
             if out.collection is not None:
@@ -316,7 +325,8 @@ class LearnerNode(Node):
             rec, curve = out.record, out.result.heldout_loss
             source = ('samples of simulated target episodes' if rec.method == 'oracle'
                       else 'buffered target samples')
-            text = (f'{rec.method} model v{rec.version} (stage adapted): {job.steps} steps on '
+            how = f'closed-form fit ({out.rule})' if out.rule else f'{job.steps} steps'
+            text = (f'{rec.method} model v{rec.version} (stage adapted): {how} on '
                     f'{out.train_samples} {source} in {out.result.elapsed:.1f} s, held-out loss '
                     f'{curve[0]:.4g} -> {curve[-1]:.4g} on {out.heldout_samples} samples')
             if out.gain_check:

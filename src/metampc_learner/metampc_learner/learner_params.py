@@ -2,7 +2,8 @@
 
 Pure Python (no rclpy). Every parameter is declared once, on a field of a typed config
 (:mod:`metampc_common.params`): the core configs (meta-training, NSSM, source set, excitation,
-online collection, adaptation, oracle, adaptation in the loop) and :class:`LearnerNodeConfig`.
+online collection, adaptation, oracle, adaptation in the loop, the feature NARX's sizes and
+training) and :class:`LearnerNodeConfig`.
 :data:`SECTIONS` names them with their prefixes; :data:`PARAMETERS`, :func:`parse_params` (raw
 values -> checked config, or :class:`ParameterError` naming the first bad one) and the docs'
 rows come from there. :func:`resolve_meta_request` and :func:`resolve_adapt_request` fill a
@@ -16,11 +17,14 @@ from typing import Dict, Mapping, Tuple
 from metampc_common.params import (build, param, ParameterError, ParamSpec, Section, table,
                                    Value)
 from metampc_common.excitation import ExcitationConfig
+from metampc_model.narx_shape import NarxShape
 from metampc_model.nssm_config import NssmConfig
+from metampc_model.weights_codec import MODEL_CLASSES
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig
 from metampc_learner.loop_adaptation import LoopConfig
 from metampc_learner.meta_train import META_METHODS, MetaConfig
+from metampc_learner.narx_learning import NARX_METHODS, NarxMetaConfig
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
 
@@ -40,6 +44,9 @@ class LearnerNodeConfig:
         adapt: adaptation defaults (eq. infer).
         oracle: oracle settings.
         loop: adaptation in the loop (at the controller's requests).
+        narx: sizes of new feature NARX models (model_class feature_narx; n_u, n_y the
+            family's).
+        narx_meta: their meta-training (and adaptation) settings.
         (the others: the node's own parameters, described on their fields)
     """
 
@@ -50,6 +57,12 @@ class LearnerNodeConfig:
     adapt: AdaptConfig = field(default_factory=AdaptConfig)
     oracle: OracleConfig = field(default_factory=OracleConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    narx: NarxShape = field(default_factory=lambda: NarxShape(n_u=1, n_y=2))
+    narx_meta: NarxMetaConfig = field(default_factory=NarxMetaConfig)
+    model_class: str = param('nssm', "class of the models it trains: nssm (the paper's NSSM, "
+                                     'eq. SSM) or feature_narx (a NARX linear in its head over '
+                                     'lags and meta-learned features, docs/nonlinear.md)',
+                             choices=MODEL_CLASSES)
     train_fraction: float = param(0.5, 'share (in time) of each source episode in D_tr',
                                   gt=0, lt=1)
     online_collection: bool = param(False, 'collect closed-loop source data during '
@@ -77,7 +90,15 @@ class LearnerNodeConfig:
     progress_period: float = param(0.5, 'progress heartbeat while training, s', gt=0, le=1)
 
     def validate(self) -> None:
-        """Rules across sections: every split holds at least one window of H + T samples."""
+        """Rules across sections: every split holds at least one window of H + T samples; the
+        feature NARX has no gain check, adaptation in the loop or online collection."""
+        if self.model_class == 'feature_narx':
+            for name, on in (('gain_check', self.gain_check),
+                             ('loop_adaptation', self.loop.adaptation),
+                             ('online_collection', self.online_collection)):
+                if on:
+                    raise ParameterError(f'{name}: the NSSM\'s only, not for model_class '
+                                         'feature_narx')
         window = self.nssm.window
         d_tr = int(round(self.train_fraction * self.source.episode_samples))
         _check_split('episode_samples', d_tr, self.source.episode_samples - d_tr, window,
@@ -103,8 +124,10 @@ ONLINE = Section(OnlineCollectionConfig, 'online_',
 ADAPT = Section(AdaptConfig, 'adapt_')
 ORACLE = Section(OracleConfig, 'oracle_', rename={'batch_windows': 'oracle_batch'})
 LOOP = Section(LoopConfig, 'loop_')
+NARX = Section(NarxShape, 'narx_')
+NARX_META = Section(NarxMetaConfig, 'narx_')
 NODE = Section(LearnerNodeConfig)
-SECTIONS = (META, NSSM, SOURCE, EXCITATION, ONLINE, ADAPT, ORACLE, LOOP, NODE)
+SECTIONS = (META, NSSM, SOURCE, EXCITATION, ONLINE, ADAPT, ORACLE, LOOP, NARX, NARX_META, NODE)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -127,7 +150,9 @@ def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
     nssm = replace(build(NSSM, values), n_u=family.n_u, n_y=family.n_y)
     return build(NODE, values, meta=meta, nssm=nssm, source=source,
                  online=build(ONLINE, values, seed=meta.seed), adapt=build(ADAPT, values),
-                 oracle=build(ORACLE, values), loop=build(LOOP, values))
+                 oracle=build(ORACLE, values), loop=build(LOOP, values),
+                 narx=build(NARX, values, n_u=family.n_u, n_y=family.n_y),
+                 narx_meta=build(NARX_META, values))
 
 
 def resolve_meta_request(request, base: MetaConfig, online_default: bool
@@ -162,6 +187,37 @@ def resolve_meta_request(request, base: MetaConfig, online_default: bool
                           else base.init_loss_weight))
     config.validate()
     return config, bool(request.online_collection) or online_default
+
+
+def resolve_narx_request(request, base: NarxMetaConfig, meta: MetaConfig) -> NarxMetaConfig:
+    """A MetaTrain request of a feature NARX learner (model_class feature_narx) -> its checked
+    config: `method` ('': the node's ``method``), `iterations`, `batch_size` and `seed` as for
+    the NSSM, `lr_outer` its Adam step size and `gamma` (> 0) its proximal strength (0 / <= 0:
+    the ``narx_`` parameters); the NSSM's inner-loop fields (`inner_steps`, `lr_inner`,
+    `cg_steps`, `init_loss_weight`) mean nothing to its closed-form inner solve and are ignored.
+
+    Raises:
+        ValueError: a method it has no meta-training for, online collection, bad rates.
+    """
+    method = request.method or meta.method
+    if method not in NARX_METHODS:
+        raise ValueError(f'model_class feature_narx meta-trains with '
+                         f'{" or ".join(NARX_METHODS)}, not {method!r}')
+    if request.online_collection:
+        raise ValueError("online collection is the NSSM's only, not for model_class "
+                         'feature_narx')
+    for name in ('gamma', 'lr_outer'):
+        if not math.isfinite(getattr(request, name)):
+            raise ValueError(f'{name} must be finite, got {getattr(request, name)}')
+    if request.lr_outer < 0:
+        raise ValueError(f'lr_outer must be >= 0 (0: parameter), got {request.lr_outer}')
+    config = replace(base, method=method, iterations=request.iterations or base.iterations,
+                     batch_size=request.batch_size or base.batch_size,
+                     lr=request.lr_outer or base.lr,
+                     gamma=request.gamma if request.gamma > 0 else base.gamma,
+                     seed=request.seed or meta.seed)
+    config.validate()
+    return config
 
 
 @dataclass
@@ -206,4 +262,5 @@ def resolve_adapt_request(request, adapt: AdaptConfig, oracle: OracleConfig) -> 
 
 
 __all__ = ['PARAMETERS', 'LearnerNodeConfig', 'parse_params', 'resolve_meta_request',
-           'AdaptJob', 'resolve_adapt_request', 'ADAPT_METHODS', 'ParameterError']
+           'resolve_narx_request', 'AdaptJob', 'resolve_adapt_request', 'ADAPT_METHODS',
+           'ParameterError']

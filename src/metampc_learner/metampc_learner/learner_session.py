@@ -7,31 +7,43 @@ in ``checkpoint_dir``, where each is saved) and serves the node's jobs, one at a
 online collection, eq. (ub)), :meth:`LearnerSession.adapt` (eq. (infer) from a meta-model on
 D_target, or the 'supervised' / 'oracle' / 'arx' baselines, with a held-out loss curve; with
 ``gain_check``, :mod:`gain_check`'s fallback to the ARX) and
-:meth:`LearnerSession.loop_adapt` (adaptation in the loop). Requests it cannot carry out raise
-:class:`LearnerError` with the reason. The node's services and versions: docs/learner.md.
+:meth:`LearnerSession.loop_adapt` (adaptation in the loop). With ``model_class``
+'feature_narx' the models are feature NARXs (:mod:`metampc_learner.narx_learning`):
+meta-training of its features by the exact (imaml) or first-order (maml) meta-gradient through
+the closed-form head fit, adaptation by that fit on D_target, the ARX(p) and the oracle of the
+class; no gain check and no adaptation in the loop (the node refuses them). Requests it cannot
+carry out raise :class:`LearnerError` with the reason. The node's services and versions:
+docs/learner.md.
 """
 import math
 import os
 import re
+import time
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from metampc_model.feature_narx import FeatureNarx, init_params as narx_init_params
+from metampc_model.normalisation import Normalisation
 from metampc_model.nssm import init_params, Nssm, Params
 from metampc_model.predictor import latent_model
+from metampc_model.weights_codec import fields_from_narx, fields_from_weights
+from metampc_learner import narx_learning
 from metampc_learner.adapt import adapt, AdaptResult, supervised
 from metampc_learner.arx import fit_arx
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (longest_run, normalisation_from, samples_in,
-                                  simulate_source, SourceConfig, SourceData, SourceSet, Windows)
+                                  simulate_source, SourceConfig, SourceData, SourceSet,
+                                  Trajectory, Windows)
 from metampc_learner.gain_check import gain_verdict
 from metampc_learner.heldout import plant_source
 from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
 from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
+from metampc_learner.narx_learning import NarxMetaConfig
 from metampc_learner.online_collection import CollectionStats, OnlineCollector
 from metampc_learner.oracle import fit_oracle, oracle_data
-from metampc_learner.progress import ProgressFn
+from metampc_learner.progress import Progress, ProgressFn
 from metampc_learner.target_buffer import split_target, TargetSamples
 from metampc_plant.plant_description import PlantDescription
 
@@ -49,7 +61,8 @@ class ModelRecord:
     """A trained model with what the NssmWeights message carries besides the weights.
 
     Attributes:
-        model: architecture and normalisation.
+        model: architecture and normalisation (an Nssm, or a FeatureNarx, which holds its
+            params too).
         params: the weights (omega_inf for stage 'meta', omega* for 'adapted').
         method: 'imaml', 'maml', 'maml_unrolled', 'supervised', 'oracle' or 'arx'.
         stage: 'meta' or 'adapted'.
@@ -61,7 +74,7 @@ class ModelRecord:
         train_time: wall time the training took, s (0 for a loaded model).
     """
 
-    model: Nssm
+    model: Union[Nssm, FeatureNarx]
     params: Params
     method: str
     stage: str
@@ -71,6 +84,13 @@ class ModelRecord:
     train_samples: int
     seed: int
     train_time: float = 0.0
+
+    def fields(self) -> Dict[str, Any]:
+        """The model fields of its NssmWeights message (:mod:`metampc_model.weights_codec`)."""
+        model = self.model
+        if isinstance(model, FeatureNarx):
+            return fields_from_narx(model.shape, model.norm, self.params)
+        return fields_from_weights(model.config, model.norm, self.params)
 
 
 @dataclass
@@ -93,7 +113,9 @@ class AdaptOutcome:
     """A finished adaptation: the record, the core's result (held-out curve: index 0 before
     the first step), and the samples of D_target used (in all, for training, held out); with
     ``gain_check`` on, its verdict (`gain_check`: one line, '' when not checked) and the
-    method whose model flies in the adapted one's place (`fallback`: 'arx' or '')."""
+    method whose model flies in the adapted one's place (`fallback`: 'arx' or ''); a feature
+    NARX's closed-form fit (`rule`: :class:`~metampc_learner.narx_learning.AdaptedNarx`'s,
+    'least_squares' for the arx; '' for an NSSM)."""
 
     record: ModelRecord
     result: AdaptResult
@@ -102,6 +124,7 @@ class AdaptOutcome:
     heldout_samples: int
     gain_check: str = ''
     fallback: str = ''
+    rule: str = ''
 
 
 @dataclass
@@ -167,6 +190,10 @@ class LearnerSession:
         if 'dt' in info and not math.isclose(info['dt'], dt, rel_tol=1e-9):
             raise LearnerError(f'{path!r} holds a model of dt = {info["dt"]:g} s; this '
                                f'learner samples at dt = {dt:g} s')
+        held = 'feature_narx' if isinstance(ckpt.model, FeatureNarx) else 'nssm'
+        if held != self.config.model_class:
+            raise LearnerError(f'{path!r} holds a {held} model; this learner trains '
+                               f'model_class {self.config.model_class}')
         return self._new_record(
             model=ckpt.model, params=ckpt.params, method=method, stage='meta',
             train_loss=float(info.get('train_loss', math.nan)),
@@ -184,22 +211,27 @@ class LearnerSession:
             self._source = simulate_source(self.config.source)
         return self._source
 
+    def _source_norm(self) -> Normalisation:
+        """The normalisation of the source data (every model of this learner has it)."""
+        return normalisation_from([t for ts in self._source_data().trajectories for t in ts])
+
     def _fresh_model(self) -> Nssm:
         """An NSSM of the node parameters with the source normalisation."""
-        data = self._source_data()
-        return Nssm(self.config.nssm,
-                    normalisation_from([t for ts in data.trajectories for t in ts]))
+        return Nssm(self.config.nssm, self._source_norm())
 
     # --- meta-training --------------------------------------------------------------------
 
-    def meta_train(self, config: MetaConfig, online: bool,
+    def meta_train(self, config: Union[MetaConfig, NarxMetaConfig], online: bool,
                    progress: Optional[ProgressFn] = None) -> MetaOutcome:
         """Algorithm 1 with `config`; with `online`, the closed-loop collector of eq. (ub).
+        A :class:`NarxMetaConfig` meta-trains a feature NARX (:meth:`_meta_train_narx`).
 
         Raises:
             LearnerError: no usable source system.
             MetaTrainingError: too many non-finite tasks (from the core).
         """
+        if isinstance(config, NarxMetaConfig):
+            return self._meta_train_narx(config, progress)
         cfg = self.config
         model = self._fresh_model()
         try:
@@ -269,6 +301,8 @@ class LearnerSession:
             raise LearnerError("the oracle needs the target's theta: no plant_info received"
                                if plant is None else "the oracle needs the target's theta: "
                                'plant_info gives none (not a simulated plant)')
+        if cfg.model_class == 'feature_narx':
+            return self._adapt_narx(job, samples, plant)
         meta = (None if job.method in ('supervised', 'oracle', 'arx')
                 else self._meta_for(job.method))
         model = self._fresh_model() if meta is None else meta.model
@@ -328,6 +362,95 @@ class LearnerSession:
             train_samples=samples_in(train), seed=seed, train_time=result.elapsed)
         return AdaptOutcome(record, result, used, samples_in(train), samples_in(held),
                             verdict, fallback)
+
+    # --- the feature NARX (model_class feature_narx) --------------------------------------
+
+    def _meta_train_narx(self, config: NarxMetaConfig, progress: Optional[ProgressFn]
+                         ) -> MetaOutcome:
+        """The feature NARX's meta-training (:func:`narx_learning.meta_train`) on the source
+        systems' trajectories, in the source normalisation; D_tr / D_test: each trajectory's
+        halves in time."""
+        data = self._source_data()
+        systems = [[(t.u, t.y) for t in ts] for ts in data.trajectories if ts]
+        if not systems:
+            raise LearnerError('source set: no source system kept an episode')
+        norm, start = self._source_norm(), time.monotonic()
+
+        def report(iteration: int, loss: float) -> None:
+            if progress is not None:
+                progress(Progress(iteration, config.iterations, loss,
+                                  time.monotonic() - start))
+
+        try:
+            result = narx_learning.meta_train(self.config.narx, norm, systems, config, report)
+        except ValueError as err:
+            raise LearnerError(f'feature NARX meta-training: {err}') from None
+        final = float(np.mean(result.curve[-FINAL_LOSS_STEPS:]))
+        model = FeatureNarx(self.config.narx, norm, result.params)
+        record = self._new_record(
+            model=model, params=model.params, method=config.method, stage='meta',
+            train_loss=final, train_steps=config.iterations,
+            train_samples=sum(samples_in(ts) for ts in data.trajectories), seed=config.seed,
+            train_time=result.elapsed)
+        return MetaOutcome(record, list(result.curve), final, 0, None, 0, 0, result.elapsed)
+
+    def _narx_heldout(self, model: FeatureNarx, held: Sequence[Trajectory]) -> float:
+        return narx_learning.heldout_loss(model, [(t.u, t.y) for t in held],
+                                          self.config.narx_meta.horizon)
+
+    def _adapt_narx(self, job: AdaptJob, samples: TargetSamples,
+                    plant: Optional[PlantDescription]) -> AdaptOutcome:
+        """Adapt a feature NARX on D_target in closed form: '' / 'imaml' / 'maml' the head of
+        that meta-model (:func:`narx_learning.adapt`, ridge strength ``narx_gamma``, or the
+        request's gamma when > 0), 'arx' the least-squares ARX(p) of the samples, 'oracle' the
+        same adaptation of the latest meta-model on simulated target episodes; the held-out
+        curve is [the meta-model's, the model's] T-step loss (the arx: its own only)."""
+        cfg, start = self.config, time.monotonic()
+        methods = ('', *narx_learning.NARX_METHODS, 'arx', 'oracle')
+        if job.method not in methods:
+            raise LearnerError(f'model_class feature_narx adapts with '
+                               f'{", ".join(repr(m) for m in methods)}, not {job.method!r}')
+        train, held, used = split_target(samples, job.n_samples, cfg.heldout_fraction,
+                                         cfg.source.state_bound)
+        shape, seed = cfg.narx, cfg.meta.seed
+        window = shape.order + cfg.narx_meta.horizon
+        if longest_run(train) <= shape.order or longest_run(held) < window:
+            raise LearnerError(
+                f'too few target samples: {len(samples)} buffered, {used} used; the training '
+                f'part needs a run of more than p = {shape.order} consecutive valid samples, '
+                f'the held-out part one of p + T = {window}; the longest runs are '
+                f'{longest_run(train)} and {longest_run(held)} samples')
+        records = [(t.u, t.y) for t in train]
+        rule = 'least_squares'      # the arx's
+        if job.method == 'arx':
+            base = (self.meta_models[self.latest_meta].model if self.latest_meta else
+                    FeatureNarx(shape, self._source_norm(), narx_init_params(shape, seed)))
+            model = narx_learning.arx_model(base, records)
+            curve = [self._narx_heldout(model, held)]
+        else:
+            meta = self._meta_for('' if job.method == 'oracle' else job.method).model
+            gamma = job.gamma if job.gamma > 0 else cfg.narx_meta.gamma
+            if job.method == 'oracle':
+                episodes = oracle_data(plant.theta, self._plant_source(plant),
+                                       cfg.oracle.episodes, seed)
+                train = [t for t in episodes if len(t) > shape.order]
+                if not train:
+                    raise LearnerError(f'oracle: all {cfg.oracle.episodes} simulated episodes '
+                                       f'of theta = {list(plant.theta)} left the state box')
+                records = [(t.u, t.y) for t in train]
+            adapted = narx_learning.adapt(meta, records, gamma)
+            model, rule = adapted.model, adapted.rule
+            curve = [self._narx_heldout(meta, held), self._narx_heldout(model, held)]
+        loss = narx_learning.one_step_loss(model, records)
+        result = AdaptResult(params=model.params, train_loss=[loss], heldout_loss=curve,
+                             elapsed=time.monotonic() - start)
+        record = self._new_record(
+            model=model, params=model.params,
+            method=job.method or self.latest_meta, stage='adapted', train_loss=loss,
+            train_steps=0, train_samples=samples_in(train), seed=seed,
+            train_time=result.elapsed)
+        return AdaptOutcome(record, result, used, samples_in(train), samples_in(held),
+                            rule=rule)
 
     def _gain_check(self, model: Nssm, params: Params, train: List, held: List
                     ) -> Tuple[str, Optional[Tuple[Nssm, AdaptResult]]]:

@@ -16,6 +16,7 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from metampc_common.params import param
 from metampc_learner.closed_form import mean_loss, ridge
 from metampc_model.feature_narx import (FeatureNarx, init_params, NarxShape, Params,
                                         regressors, rollout, state_windows)
@@ -30,7 +31,7 @@ NARX_METHODS = ('imaml', 'maml')
 
 @dataclass
 class NarxMetaConfig:
-    """Attributes:
+    """Attributes (the numbers are also the learner's node parameters ``narx_<name>``):
         method: 'imaml' (exact meta-gradient through the solve) or 'maml' (first order).
         iterations: outer steps.
         batch_size: B, source systems per step.
@@ -47,12 +48,15 @@ class NarxMetaConfig:
     """
 
     method: str = 'imaml'
-    iterations: int = 1000
-    batch_size: int = 16
-    windows: int = 64
-    horizon: int = 10
-    lr: float = 3e-3
-    gamma: float = 1e-5
+    iterations: int = param(1000, 'outer steps of feature NARX meta-training', ge=1)
+    batch_size: int = param(16, 'B, source systems per outer step', ge=1)
+    windows: int = param(64, 'windows drawn per source system and step, for D_tr and D_test '
+                             'each', ge=1)
+    horizon: int = param(10, 'T of the rollout loss on D_test, samples', ge=1)
+    lr: float = param(3e-3, 'Adam step size of meta-training', gt=0)
+    gamma: float = param(1e-5, 'proximal strength of the closed-form head fit towards the '
+                               "meta-model's head, meta-training's inner solve and "
+                               'adaptation (mean-loss units)', ge=0)
     seed: int = 0
 
     def validate(self) -> None:
@@ -136,7 +140,7 @@ def meta_train(shape: NarxShape, norm: Normalisation, systems: Sequence[Sequence
         opt.step()
         result.curve.append(float(loss.detach()))
         if progress is not None:
-            progress(it + 1, float(loss))
+            progress(it + 1, result.curve[-1])
     result.params = {k: v.detach().clone() for k, v in params.items()}
     result.elapsed = time.monotonic() - start
     return result
@@ -243,6 +247,13 @@ def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> Adapted
     return AdaptedNarx(FeatureNarx(meta.shape, meta.norm, params), loss, arx_loss, rule)
 
 
+def one_step_loss(model: FeatureNarx, records: Sequence[Record]) -> float:
+    """The mean one-step loss of `model` on every one-step equation in `records` (normalised
+    units): the training loss :func:`adapt` reports. ValueError: no one-step equation."""
+    phi, y = _data(model, records)
+    return float(mean_loss(phi, y, model.params['head']))
+
+
 def heldout_loss(model: FeatureNarx, records: Sequence[Record], horizon: int) -> float:
     """Mean T-step rollout loss (summed over outputs) on every window of `records`,
     normalised units: the l_SSM of eq. (SSM) for this model."""
@@ -253,4 +264,4 @@ def heldout_loss(model: FeatureNarx, records: Sequence[Record], horizon: int) ->
 
 
 __all__ = ['NARX_METHODS', 'NarxMetaConfig', 'MetaResult', 'AdaptedNarx', 'meta_train', 'adapt',
-           'arx_model', 'heldout_loss', 'one_step_data']
+           'arx_model', 'heldout_loss', 'one_step_data', 'one_step_loss']

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import yaml
 
+from metampc_model.feature_narx import FeatureNarx
 from metampc_model.nssm import Nssm, Params
 from metampc_plant.machine_mapping import load_mapping
 from metampc_learner.adapt import adapt, AdaptConfig, GAUSS_NEWTON, supervised
@@ -167,6 +168,9 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
     start = time.monotonic()
     mapping = load_mapping(mapping_path)
     ckpt = load_checkpoint(checkpoint)
+    if isinstance(ckpt.model, FeatureNarx):
+        raise OfflineError(f'{checkpoint}: a feature_narx model; offline adaptation is the '
+                           "NSSM's (adapt it with the learner node, model_class feature_narx)")
     model, cfg = ckpt.model, ckpt.model.config
     n_u, n_y = len(mapping.command.inputs), len(mapping.outputs)
     if (cfg.n_u, cfg.n_y) != (n_u, n_y):

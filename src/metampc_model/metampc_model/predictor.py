@@ -47,6 +47,11 @@ class NssmPredictor:
         self._std = np.concatenate([norm.u_std, norm.y_std])
         self.latent = latent_model(params, norm)
 
+    @property
+    def history(self) -> int:
+        """Samples :meth:`encode` reads: H."""
+        return self.config.history
+
     def encode(self, u_hist: np.ndarray, y_hist: np.ndarray) -> np.ndarray:
         """Eq. (z) from physical histories u_{t-H+1..t} (H, n_u), y_{t-H+1..t} (H, n_y).
 

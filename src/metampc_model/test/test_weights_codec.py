@@ -141,3 +141,76 @@ def test_manual_model_discretisation_is_exact_for_a_held_input():
     c, s = math.cos(0.3), math.sin(0.3)
     np.testing.assert_allclose(a, [[c, s], [-s, c]], atol=1e-14)
     np.testing.assert_allclose(b[:, 0], [1 - c, s], atol=1e-14)
+
+
+def _narx():
+    import torch
+    from metampc_model.feature_narx import FeatureNarx, init_params as narx_params, NarxShape
+    shape = NarxShape(1, 2, order=3, features=5, hidden=(7, 4))
+    params = narx_params(shape, 3)
+    params['head'] = torch.randn(params['head'].shape, generator=torch.Generator().manual_seed(
+        1), dtype=torch.float64)
+    return FeatureNarx(shape, NORM, params)
+
+
+def test_a_feature_narx_round_trips_through_the_message_and_predicts_as_the_torch_model():
+    import torch
+    from metampc_model.feature_narx import regressors
+    from metampc_model.narx_predictor import NarxPredictor
+    from metampc_model.weights_codec import (DecodedNarx, fields_from_narx, model_from_fields)
+    model = _narx()
+    msg = NssmWeights(version=2, method='imaml', stage='adapted',
+                      **fields_from_narx(model.shape, NORM, model.params))
+    wire = deserialize_message(serialize_message(msg), NssmWeights)
+    assert (wire.model_class, wire.n_z, wire.history, list(wire.encoder_layers),
+            wire.features) == ('feature_narx', model.shape.n_s, 3, [7, 4], 5)
+    decoded = model_from_fields(fields_of(wire))
+    assert isinstance(decoded, DecodedNarx) and decoded.shape == model.shape
+    assert list(decoded.params) == list(model.shape.param_shapes())
+    for name, value in model.params.items():
+        assert np.array_equal(decoded.params[name], value.float().numpy()), name
+    with pytest.raises(WeightsError, match='a feature_narx model, not an NSSM'):
+        weights_from_fields(fields_of(wire))
+    with pytest.raises(WeightsError, match='n_z = 4 is not the state size n_s = 8'):
+        model_from_fields({**fields_of(wire), 'n_z': 4})
+    with pytest.raises(WeightsError, match="unknown model class 'gp'"):
+        model_from_fields({**fields_of(wire), 'model_class': 'gp'})
+    # the controller's numpy evaluation against the torch model's regressors (float32 weights)
+    f32 = {k: torch.from_numpy(v.astype(np.float64)) for k, v in decoded.params.items()}
+    predictor = NarxPredictor(decoded.shape, NORM, decoded.params)
+    rng = np.random.default_rng(0)
+    s, u = rng.normal(size=model.shape.n_s), rng.normal(size=1)
+    mean, std = predictor._mean, predictor._std
+    phi = regressors(model.shape, f32, torch.from_numpy((s - mean) / std),
+                     torch.from_numpy((u - NORM.u_mean) / NORM.u_std))
+    expected = (f32['head'] @ phi).numpy() * NORM.y_std + NORM.y_mean
+    np.testing.assert_allclose(predictor.step(s, u), expected, rtol=1e-12)
+
+
+def test_weights_of_a_recording_from_before_the_model_class_field_decode_as_an_nssm():
+    """A recording carries its own definition of the message: one from before model_class
+    and features decodes (rosbags, from that definition) to a message without them."""
+    import os
+    from ament_index_python.packages import get_package_share_directory
+    from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+    jazzy, store = get_typestore(Stores.ROS2_JAZZY), get_typestore(Stores.EMPTY)
+    store.register({n: jazzy.fielddefs[n] for n in ('builtin_interfaces/msg/Time',
+                                                    'std_msgs/msg/Header')})
+    with open(os.path.join(get_package_share_directory('metampc_msgs'), 'msg',
+                           'NssmWeights.msg')) as f:
+        now = f.read()
+    old = '\n'.join(line for line in now.splitlines()
+                    if not line.startswith(('string model_class', 'uint32 features')))
+    store.register(get_types_from_msg(old, 'metampc_msgs/msg/NssmWeights'))
+    t = store.types
+    fields = fields_from_weights(CONFIG, NORM, init_params(CONFIG, seed=4))
+    del fields['model_class'], fields['features']
+    kind = 'metampc_msgs/msg/NssmWeights'
+    values = {name: (np.asarray(v) if isinstance(v, array) else v) for name, v in fields.items()}
+    values.update(header=t['std_msgs/msg/Header'](stamp=t['builtin_interfaces/msg/Time'](
+        sec=0, nanosec=0), frame_id=''), version=1, method='imaml', stage='meta', train_loss=0.0,
+        train_steps=0, train_samples=0, seed=0, train_time=0.0, request_step=0)
+    recorded = store.deserialize_cdr(store.serialize_cdr(t[kind](**values), kind), kind)
+    assert not hasattr(recorded, 'model_class')
+    decoded = weights_from_fields(fields_of(recorded))
+    assert decoded.config == CONFIG and decoded.model_class == 'nssm'

@@ -15,7 +15,7 @@ import json
 import math
 import os
 import time
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import matplotlib
 import numpy as np
@@ -31,7 +31,8 @@ from metampc_bringup.experiment_events import (Adapted, BufferingStopped, Collec
                                                TrackEnd, TrackStart)
 from metampc_learner.heldout import (HELDOUT_STREAM, heldout_seed, model_heldout_loss,
                                      plant_source, target_heldout)
-from metampc_model.weights_codec import DecodedWeights, fields_of, weights_from_fields
+from metampc_model.weights_codec import (DecodedNarx, DecodedWeights, fields_of,
+                                         model_from_fields)
 from metampc_recording.recording_reader import read_recording
 
 matplotlib.use('Agg')
@@ -88,9 +89,10 @@ def _messages(recording, type_name: str) -> List[Any]:
     return [msg for _, _, msg in recording.decoded(topics)]
 
 
-def published_models(recording) -> Dict[int, DecodedWeights]:
-    """Every NSSM the learner published (NssmWeights messages), decoded, by version."""
-    return {int(msg.version): weights_from_fields(fields_of(msg))
+def published_models(recording) -> Dict[int, Union[DecodedWeights, DecodedNarx]]:
+    """Every model the learner published (NssmWeights messages, NSSMs or feature NARXs),
+    decoded, by version."""
+    return {int(msg.version): model_from_fields(fields_of(msg))
             for msg in _messages(recording, NSSM_WEIGHTS)}
 
 
@@ -102,7 +104,8 @@ def heldout_losses(recording, events: List[ExperimentEvent], config: Dict[str, A
     of theta* (the start event's), with the source settings the learner had in this run
     (rebuilt from the run config) at the dt, substeps, input bounds and state box of the last
     recorded plant_info, seeded by ``heldout_seed(seed)``. Each model is scored in its own
-    normalisation on windows of H + T samples (T: the learner's loss_horizon parameter).
+    normalisation on windows of H + T samples (T: the learner's loss_horizon parameter; a feature
+    NARX's: p + T, T its narx_horizon).
 
     Returns:
         (the set: samples, episodes, seed, stream, elapsed_s (wall time of decoding,
@@ -131,7 +134,9 @@ def heldout_losses(recording, events: List[ExperimentEvent], config: Dict[str, A
                                              'adapted': None})
         entry['meta' if isinstance(e, MetaTrained) else 'adapted'] = (
             None if weights is None
-            else model_heldout_loss(weights, trajectories, learner.nssm.loss_horizon))
+            else model_heldout_loss(weights, trajectories,
+                                    learner.narx_meta.horizon if isinstance(weights, DecodedNarx)
+                                    else learner.nssm.loss_horizon))
     about = {'samples': samples, 'episodes': len(trajectories), 'seed': heldout_seed(seed),
              'stream': HELDOUT_STREAM, 'elapsed_s': time.monotonic() - t0}
     return about, losses

@@ -14,7 +14,7 @@ paired by seed on exactly the models an experiment produced.
 from dataclasses import asdict, dataclass, field
 import math
 import os
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
@@ -27,8 +27,8 @@ from metampc_controller.controller_params import parse_params as parse_controlle
 from metampc_controller.controller_params import PARAMETERS as CONTROLLER_PARAMETERS
 from metampc_controller.model_check import check
 from metampc_model.predictor import NssmPredictor
-from metampc_model.weights_codec import (DecodedWeights, fields_of, weights_from_fields,
-                                         WeightsError)
+from metampc_model.weights_codec import (DecodedNarx, DecodedWeights, fields_of,
+                                         model_from_fields, weights_from_fields, WeightsError)
 from metampc_plant.plant_description import PlantDescription
 from metampc_plant.plant_params import parse_params as parse_plant
 from metampc_plant.plant_params import PARAMETERS as PLANT_PARAMETERS
@@ -114,9 +114,11 @@ def plant_config(plant: Mapping[str, Any], theta: Sequence[float]) -> PlantConfi
 
 
 def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence[float],
-        x0: Sequence[float], steps: int, weights: Optional[DecodedWeights] = None) -> Episode:
+        x0: Sequence[float], steps: int,
+        weights: Optional[Union[DecodedWeights, DecodedNarx]] = None) -> Episode:
     """One tracking episode in one process (no ROS): the controller node's parameter values
-    `controller` (its declared defaults filled in), its latent MPC on `weights` or, with
+    `controller` (its declared defaults filled in), its latent MPC on `weights` (a feature
+    NARX's: relinearised each tick) or, with
     None, its true-model NMPC, against the plant core of the plant node's parameter values
     `plant` at `theta`, from `x0` for `steps` samples (:func:`closed_loop.run_episode`).
 
@@ -169,8 +171,8 @@ def retrack_seed(experiment: ExperimentConfig, seed: int, recording: str,
     leaves it out). `episodes`, if given, receives each method's :class:`Episode`."""
     models = adapted_models(recording)
     wanted = methods if methods is not None else sorted(models)
-    flown: Dict[str, Optional[DecodedWeights]] = {
-        method: weights_from_fields(fields_of(models[method]))
+    flown: Dict[str, Optional[Union[DecodedWeights, DecodedNarx]]] = {
+        method: model_from_fields(fields_of(models[method]))
         for method in wanted if method in models}
     if nmpc:
         flown['nmpc'] = None
@@ -178,7 +180,7 @@ def retrack_seed(experiment: ExperimentConfig, seed: int, recording: str,
 
 
 def track_models(experiment: ExperimentConfig, seed: int, overrides: Mapping[str, Any],
-                 models: Mapping[str, Optional[DecodedWeights]],
+                 models: Mapping[str, Optional[Union[DecodedWeights, DecodedNarx]]],
                  episodes: Optional[Dict[str, Episode]] = None) -> Dict[str, MethodResult]:
     """The experiment's tracking run of `seed` (its theta*, track_x0, reference, controller
     section with `overrides`) flown by each of `models` in turn: the latent MPC on the
