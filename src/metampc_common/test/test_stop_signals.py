@@ -125,7 +125,17 @@ def test_a_second_ctrl_c_shuts_the_context_down_at_once(tmp_path):
     proc.send_signal(signal.SIGINT)
     time.sleep(1.0)
     assert proc.poll() is None, 'the first SIGINT left the context up: the callback goes on'
-    proc.send_signal(signal.SIGINT)
+    # Two SIGINTs that arrive before the interpreter runs its handler are one (CPython keeps a
+    # flag per signal): on a loaded machine the first may not have been handled after 1 s, so
+    # the next Ctrl-C is repeated until one of them is the second (a failed CI run: one SIGINT
+    # here, then 60 s of waiting). A handled second one ends the node at once.
+    for _ in range(20):
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(0.5)
+            break
+        except subprocess.TimeoutExpired:
+            pass
     ended(proc, log)
 
 

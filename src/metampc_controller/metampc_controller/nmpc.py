@@ -1,21 +1,14 @@
 """Nonlinear MPC on the true plant model: the tracking yardstick (not the paper's method).
 
-The latent MPC's horizon, weights and bounds (:class:`~planner.PlannerConfig`) and eq. (mpc)'s
-cost with Q on the terminal output (no DARE: no linear model), J(u) = sum_k ||y_{t+k} -
-r_{t+k}||_Q^2 + ||u_{t+k+1} - u_{t+k}||_R^2 (and the tail), predicted by the plant family's own
-equations (``metampc_plant``, RK4) with the true theta: the physical limit for this cost.
-Two solvers (``NmpcConfig.solver``): 'ipopt', multiple shooting on CasADi with exact
-derivatives (:mod:`nmpc_shooting`), warm-started from the shifted previous plan and states;
-'lbfgsb', single shooting over u_{t+1..t+N} by L-BFGS-B with forward-difference gradients
-(N n_u + 1 rollouts as one batch), warm-started from the shifted plan (the yardstick until
-2026-12-07; a family whose equations take no CasADi symbols keeps it). Where IPOPT stops
-unconverged, L-BFGS-B runs from the same start too and the cheapest of the two plans and the
-shifted previous one flies (status '<IPOPT's> (L-BFGS-B plan)' where L-BFGS-B's did); the
-shifted plan is the ``fallback``, as where L-BFGS-B alone finds no finite cost. Contract: a
-:class:`~planner.Planner`; theta may change between solves (:meth:`Nmpc.set_theta`, no
-rebuild); the state is estimated from y
-(``PlantFamily.state_from_output``: unmeasured components from the model's one-step
-prediction, from the family's x0 at each episode).
+Eq. (mpc)'s cost (the latent MPC's horizon, weights and bounds, Q on the terminal output, the
+tail) predicted by the family's own equations (RK4) with the true theta: the physical limit for
+this cost. Solvers (``NmpcConfig.solver``): 'ipopt', multiple shooting on CasADi with exact
+derivatives (:mod:`nmpc_shooting`), warm-started from the shifted plan and states; 'lbfgsb',
+single shooting by L-BFGS-B with forward differences (the yardstick until 2026-12-07, and what a
+family without a symbolic form keeps). Where IPOPT stops unconverged, L-BFGS-B runs from the same
+start and the cheapest of the two plans and the shifted previous one flies (the shifted plan is
+the ``fallback``). A :class:`~planner.Planner`; theta may change between solves
+(:meth:`Nmpc.set_theta`); the state is estimated from y (``PlantFamily.state_from_output``).
 """
 from dataclasses import dataclass
 import math

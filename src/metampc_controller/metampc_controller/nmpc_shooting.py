@@ -1,23 +1,15 @@
 """The true-model NMPC's problem on CasADi: multiple shooting, exact derivatives, IPOPT.
 
-The plant family's own equations, evaluated on CasADi symbols: ``PlantFamily.rhs`` and
-``output`` are written with operators and numpy functions (np.sin, np.sqrt, np.maximum,
-np.clip) that CasADi's SX symbols take as well, and the RK4 of :mod:`metampc_plant.integrate`
-runs on them unchanged, so one statement of the equations serves the simulator and the
-planner (the symbolic sample map equals the numpy one to rounding: test_nmpc). A family whose
-equations do not take symbols (a Python ``if`` on the state, a scipy call) or give other
-numbers on them (math.* turns a symbol into NaN) raises :class:`SymbolicError` here, and the
-NMPC keeps its L-BFGS-B solver (:mod:`nmpc`).
-
-The NLP over w = [u_1..u_N (N n_u); x_1..x_{N+T} ((N+T) n_x)], parameters
-p = [x_0; u_0; r_1..r_N; theta], is eq. (mpc)'s cost on the true model with the NMPC's tail
-(T samples past N with u_N held, scored against r_N):
+The family's ``rhs`` and ``output`` (operators and numpy functions that CasADi's SX symbols
+take too) and the RK4 of :mod:`metampc_plant.integrate` run on symbols unchanged: one statement
+of the equations for the simulator and the planner (test_nmpc_shooting). A family whose
+equations take no symbols or give other numbers on them raises :class:`SymbolicError`, and the
+NMPC keeps L-BFGS-B. The NLP over w = [u_1..u_N; x_1..x_{N+T}], parameters [x_0; u_0; r; theta]:
 
     min  sum_{k=1}^{N+T} ||g(x_k, u_k) - r_k||_Q^2 + sum_{k=1}^{N} ||u_k - u_{k-1}||_R^2
-    s.t. x_k = F(x_{k-1}, u_k; theta) (k = 1..N+T, u_k = u_N for k > N),  u_min <= u_k <= u_max
+    s.t. x_k = F(x_{k-1}, u_k; theta) (u_k = u_N for k > N),  u_min <= u_k <= u_max
 
-with F one sample of RK4 (``substeps`` steps, zero-order hold), g the family's output. The
-same cost as the single-shooting NMPC's :meth:`Nmpc.costs` (the states eliminated there).
+F one RK4 sample, g the output, T the tail (scored against r_N): :meth:`Nmpc.costs`'s cost.
 """
 from dataclasses import dataclass
 import math

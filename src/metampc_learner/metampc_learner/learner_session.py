@@ -1,18 +1,13 @@
 """What the learner node does, without ROS: meta-train, adapt, keep and save the models.
 
 A :class:`LearnerSession` holds the meta-model omega_inf of every method it has trained or
-loaded, numbers each model it makes with an increasing version (continuing after the highest
-in ``checkpoint_dir``, where each is saved) and serves the node's jobs, one at a time:
-:meth:`LearnerSession.meta_train` (Algorithm 1 on the simulated source set, optionally with
-online collection, eq. (ub)), :meth:`LearnerSession.adapt` (eq. (infer) from a meta-model on
-D_target, or the 'supervised' / 'oracle' / 'arx' baselines, with a held-out loss curve; with
-``gain_check``, :mod:`gain_check`'s fallback to the ARX) and
-:meth:`LearnerSession.loop_adapt` (adaptation in the loop). With ``model_class``
-'feature_narx' the models are feature NARXs (:mod:`metampc_learner.narx_learning`):
-meta-training of its features by the exact (imaml) or first-order (maml) meta-gradient through
-the closed-form head fit, adaptation by that fit on D_target, the ARX(p) and the oracle of the
-class; no gain check and no adaptation in the loop (the node refuses them). Requests it cannot
-carry out raise :class:`LearnerError` with the reason. The node's services and versions:
+loaded, numbers each model it makes (continuing after the highest in ``checkpoint_dir``, where
+each is saved) and serves the node's jobs one at a time: :meth:`LearnerSession.meta_train`
+(Algorithm 1, optionally with online collection, eq. (ub)), :meth:`LearnerSession.adapt`
+(eq. (infer), or the 'supervised' / 'oracle' / 'arx' baselines; with ``gain_check`` the ARX's
+fallback) and :meth:`LearnerSession.loop_adapt`. With ``model_class`` 'feature_narx' the
+models are feature NARXs (:mod:`metampc_learner.narx_learning`; no gain check, no adaptation in
+the loop). Requests it cannot carry out raise :class:`LearnerError`. Services and versions:
 docs/learner.md.
 """
 import math

@@ -1,21 +1,14 @@
 """A learned model <-> the model fields of an NssmWeights message, as plain arrays (no rclpy,
-no message).
+no message, no torch: torch code takes the arrays with ``nssm.torch_params``).
 
-Two model classes (:data:`MODEL_CLASSES`, the message's ``model_class``): the NSSM of eq. (SSM)
-and the feature NARX (:mod:`metampc_model.feature_narx`). The learner publishes with
-:func:`fields_from_weights` (an NSSM's config, normalisation and parameters, torch tensors or
-arrays -> the fields typed as the message wants them) or :func:`fields_from_narx` (a feature
-NARX's shape, normalisation and parameters); readers decode with :func:`model_from_fields`
-(either class: :class:`DecodedWeights` or :class:`DecodedNarx`, numpy) or, where only an NSSM
-will do, :func:`weights_from_fields`; :class:`WeightsError` names what is wrong. All agree on
-:data:`MODEL_FIELDS`, the fields of ``metampc_msgs/msg/NssmWeights`` that describe the model
-(class, dimensions, layer widths, the flat float32 parameters of :class:`FlatWeights`, the
-normalisation); a feature NARX's sizes travel where they mean the same thing (``n_z``: its
-state's size n_s, ``history``: its order p, ``encoder_layers``: g's hidden widths) and in
-``features``. Fields added since the first recordings (:data:`ADDED_FIELDS`) read as their
-defaults where a message has none: an older recording's weights are an NSSM's. The run
-information (version, method, stage, losses, seed) is the caller's. No torch: torch code takes
-the arrays with ``metampc_model.nssm.torch_params``.
+Two classes (:data:`MODEL_CLASSES`, the message's ``model_class``): the NSSM of eq. (SSM) and
+the feature NARX. Written by :func:`fields_from_weights` (NSSM) or :func:`fields_from_narx`;
+read by :func:`model_from_fields` (either: :class:`DecodedWeights` or :class:`DecodedNarx`) or
+:func:`weights_from_fields` (an NSSM only); :class:`WeightsError` names what is wrong. A feature
+NARX's sizes travel where they mean the same (``n_z``: n_s, ``history``: its order,
+``encoder_layers``: g's widths) and in ``features``. Fields added since the first recordings
+(:data:`ADDED_FIELDS`) read as their defaults where a message has none (an NSSM). The run
+information (version, method, stage, losses, seed) is the caller's.
 """
 from array import array
 from dataclasses import dataclass, field

@@ -1,17 +1,14 @@
 """The plant-family interface: parameterised plants x' = f(x, u, theta), y = g(x, u, theta).
 
-Pure Python (no rclpy). A family is eq. (sys)'s "family of parameterised nonlinear systems":
-its dimensions, equations, the distribution Theta of theta, input bounds, a state box beyond
-which a system counts as diverged, a default dt, x0 and reference, and the name and unit of
-every component. The equations are written on components (``rhs(x, u, theta)`` -> n_x
-components, ``output(x, u, theta)`` -> n_y), each a Python float (one system) or a numpy array
-of shape (B,) (B systems), so the RK4 core of :mod:`metampc_plant.integrate` gives a batch the
-single systems' bits; written with operators and numpy functions (np.sin, np.sqrt, np.maximum,
-np.clip, ...), the same code takes CasADi symbols, which is how the true-model NMPC
-differentiates them (``metampc_controller.nmpc_shooting``; a family that uses math.* or
-scipy functions keeps the NMPC's derivative-free solver). A frozen dataclass
-(``dataclasses.replace`` makes a variant); found by name through :mod:`metampc_plant.registry`.
-How to write one: docs/families.md.
+Pure Python (no rclpy). A family is eq. (sys)'s family of parameterised nonlinear systems: its
+dimensions, equations, the distribution Theta, input bounds, a divergence box, a default dt, x0
+and reference, names and units. The equations are written on components (``rhs`` -> n_x,
+``output`` -> n_y), each a float or a numpy array (B,), so the RK4 of
+:mod:`metampc_plant.integrate` batches them; written with operators and numpy functions, the
+same code takes CasADi symbols (the NMPC's exact derivatives, ``nmpc_shooting``; math.* or
+scipy keeps the derivative-free solver). A frozen dataclass (``dataclasses.replace`` makes a
+variant), found by name through :mod:`metampc_plant.registry`. How to write one:
+docs/families.md.
 """
 from abc import ABC, abstractmethod
 from dataclasses import dataclass

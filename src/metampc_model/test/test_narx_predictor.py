@@ -1,0 +1,29 @@
+"""The numpy feature NARX of the controller (narx_predictor) against the torch model."""
+import numpy as np
+import torch
+
+from metampc_model.feature_narx import init_params, rollout
+from metampc_model.narx_predictor import NarxPredictor
+from metampc_model.narx_shape import NarxShape
+from metampc_model.normalisation import Normalisation
+
+
+def test_the_prediction_is_the_torch_rollout_in_physical_units():
+    """T steps fed back into the lags, numpy, against feature_narx.rollout (torch, normalised
+    units) of the same weights: fails on a wrong lag shift or a wrong unit conversion."""
+    shape = NarxShape(n_u=1, n_y=2, order=3, features=4, hidden=(5,))
+    params = init_params(shape, 3)
+    params['head'] = torch.randn(params['head'].shape, generator=torch.Generator().manual_seed(4),
+                                 dtype=torch.float64) * 0.3
+    norm = Normalisation(np.array([0.2]), np.array([1.5]), np.array([0.1, -0.3]),
+                         np.array([2.0, 0.5]))
+    rng = np.random.default_rng(0)
+    u_hist, y_hist = rng.normal(size=(3, 1)), rng.normal(size=(3, 2))
+    u_future = rng.normal(size=(6, 1))
+    pred = NarxPredictor(shape, norm, {k: v.numpy() for k, v in params.items()})
+    got = pred.predict(pred.encode(u_hist, y_hist), u_future)
+    u_n, y_n = norm.normalise(u_hist, y_hist)
+    s_n = np.concatenate([y_n[::-1].reshape(-1), u_n[::-1][:2].reshape(-1)])
+    want = rollout(shape, params, torch.from_numpy(s_n),
+                   torch.from_numpy((u_future - norm.u_mean) / norm.u_std)).numpy()
+    np.testing.assert_allclose(got, want * norm.y_std + norm.y_mean, atol=1e-10)
