@@ -77,8 +77,10 @@ def test_tiny_budget_end_to_end_and_resumed(tmp_path, capsys):
     assert SCRIPT['main']([*args, *figures]) == 0
     captured = capsys.readouterr()
     assert 'imaml: meta-training, 1 outer steps' in captured.err
-    # header, 10 rows, 3 published; a blank line; header, 6 rows, the NMPC
-    assert captured.out.count('\n') == 2 + 10 + 3 + 1 + 2 + 6 + 1
+    # header, 10 rows, the feature NARX and its ARX(p) at both fits (4), 3 published; a blank
+    # line; header, 6 rows, the NMPC
+    assert captured.out.count('\n') == 2 + 10 + 4 + 3 + 1 + 2 + 6 + 1
+    assert captured.out.count('feature NARX') >= 2
     report = json.loads((out / 'seed_0' / 'benchmark.json').read_text())
     assert [r['fit'] for r in report['rows']] == [300] * 5 + [1024] * 5
     grey = [r for r in report['rows'] if r['model'] == 'grey-box']
