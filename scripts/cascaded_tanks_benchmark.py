@@ -193,23 +193,48 @@ def save(path: str, value: dict) -> None:
         json.dump(value, f, indent=1)
 
 
+class OutOfRange(ValueError):
+    """A grey-box fit outside the family's parameter range (one line, exit 2)."""
+
+
 def greybox(args, family, u: np.ndarray, y: np.ndarray, n: int, protocol: Protocol) -> dict:
-    """The grey-box fit to estimation samples 0..n-1 (cached in OUT/greybox_<n>.json)."""
+    """The grey-box fit to estimation samples 0..n-1 (cached in OUT/greybox_<n>.json).
+
+    Raises:
+        OutOfRange: the fit left the family's parameter range (the twin of such a theta is not
+            a member of the family): not cached, so a better budget fits again; a cached fit
+            out of the range is fitted again too.
+    """
     path = os.path.join(args.out, f'greybox_{n}.json')
     wanted = {'n': n, 'candidates': protocol.candidates, 'polish': protocol.polish,
               'substeps': protocol.substeps}
     found = cached(path, wanted)
-    if found is not None:
+    if found is not None and _in_range(family, found['theta']):
         log(f'grey-box on 0..{n - 1}: cached in {path}')
         return found
     log(f'grey-box on 0..{n - 1}: fitting')
     start = time.monotonic()
     fit = fit_greybox_head(family, u, y, n, protocol, GUESS,
                            (np.zeros(family.n_theta), np.full(family.n_theta, np.inf)))
+    if not _in_range(family, fit.theta):
+        raise OutOfRange(f'the grey-box fit on 0..{n - 1} ({protocol.candidates} candidates, '
+                         f'polish {protocol.polish}) left the family\'s parameter range: '
+                         f'theta {np.round(fit.theta, 5).tolist()}, support '
+                         f'{[c.support for c in family.theta]}; try more --candidates or '
+                         f'--polish')
     out = {**wanted, 'theta': fit.theta.tolist(), 'x0': fit.x0.tolist(), 'fit_rmse': fit.rmse,
            'seconds': round(time.monotonic() - start, 1)}
     save(path, out)
     return out
+
+
+def _in_range(family, theta) -> bool:
+    """theta within the family's prior support (check_theta_in_support)."""
+    try:
+        family.check_theta_in_support(theta)
+    except ValueError:
+        return False
+    return True
 
 
 def scores(y: np.ndarray, y_sim: np.ndarray, predicted: np.ndarray, origins: np.ndarray,
@@ -583,11 +608,15 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     data = load_cascaded_tanks()
     # The twin: the family at the grey-box fit to the whole estimation record.
-    grey = greybox(args, get_family('cascaded_tanks'), data.u_est, data.y_est, FITS[-1],
-                   protocol)
-    nmpc, nmpc_series = twin_nmpc(args, experiment, grey)
-    reports = [run_seed(args, experiment, seed, data, protocol, grey, nmpc)
-               for seed in args.seed]
+    try:
+        grey = greybox(args, get_family('cascaded_tanks'), data.u_est, data.y_est, FITS[-1],
+                       protocol)
+        nmpc, nmpc_series = twin_nmpc(args, experiment, grey)
+        reports = [run_seed(args, experiment, seed, data, protocol, grey, nmpc)
+                   for seed in args.seed]
+    except OutOfRange as err:
+        print(f'cascaded_tanks_benchmark: {err}', file=sys.stderr)
+        return 2
     for report in reports:
         report['rows'] = report['rows'] + narx_rows(args, experiment, report['seed'], data)
     result = summary(reports, nmpc)

@@ -138,3 +138,30 @@ def test_out_that_is_a_file_is_refused(tmp_path, capsys):
     path.write_text('')
     assert SCRIPT['main'](['--out', str(path)]) == 2
     assert 'is not a folder' in capsys.readouterr().err
+
+
+def test_a_fit_out_of_the_family_range_is_refused_and_not_cached(tmp_path, monkeypatch):
+    """Issue 52 item 6: a grey-box fit that leaves the family's parameter range is refused in
+    one line and not cached; a cached one out of the range is fitted again (fails on the
+    old code: cached, then the twin's traceback, and the same command failing again)."""
+    from types import SimpleNamespace
+    from metampc_plant.registry import get_family
+    family = get_family('cascaded_tanks')
+    lo = np.array([c.support[0] for c in family.theta])
+    fits = []
+
+    def fake_fit(family, u, y, n, protocol, guess, bounds):
+        fits.append(n)
+        theta = lo * (0.5 if len(fits) == 1 else 1.0)       # out of range, then in range
+        return SimpleNamespace(theta=theta, x0=np.zeros(family.n_x), rmse=0.1)
+
+    monkeypatch.setitem(SCRIPT['greybox'].__globals__, 'fit_greybox_head', fake_fit)
+    args = SimpleNamespace(out=str(tmp_path))
+    protocol = SimpleNamespace(candidates=2, polish=1, substeps=1)
+    with pytest.raises(SCRIPT['OutOfRange'], match="left the family's parameter range"):
+        SCRIPT['greybox'](args, family, None, None, 300, protocol)
+    assert not (tmp_path / 'greybox_300.json').exists()
+    (tmp_path / 'greybox_300.json').write_text(json.dumps(
+        {'n': 300, 'candidates': 2, 'polish': 1, 'substeps': 1, 'theta': (lo * 0.5).tolist()}))
+    got = SCRIPT['greybox'](args, family, None, None, 300, protocol)
+    assert fits == [300, 300] and got['theta'] == lo.tolist()
