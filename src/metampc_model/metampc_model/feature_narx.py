@@ -12,7 +12,7 @@ so the MPC plans on its linearisation at the current state (:meth:`FeatureNarx.l
 :mod:`metampc_model.narx_predictor`. Why and what it measured: docs/nonlinear.md.
 """
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -132,14 +132,5 @@ class FeatureNarx:
         return self.predictor.linearise(s, u_next)
 
 
-def physical_windows(shape: NarxShape, norm: Normalisation,
-                     trajectories: Sequence[Tuple[np.ndarray, np.ndarray]], horizon: int
-                     ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Normalised windows of several trajectories ((u, y) pairs, physical), concatenated:
-    (s (M, n_s), u_future (M, T, n_u), y_future (M, T, n_y)), float64 tensors."""
-    parts = [state_windows(shape, *norm.normalise(u, y), horizon) for u, y in trajectories]
-    return tuple(torch.from_numpy(np.concatenate([p[i] for p in parts])) for i in range(3))
-
-
 __all__ = ['NarxShape', 'FeatureNarx', 'init_params', 'features', 'regressors', 'rollout',
-           'shift_state', 'state_windows', 'physical_windows']
+           'shift_state', 'state_windows']
