@@ -87,7 +87,7 @@ class LocalLinearMpc:
                 self._mpc.set_constants(lin.e, lin.d)
                 return
         self._built = None
-        self._mpc.set_model(lin)
+        self._mpc.set_model(lin, near=built is not None)
         self._built = lin
         self.rebuilds += 1
 

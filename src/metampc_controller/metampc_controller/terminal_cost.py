@@ -7,10 +7,12 @@ Cbar + eps I, R) rather than eq. (compact)'s state, and the terminal cost (s_N -
 s_ss) is centred on the steady state s_ss that best meets r_N (affine in r_N, from the KKT matrix).
 When the DARE fails (exception, non-finite or non-definite P, residual above ``DARE_RTOL``,
 unstable closed loop) it falls back to the stage output term (P = Cbar' Q Cbar) and says why. Both
-are stored as least-squares rows (P = T'T). Derivation and checks:
-docs/mpc.md#terminal-cost-a-consistent-dare.
+are stored as least-squares rows (P = T'T). Given a nearby model's P (a planner relinearising every
+tick), Newton's method (Hewer) from it solves the DARE instead of the QZ method. Derivation and
+checks: docs/mpc.md#terminal-cost-a-consistent-dare.
 """
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import scipy.linalg
@@ -19,6 +21,10 @@ from metampc_model.latent_model import LatentModel
 
 # A stabilising DARE solution of a well-posed problem meets ~1e-12; 1e-6 only rejects garbage.
 DARE_RTOL = 1e-6
+# Newton from a nearby solution converges quadratically: a few steps reach rounding, or the
+# warm start is not near enough and the QZ method solves from scratch.
+NEWTON_STEPS = 6
+NEWTON_RTOL = 1e-12
 
 
 @dataclass
@@ -65,10 +71,38 @@ def dare_residual(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray,
     return float(np.linalg.norm(res) / max(np.linalg.norm(p), np.finfo(float).tiny))
 
 
-def terminal_cost(model: LatentModel, q: np.ndarray, r: np.ndarray, reg: float) -> TerminalCost:
+def dare_newton(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray,
+                p0: np.ndarray) -> Optional[np.ndarray]:
+    """The stabilising solution of the DARE by Newton's method (Hewer 1971) from p0 (n, n):
+    K = (R + B'PB)^{-1} B'PA, then P solves the Stein equation P = (A - BK)' P (A - BK) + Q +
+    K'RK, until P moves by <= NEWTON_RTOL relative. None where a gain is not stabilising (p0
+    not near enough) or it has not converged in NEWTON_STEPS."""
+    p = p0
+    n = a.shape[0]
+    eye = np.eye(n * n)
+    for _ in range(NEWTON_STEPS):
+        gain = np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)
+        a_cl = a - b @ gain
+        if max(abs(np.linalg.eigvals(a_cl))) >= 1.0:
+            return None
+        # vec(P) = (I - A_cl' (x) A_cl')^{-1} vec(Q + K'RK): n^2 unknowns, small n.
+        rhs = q + gain.T @ r @ gain
+        p_new = np.linalg.solve(eye - np.kron(a_cl.T, a_cl.T), rhs.reshape(-1)).reshape(n, n)
+        p_new = 0.5 * (p_new + p_new.T)
+        done = np.linalg.norm(p_new - p) <= NEWTON_RTOL * np.linalg.norm(p_new)
+        p = p_new
+        if done:
+            return p if np.all(np.isfinite(p)) else None
+    return None
+
+
+def terminal_cost(model: LatentModel, q: np.ndarray, r: np.ndarray, reg: float,
+                  warm: Optional[np.ndarray] = None) -> TerminalCost:
     """Terminal cost for output weights q (n_y,) >= 0, Delta-u weights r (n_u,) > 0.
 
     reg: relative eps of the state-weight regularisation Qbar = Cbar'QCbar + eps I.
+    warm: a nearby model's DARE solution (n_s, n_s): Newton's method from it (dare_newton),
+    the QZ method where that fails. The same checks follow either way.
     """
     a_bar, b_bar, _, c_bar = augmented(model)
     n_s = a_bar.shape[0]
@@ -77,8 +111,11 @@ def terminal_cost(model: LatentModel, q: np.ndarray, r: np.ndarray, reg: float) 
     q_bar = q_out + eps * np.eye(n_s)
     r_mat = np.diag(r)
     p, residual, reason = None, float('nan'), ''
+    if warm is not None and warm.shape == (n_s, n_s):
+        p = dare_newton(a_bar, b_bar, q_bar, r_mat, warm)
     try:
-        p = scipy.linalg.solve_discrete_are(a_bar, b_bar, q_bar, r_mat)
+        if p is None:
+            p = scipy.linalg.solve_discrete_are(a_bar, b_bar, q_bar, r_mat)
     except (np.linalg.LinAlgError, ValueError) as err:
         reason = f'DARE failed: {err}'
     if p is not None:

@@ -156,6 +156,67 @@ def test_terminal_weight_solves_the_dare(seed, radius):
     assert max(abs(np.linalg.eigvals(a - b @ gain))) < 1.0
 
 
+def perturbed(model: LatentModel, seed: int, size: float) -> LatentModel:
+    """The model with A and B moved by `size` (relative, random): a relinearisation's next."""
+    rng = np.random.default_rng(seed)
+    return replace(model, A=model.A * (1 + size * rng.normal(size=model.A.shape)),
+                   B=model.B * (1 + size * rng.normal(size=model.B.shape)))
+
+
+@pytest.mark.parametrize('seed,radius', [(0, 0.5), (1, 0.95), (2, 1.05), (3, 1.3)])
+def test_newton_from_a_nearby_solution_is_the_qz_solution(seed, radius):
+    """dare_newton from the previous model's P against scipy's QZ method on the next model
+    (fails on a Stein equation written with A_cl where A_cl' belongs, or a gain of P0 kept)."""
+    from metampc_controller.terminal_cost import augmented, dare_newton, terminal_cost
+    model = random_model(seed, radius)
+    q, r = np.array([1.0, 0.5]), np.array([0.1])
+    near = perturbed(model, seed, 0.05)
+    cold = terminal_cost(near, q, r, 1e-8)
+    warm = terminal_cost(near, q, r, 1e-8, warm=terminal_cost(model, q, r, 1e-8).P)
+    assert not cold.fallback and not warm.fallback
+    np.testing.assert_allclose(warm.P, cold.P, rtol=1e-9, atol=1e-9 * np.abs(cold.P).max())
+    assert warm.residual <= 1e-12
+    # Newton itself answered (terminal_cost would fall back to QZ where it does not).
+    a, b, _, c = augmented(near)
+    q_out = c.T @ np.diag(q) @ c
+    q_bar = q_out + 1e-8 * np.linalg.norm(q_out, 2) * np.eye(6)
+    newton = dare_newton(a, b, q_bar, np.diag(r), terminal_cost(model, q, r, 1e-8).P)
+    assert newton is not None
+    np.testing.assert_allclose(newton, cold.P, rtol=1e-8, atol=1e-8 * np.abs(cold.P).max())
+    # From P0 = 0 the first gain is 0: A's own modes, unstable here: no answer from Newton.
+    if max(abs(np.linalg.eigvals(a))) >= 1.0:
+        assert dare_newton(a, b, q_bar, np.diag(r), np.zeros((6, 6))) is None
+
+
+def test_a_near_model_sets_up_the_qp_a_new_one_does():
+    """set_model(near=True) (the Newton DARE, OSQP updated in place) against a fresh
+    LatentMpc on the same model: the same QP matrices, and plans equal to OSQP's tolerance
+    (fails where the solver keeps the old model's P or A)."""
+    model = random_model(4, 0.9)
+    cfg = replace(MpcConfig(horizon=10, q=(1.0, 0.5)), **TIGHT)
+    reused, fresh = LatentMpc(cfg), LatentMpc(cfg)
+    reused.set_model(model)
+    z0, ref = np.full(5, 0.2), np.tile([0.4, 0.0], (10, 1))
+    reused.solve(z0, np.zeros(1), ref)
+    for k in range(3):
+        model = perturbed(model, 10 + k, 0.1)
+        reused.set_model(model, near=True)
+        fresh.set_model(model)
+        a, b = reused.solve(z0, np.zeros(1), ref), fresh.solve(z0, np.zeros(1), ref)
+        qa, qb = reused.last_qp(), fresh.last_qp()
+        # The same QP up to the DARE's rounding (Newton's P against QZ's).
+        np.testing.assert_allclose(qa.P.toarray(), qb.P.toarray(), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(qa.q, qb.q, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(a.u_plan, b.u_plan, atol=1e-7)
+        np.testing.assert_allclose(a.cost, b.cost, rtol=1e-7)
+    # Another size (n_z 5 -> 3): a new QP, solved as a fresh one is.
+    small = random_model(5, 0.8, n_z=3)
+    reused.set_model(small, near=True)
+    fresh.set_model(small)
+    np.testing.assert_allclose(reused.solve(np.zeros(3), np.zeros(1), ref).u_plan,
+                               fresh.solve(np.zeros(3), np.zeros(1), ref).u_plan, atol=1e-7)
+
+
 def test_non_stabilisable_pair_falls_back_to_the_output_weight():
     model = non_stabilisable_model()
     cfg = MpcConfig(horizon=10)
