@@ -1,9 +1,9 @@
-"""Every command the README and docs/*.md show for copying still matches the code: each
-`python scripts/X.py --flag` names a flag the script's --help lists, each `ros2 run PKG EXE
---ros-args -p name:=value` names an executable and a parameter that node declares, and each
-other `ros2 VERB ...` of a code block parses as written (metampc_ros2cli's parser, ros2cli's
-syntax), and each `ros2 run` of a command-line program names flags its --help lists. The
-commands are read from fenced and indented code blocks and from inline code spans (`python
+"""Every command the README, docs/*.md and docs/studies/*.md show for copying still matches
+the code: each `python scripts/X.py --flag` names a flag the script's --help lists, each `ros2
+run PKG EXE --ros-args -p name:=value` names an executable and a parameter that node declares,
+and each other `ros2 VERB ...` of a code block parses as written (metampc_ros2cli's parser,
+ros2cli's syntax), and each `ros2 run` of a command-line program names flags its --help lists.
+The commands are read from fenced and indented code blocks and from inline code spans (`python
 scripts/` and `ros2 run` only: a span may name a verb without its arguments)."""
 import contextlib
 import functools
@@ -36,7 +36,8 @@ CLIS = {('metampc_learner', 'adapt_offline'): 'metampc_learner.adapt_offline'}
 # A usage template, not a command: `ros2 run PKG EXE`, `-p name:=value`.
 TEMPLATE = re.compile(r'ros2 run [A-Z_]+ |-p name:=value')
 PAGES = ['README.md'] + sorted(os.path.relpath(p, ROOT)
-                               for p in glob.glob(os.path.join(ROOT, 'docs', '*.md')))
+                               for p in glob.glob(os.path.join(ROOT, 'docs', '*.md'))
+                               + glob.glob(os.path.join(ROOT, 'docs', 'studies', '*.md')))
 
 
 def _commands(text: str):

@@ -110,13 +110,40 @@ def test_live_parameters_are_marked_live_and_only_they(module, page):
     assert marked == live, f'docs/{page}: live but not marked: {sorted(live - marked)}'
 
 
+REFERENCE_PAGES = sorted(glob.glob(os.path.join(ROOT, 'docs', '*.md')))
+STUDIES = sorted(p for p in glob.glob(os.path.join(ROOT, 'docs', 'studies', '*.md'))
+                 if os.path.basename(p) != 'README.md')
+
+
 def test_every_script_and_page_is_reachable_from_the_readme_or_docs():
-    docs = _read('README.md') + ''.join(_read('docs', os.path.basename(p))
-                                        for p in glob.glob(os.path.join(ROOT, 'docs', '*.md')))
+    """Each script is named in the README, a reference page or a study; each reference page is
+    linked from the README or a page, the studies' index from a page, each study from the
+    index."""
+    docs = _read('README.md') + ''.join(_read(p) for p in REFERENCE_PAGES + STUDIES)
     scripts = [os.path.basename(p) for p in glob.glob(os.path.join(ROOT, 'scripts', '*'))]
     assert not [s for s in scripts if s not in docs]
-    pages = [os.path.basename(p) for p in glob.glob(os.path.join(ROOT, 'docs', '*.md'))]
+    pages = [os.path.basename(p) for p in REFERENCE_PAGES]
     assert not [p for p in pages if f'docs/{p}' not in docs and f'({p})' not in docs]
+    assert 'docs/studies/README.md' in docs or '(studies/README.md)' in docs
+    index = _read('docs', 'studies', 'README.md')
+    assert not [p for p in STUDIES if f'({os.path.basename(p)})' not in index]
+
+
+@pytest.mark.parametrize('path', STUDIES, ids=os.path.basename)
+def test_a_study_has_its_date_its_command_and_its_seeds(path):
+    """docs/studies/YYYY-MM-DD-<topic>.md: a first heading with that date, a code block with
+    the command that ran (or the words 'command not recorded') and the seeds named."""
+    date = re.fullmatch(r'(\d{4}-\d{2}-\d{2})-[a-z0-9-]+\.md', os.path.basename(path))
+    assert date, f'{path}: not named YYYY-MM-DD-<topic>.md'
+    text = _read(path)
+    first = text.splitlines()[0]
+    assert first.startswith('# ') and date.group(1) in first, f'{path}: first line {first!r}'
+    code = re.findall(r'```[a-z]*\n(.*?)```', text, flags=re.S) + re.findall(
+        r'(?:^|\n\n)((?: {4}.*\n?)+)', text)
+    commands = [c for block in code for c in block.splitlines()
+                if re.match(r'\s*(python|ros2|git|make|PYTHONPATH=)\b', c)]
+    assert commands or 'command not recorded' in text, f'{path}: no command block'
+    assert re.search(r'\bseeds?\b[^.\n]*\d', text, flags=re.I), f'{path}: no seeds named'
 
 
 def test_every_experiment_key_is_documented():
