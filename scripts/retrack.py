@@ -6,8 +6,10 @@ variant of the controller's parameters; the true-model NMPC runs once per seed a
 yardstick. Prints a table per variant (tracking cost / NMPC, median and worst, escapes, steady
 offsets, the paired comparison with the first variant: seeds where it is cheaper, median ratio
 with its 95 % bootstrap interval, Wilcoxon p) and writes RUN_DIR/retrack.json and
-RUN_DIR/retrack.png (steady offset and cost ratio per seed, per variant and method). Results
-are cached per (seed, variant) in RUN_DIR/retrack/, so a stopped run resumes.
+RUN_DIR/retrack.png (steady offset and cost ratio per seed, per variant and method). The runs are
+jobs of an embedded dask cluster (``--jobs``) or of ``--scheduler ADDRESS``
+(docs/experiments.md#on-a-cluster; the library: metampc_bringup/studies/retrack_batch.py), each
+result kept in RUN_DIR/retrack/ as it lands, so a stopped run resumes.
 
     python scripts/retrack.py runs/vdp --variant none:offset_free=none \\
         --variant state:offset_free=state --variant input:offset_free=input --jobs 2
@@ -21,10 +23,8 @@ again instead of its recorded cost being taken, and every ratio is against it; `
 ``--trajectory`` fly it with them too). A bad name or value is one error line, exit 2.
 """
 import argparse
-import hashlib
-import concurrent.futures as futures
-from dataclasses import asdict
 import json
+import logging
 import os
 import sys
 from typing import Any, Dict, Tuple
@@ -55,19 +55,6 @@ def seed_list(text: str) -> Tuple[int, ...]:
     return seeds
 
 
-def _job(run_dir: str, seed: int, recording: str, overrides: Dict[str, Any],
-         nmpc: bool) -> Dict[str, Any]:
-    """The recorded models of one seed under `overrides`, or (`nmpc`) the NMPC alone."""
-    from metampc_bringup.experiment_config import load
-    from metampc_bringup.analysis.retrack import retrack_seed
-    import torch
-    torch.set_num_threads(1)
-    experiment = load(os.path.join(run_dir, 'config.yaml'))
-    results = retrack_seed(experiment, seed, recording, overrides, nmpc=nmpc,
-                           methods=[] if nmpc else None)
-    return {m: asdict(r) for m, r in results.items()}
-
-
 def recorded_nmpc(run_dir: str) -> Dict[int, Dict[str, Any]]:
     """{seed: the NMPC's tracking as a MethodResult dict} from RUN_DIR/report.json (empty
     when there is none)."""
@@ -88,6 +75,7 @@ def recorded_nmpc(run_dir: str) -> Dict[int, Dict[str, Any]]:
 
 
 def main(argv=None) -> int:
+    from metampc_bringup.orchestration.cluster_cli import add_arguments, cluster_spec
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('run_dir', help='a run folder of scripts/run_experiment.py')
     parser.add_argument('--variant', action='append', default=[], metavar='NAME:k=v,...',
@@ -96,7 +84,7 @@ def main(argv=None) -> int:
     parser.add_argument('--nmpc', default='', metavar='k=v,...',
                         help="the NMPC yardstick's controller settings (e.g. nmpc_tail=20); "
                              'default: the recorded ones')
-    parser.add_argument('--jobs', type=int, default=1, help='seeds at once (processes)')
+    add_arguments(parser, 'seeds x variants at once on an embedded cluster (default 1)')
     parser.add_argument('--seeds', type=seed_list, metavar='S,S,...',
                         help="only these of the run's seeds (default: all of them)")
     parser.add_argument('--recompute-nmpc', action='store_true',
@@ -114,15 +102,16 @@ def main(argv=None) -> int:
     try:
         variants = [parse_variant(v) for v in args.variant] or [('recorded', {})]
         yardstick = parse_variant(f'yardstick:{args.nmpc}')[1]
+        cluster = cluster_spec(args, 1, 1, 'torch threads')
     except ValueError as err:
         parser.error(str(err))
     from metampc_bringup.experiment_config import ConfigError, load
     from metampc_bringup.analysis.run_report import json_safe
-    from metampc_bringup.orchestration.lifeline import hold_in_worker
-    from metampc_bringup.analysis.paired_stats import format_claim
     from metampc_bringup.analysis.plots import plot_episodes, plot_variants
     from metampc_bringup.analysis.retrack import (check_verdicts, controller_config, retrack_seed,
                                                   seed_recordings, summarise)
+    from metampc_bringup.studies import retrack_batch as batch
+    from metampc_bringup.studies.study_jobs import run_study, StudyError
     from metampc_common.params import ParameterError
     try:
         experiment = load(os.path.join(args.run_dir, 'config.yaml'))
@@ -144,50 +133,32 @@ def main(argv=None) -> int:
         recordings = {seed: recordings[seed] for seed in sorted(set(args.seeds))}
     cache_dir = os.path.join(args.run_dir, 'retrack')
     os.makedirs(cache_dir, exist_ok=True)
-
-    def cached(seed: int, name: str, overrides: Dict[str, Any]) -> str:
-        digest = hashlib.sha1(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:12]
-        return os.path.join(cache_dir, f'seed_{seed}_{name}_{digest}.json')
-
     recorded = {} if args.recompute_nmpc or yardstick else recorded_nmpc(args.run_dir)
     for seed, episode in recorded.items():
-        path = cached(seed, 'nmpc', {})
+        path = batch.result_path(cache_dir, seed, batch.NMPC, {})
         if seed in recordings and not os.path.exists(path):
             with open(path, 'w') as f:
-                json.dump({'nmpc': episode}, f)
-    todo = []       # the NMPC once per seed (the yardstick), then every variant
-    for seed, rec in recordings.items():
-        for name, overrides in [('nmpc', yardstick)] + variants:
-            path = cached(seed, name, overrides)
-            if not os.path.exists(path):
-                todo.append((seed, rec, overrides, name == 'nmpc', path))
+                json.dump({batch.NMPC: episode}, f)
+    todo = batch.missing_jobs(recordings, variants, yardstick, cache_dir)
     print(f'retrack: {len(recordings)} seeds x {len(variants)} variants, {len(todo)} to run',
           file=sys.stderr)
-    with futures.ProcessPoolExecutor(max(1, args.jobs), initializer=hold_in_worker) as pool:
-        running = {pool.submit(_job, args.run_dir, seed, rec, overrides, nmpc): path
-                   for seed, rec, overrides, nmpc, path in todo}
-        for done, fut in enumerate(futures.as_completed(running), 1):
-            with open(running[fut], 'w') as f:
-                json.dump(fut.result(), f)
-            print(f'retrack: {done}/{len(todo)} {os.path.basename(running[fut])[:-5]}',
-                  file=sys.stderr)
+    logging.basicConfig(level=logging.WARNING, format='%(asctime)s %(message)s',
+                        datefmt='%H:%M:%S')
 
-    per_seed = {}
-    for seed in recordings:
-        nmpc = json.load(open(cached(seed, 'nmpc', yardstick)))['nmpc']
-        per_seed[seed] = {name: {**json.load(open(cached(seed, name, overrides))), 'nmpc': nmpc}
-                          for name, overrides in variants}
+    def work(client) -> None:
+        failed = batch.run(client, experiment, todo, progress=sys.stderr.isatty())
+        if failed:
+            job, err = failed[0]
+            raise StudyError(f'{len(failed)} of {len(todo)} job(s) raised (first: {job}: '
+                             f'{err.__class__.__name__}: {err}); the others are kept in '
+                             f'{cache_dir}: the same command runs only the missing ones')
+    status, _ = run_study('retrack', cluster, work) if todo else (0, None)
+    if status:
+        return status
+
+    per_seed = batch.per_seed_results(recordings, variants, yardstick, cache_dir)
     summary = summarise(per_seed)
-    first = variants[0][0]
-    print(f'{"variant":<12}{"method":<10}{"median":>8}{"worst":>10}{"escapes":>9}'
-          f'{"offset":>9}  {"vs " + first:<44} ratios by seed')
-    for name, methods in summary.items():
-        for method, row in methods.items():
-            claim = row.get('vs_' + first)
-            print(f'{name:<12}{method:<10}{row["median"]:>8.3f}{row["worst"]:>10.3f}'
-                  f'{row["escapes"]:>9}{row["mean_offset"]:>9.4f}  '
-                  f'{format_claim(claim) if claim else "":<44} '
-                  + ' '.join(f'{r:.2f}' for r in row['ratios'].values()))
+    print('\n'.join(batch.table(summary, variants[0][0])))
     with open(os.path.join(args.run_dir, 'retrack.json'), 'w') as f:
         json.dump(json_safe({'variants': dict(variants), 'summary': summary}), f, indent=1)
     path = plot_variants(summary, os.path.join(args.run_dir, 'retrack.png'))
