@@ -129,6 +129,13 @@ def test_every_script_and_page_is_reachable_from_the_readme_or_docs():
     assert not [p for p in STUDIES if f'({os.path.basename(p)})' not in index]
 
 
+@pytest.mark.parametrize('path', REFERENCE_PAGES, ids=os.path.basename)
+def test_a_reference_page_is_at_most_400_lines(path):
+    """A reference page says what the code does now; the dated studies live in docs/studies/."""
+    lines = len(_read(path).splitlines())
+    assert lines <= 400, f'{os.path.relpath(path, ROOT)}: {lines} lines (move its studies out)'
+
+
 @pytest.mark.parametrize('path', STUDIES, ids=os.path.basename)
 def test_a_study_has_its_date_its_command_and_its_seeds(path):
     """docs/studies/YYYY-MM-DD-<topic>.md: a first heading with that date, a code block with
