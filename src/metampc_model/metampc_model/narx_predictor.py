@@ -77,6 +77,12 @@ class NarxPredictor:
         d_s = head[:, :n_s] + (head[:, n_s:n_s + n_f] @ jac if n_f else 0.0)
         return y_n, d_s, head[:, n_s + n_f:n_s + n_f + sh.n_u]
 
+    def regressors(self, s: np.ndarray, u_next: np.ndarray) -> np.ndarray:
+        """phi(s_t, u_{t+1}) (n_phi,) = [s_n; g(s_n); u_n; 1], normalised, from physical s_t
+        and u_{t+1}: y_{t+1} = y_std * (head @ phi) + y_mean."""
+        s_n, u_n = self._normalised(s, u_next)
+        return np.concatenate([s_n, self._features(s_n, False)[0], u_n, [1.0]])
+
     def step(self, s: np.ndarray, u_next: np.ndarray) -> np.ndarray:
         """y_{t+1} (n_y,) physical from s_t (n_s,) and u_{t+1} (n_u,) physical."""
         nm = self.norm

@@ -27,3 +27,22 @@ def test_the_prediction_is_the_torch_rollout_in_physical_units():
     want = rollout(shape, params, torch.from_numpy(s_n),
                    torch.from_numpy((u_future - norm.u_mean) / norm.u_std)).numpy()
     np.testing.assert_allclose(got, want * norm.y_std + norm.y_mean, atol=1e-10)
+
+
+def test_the_regressors_are_the_torch_model_s_in_normalised_units():
+    """phi(s_t, u_{t+1}) of physical inputs against feature_narx.regressors of the normalised
+    ones (fails where the features read physical s, or the constant is left out)."""
+    from metampc_model.feature_narx import regressors
+    shape = NarxShape(n_u=1, n_y=2, order=2, features=3, hidden=(4,))
+    params = init_params(shape, 5)
+    norm = Normalisation(np.array([0.2]), np.array([1.5]), np.array([0.1, -0.3]),
+                         np.array([2.0, 0.5]))
+    pred = NarxPredictor(shape, norm, params)
+    rng = np.random.default_rng(1)
+    s, u = rng.normal(size=shape.n_s), rng.normal(size=1)
+    s_n = (s - np.concatenate([norm.y_mean, norm.y_mean, norm.u_mean])) / np.concatenate(
+        [norm.y_std, norm.y_std, norm.u_std])
+    want = regressors(shape, params, torch.from_numpy(s_n),
+                      torch.from_numpy((u - norm.u_mean) / norm.u_std)).numpy()
+    np.testing.assert_allclose(pred.regressors(s, u), want, atol=1e-12)
+    assert pred.regressors(s, u)[-1] == 1.0
