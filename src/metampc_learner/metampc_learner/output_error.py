@@ -97,8 +97,11 @@ def refine_head(model: FeatureNarx, records: Sequence[Record],
     count = sum((len(y) - p) * model.shape.n_y for _, y in records)
 
     def residual(head: np.ndarray) -> Tuple[float, np.ndarray, np.ndarray]:
-        with np.errstate(all='ignore'):     # a diverging trial run is refused by its loss
-            runs = [_free_run(model, head, u, y) for u, y in records]
+        try:
+            with np.errstate(all='ignore'):     # a diverging trial run is refused by its loss
+                runs = [_free_run(model, head, u, y) for u, y in records]
+        except ValueError:                      # ... or by its non-finite Jacobian
+            return np.inf, None, None
         r = np.concatenate([r for r, _ in runs]) / np.sqrt(count)
         jac = np.concatenate([j for _, j in runs]) / np.sqrt(count)
         loss = float(r @ r)
