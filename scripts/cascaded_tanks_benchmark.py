@@ -46,13 +46,14 @@ from metampc_bringup.experiment_config import ConfigError, learner_config, load
 from metampc_bringup.studies.nonlinear_regime import meta_models as narx_meta_models, \
     RegimeConfig
 from metampc_bringup.studies.offline import request_meta_config
-from metampc_learner.adapt import adapt, AdaptConfig, supervised
+from metampc_learner.adapt import AdaptConfig
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import normalisation_from, simulate_source, SourceSet, Trajectory, \
     Windows
+from metampc_learner.learner_params import AdaptJob, fit_settings
 from metampc_learner.meta_train import meta_train
-from metampc_learner.narx_learning import adapt as adapt_narx, arx_model
 from metampc_learner.offline_adaptation import tstep_rmse
+from metampc_learner.target_fit import ARX, fit_target, FitSettings, TargetFit
 from metampc_model.feature_narx import FeatureNarx
 from metampc_model.nssm import Nssm, Params
 from metampc_model.weights_codec import DecodedWeights
@@ -108,23 +109,24 @@ def simulate_nssm(model: Nssm, params: Params, u: np.ndarray, y: np.ndarray) -> 
     return out
 
 
-def run_adaptation(model: Nssm, init: Params, method: str, train: Windows, held: Windows,
-                   lr: float, steps: int, seed: int):
-    """eq. (infer) from the meta-model `init`, or the supervised NSSM from init_params(seed)."""
-    settings = AdaptConfig(steps=steps, lr=lr)
-    if method == 'supervised':
-        return supervised(model, train, held, settings, seed)
-    return adapt(model, init, train, held, settings)
+def run_adaptation(model: Nssm, init: Params, method: str, train: Trajectory,
+                   held: Trajectory, lr: float, steps: int, settings: FitSettings) -> TargetFit:
+    """eq. (infer) from the meta-model `init`, or the supervised NSSM from
+    init_params(settings.seed), `steps` plain steps at `lr` (``target_fit.fit_target``, with
+    --config's gain check)."""
+    return fit_target(method, model, init, [train], [held],
+                      dataclasses.replace(settings, adapt=AdaptConfig(steps=steps, lr=lr)))
 
 
-def choose_adaptation(model: Nssm, init: Params, method: str, train: Windows, held: Windows,
-                      max_steps: int, seed: int) -> Dict[str, float]:
+def choose_adaptation(model: Nssm, init: Params, method: str, train: Trajectory,
+                      held: Trajectory, max_steps: int, settings: FitSettings
+                      ) -> Dict[str, float]:
     """The step size of LRS and the steps (0..max_steps) of least held-out loss, with it."""
     best = {'lr': LRS[0], 'steps': 0, 'heldout_loss': math.inf}
     for lr in LRS:
         try:
             curve = run_adaptation(model, init, method, train, held, lr, max_steps,
-                                   seed).heldout_loss
+                                   settings).result.heldout_loss
         except ValueError:      # the loss turned non-finite: this step size is out
             continue
         k = int(np.nanargmin(curve))
@@ -245,35 +247,39 @@ def scores(y: np.ndarray, y_sim: np.ndarray, predicted: np.ndarray, origins: np.
             'prediction_rmse': rmse(predicted, measured)}
 
 
-def fit_all(args, seed: int, model, meta, family, data, protocol
+def fit_all(args, seed: int, model, meta, family, data, protocol, settings: FitSettings
             ) -> Tuple[List[dict], Dict[str, np.ndarray], Dict[str, DecodedWeights]]:
     """Every model fitted on each of FITS, scored on the test record once; the simulations
-    ('<model> <n>': (1024,)); the fitted NSSMs ('<method> <n>')."""
+    ('<model> <n>': (1024,)); the fitted NSSMs ('<method> <n>'; the ARX where the gain check
+    refused one)."""
     u, y, ut, yt = data.u_est, data.y_est, data.u_test, data.y_test
     n_h, n_t = model.config.history, model.config.loss_horizon
     origins = np.arange(n_h, len(yt) - n_t)      # the NSSM's windows on the test record
     test_w = record_windows(model, ut, yt, 0, len(yt))
-    held = record_windows(model, u, y, TAIL - 1 - n_h, len(y))
+    held = trajectory(u, y, TAIL - 1 - n_h, len(y))
     rows, sims, fitted = [], {}, {}
     for n in FITS:
         head = CHOOSE_HEAD[n]
-        choose_w, fit_w = record_windows(model, u, y, 0, head), record_windows(model, u, y, 0, n)
         for method in (*META, 'supervised'):
             start = time.monotonic()
-            chosen = choose_adaptation(model, meta.get(method), method, choose_w, held,
-                                       args.max_steps, seed)
-            res = run_adaptation(model, meta.get(method), method, fit_w, held, chosen['lr'],
-                                 chosen['steps'], seed)
-            sim = simulate_nssm(model, res.params, ut, yt)
+            chosen = choose_adaptation(model, meta.get(method), method,
+                                       trajectory(u, y, 0, head), held, args.max_steps,
+                                       settings)
+            fit = run_adaptation(model, meta.get(method), method, trajectory(u, y, 0, n), held,
+                                 chosen['lr'], chosen['steps'], settings)
+            flown, params = fit.model, fit.result.params
+            sim = simulate_nssm(flown, params, ut, yt)
             row = {'fit': n, 'model': method, 'choice': chosen,
-                   'validation_sim_rmse': rmse(simulate_nssm(model, res.params, u, y)[TAIL:],
+                   'validation_sim_rmse': rmse(simulate_nssm(flown, params, u, y)[TAIL:],
                                                y[TAIL:]) if n < TAIL else None,
                    'test': {'simulation_rmse': rmse(sim[n_h + 1:], yt[n_h + 1:]),
-                            'prediction_rmse': tstep_rmse(model, res.params, test_w)[0]},
+                            'prediction_rmse': tstep_rmse(flown, params, test_w if flown is model
+                                                          else record_windows(flown, ut, yt, 0,
+                                                                              len(yt)))[0]},
                    'seconds': round(time.monotonic() - start, 1)}
             rows.append(row)
             sims[f'{method} {n}'] = sim
-            fitted[f'{method} {n}'] = nssm_weights(model, res.params)
+            fitted[f'{method} {n}'] = nssm_weights(flown, params)
             log(f'{method} on 0..{n - 1}: lr {chosen["lr"]:g}, {chosen["steps"]} steps; test '
                 f'simulation RMSE {row["test"]["simulation_rmse"]:.4f} V')
         arx, _ = arx_baseline(u, y, dataclasses.replace(protocol, fit_samples=head))
@@ -330,10 +336,13 @@ def narx_simulation(model: FeatureNarx, u: np.ndarray, y: np.ndarray) -> np.ndar
     return np.concatenate([[np.nan], free_run(model, *narx_record(u, y, 0, len(y)))[:, 0]])
 
 
-def _narx_adapted(meta: FeatureNarx, record) -> Tuple[FeatureNarx, str]:
-    """The closed-form adaptation of docs/nonlinear.md and its rule."""
-    adapted = adapt_narx(meta, [record], NARX.meta.gamma)
-    return adapted.model, adapted.rule
+def narx_fit(method: str, meta: FeatureNarx, record: Trajectory, held: Trajectory,
+             settings: FitSettings) -> Tuple[FeatureNarx, str]:
+    """The feature NARX fitted on `record` by ``target_fit.fit_target`` ('imaml': the
+    closed-form adaptation of docs/nonlinear.md, validated against the ARX; 'arx': the
+    least-squares ARX(p) of its class), and its rule."""
+    fitted = fit_target(method, meta, None, [record], [held], settings)
+    return fitted.model, fitted.rule
 
 
 def narx_rows(args, experiment, seed: int, data) -> List[dict]:
@@ -352,21 +361,23 @@ def narx_rows(args, experiment, seed: int, data) -> List[dict]:
         return found['rows']
     os.makedirs(os.path.dirname(path), exist_ok=True)
     metas = narx_metas(args, seed)
-    fits = {'feature NARX': _narx_adapted,
-            'ARX(p), NARX class': lambda meta, rec: (arx_model(meta, [rec]), 'arx')}
+    fits = {'feature NARX': 'imaml', 'ARX(p), NARX class': ARX}
     u, y, ut, yt = data.u_est, data.y_est, data.u_test, data.y_test
-    nssm = learner_config(experiment, seed).nssm
-    n_h, n_t = nssm.history, nssm.loss_horizon
+    learner = learner_config(experiment, seed)
+    settings = dataclasses.replace(fit_settings(learner, AdaptJob('', 0, 1.0, 0.0, 0)),
+                                   narx_gamma=NARX.meta.gamma, narx_horizon=NARX.meta.horizon)
+    held = trajectory(u, y, TAIL, len(y))
+    n_h, n_t = learner.nssm.history, learner.nssm.loss_horizon
     origins = np.arange(n_h, len(yt) - n_t)
     rows = []
     for n in FITS:
-        for name, fit in fits.items():
+        for name, method in fits.items():
             validation = {}
             for p, meta in metas.items():
-                sim = narx_simulation(fit(meta, narx_record(u, y, 0, CHOOSE_HEAD[n]))[0], u, y)
-                validation[p] = rmse(sim[TAIL:], y[TAIL:])
+                fit = narx_fit(method, meta, trajectory(u, y, 0, CHOOSE_HEAD[n]), held, settings)
+                validation[p] = rmse(narx_simulation(fit[0], u, y)[TAIL:], y[TAIL:])
             p = min(validation, key=lambda q: (not math.isfinite(validation[q]), validation[q]))
-            model, rule = fit(metas[p], narx_record(u, y, 0, n))
+            model, rule = narx_fit(method, metas[p], trajectory(u, y, 0, n), held, settings)
             predicted = predict(model, *narx_record(ut, yt, 0, len(yt)), origins - 1, n_t)
             rows.append({'fit': n, 'model': name, 'rule': rule,
                          'choice': {'order': p, 'validation_sim_rmse': {
@@ -435,8 +446,9 @@ def run_seed(args, experiment, seed: int, data, protocol: Protocol, grey: dict, 
     torch.manual_seed(seed)
     start = time.monotonic()
     model, meta, meta_info = meta_models(args, experiment, seed, folder)
+    settings = fit_settings(learner_config(experiment, seed), AdaptJob('', 0, 1.0, 0.0, 0))
     rows, sims, fitted = fit_all(args, seed, model, meta, get_family('cascaded_tanks'), data,
-                                 protocol)
+                                 protocol, settings)
     twin_rows, twin_series = twin(experiment, grey, fitted, nmpc)
     np.savez_compressed(os.path.join(folder, 'series.npz'), **{
         f'test {k}': v for k, v in sims.items()}, **{

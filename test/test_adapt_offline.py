@@ -1,4 +1,4 @@
-"""`ros2 run metampc_learner adapt_offline` as a user runs it, on the stand-in robot's bag and on a
+"""`ros2 run metampc_bringup adapt_offline` as a user runs it, on the stand-in robot's bag and on a
 logger's CSV of it: the adapted checkpoint loaded the way the controller loads a model (the
 NssmWeights message, decoded and built into predictor and MPC), and its T-step predictions of
 a fresh episode of the same robot (an independent answer: data the adaptation never saw)
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from metampc_learner.adapt_offline import main
+from metampc_bringup.adapt_offline import main
 from robot_recording import MAPPING, tstep_rmse, write_csv
 
 pytestmark = pytest.mark.xdist_group('robot_recording')
@@ -40,7 +40,7 @@ def errors_on_fresh_data(path: str, fresh) -> np.ndarray:
 def test_adapt_offline_on_the_robot_bag_as_a_user_runs_it(robot_bag, robot_meta, fresh_robot,
                                                           tmp_path):
     out = tmp_path / 'adapted.pt'
-    run = subprocess.run(['ros2', 'run', 'metampc_learner', 'adapt_offline', str(robot_bag),
+    run = subprocess.run(['ros2', 'run', 'metampc_bringup', 'adapt_offline', str(robot_bag),
                           MAPPING, robot_meta, '--out', str(out), '--samples', '300', '--lr', LR],
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
@@ -129,9 +129,47 @@ def test_bad_input_is_one_line_and_exit_status_2(robot_bag, robot_session, robot
         assert err.startswith(f'adapt_offline: error: {message}'), err
         assert err.count('\n') == 1, err
     assert not (tmp_path / 'x.pt').exists()
-    run = subprocess.run(['ros2', 'run', 'metampc_learner', 'adapt_offline', str(robot_bag),
+    run = subprocess.run(['ros2', 'run', 'metampc_bringup', 'adapt_offline', str(robot_bag),
                           bad_mapping(tmp_path, topic), robot_meta, '--out',
                           str(tmp_path / 'x.pt')], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and run.stdout == ''
     assert run.stderr.startswith('adapt_offline: error: command.topic: /arm/commands is not')
     assert run.stderr.count('\n') == 1, run.stderr
+
+
+def test_the_gain_check_of_the_config_refuses_a_model_of_the_wrong_sign(
+        robot_bag, robot_meta, tmp_path):
+    """Issue 53: adapt_offline wrote a model whose gain had the wrong sign where the Adapt
+    service would have refused it. With --config's gain_check on (config/default.yaml's),
+    the robot's meta-model with its B negated, taken as it is (--steps 0), is refused and the
+    checkpoint written is the one --method arx writes for the same samples."""
+    import torch
+    from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
+    ckpt = load_checkpoint(robot_meta)
+    flipped = str(tmp_path / 'flipped.pt')
+    save_checkpoint(flipped, ckpt.model, {**ckpt.params, 'B': -ckpt.params['B']}, ckpt.info)
+    config = tmp_path / 'experiment.yaml'
+    config.write_text('learner: {gain_check: true}\n')
+    out, arx = tmp_path / 'adapted.pt', tmp_path / 'arx.pt'
+    run = subprocess.run(['ros2', 'run', 'metampc_bringup', 'adapt_offline', str(robot_bag),
+                          MAPPING, flipped, '--out', str(out), '--samples', '300', '--steps',
+                          '0', '--config', str(config)], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert 'disagrees in sign' in run.stderr and 'the ARX written in its place' in run.stderr
+    report = json.loads(out.with_suffix('.json').read_text())
+    assert report['fallback'] == 'arx' and report['settings_from'] == (
+        f'steps given, gain_check from {config}')
+    assert main([str(robot_bag), MAPPING, robot_meta, '--out', str(arx), '--samples', '300',
+                 '--method', 'arx']) == 0
+    written, expected = load_checkpoint(str(out)), load_checkpoint(str(arx))
+    assert written.model.config == expected.model.config
+    assert all(torch.equal(written.params[k], v) for k, v in expected.params.items())
+
+
+def test_the_old_name_says_where_the_command_went():
+    run = subprocess.run(['ros2', 'run', 'metampc_learner', 'adapt_offline', 'x', 'y', 'z',
+                          '--out', 'a.pt'], capture_output=True, text=True, timeout=60)
+    assert (run.returncode, run.stdout) == (2, '')
+    assert run.stderr == ('adapt_offline: moved: ros2 run metampc_bringup adapt_offline (the '
+                          'same arguments); this name will be removed in the next release\n')

@@ -32,7 +32,7 @@ NODES = {('metampc_plant', 'plant'): plant_params.PARAMETERS,
          ('metampc_recording', 'recorder'): recorder_config.PARAMETERS,
          ('metampc_recording', 'foxglove'): foxglove_params.PARAMETERS}
 # Command-line programs of `ros2 run` (argparse, no ROS parameters): their parser's module.
-CLIS = {('metampc_learner', 'adapt_offline'): 'metampc_learner.adapt_offline'}
+CLIS = {('metampc_bringup', 'adapt_offline'): 'metampc_bringup.adapt_offline'}
 # A usage template, not a command: `ros2 run PKG EXE`, `-p name:=value`.
 TEMPLATE = re.compile(r'ros2 run [A-Z_]+ |-p name:=value')
 PAGES = ['README.md'] + sorted(os.path.relpath(p, ROOT)

@@ -23,7 +23,7 @@ from metampc_controller import controller_params
 from metampc_learner import learner_params
 from metampc_learner.learner_params import ADAPT_METHODS
 from metampc_learner.meta_train import META_METHODS
-from metampc_learner.narx_learning import NARX_METHODS
+from metampc_learner.target_fit import NARX_ADAPT_METHODS
 from metampc_msgs.srv import Adapt, MetaTrain
 from metampc_plant.family import PlantFamily
 from metampc_plant.registry import DEFAULT, get_family
@@ -38,7 +38,7 @@ _RENAMED = {'protocol': {'paper': 'paper_settings'}, 'scenario': {'paper': 'adap
 DRIFT_MODES = ('none', 'periodic', 'triggered')
 METHODS = (*ADAPT_METHODS, 'nmpc')       # what an experiment compares
 # ... with learner.model_class feature_narx (no supervised or unrolled MAML of that class)
-NARX_EXPERIMENT_METHODS = (*NARX_METHODS, 'arx', 'oracle', 'nmpc')
+NARX_EXPERIMENT_METHODS = (*NARX_ADAPT_METHODS, 'nmpc')
 SHARED = ('family', 'dt', 'u_min', 'u_max')
 _TAKES_SHARED = {'plant': SHARED, 'learner': SHARED, 'controller': ('u_min', 'u_max')}
 # The request fields a config may set: the services' own (method and seed are the run's).

@@ -313,11 +313,13 @@ def test_a_study_adapts_by_the_experiments_rule(tmp_path, tiny_config, direct):
     assert (settings.learner.adapt.rule, settings.learner.adapt.cg_steps) == ('gauss_newton', 4)
     result = direct(settings, Job('supervised', 0, {}, 0, ADAPT_LRS, 'search'))
     assert [a['lr'] for a in result['adapt']] == [ADAPT_LRS[0]]
+    from metampc_learner.data import Windows
     val = offline.validation(offline.VALIDATION_SEED, {})
+    train, held = (Windows.from_trajectories(part[0], val.model.norm, val.model.config)
+                   for part in (val.train, val.heldout))
     step = with_fields(settings.learner.adapt, steps=2, lr=ADAPT_LRS[0], gamma=0.0)
-    expected = supervised(val.model, val.train[0], val.heldout[0], step,
+    expected = supervised(val.model, train, held, step,
                           seed=offline.VALIDATION_SEED).heldout_loss[-1]
-    gradient = supervised(val.model, val.train[0], val.heldout[0],
-                          with_fields(step, rule='gradient'),
+    gradient = supervised(val.model, train, held, with_fields(step, rule='gradient'),
                           seed=offline.VALIDATION_SEED).heldout_loss[-1]
     assert result['adapt'][0]['heldout_final'] == [expected] != [gradient]

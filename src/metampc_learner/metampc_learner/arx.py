@@ -12,16 +12,13 @@ given stds and takes as means an equilibrium of the ARX, so c vanishes in normal
 The controller, the recorder and the reports take it like any adapted model (docs/learner.md).
 """
 from dataclasses import replace
-import time
 from typing import List, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from metampc_learner.adapt import AdaptResult
-from metampc_learner.data import Trajectory, Windows
+from metampc_learner.data import Trajectory
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import Nssm, prediction_loss
 from metampc_model.nssm_config import NssmConfig, param_shapes
 from metampc_plant.identification.arx import least_squares
 
@@ -131,18 +128,4 @@ def arx_nssm(trajectories: Sequence[Trajectory], order: int, base: NssmConfig,
     return as_nssm(a, b, c, u_s, base, scale)
 
 
-def fit_arx(base: Nssm, train: Sequence[Trajectory], held: Sequence[Trajectory], order: int
-            ) -> Tuple[Nssm, AdaptResult]:
-    """The `arx` method: ARX(`order`) fitted on `train`, as an NSSM of `base`'s history, widths
-    and stds (:func:`arx_nssm`), and its l_SSM on `train` and on `held` (one point each, the
-    curves of an adaptation without steps). ValueError: see :func:`arx_nssm`."""
-    start = time.monotonic()
-    config, norm, params = arx_nssm(train, order, base.config, base.norm)
-    model = Nssm(config, norm)
-    with torch.no_grad():
-        losses = [float(prediction_loss(model, params, w.u, w.y)) for w in (
-            Windows.from_trajectories(part, norm, config) for part in (train, held))]
-    return model, AdaptResult(params, [losses[0]], [losses[1]], [], time.monotonic() - start)
-
-
-__all__ = ['arx_nssm', 'as_nssm', 'equilibrium', 'fit', 'fit_arx']
+__all__ = ['arx_nssm', 'as_nssm', 'equilibrium', 'fit']

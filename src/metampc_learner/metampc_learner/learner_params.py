@@ -27,9 +27,10 @@ from metampc_learner.meta_train import META_METHODS, MetaConfig
 from metampc_learner.narx_learning import NARX_METHODS, NarxMetaConfig
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
+from metampc_learner.target_fit import BASELINES, FitSettings
 
 # The methods an Adapt request may name ('' too: the latest meta-model).
-ADAPT_METHODS = (*META_METHODS, 'supervised', 'oracle', 'arx')
+ADAPT_METHODS = (*META_METHODS, *BASELINES)
 
 
 @dataclass
@@ -136,6 +137,11 @@ def _check_split(name: str, first: int, second: int, window: int, parts: str) ->
     if min(first, second) < window:
         raise ParameterError(f'{name}: its {parts} would have {first} and {second} samples, '
                              f'each needs at least one window of H + T = {window} samples')
+
+
+def default_config() -> LearnerNodeConfig:
+    """The configuration of a learner node started with every parameter at its default."""
+    return parse_params({name: spec.default for name, spec in PARAMETERS.items()})
 
 
 def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
@@ -261,6 +267,20 @@ def resolve_adapt_request(request, adapt: AdaptConfig, oracle: OracleConfig) -> 
     return AdaptJob(method, int(steps), float(lr), float(gamma), int(request.n_samples))
 
 
+def fit_settings(config: LearnerNodeConfig, job: AdaptJob) -> FitSettings:
+    """How ``target_fit.fit_target`` fits `job` on this learner: its steps, lr and gamma on
+    the adaptation parameters (the oracle's steps and lr too), the ARX order, the gain check
+    on the family's tracked outputs, the meta seed; a feature NARX's ridge strength the job's
+    gamma when > 0, else ``narx_gamma``."""
+    return FitSettings(
+        adapt=replace(config.adapt, steps=job.steps, lr=job.lr, gamma=job.gamma),
+        oracle=replace(config.oracle, steps=job.steps, lr=job.lr), arx_order=config.arx_order,
+        gain_check=config.gain_check, tracked=tuple(config.source.plant_family.tracked),
+        seed=config.meta.seed,
+        narx_gamma=job.gamma if job.gamma > 0 else config.narx_meta.gamma,
+        narx_horizon=config.narx_meta.horizon)
+
+
 __all__ = ['PARAMETERS', 'LearnerNodeConfig', 'parse_params', 'resolve_meta_request',
-           'resolve_narx_request', 'AdaptJob', 'resolve_adapt_request', 'ADAPT_METHODS',
-           'ParameterError']
+           'resolve_narx_request', 'AdaptJob', 'resolve_adapt_request', 'fit_settings',
+           'default_config', 'ADAPT_METHODS', 'ParameterError']

@@ -4,42 +4,41 @@ A :class:`LearnerSession` holds the meta-model omega_inf of every method it has 
 loaded, numbers each model it makes (continuing after the highest in ``checkpoint_dir``, where
 each is saved) and serves the node's jobs one at a time: :meth:`LearnerSession.meta_train`
 (Algorithm 1, optionally with online collection, eq. (ub)), :meth:`LearnerSession.adapt`
-(eq. (infer), or the 'supervised' / 'oracle' / 'arx' baselines; with ``gain_check`` the ARX's
-fallback) and :meth:`LearnerSession.loop_adapt`. With ``model_class`` 'feature_narx' the
-models are feature NARXs (:mod:`metampc_learner.narx_learning`; no gain check, no adaptation in
-the loop). Requests it cannot carry out raise :class:`LearnerError`. Services and versions:
-docs/learner.md.
+(eq. (infer), or the 'supervised' / 'oracle' / 'arx' baselines, with the gain check: all by
+:func:`~metampc_learner.target_fit.fit_target`) and :meth:`LearnerSession.loop_adapt`. With
+``model_class`` 'feature_narx' the models are feature NARXs (:mod:`.narx_learning`; no gain
+check, no adaptation in the loop). Requests it cannot carry out raise :class:`LearnerError`.
+Services and versions: docs/learner.md.
 """
 import math
 import os
 import re
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
 from metampc_model.feature_narx import FeatureNarx, init_params as narx_init_params
 from metampc_model.normalisation import Normalisation
-from metampc_model.nssm import init_params, Nssm, Params
-from metampc_model.predictor import latent_model
+from metampc_model.nssm import Nssm, Params
 from metampc_model.weights_codec import fields_from_narx, fields_from_weights
 from metampc_learner import narx_learning
-from metampc_learner.adapt import adapt, AdaptResult, supervised
-from metampc_learner.arx import fit_arx
+from metampc_learner.adapt import adapt, AdaptResult
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import (longest_run, normalisation_from, samples_in,
                                   simulate_source, SourceConfig, SourceData, SourceSet,
                                   Trajectory, Windows)
-from metampc_learner.gain_check import gain_verdict
 from metampc_learner.heldout import plant_source
-from metampc_learner.learner_params import AdaptJob, LearnerNodeConfig
+from metampc_learner.learner_params import AdaptJob, fit_settings, LearnerNodeConfig
 from metampc_learner.meta_train import META_METHODS, meta_train, MetaConfig
 from metampc_learner.narx_learning import NarxMetaConfig
 from metampc_learner.online_collection import CollectionStats, OnlineCollector
-from metampc_learner.oracle import fit_oracle, oracle_data
+from metampc_learner.oracle import oracle_data
 from metampc_learner.progress import Progress, ProgressFn
 from metampc_learner.target_buffer import split_target, TargetSamples
+from metampc_learner.target_fit import (ARX, BASELINES, FitError, fit_target,
+                                        NARX_ADAPT_METHODS, ORACLE)
 from metampc_plant.plant_description import PlantDescription
 
 FINAL_LOSS_STEPS = 10   # final_loss of meta_train: mean meta-test loss of the last 10 steps
@@ -284,7 +283,8 @@ class LearnerSession:
 
     def adapt(self, job: AdaptJob, samples: TargetSamples, plant: Optional[PlantDescription],
               progress: Optional[ProgressFn] = None) -> AdaptOutcome:
-        """Adapt (or train a baseline) on the buffered target samples; see the module.
+        """Adapt (or train a baseline) on the buffered target samples by
+        :func:`~metampc_learner.target_fit.fit_target`; see the module.
 
         Raises:
             LearnerError: no such meta-model, too few samples, no or mismatching plant_info.
@@ -292,71 +292,114 @@ class LearnerSession:
         cfg = self.config
         if plant is not None:
             self.check_plant(plant)
-        if job.method == 'oracle' and (plant is None or not plant.theta):
+        if job.method == ORACLE and (plant is None or not plant.theta):
             raise LearnerError("the oracle needs the target's theta: no plant_info received"
                                if plant is None else "the oracle needs the target's theta: "
                                'plant_info gives none (not a simulated plant)')
-        if cfg.model_class == 'feature_narx':
-            return self._adapt_narx(job, samples, plant)
-        meta = (None if job.method in ('supervised', 'oracle', 'arx')
-                else self._meta_for(job.method))
-        model = self._fresh_model() if meta is None else meta.model
+        narx = cfg.model_class == 'feature_narx'
+        if narx and job.method not in ('', *NARX_ADAPT_METHODS):
+            methods = ('', *NARX_ADAPT_METHODS)
+            raise LearnerError(f'model_class feature_narx adapts with '
+                               f'{", ".join(repr(m) for m in methods)}, not {job.method!r}')
+        model, start = (None, None) if narx else self._nssm_start(job.method)
         train, held, used = split_target(samples, job.n_samples, cfg.heldout_fraction,
                                          cfg.source.state_bound)
-        train_w = Windows.from_trajectories(train, model.norm, model.config)
-        held_w = Windows.from_trajectories(held, model.norm, model.config)
-        seed = cfg.meta.seed
-        if job.method == 'oracle':
-            episodes = oracle_data(plant.theta, self._plant_source(plant), cfg.oracle.episodes,
-                                   seed)
-            if len(held_w) == 0:
-                held_w = Windows.from_trajectories(oracle_data(
-                    plant.theta, self._plant_source(plant), max(1, cfg.oracle.episodes // 5),
-                    seed + 1), model.norm, model.config)
-            train, train_w = episodes, Windows.from_trajectories(episodes, model.norm,
-                                                                 model.config)
-            if len(train_w) == 0:
-                raise LearnerError(f'oracle: all {cfg.oracle.episodes} simulated episodes of '
-                                   f'theta = {list(plant.theta)} left the state box')
-            result = fit_oracle(model, init_params(model.config, seed), train_w, held_w,
-                                replace(cfg.oracle, steps=job.steps, lr=job.lr), seed,
-                                progress)
-        else:
-            if len(train_w) == 0 or len(held_w) == 0:
-                window = model.config.window
-                least = math.ceil(window / min(cfg.heldout_fraction, 1 - cfg.heldout_fraction))
-                raise LearnerError(
-                    f'too few target samples: {len(samples)} buffered, {used} used, of which '
-                    f'{samples_in(train)} valid for training and {samples_in(held)} held out; '
-                    f'each part needs a run of H + T = {window} consecutive valid samples (about '
-                    f'{least} buffered samples in all without gaps); the longest runs are '
-                    f'{longest_run(train)} and {longest_run(held)} samples, broken by '
-                    f'{max(len(train) - 1, 0) + max(len(held) - 1, 0)} gap(s): steps that '
-                    'never reached the learner or left the state box')
-            step_config = replace(cfg.adapt, steps=job.steps, lr=job.lr, gamma=job.gamma)
-            if job.method == 'arx':
-                try:
-                    model, result = fit_arx(model, train, held, cfg.arx_order)
-                except ValueError as err:
-                    raise LearnerError(f'arx: {err}') from None
-            elif meta is None:
-                result = supervised(model, train_w, held_w, step_config, seed, progress)
-            else:
-                result = adapt(model, meta.params, train_w, held_w, step_config, progress)
-        flown, verdict, fallback = result, '', ''
-        if cfg.gain_check and job.method not in ('arx', 'oracle'):
-            verdict, arx = self._gain_check(model, result.params, train, held)
-            if arx is not None:         # the record is the ARX's; the curves the adaptation's
-                fallback, (model, flown) = 'arx', arx
-                result = replace(result, params=flown.params,
-                                 elapsed=result.elapsed + flown.elapsed)
+        if narx:
+            self._check_narx_samples(samples, train, held, used)
+            model = self._narx_start(job.method)
+        fit_held = held             # the oracle's: simulated when the target's hold no window
+        if job.method == ORACLE:
+            train, fit_held = self._oracle_data(plant, model, held)
+        elif not narx:
+            self._check_nssm_samples(model, samples, train, held, used)
+        try:
+            fitted = fit_target(job.method, model, start, train, fit_held,
+                                fit_settings(cfg, job), progress)
+        except FitError as err:
+            raise LearnerError(str(err)) from None
         record = self._new_record(
-            model=model, params=result.params, method=job.method or meta.method,
-            stage='adapted', train_loss=flown.train_loss[-1],
-            train_steps=0 if job.method == 'arx' or fallback else job.steps,
-            train_samples=samples_in(train), seed=seed, train_time=result.elapsed)
-        return AdaptOutcome(record, result, used, samples_in(train), samples_in(held),
-                            verdict, fallback)
+            model=fitted.model, params=fitted.result.params,
+            method=job.method or self.latest_meta, stage='adapted', train_loss=fitted.train_loss,
+            train_steps=fitted.steps, train_samples=samples_in(train), seed=cfg.meta.seed,
+            train_time=fitted.result.elapsed)
+        return AdaptOutcome(record, fitted.result, used, samples_in(train), samples_in(held),
+                            fitted.gain_check, fitted.fallback, fitted.rule)
+
+    def _nssm_start(self, method: str) -> Tuple[Nssm, Optional[Params]]:
+        """The NSSM a method fits (its architecture and normalisation) and the meta-model's
+        weights it starts from (None for the baselines: a fresh NSSM of the node
+        parameters)."""
+        if method in BASELINES:
+            return self._fresh_model(), None
+        meta = self._meta_for(method)
+        return meta.model, meta.params
+
+    def _narx_start(self, method: str) -> FeatureNarx:
+        """The feature NARX a method adapts: the meta-model of the method (the oracle: the
+        latest); the arx's base: the latest meta-model, else a fresh one of the node
+        parameters."""
+        if method == ARX:
+            if self.latest_meta:
+                return self.meta_models[self.latest_meta].model
+            shape = self.config.narx
+            return FeatureNarx(shape, self._source_norm(),
+                               narx_init_params(shape, self.config.meta.seed))
+        return self._meta_for('' if method == ORACLE else method).model
+
+    def _check_nssm_samples(self, model: Nssm, samples: TargetSamples, train: List[Trajectory],
+                            held: List[Trajectory], used: int) -> None:
+        """LearnerError unless each part holds a window of H + T consecutive valid samples."""
+        window = model.config.window
+        if longest_run(train) >= window and longest_run(held) >= window:
+            return
+        cfg = self.config
+        least = math.ceil(window / min(cfg.heldout_fraction, 1 - cfg.heldout_fraction))
+        raise LearnerError(
+            f'too few target samples: {len(samples)} buffered, {used} used, of which '
+            f'{samples_in(train)} valid for training and {samples_in(held)} held out; '
+            f'each part needs a run of H + T = {window} consecutive valid samples (about '
+            f'{least} buffered samples in all without gaps); the longest runs are '
+            f'{longest_run(train)} and {longest_run(held)} samples, broken by '
+            f'{max(len(train) - 1, 0) + max(len(held) - 1, 0)} gap(s): steps that '
+            'never reached the learner or left the state box')
+
+    def _check_narx_samples(self, samples: TargetSamples, train: List[Trajectory],
+                            held: List[Trajectory], used: int) -> None:
+        """LearnerError unless the training part holds one-step equations and the held-out
+        part a window of p + T samples (the feature NARX's)."""
+        order = self.config.narx.order
+        window = order + self.config.narx_meta.horizon
+        if longest_run(train) <= order or longest_run(held) < window:
+            raise LearnerError(
+                f'too few target samples: {len(samples)} buffered, {used} used; the training '
+                f'part needs a run of more than p = {order} consecutive valid samples, '
+                f'the held-out part one of p + T = {window}; the longest runs are '
+                f'{longest_run(train)} and {longest_run(held)} samples')
+
+    def _oracle_data(self, plant: PlantDescription, model: Union[Nssm, FeatureNarx],
+                     held: List[Trajectory]) -> Tuple[List[Trajectory], List[Trajectory]]:
+        """The oracle's (training episodes, held-out trajectories): ``oracle_episodes``
+        simulated episodes of the target's theta (a feature NARX: those longer than p), the
+        target's held-out part, or where that holds no window of an NSSM fresh simulated
+        episodes (seed + 1).
+
+        Raises:
+            LearnerError: every simulated episode left the state box.
+        """
+        cfg, seed, source = self.config, self.config.meta.seed, self._plant_source(plant)
+        train = oracle_data(plant.theta, source, cfg.oracle.episodes, seed)
+        if isinstance(model, FeatureNarx):
+            train = [t for t in train if len(t) > model.shape.order]
+            need = 1
+        else:
+            need = model.config.window
+            if longest_run(held) < need:
+                held = oracle_data(plant.theta, source, max(1, cfg.oracle.episodes // 5),
+                                   seed + 1)
+        if longest_run(train) < need:
+            raise LearnerError(f'oracle: all {cfg.oracle.episodes} simulated episodes of '
+                               f'theta = {list(plant.theta)} left the state box')
+        return train, held
 
     # --- the feature NARX (model_class feature_narx) --------------------------------------
 
@@ -388,78 +431,6 @@ class LearnerSession:
             train_samples=sum(samples_in(ts) for ts in data.trajectories), seed=config.seed,
             train_time=result.elapsed)
         return MetaOutcome(record, list(result.curve), final, 0, None, 0, 0, result.elapsed)
-
-    def _narx_heldout(self, model: FeatureNarx, held: Sequence[Trajectory]) -> float:
-        return narx_learning.heldout_loss(model, [(t.u, t.y) for t in held],
-                                          self.config.narx_meta.horizon)
-
-    def _adapt_narx(self, job: AdaptJob, samples: TargetSamples,
-                    plant: Optional[PlantDescription]) -> AdaptOutcome:
-        """Adapt a feature NARX on D_target in closed form: '' / 'imaml' / 'maml' the head of
-        that meta-model (:func:`narx_learning.adapt`, ridge strength ``narx_gamma``, or the
-        request's gamma when > 0), 'arx' the least-squares ARX(p) of the samples, 'oracle' the
-        same adaptation of the latest meta-model on simulated target episodes; the held-out
-        curve is [the meta-model's, the model's] T-step loss (the arx: its own only)."""
-        cfg, start = self.config, time.monotonic()
-        methods = ('', *narx_learning.NARX_METHODS, 'arx', 'oracle')
-        if job.method not in methods:
-            raise LearnerError(f'model_class feature_narx adapts with '
-                               f'{", ".join(repr(m) for m in methods)}, not {job.method!r}')
-        train, held, used = split_target(samples, job.n_samples, cfg.heldout_fraction,
-                                         cfg.source.state_bound)
-        shape, seed = cfg.narx, cfg.meta.seed
-        window = shape.order + cfg.narx_meta.horizon
-        if longest_run(train) <= shape.order or longest_run(held) < window:
-            raise LearnerError(
-                f'too few target samples: {len(samples)} buffered, {used} used; the training '
-                f'part needs a run of more than p = {shape.order} consecutive valid samples, '
-                f'the held-out part one of p + T = {window}; the longest runs are '
-                f'{longest_run(train)} and {longest_run(held)} samples')
-        records = [(t.u, t.y) for t in train]
-        rule = 'least_squares'      # the arx's
-        if job.method == 'arx':
-            base = (self.meta_models[self.latest_meta].model if self.latest_meta else
-                    FeatureNarx(shape, self._source_norm(), narx_init_params(shape, seed)))
-            model = narx_learning.arx_model(base, records)
-            curve = [self._narx_heldout(model, held)]
-        else:
-            meta = self._meta_for('' if job.method == 'oracle' else job.method).model
-            gamma = job.gamma if job.gamma > 0 else cfg.narx_meta.gamma
-            if job.method == 'oracle':
-                episodes = oracle_data(plant.theta, self._plant_source(plant),
-                                       cfg.oracle.episodes, seed)
-                train = [t for t in episodes if len(t) > shape.order]
-                if not train:
-                    raise LearnerError(f'oracle: all {cfg.oracle.episodes} simulated episodes '
-                                       f'of theta = {list(plant.theta)} left the state box')
-                records = [(t.u, t.y) for t in train]
-            adapted = narx_learning.adapt(meta, records, gamma)
-            model, rule = adapted.model, adapted.rule
-            curve = [self._narx_heldout(meta, held), self._narx_heldout(model, held)]
-        loss = narx_learning.one_step_loss(model, records)
-        result = AdaptResult(params=model.params, train_loss=[loss], heldout_loss=curve,
-                             elapsed=time.monotonic() - start)
-        record = self._new_record(
-            model=model, params=model.params,
-            method=job.method or self.latest_meta, stage='adapted', train_loss=loss,
-            train_steps=0, train_samples=samples_in(train), seed=seed,
-            train_time=result.elapsed)
-        return AdaptOutcome(record, result, used, samples_in(train), samples_in(held),
-                            rule=rule)
-
-    def _gain_check(self, model: Nssm, params: Params, train: List, held: List
-                    ) -> Tuple[str, Optional[Tuple[Nssm, AdaptResult]]]:
-        """:func:`gain_verdict` of an adapted model against the ARX of its training samples:
-        (the verdict's line, the fitted ARX (model, result) to fly in its place, or None)."""
-        cfg = self.config
-        try:
-            arx_model, fitted = fit_arx(self._fresh_model(), train, held, cfg.arx_order)
-        except ValueError as err:
-            return f'gain check: unchecked, the ARX: {err}', None
-        verdict = gain_verdict(latent_model(params, model.norm),
-                               latent_model(fitted.params, arx_model.norm),
-                               cfg.source.plant_family.tracked)
-        return verdict.reason, None if verdict.ok else (arx_model, fitted)
 
     def loop_adapt(self, version: int, samples: TargetSamples,
                    progress: Optional[ProgressFn] = None) -> AdaptOutcome:

@@ -1,4 +1,7 @@
-"""`ros2 run metampc_learner learner` and `adapt_offline` (see metampc_common.entry)."""
+"""`ros2 run metampc_learner learner` (see metampc_common.entry), and `adapt_offline`'s old
+place (one release: it names the new one)."""
+import sys
+
 from metampc_common.entry import run
 
 
@@ -8,5 +11,8 @@ def learner(args=None) -> int:
 
 
 def adapt_offline(args=None) -> int:
-    """Adaptation from a recording (metampc_learner.adapt_offline); its exit status."""
-    return run('metampc_learner.adapt_offline', args)
+    """adapt_offline moved to metampc_bringup (it reads --config with the experiment
+    configuration's reader): one line saying so, exit status 2."""
+    print('adapt_offline: moved: ros2 run metampc_bringup adapt_offline (the same arguments); '
+          'this name will be removed in the next release', file=sys.stderr)
+    return 2

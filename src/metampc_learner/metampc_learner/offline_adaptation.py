@@ -2,46 +2,65 @@
 
 The usable grid samples (:mod:`.grid_samples`) are D_target: the first ``samples`` of them, the
 last ``holdout`` share held out (``target_buffer.split_target``, cut at every skipped sample,
-as the learner node splits its buffer). The learner's own adaptation runs on the rest
-(``adapt.adapt``, eq. infer from the checkpoint's weights; ``adapt.supervised`` from random
-weights of its architecture), the result is saved as a learner checkpoint (stage 'adapted') and
-a report says the T-step error on the held-out tail of the meta-model and of the adapted model,
+as the learner node splits its buffer). The learner's own fit runs on the rest
+(``target_fit.fit_target``: eq. infer from the checkpoint's weights, supervised from random
+weights of its architecture, or the ARX; with the gain check), settings resolved as the Adapt
+service resolves a request; the result is saved as a learner checkpoint (stage 'adapted') and
+a report says the T-step error on the held-out tail of the meta-model and of the model written,
 the adaptation curve and the samples used and skipped. No rclpy. docs/offline_adaptation.md.
 """
 import json
 import math
 import os
 import time
-from dataclasses import dataclass, replace
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 import torch
-import yaml
 
 from metampc_model.feature_narx import FeatureNarx
 from metampc_model.nssm import Nssm, Params
 from metampc_plant.machine_mapping import load_mapping
-from metampc_learner.adapt import adapt, AdaptConfig, GAUSS_NEWTON, supervised
-from metampc_learner.arx import fit_arx
+from metampc_learner.adapt import GAUSS_NEWTON
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import longest_run, samples_in, Windows
 from metampc_learner.grid_samples import grid_samples, GridSamples
 from metampc_learner.heldout import heldout_loss
-from metampc_learner.learner_params import ADAPT
+from metampc_learner.learner_params import (ADAPT, default_config, fit_settings,
+                                            LearnerNodeConfig, resolve_adapt_request)
 from metampc_learner.meta_train import META_METHODS
-from metampc_learner.recorded_streams import read_recording
+from metampc_learner.recorded_streams import read_streams
 from metampc_learner.target_buffer import split_target, TargetSamples
+from metampc_learner.target_fit import ARX, FitError, FitSettings, fit_target, SUPERVISED
 
-SUPERVISED = 'supervised'
 STEP_KEYS = ('steps', 'lr', 'gamma')    # AdaptConfig's fields per method: adapt.<method>
 RULE_KEYS = ('rule', 'cg_steps')        # and the learner node's: learner.adapt_<field>
-ARX = 'arx'                 # the linear baseline (metampc_learner.arx): no steps
+NODE_KEYS = ('arx_order', 'gain_check')     # and its own
 LISTED_RUNS = 50        # skipped runs listed in the report (all are counted)
 
 
 class OfflineError(ValueError):
     """The inputs do not fit together (checkpoint and mapping, too few samples); one line."""
+
+
+@dataclass
+class Experiment:
+    """What an experiment configuration says about adaptation, read by its own reader
+    (``metampc_bringup.experiment_config``).
+
+    Attributes:
+        path: the file.
+        learner: its learner node's configuration.
+        requests: its Adapt request fields by method (``adapt.<method>`` under its protocol).
+        learner_keys: the learner parameters the file sets.
+    """
+
+    path: str
+    learner: LearnerNodeConfig
+    requests: Mapping[str, Mapping[str, Any]]
+    learner_keys: Tuple[str, ...] = ()
 
 
 @dataclass
@@ -51,18 +70,19 @@ class OfflineConfig:
     Attributes:
         method: '' (the checkpoint's), the checkpoint's meta method, 'supervised' or 'arx'
             (the checkpoint gives the architecture and the output scaling).
-        steps, lr, gamma: of eq. (infer) (gamma: ignored by supervised; all: by arx); None: from
-            `config_file`'s ``adapt.<method>``, else the learner's defaults (AdaptConfig).
-        rule, cg_steps: the step rule and a gauss_newton step's CG iterations; None: from
-            `config_file`'s ``learner`` parameters (adapt_rule, adapt_cg_steps), as the
-            learner node runs that file, else the learner's defaults.
-        config_file: an experiment configuration (config/default.yaml) or ''.
+        steps, lr, gamma: of eq. (infer) (gamma: ignored by supervised; all: by arx); None: as
+            the Adapt service resolves `experiment`'s request of the method (its
+            ``adapt.<method>``, then its learner's adapt_<field>), else the learner's defaults.
+        rule, cg_steps, arx_order: the step rule, a gauss_newton step's CG iterations, the
+            ARX's order; None: `experiment`'s learner parameters (adapt_rule, adapt_cg_steps,
+            arx_order), as the learner node runs that file, else the learner's defaults. The
+            gain check (``gain_check``, on the family's tracked outputs) likewise.
+        experiment: an experiment configuration's settings, or None.
         samples: use the first `samples` usable samples (0: all).
         holdout: the last share of them held out, in (0, 1).
         seed: the supervised baseline's initial weights (eq. infer is deterministic).
         keep_saturated: keep samples whose input is at a bound (clipped), see grid_samples.
         time_column: the CSV's time column (None: `time` if there is one, else one row per dt).
-        arx_order: the order p of the arx baseline.
     """
 
     method: str = ''
@@ -71,13 +91,13 @@ class OfflineConfig:
     gamma: Optional[float] = None
     rule: Optional[str] = None
     cg_steps: Optional[int] = None
-    config_file: str = ''
+    arx_order: Optional[int] = None
+    experiment: Optional[Experiment] = field(default=None, repr=False)
     samples: int = 0
     holdout: float = 0.2
     seed: int = 0
     keep_saturated: bool = False
     time_column: Optional[str] = None
-    arx_order: int = 2
 
 
 def resolve_method(requested: str, info: Dict[str, Any], path: str) -> str:
@@ -96,39 +116,36 @@ def resolve_method(requested: str, info: Dict[str, Any], path: str) -> str:
     return held
 
 
-def adapt_settings(method: str, config: OfflineConfig) -> Tuple[AdaptConfig, str]:
-    """(the adaptation settings of `method`, where they come from): each given one, else the
-    config file's (steps, lr, gamma: its ``adapt.<method>`` entry; the rule and its CG steps:
-    its ``learner`` parameters), else AdaptConfig's default.
+def adapt_settings(method: str, config: OfflineConfig) -> Tuple[FitSettings, str]:
+    """(the fit settings of `method`, where they come from): each given one, else as the Adapt
+    service resolves `config.experiment`'s request of `method` on its learner configuration
+    (``learner_params.resolve_adapt_request``, ``fit_settings``), else the learner's defaults.
 
     Raises:
-        OfflineError: an unreadable config file or a value out of range (named).
+        OfflineError: a value out of range (named).
     """
-    given = {k: getattr(config, k) for k in (*STEP_KEYS, *RULE_KEYS)
+    experiment = config.experiment
+    learner = experiment.learner if experiment else default_config()
+    request = dict(experiment.requests.get(method, {})) if experiment else {}
+    given = {k: getattr(config, k) for k in (*STEP_KEYS, *RULE_KEYS, 'arx_order')
              if getattr(config, k) is not None}
-    listed: Dict[str, Any] = {}
-    if config.config_file:
-        try:
-            with open(config.config_file, encoding='utf-8') as f:
-                data = yaml.safe_load(f) or {}
-        except (OSError, yaml.YAMLError) as err:
-            raise OfflineError(f'--config {config.config_file}: {" ".join(str(err).split())}') \
-                from None
-        data = data if isinstance(data, dict) else {}
-        section, learner = data.get('adapt'), data.get('learner')
-        entry = section.get(method) if isinstance(section, dict) else None
-        if isinstance(entry, dict):
-            listed = {k: entry[k] for k in STEP_KEYS if k in entry}
-        if isinstance(learner, dict):
-            listed.update({k: learner[ADAPT.name(k)] for k in RULE_KEYS
-                           if ADAPT.name(k) in learner})
-    settings = AdaptConfig(**{**listed, **given})
     try:
-        settings.validate()
+        job = resolve_adapt_request(SimpleNamespace(**{
+            'steps': 0, 'lr': 0.0, 'gamma': 0.0, 'n_samples': 0, **request, 'method': method}),
+            learner.adapt, learner.oracle)
+        settings = fit_settings(learner, job)
+        settings = replace(settings, seed=config.seed,
+                           arx_order=given.get('arx_order', settings.arx_order),
+                           adapt=replace(settings.adapt, **{k: v for k, v in given.items()
+                                                            if k != 'arx_order'}))
+        settings.adapt.validate()
     except ValueError as err:
         raise OfflineError(f'adaptation settings: {err}') from None
+    names = {**{k: ADAPT.name(k) for k in RULE_KEYS}, **{k: k for k in NODE_KEYS}}
+    listed = [k for k in STEP_KEYS if k in request] + [
+        k for k, name in names.items() if experiment and name in experiment.learner_keys]
     where = ', '.join([f'{k} given' for k in given]
-                      + [f'{k} from {config.config_file}' for k in listed if k not in given])
+                      + [f'{k} from {experiment.path}' for k in listed if k not in given])
     return settings, where or 'the learner\'s defaults'
 
 
@@ -181,7 +198,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
                            f'{mapping_path} samples at dt = {mapping.dt:g} s')
     method = resolve_method(config.method, ckpt.info, checkpoint)
     settings, settings_from = adapt_settings(method, config)
-    recorded = read_recording(recording, mapping, config.time_column, progress)
+    recorded = read_streams(recording, mapping, config.time_column, progress)
     if recorded.cut_short:
         log(recorded.cut_short)
     grid = grid_samples(recorded, mapping, config.keep_saturated)
@@ -204,42 +221,42 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
             f'too few usable samples: {used} used ({len(usable)} usable of {len(grid.times)}); '
             f'the longest runs without a skipped sample are {longest_run(train)} (training) and '
             f'{longest_run(held)} (held out), each part needs H + T = {cfg.window}')
+    steps = settings.adapt
     if method == ARX:         # least squares, no steps: the settings do not apply
-        settings, settings_from = replace(settings, steps=0), 'none (least squares)'
-        log(f'{method}: ARX({config.arx_order}) by least squares on {samples_in(train)} '
+        steps, settings_from = replace(steps, steps=0), 'none (least squares)'
+        log(f'{method}: ARX({settings.arx_order}) by least squares on {samples_in(train)} '
             f'samples, {len(held_w)} windows held out')
     else:
-        said = steps_text(settings.steps, settings.lr, settings.rule, settings.cg_steps)
+        said = steps_text(steps.steps, steps.lr, steps.rule, steps.cg_steps)
         log(f'{method}: {said} on {len(train_w)} windows, {len(held_w)} held out')
 
     def step_line(p):
         log(f'step {p.iteration}/{p.total}: held-out loss {p.loss:.5g} ({p.elapsed:.1f} s)')
 
-    fitted, fitted_held = model, held_w     # the adapted model and its held-out windows
-    if method == ARX:
-        try:
-            fitted, result = fit_arx(model, train, held, config.arx_order)
-        except ValueError as err:
-            raise OfflineError(f'arx: {err}') from None
-        fitted_held = Windows.from_trajectories(held, fitted.norm, fitted.config, dtype)
-    elif method == SUPERVISED:
-        result = supervised(model, train_w, held_w, settings, config.seed, step_line)
-    else:
-        result = adapt(model, ckpt.params, train_w, held_w, settings, step_line)
+    try:
+        fitted = fit_target(method, model, None if method in (SUPERVISED, ARX) else ckpt.params,
+                            train, held, settings, step_line)
+    except FitError as err:
+        raise OfflineError(str(err)) from None
+    if fitted.gain_check:
+        log(fitted.gain_check + ('; the ARX written in its place' if fitted.fallback else ''))
+    written, result = fitted.model, fitted.result
+    written_held = held_w if written is model else Windows.from_trajectories(
+        held, written.norm, written.config, dtype)
     n_train, n_held = samples_in(train), samples_in(held)
-    save_checkpoint(out, fitted, result.params, {
-        'method': method, 'stage': 'adapted', 'train_loss': result.train_loss[-1],
-        'train_steps': settings.steps, 'train_samples': n_train, 'seed': config.seed,
-        'heldout_loss': result.heldout_loss[-1], 'meta_checkpoint': checkpoint,
+    save_checkpoint(out, written, result.params, {
+        'method': method, 'stage': 'adapted', 'train_loss': fitted.train_loss,
+        'train_steps': fitted.steps, 'train_samples': n_train, 'seed': config.seed,
+        'heldout_loss': fitted.heldout_loss, 'meta_checkpoint': checkpoint,
         'recording': recording, 'mapping': mapping_path, 'dt': mapping.dt})
     report = {
         'recording': recording, 'kind': recorded.kind, 'clock': recorded.clock,
         'cut_short': recorded.cut_short,
         'mapping': mapping_path, 'checkpoint': checkpoint, 'out': out, 'method': method,
-        'steps': settings.steps, 'lr': settings.lr, 'rule': settings.rule,
-        'cg_steps': settings.cg_steps,
-        'gamma': 0.0 if method in (SUPERVISED, ARX) else settings.gamma, 'seed': config.seed,
-        'settings_from': settings_from,
+        'steps': steps.steps, 'lr': steps.lr, 'rule': steps.rule, 'cg_steps': steps.cg_steps,
+        'gamma': 0.0 if method in (SUPERVISED, ARX) else steps.gamma, 'seed': config.seed,
+        'arx_order': settings.arx_order, 'settings_from': settings_from,
+        'gain_check': fitted.gain_check, 'fallback': fitted.fallback,
         'history': cfg.history, 'loss_horizon': cfg.loss_horizon,
         'outputs': [o.name for o in mapping.outputs], 'units': [o.unit for o in mapping.outputs],
         'samples': {
@@ -252,8 +269,8 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         'heldout': {
             'meta': {'loss': heldout_loss(model, ckpt.params, held_w),
                      'rmse': tstep_rmse(model, ckpt.params, held_w)},
-            'adapted': {'loss': result.heldout_loss[-1],
-                        'rmse': tstep_rmse(fitted, result.params, fitted_held)}},
+            'adapted': {'loss': fitted.heldout_loss,
+                        'rmse': tstep_rmse(written, result.params, written_held)}},
         'curve': {'train_loss': result.train_loss, 'heldout_loss': result.heldout_loss,
                   'rates': result.rates},
         'elapsed_s': time.monotonic() - start}
@@ -282,6 +299,9 @@ def report_markdown(report: Dict[str, Any]) -> str:
              f"from {report['checkpoint']}; H = {report['history']}, "
              f"T = {report['loss_horizon']}; written to {report['out']}.", '',
              *([f"**{report['cut_short']}.**", ''] if report['cut_short'] else []),
+             *([f"**{report['gain_check']}: the ARX({report['arx_order']}) of the same samples "
+                'is written in its place (the curve below is the adaptation\'s).**', '']
+               if report['fallback'] else []),
              '| samples | count |', '|---|---|',
              f"| on the grid (dt = {s['dt']:g} s, from t = {s['first_time']:.3f} s) | "
              f"{s['grid']} |", f"| usable | {s['usable']} |",
@@ -303,5 +323,5 @@ def report_markdown(report: Dict[str, Any]) -> str:
     return '\n'.join(lines) + '\n'
 
 
-__all__ = ['OfflineConfig', 'OfflineError', 'run_offline', 'report_markdown', 'resolve_method',
-           'tstep_rmse', 'ARX', 'SUPERVISED']
+__all__ = ['Experiment', 'OfflineConfig', 'OfflineError', 'adapt_settings', 'run_offline',
+           'report_markdown', 'resolve_method', 'steps_text', 'tstep_rmse']

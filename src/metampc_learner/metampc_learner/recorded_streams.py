@@ -70,8 +70,8 @@ def _stream(stamps: Sequence[float], values: Sequence[np.ndarray], width: int,
     return Stream(stamps[order], values[order], columns)
 
 
-def read_recording(path: str, mapping: MachineMapping, time_column: Optional[str] = None,
-                   progress: bool = False) -> Recorded:
+def read_streams(path: str, mapping: MachineMapping, time_column: Optional[str] = None,
+                 progress: bool = False) -> Recorded:
     """A CSV (name ending ``.csv``) or a bag at `path`; `time_column`: the CSV's (None: `time`
     if it has one, else one row per dt); `progress`: a progress bar on a terminal (bags)."""
     if path.lower().endswith('.csv'):
@@ -290,5 +290,5 @@ def read_csv(path: str, mapping: MachineMapping, time_column: Optional[str] = No
                     'csv', clock, rows_read, unreadable)
 
 
-__all__ = ['RecordingError', 'Stream', 'Recorded', 'read_recording', 'read_bag', 'read_csv',
+__all__ = ['RecordingError', 'Stream', 'Recorded', 'read_streams', 'read_bag', 'read_csv',
            'TIME_COLUMN']

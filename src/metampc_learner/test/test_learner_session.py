@@ -230,7 +230,7 @@ def test_the_gain_check_flies_the_arx_in_place_of_a_model_of_the_wrong_sign(monk
     of its samples is published; negated (its B times -1) it is refused and the ARX that
     Adapt(method='arx') fits on the same samples flies in its place, under the method's name;
     the loop adapts that model from itself."""
-    import metampc_learner.learner_session as session_module
+    import metampc_learner.target_fit as fit_module
     from metampc_learner.gain_check import gain_verdict
     from metampc_model.predictor import NssmPredictor
     cfg = _config(gain_check=True)
@@ -254,13 +254,13 @@ def test_the_gain_check_flies_the_arx_in_place_of_a_model_of_the_wrong_sign(monk
             result = adapt(*args, **kwargs)
             return replace(result, params={**result.params, 'B': factor * result.params['B']})
         return adapted
-    monkeypatch.setattr(session_module, 'adapt', signed(sign))
+    monkeypatch.setattr(fit_module, 'adapt', signed(sign))
     kept = session.adapt(AdaptJob('', 4, 0.05, 0.0, 0), samples, None)
     assert kept.fallback == '' and kept.gain_check.startswith('gain check passed')
     assert torch.equal(kept.record.params['B'], sign * plain.params['B'])
     assert kept.record.model.config == meta.model.config
 
-    monkeypatch.setattr(session_module, 'adapt', signed(-sign))
+    monkeypatch.setattr(fit_module, 'adapt', signed(-sign))
     out = session.adapt(AdaptJob('', 4, 0.05, 0.0, 0), samples, None)
     assert out.fallback == 'arx' and 'disagrees in sign' in out.gain_check
     assert (out.record.method, out.record.stage) == ('maml', 'adapted')

@@ -2,10 +2,12 @@
 split as the learner node's, the learner's own adaptation and its checkpoint; the reported
 T-step RMSE against the controller's numpy predictor; methods and settings resolved, and inputs
 that do not fit refused with one line."""
+from dataclasses import replace
 import json
 
 import numpy as np
 import pytest
+import torch
 
 from metampc_model.nssm import Nssm
 from metampc_model.nssm_config import NssmConfig
@@ -13,8 +15,10 @@ from metampc_model.predictor import NssmPredictor
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import Trajectory, Windows
 from metampc_learner.grid_samples import REASONS
-from metampc_learner.offline_adaptation import (adapt_settings, OfflineConfig, OfflineError,
-                                                resolve_method, run_offline, tstep_rmse)
+from metampc_learner.learner_params import default_config
+from metampc_learner.offline_adaptation import (adapt_settings, Experiment, OfflineConfig,
+                                                OfflineError, resolve_method, run_offline,
+                                                tstep_rmse)
 
 pytestmark = pytest.mark.xdist_group('robot_recording')
 
@@ -147,29 +151,40 @@ def test_the_method_is_the_checkpoints_or_supervised():
         resolve_method('', {'method': 'oracle'}, 'm.pt')
 
 
-def test_settings_come_from_the_command_line_then_the_config_file_then_the_defaults(tmp_path):
-    config = tmp_path / 'experiment.yaml'
-    config.write_text('adapt:\n  maml: {steps: 7, lr: 0.2}\n  imaml: {steps: 9}\n')
-    settings, where = adapt_settings('maml', OfflineConfig(lr=0.5, config_file=str(config)))
-    assert (settings.steps, settings.lr, settings.gamma) == (7, 0.5, 0.0)
-    assert where == f'lr given, steps from {config}'
-    settings, where = adapt_settings('supervised', OfflineConfig(config_file=str(config)))
-    assert (settings.steps, settings.lr, where) == (20, 0.05, "the learner's defaults")
+def _experiment(learner_keys=(), requests=None, **learner):
+    """The settings an experiment file gives (as ``metampc_bringup.adapt_offline`` reads
+    them): the learner's defaults with `learner`'s fields replaced."""
+    cfg = default_config()
+    adapt = {k: learner.pop(k) for k in ('rule', 'cg_steps') if k in learner}
+    return Experiment('experiment.yaml', replace(cfg, adapt=replace(cfg.adapt, **adapt),
+                                                 **learner), requests or {}, learner_keys)
+
+
+def test_settings_come_from_the_command_line_then_the_experiment_then_the_defaults():
+    experiment = _experiment(requests={'maml': {'steps': 7, 'lr': 0.2}, 'imaml': {'steps': 9}})
+    settings, where = adapt_settings('maml', OfflineConfig(lr=0.5, experiment=experiment))
+    assert (settings.adapt.steps, settings.adapt.lr, settings.adapt.gamma) == (7, 0.5, 0.0)
+    assert where == 'lr given, steps from experiment.yaml'
+    settings, where = adapt_settings('supervised', OfflineConfig(experiment=experiment))
+    assert (settings.adapt.steps, settings.adapt.lr, where) == (20, 0.05,
+                                                                "the learner's defaults")
+    assert (settings.arx_order, settings.gain_check, settings.seed) == (2, False, 0)
+    settings, where = adapt_settings('maml', OfflineConfig(
+        arx_order=3, seed=4, experiment=_experiment(('gain_check',), gain_check=True)))
+    assert (settings.arx_order, settings.gain_check, settings.seed) == (3, True, 4)
+    assert where == 'arx_order given, gain_check from experiment.yaml'
     with pytest.raises(OfflineError, match='^adaptation settings: lr'):
         adapt_settings('maml', OfflineConfig(lr=-1.0))
-    with pytest.raises(OfflineError, match=r'^--config .*nowhere.yaml: \[Errno 2\]'):
-        adapt_settings('maml', OfflineConfig(config_file=str(tmp_path / 'nowhere.yaml')))
 
 
-def test_the_rule_comes_from_the_command_line_then_the_configs_learner_section(tmp_path):
-    config = tmp_path / 'pendulum.yaml'
-    config.write_text('learner:\n  adapt_rule: gauss_newton\n  adapt_cg_steps: 12\n')
-    settings, where = adapt_settings('imaml', OfflineConfig(config_file=str(config)))
-    assert (settings.rule, settings.cg_steps) == ('gauss_newton', 12)
-    assert where == f'rule from {config}, cg_steps from {config}'
+def test_the_rule_comes_from_the_command_line_then_the_experiments_learner():
+    experiment = _experiment(('adapt_rule', 'adapt_cg_steps'), rule='gauss_newton', cg_steps=12)
+    settings, where = adapt_settings('imaml', OfflineConfig(experiment=experiment))
+    assert (settings.adapt.rule, settings.adapt.cg_steps) == ('gauss_newton', 12)
+    assert where == 'rule from experiment.yaml, cg_steps from experiment.yaml'
     settings, where = adapt_settings('imaml', OfflineConfig(rule='gradient',
-                                                            config_file=str(config)))
-    assert (settings.rule, settings.cg_steps) == ('gradient', 12)
+                                                            experiment=experiment))
+    assert (settings.adapt.rule, settings.adapt.cg_steps) == ('gradient', 12)
     with pytest.raises(OfflineError, match='^adaptation settings: rule must be one of '
                        "gradient, gauss_newton, got 'newton'$"):
         adapt_settings('imaml', OfflineConfig(rule='newton'))
@@ -177,16 +192,15 @@ def test_the_rule_comes_from_the_command_line_then_the_configs_learner_section(t
         adapt_settings('imaml', OfflineConfig(rule='gauss_newton', cg_steps=0))
 
 
-def test_a_gauss_newton_rule_of_the_config_is_the_one_that_adapts(robot_bag, robot_meta,
-                                                                  mapping_file, tmp_path):
-    """The config file's rule and the same rule given run the same steps (bit for bit), and
+def test_a_gauss_newton_rule_of_the_experiment_is_the_one_that_adapts(robot_bag, robot_meta,
+                                                                      mapping_file, tmp_path):
+    """The experiment's rule and the same rule given run the same steps (bit for bit), and
     they are Levenberg-Marquardt steps: rates 1 / damping, above --lr's backtracked ones."""
-    config = tmp_path / 'experiment.yaml'
-    config.write_text('learner:\n  adapt_rule: gauss_newton\n  adapt_cg_steps: 5\n')
+    experiment = _experiment(('adapt_rule', 'adapt_cg_steps'), rule='gauss_newton', cg_steps=5)
     lines = []
     run = dict(steps=2, lr=1.0, samples=300, holdout=0.25)
     listed = run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'a.pt'),
-                         OfflineConfig(**run, config_file=str(config)), lines.append)
+                         OfflineConfig(**run, experiment=experiment), lines.append)
     given = run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'b.pt'),
                         OfflineConfig(**run, rule='gauss_newton', cg_steps=5))
     assert (listed['rule'], listed['cg_steps']) == ('gauss_newton', 5)
@@ -195,6 +209,38 @@ def test_a_gauss_newton_rule_of_the_config_is_the_one_that_adapts(robot_bag, rob
     assert all(r > 1.0 for r in rates if r)
     assert listed['heldout']['adapted']['loss'] < listed['heldout']['meta']['loss']
     assert any('2 Levenberg-Marquardt steps (5 CG iterations each)' in line for line in lines)
+
+
+def test_an_adapted_model_of_the_wrong_gain_sign_is_refused_and_the_arx_written(
+        robot_bag, robot_meta, mapping_file, tmp_path):
+    """Issue 53: the gain check applied through the Adapt service only. With the learner's
+    gain_check on, the robot's meta-model taken as it is (0 steps) agrees in sign with the
+    ARX of its samples and is written; its B negated (the gain's sign flipped) it is refused
+    and the checkpoint written is the ARX that --method arx fits on the same samples."""
+    ckpt = load_checkpoint(robot_meta)
+    flipped = str(tmp_path / 'flipped.pt')
+    save_checkpoint(flipped, ckpt.model, {**ckpt.params, 'B': -ckpt.params['B']}, ckpt.info)
+    check = dict(steps=0, samples=300, holdout=0.25,
+                 experiment=_experiment(('gain_check',), gain_check=True))
+    kept = run_offline(str(robot_bag), mapping_file, robot_meta, str(tmp_path / 'kept.pt'),
+                       OfflineConfig(**check))
+    assert kept['fallback'] == '' and kept['gain_check'].startswith('gain check passed')
+    lines = []
+    out = str(tmp_path / 'refused.pt')
+    refused = run_offline(str(robot_bag), mapping_file, flipped, out, OfflineConfig(**check),
+                          lines.append)
+    assert refused['fallback'] == 'arx' and 'disagrees in sign' in refused['gain_check']
+    assert any(line.endswith('the ARX written in its place') for line in lines)
+    arx = str(tmp_path / 'arx.pt')
+    fitted = run_offline(str(robot_bag), mapping_file, robot_meta, arx,
+                         OfflineConfig(method='arx', samples=300, holdout=0.25))
+    written, expected = load_checkpoint(out), load_checkpoint(arx)
+    assert written.model.config == expected.model.config
+    assert all(torch.equal(written.params[k], expected.params[k]) for k in expected.params)
+    assert (written.info['method'], written.info['train_steps']) == ('maml', 0)
+    assert refused['heldout']['adapted'] == fitted['heldout']['adapted']
+    with open(out[:-3] + '.md') as f:
+        assert '**gain check: its steady-state gain' in f.read()
 
 
 def test_a_checkpoint_of_other_sizes_or_too_few_samples_is_one_line(robot_bag, robot_meta,

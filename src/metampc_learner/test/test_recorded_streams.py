@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from metampc_plant.machine_mapping import load_mapping, parse_mapping
-from metampc_learner.recorded_streams import (read_bag, read_csv, read_recording,
+from metampc_learner.recorded_streams import (read_bag, read_csv, read_streams,
                                               RecordingError)
 
 pytestmark = pytest.mark.xdist_group('robot_recording')
@@ -150,7 +150,7 @@ def test_csv_columns_are_the_fields_with_scale_and_offset(tmp_path):
         {'name': 'tau', 'field': 'data[0]', 'scale': -4.0, 'offset': 0.5, 'min': -1.0,
          'max': 1.0, 'safe': 0.0}])
     path = write(tmp_path / 'log.csv', 'tau,qd,time,q\n2.5,0.5,10.0,1\n-1.5,,10.5,2\n')
-    got = read_recording(path, scaled)
+    got = read_streams(path, scaled)
     (y,) = got.outputs
     assert y.stamps.tolist() == [10.0, 10.5] and got.command.stamps.tolist() == [10.0, 10.5]
     np.testing.assert_array_equal(y.values, [[3.0, 0.5], [5.0, np.nan]])
@@ -193,6 +193,6 @@ def test_a_csv_that_does_not_fit_is_one_line(tmp_path, mapping, text, options, m
 
 def test_a_missing_csv_or_a_time_column_for_a_bag_is_one_line(tmp_path, robot_bag, mapping):
     with pytest.raises(RecordingError, match=r'^cannot read .*gone.csv: No such file'):
-        read_recording(str(tmp_path / 'gone.csv'), mapping)
+        read_streams(str(tmp_path / 'gone.csv'), mapping)
     with pytest.raises(RecordingError, match='a time column is for a CSV, not a bag'):
-        read_recording(str(robot_bag), mapping, time_column='t')
+        read_streams(str(robot_bag), mapping, time_column='t')

@@ -31,6 +31,8 @@ from metampc_bringup.experiment_events import (Adapted, BufferingStopped, Collec
                                                TrackEnd, TrackStart)
 from metampc_learner.heldout import (HELDOUT_STREAM, heldout_seed, model_heldout_loss,
                                      plant_source, target_heldout)
+from metampc_learner.meta_train import META_METHODS
+from metampc_learner.target_fit import ARX
 from metampc_model.weights_codec import (DecodedNarx, DecodedWeights, fields_of,
                                          model_from_fields)
 from metampc_recording.recording_reader import read_recording
@@ -301,8 +303,12 @@ def _tracking_cost(report: Dict, method: str) -> float:
     return float(tracking['tracking']['cost'])
 
 
-# Pairwise claims 'a < b' with statistics; the chain of (b) is the first two.
+# Claim (b): the held-out target losses in this order.
+B_ORDER = ('imaml', 'maml', 'supervised')
+# Pairwise claims 'a < b' with statistics; the chain of (b) is the first two; (a) the first.
 ADAPT_PAIRS = (('imaml', 'maml'), ('maml', 'supervised'), ('imaml', 'supervised'))
+# The yardsticks (true model, target's own data): compared 'vs', no curve in Fig. 3.
+REFERENCES = ('nmpc', 'oracle')
 # The linear ARX baseline (learner method 'arx'): the yardstick of the meta-learned models.
 ARX_PAIRS = (('imaml', 'arx'), ('maml', 'arx'))
 TRACKING_PAIRS = (('imaml', 'maml'), ('imaml', 'supervised'), ('maml', 'supervised'),
@@ -333,10 +339,10 @@ def claims(reports: List[Dict]) -> Dict[str, Any]:
     final = [(_final(r, 'imaml'), _final(r, 'maml')) for r in reports]
     out['a_meta_loss_imaml_below_maml'] = {
         'final_losses': final, 'holds': sum(1 for i, m in final if i < m),
-        'stats': pairwise([{'imaml': i, 'maml': m} for i, m in final], [('imaml', 'maml')])}
+        'stats': pairwise([{'imaml': i, 'maml': m} for i, m in final], ADAPT_PAIRS[:1])}
     b = {}
     for k in K_STEPS:
-        values = [{m: _adapt_loss(r, m, k) for m in ('imaml', 'maml', 'supervised')}
+        values = [{m: _adapt_loss(r, m, k) for m in B_ORDER}
                   for r in reports]
         b[str(k)] = {'losses': values,
                      'holds': sum(1 for v in values
@@ -345,7 +351,7 @@ def claims(reports: List[Dict]) -> Dict[str, Any]:
     out['b_adaptation_order'] = b
     large = {}     # the same pairs on >= 2000 independent samples: meta-model, adapted model
     for stage in ('meta', 'adapted'):
-        values = [{m: _heldout(r, m, stage) for m in ('imaml', 'maml', 'supervised', 'arx')}
+        values = [{m: _heldout(r, m, stage) for m in (*B_ORDER, ARX)}
                   for r in reports]
         large[stage] = {'losses': values, 'stats': pairwise(values, ADAPT_PAIRS + ARX_PAIRS)}
     out['b_heldout_large'] = large
@@ -391,7 +397,7 @@ def _median(values: Sequence[float]) -> float:
 def _claim_name(key: str) -> str:
     """'imaml<maml' as 'iMAML < MAML'; against a reference 'iMAML vs NMPC'."""
     a, b = key.split('<')
-    return f"{NAMES.get(a, a)} {'vs' if b in ('nmpc', 'oracle') else '<'} {NAMES.get(b, b)}"
+    return f"{NAMES.get(a, a)} {'vs' if b in REFERENCES else '<'} {NAMES.get(b, b)}"
 
 
 def _claim_row(label: str, stats: Dict[str, Any]) -> str:
@@ -449,14 +455,14 @@ def markdown(report: Dict[str, Any]) -> str:
     medians = ['', '### Median values over seeds', '', '| quantity | median |', '|---|---|']
     compared = set(report['methods'])
     a = cl['a_meta_loss_imaml_below_maml']
-    if {'imaml', 'maml'} <= compared:
+    if set(ADAPT_PAIRS[0]) <= compared:
         lines += [_claim_row(f'(a) final meta-training loss: {_claim_name(key)}', stats)
                   for key, stats in a['stats'].items()]
         medians.append('| (a) final meta-training loss | iMAML '
                        f"{_fmt(_median([i for i, _ in a['final_losses']]))}, MAML "
                        f"{_fmt(_median([m for _, m in a['final_losses']]))} |")
     for k, entry in cl['b_adaptation_order'].items():
-        if not {'imaml', 'maml', 'supervised'} <= compared:
+        if not set(B_ORDER) <= compared:
             break
         if all(math.isnan(x) for v in entry['losses'] for x in v.values()):
             lines.append(f'| (b) held-out target loss after {k} steps | not measured '
@@ -468,7 +474,7 @@ def markdown(report: Dict[str, Any]) -> str:
                   for key, stats in entry['stats'].items()]
         medians.append(f'| (b) held-out target loss after {k} steps | ' + ', '.join(
             f"{NAMES.get(m, m)} {_fmt(_median([v[m] for v in entry['losses']]))}"
-            for m in ('imaml', 'maml', 'supervised')) + ' |')
+            for m in B_ORDER) + ' |')
     for stage, entry in cl.get('b_heldout_large', {}).items():
         lines += [_claim_row(f'(b) {stage} model on the large held-out set: '
                              f'{_claim_name(key)}', stats)
@@ -508,11 +514,11 @@ def experiment_report(seed_reports: List[Dict], out_dir: str, config: Dict[str, 
     """Gather per-seed reports into `out_dir`: report.json, report.md and the figures."""
     methods = list(config['methods'])
     figures = []
-    meta = [m for m in methods if m in ('imaml', 'maml', 'maml_unrolled')]
+    meta = [m for m in methods if m in META_METHODS]
     fig2 = plot_loss_figure(seed_reports, meta, 'meta_train',
                             os.path.join(out_dir, 'fig2_meta_training.png'),
                             'Meta-training loss (Fig. 2)', 'outer step')
-    fig3 = plot_loss_figure(seed_reports, [m for m in methods if m not in ('nmpc', 'oracle')],
+    fig3 = plot_loss_figure(seed_reports, [m for m in methods if m not in REFERENCES],
                             'adapt',
                             os.path.join(out_dir, 'fig3_adaptation.png'),
                             'Held-out target loss during adaptation (Fig. 3)',

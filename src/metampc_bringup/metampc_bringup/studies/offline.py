@@ -23,12 +23,13 @@ import torch
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.experiment_config import ExperimentConfig, learner_config, load
 from metampc_bringup.studies.pruning import pruned_at, REPORT_EVERY, reports
-from metampc_learner.adapt import adapt, AdaptConfig, AdaptResult, GAUSS_NEWTON, supervised
+from metampc_learner.adapt import GAUSS_NEWTON
 from metampc_learner.data import (normalisation_from, simulate_source, simulate_target,
-                                  SourceSet, Windows)
-from metampc_learner.learner_params import LearnerNodeConfig
+                                  SourceSet, Trajectory)
+from metampc_learner.learner_params import AdaptJob, fit_settings, LearnerNodeConfig
 from metampc_learner.meta_train import meta_train, MetaConfig, MetaTrainingError
 from metampc_learner.progress import Progress
+from metampc_learner.target_fit import fit_target, TargetFit
 from metampc_model.nssm import Nssm
 from metampc_model.weights_codec import DecodedWeights, WeightsError
 from metampc_plant.family import PlantFamily
@@ -97,12 +98,13 @@ class ControlScoring:
 
 @dataclass
 class Validation:
-    """The set-up of one source set: NSSM with its normalisation, source set, target windows."""
+    """The set-up of one source set: NSSM with its normalisation, source set, and per target
+    its adaptation and held-out trajectories (physical)."""
 
     model: Nssm
     source: SourceSet
-    train: List[Windows]
-    heldout: List[Windows]
+    train: List[List[Trajectory]]
+    heldout: List[List[Trajectory]]
 
 
 @dataclass
@@ -215,7 +217,7 @@ def track(scoring: 'ControlScoring', theta: Sequence[float], model) -> float:
 def build_validation(settings: Settings, source_seed: int, nssm: Dict[str, Any],
                      target_theta: Optional[Sequence[float]] = None,
                      heldout_samples: int = HELDOUT_SAMPLES) -> Validation:
-    """Simulate a source set and the targets' adaptation and held-out data: the validation
+    """Simulate a source set and the targets' adaptation and held-out trajectories: the validation
     targets (the same data for every source set), or the one test target `target_theta`
     (data seeded by :func:`target_data_seeds` of `source_seed`); the normalisation is the
     source set's."""
@@ -234,12 +236,9 @@ def build_validation(settings: Settings, source_seed: int, nssm: Dict[str, Any],
     attempts = max(20, 4 * math.ceil(heldout_samples / cfg.source.episode_samples))
     train, heldout = [], []
     for theta, train_seed, heldout_seed in targets:
-        train.append(Windows.from_trajectories(
-            simulate_target(theta, one_episode, settings.target_samples, train_seed),
-            model.norm, nssm_config))
-        heldout.append(Windows.from_trajectories(
-            simulate_target(theta, cfg.source, heldout_samples, heldout_seed, attempts),
-            model.norm, nssm_config))
+        train.append(simulate_target(theta, one_episode, settings.target_samples, train_seed))
+        heldout.append(simulate_target(theta, cfg.source, heldout_samples, heldout_seed,
+                                       attempts))
     return Validation(model, source, train, heldout)
 
 
@@ -364,25 +363,26 @@ def run_job(job: Job) -> dict:
     out['adapt'] = []
     start = time.monotonic()
     scoring = settings.control if job.target_theta is None else None
-    learner = settings.learner.adapt    # the experiment's step rule, as its learner adapts
+    learner = settings.learner    # the experiment's step rule and gain check, as it adapts
     # gauss_newton takes no step size: one is scored, the others would repeat it.
-    for lr in job.lrs[:1] if learner.rule == GAUSS_NEWTON else job.lrs:
-        step = AdaptConfig(steps=settings.adapt_steps, lr=lr, rule=learner.rule,
-                           cg_steps=learner.cg_steps)
+    for lr in job.lrs[:1] if learner.adapt.rule == GAUSS_NEWTON else job.lrs:
+        fit = replace(fit_settings(learner, AdaptJob(job.method, settings.adapt_steps, lr,
+                                                     0.0, 0)), seed=VALIDATION_SEED)
         curves: List[List[float]] = []
         ratios: List[float] = []
         for i, (train, held) in enumerate(zip(val.train, val.heldout)):
             try:
-                res: AdaptResult = (
-                    supervised(val.model, train, held, step, seed=VALIDATION_SEED)
-                    if params is None else adapt(val.model, params, train, held, step))
-                curves.append(res.heldout_loss)
+                fitted: Optional[TargetFit] = fit_target(job.method, val.model, params, train,
+                                                         held, fit)
+                curves.append(fitted.result.heldout_loss)
             except ValueError:
                 curves.append([math.inf] * (settings.adapt_steps + 1))
-                res = None
+                fitted = None
             if scoring is not None:
-                cost = math.inf if res is None else track(
-                    scoring, settings.thetas[i], (val.model.config, val.model.norm, res.params))
+                flown = None if fitted is None else fitted.model   # the ARX where refused
+                cost = math.inf if fitted is None else track(
+                    scoring, settings.thetas[i], (flown.config, flown.norm,
+                                                  fitted.result.params))
                 ratios.append(cost / scoring.nmpc[i])
         final = [c[-1] for c in curves]
         entry = {'lr': lr, 'score': float(np.mean(final)), 'heldout_final': final,

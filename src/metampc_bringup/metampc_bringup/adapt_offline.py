@@ -1,11 +1,11 @@
-"""`ros2 run metampc_learner adapt_offline`: adaptation from a recording, on the command line.
+"""`ros2 run metampc_bringup adapt_offline`: adaptation from a recording, on the command line.
 
-    ros2 run metampc_learner adapt_offline RECORDING MAPPING CHECKPOINT --out ADAPTED.pt
-        [--method M] [--steps N] [--lr R] [--gamma G] [--rule R] [--cg-steps N]
-        [--config YAML] [--samples N]
-        [--holdout F] [--seed S] [--keep-saturated] [--time-column NAME] [--arx-order P]
+    ros2 run metampc_bringup adapt_offline RECORDING MAPPING CHECKPOINT --out ADAPTED.pt
+        [--method M] [--steps N] [--lr R] [--gamma G] [--rule R] [--cg-steps N] [--config F]
+        [--samples N] [--holdout F] [--seed S] [--keep-saturated] [--time-column C] [--arx-order P]
 
-A thin layer over :mod:`.offline_adaptation`: it writes ADAPTED.pt, ADAPTED.json and
+A thin layer over ``metampc_learner.offline_adaptation``, with --config read by the experiment
+configuration's reader (:func:`experiment_settings`): it writes ADAPTED.pt, ADAPTED.json and
 ADAPTED.md, prints the markdown report, and logs each phase and step on stderr. Bad input (a
 wrong mapping, a topic or column missing, a checkpoint that does not fit) is one line on stderr
 and exit status 2; a file that does not exist, an --out that exists or whose folder does not,
@@ -49,8 +49,8 @@ class LaterChoices:
 
 
 METHOD_CHOICES = LaterChoices('metampc_learner.meta_train:META_METHODS',
-                              'metampc_learner.offline_adaptation:SUPERVISED',
-                              'metampc_learner.offline_adaptation:ARX')
+                              'metampc_learner.target_fit:SUPERVISED',
+                              'metampc_learner.target_fit:ARX')
 RULE_CHOICES = LaterChoices('metampc_learner.adapt:RULES')
 
 
@@ -92,7 +92,8 @@ def parser() -> argparse.ArgumentParser:
                    '(default: --config, else 30)')
     p.add_argument('--config', default='', help='an experiment configuration whose adapt.<method> '
                    'gives the defaults of --steps, --lr, --gamma and whose learner section those '
-                   'of --rule, --cg-steps (e.g. config/pendulum.yaml)')
+                   'of --rule, --cg-steps, --arx-order and the gain check, as its learner node '
+                   'takes them (e.g. config/pendulum.yaml)')
     p.add_argument('--samples', type=_count, default=0,
                    help='use the first N usable samples (default 0: all)')
     p.add_argument('--holdout', type=_fraction, default=0.2,
@@ -101,8 +102,8 @@ def parser() -> argparse.ArgumentParser:
                    'weights (default 0)')
     p.add_argument('--keep-saturated', action='store_true',
                    help='keep samples whose input is at a bound (default: skip them)')
-    p.add_argument('--arx-order', type=int, default=2, help='order p of --method arx '
-                   '(default 2)')
+    p.add_argument('--arx-order', type=int, help='order p of --method arx and of the gain '
+                   "check's ARX (default: --config, else 2)")
     p.add_argument('--time-column', help='the CSV\'s time column, s (default: "time" if it has '
                    'one, else one row per dt)')
     return p
@@ -125,6 +126,23 @@ def check_paths(opts: argparse.Namespace) -> Optional[str]:
     return None
 
 
+def experiment_settings(path: str, seed: int):
+    """What the experiment configuration `path` says about adaptation
+    (``offline_adaptation.Experiment``), read by its own reader: the learner configuration of
+    its run `seed`, its Adapt request fields by method, the learner parameters it sets.
+
+    Raises:
+        ConfigError (ValueError): an unreadable or invalid file.
+    """
+    from metampc_bringup.experiment_config import learner_config, load
+    from metampc_learner.learner_params import ADAPT_METHODS
+    from metampc_learner.offline_adaptation import Experiment
+    experiment = load(path)
+    return Experiment(path, learner_config(experiment, seed),
+                      {m: experiment.adapt_request(m) for m in ADAPT_METHODS},
+                      tuple(experiment.learner))
+
+
 def main(args=None) -> int:
     """Run the command; its exit status (0, or 2 for bad input)."""
     p = parser()
@@ -136,17 +154,18 @@ def main(args=None) -> int:
     METHOD_CHOICES.check(p, '--method', opts.method)
     RULE_CHOICES.check(p, '--rule', opts.rule)
     from metampc_learner.offline_adaptation import OfflineConfig, report_markdown, run_offline
-    config = OfflineConfig(method=opts.method or '', steps=opts.steps, lr=opts.lr,
-                           gamma=opts.gamma, rule=opts.rule, cg_steps=opts.cg_steps,
-                           config_file=opts.config, samples=opts.samples,
-                           holdout=opts.holdout, seed=opts.seed,
-                           keep_saturated=opts.keep_saturated, time_column=opts.time_column,
-                           arx_order=opts.arx_order)
 
     def log(text: str) -> None:
         print(f'adapt_offline: {text}', file=sys.stderr, flush=True)
 
     try:
+        experiment = experiment_settings(opts.config, opts.seed) if opts.config else None
+        config = OfflineConfig(method=opts.method or '', steps=opts.steps, lr=opts.lr,
+                               gamma=opts.gamma, rule=opts.rule, cg_steps=opts.cg_steps,
+                               arx_order=opts.arx_order, experiment=experiment,
+                               samples=opts.samples, holdout=opts.holdout, seed=opts.seed,
+                               keep_saturated=opts.keep_saturated,
+                               time_column=opts.time_column)
         report = run_offline(opts.recording, opts.mapping, opts.checkpoint, opts.out, config,
                              log, progress=sys.stderr.isatty())
     except (OSError, ValueError) as err:
