@@ -7,7 +7,8 @@ training) and :class:`LearnerNodeConfig`.
 :data:`SECTIONS` names them with their prefixes; :data:`PARAMETERS`, :func:`parse_params` (raw
 values -> checked config, or :class:`ParameterError` naming the first bad one) and the docs'
 rows come from there. :func:`resolve_meta_request` and :func:`resolve_adapt_request` fill a
-request's 0 / empty fields from the parameters, raising ``ValueError`` for a bad request.
+request's 0 / empty fields from the parameters, raising ``ValueError`` for a bad request;
+:func:`fit_settings` is how ``target_fit.fit_target`` fits a resolved Adapt request.
 Defaults and the tuned values: docs/learner.md, config/default.yaml.
 """
 import math
