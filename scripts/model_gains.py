@@ -32,12 +32,14 @@ def main(argv=None) -> int:
     parser.add_argument('--nmpc-run', help='the run folder holding the NMPC of the same seeds')
     parser.add_argument('--u0', help='input of the linearisation, comma-separated')
     args = parser.parse_args(argv)
+    from dataclasses import replace
     import numpy as np
     from metampc_bringup.analysis.experiment_report import tracking_series, tracking_spans
     from metampc_bringup.analysis.model_gains import compare, time_constant
     from metampc_bringup.analysis.retrack import adapted_models, seed_recordings
     from metampc_bringup.experiment_events import read_events
-    from metampc_controller.model_check import check, ModelCheckConfig
+    from metampc_bringup.analysis.retrack import controller_settings
+    from metampc_controller.model_check import check
     from metampc_model.predictor import NssmPredictor
     from metampc_model.steady_gain import agreement, steady_gain
     from metampc_model.weights_codec import fields_of, weights_from_fields
@@ -74,7 +76,7 @@ def main(argv=None) -> int:
             u0 = cfg['reference_inputs'][0]
         else:
             u0 = list((np.asarray(cfg['u_min']) + np.asarray(cfg['u_max'])) / 2.0)
-        ctrl = cfg['controller']
+        settings = controller_settings(cfg['controller'])
         rec = read_recording(nmpc_recordings[seed])
         loop = tracking_series(rec, tracking_spans(read_events(rec)))['nmpc'].outputs
         nmpc_cost = nmpc[seed]['tracking']['tracking']['cost']
@@ -95,11 +97,9 @@ def main(argv=None) -> int:
             except ValueError as err:     # no steady state of the plant at u0 (or the model)
                 plant = 'n/a | n/a'
                 print(f'seed {seed}, {method}: {err}', file=sys.stderr)
-            horizon = int(ctrl['horizon'])
             scored = len(loop.y) - decoded.config.history - 50
-            verdict = check(model, None, loop.u_applied, loop.y, horizon, ModelCheckConfig(),
-                            scored=scored, offset_free=ctrl.get('offset_free', 'none'),
-                            disturbance_gain=float(ctrl.get('disturbance_gain', 0.5)))
+            verdict = check(model, None, loop.u_applied, loop.y, settings.mpc,
+                            replace(settings.model_check, model_check_as_planned=True), scored)
             cost = per['methods'][method]['tracking']['tracking']['cost'] / nmpc_cost
             by_arx = '-' if arx is None else text(agreement(
                 steady_gain(arx[1].latent), steady_gain(model.latent), tracked))

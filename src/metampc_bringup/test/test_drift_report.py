@@ -5,10 +5,12 @@ import math
 import numpy as np
 import pytest
 
+from types import SimpleNamespace
+
 from metampc_bringup.analysis.drift_report import (drift_experiment_report, MOVING_WINDOW_S,
                                                    moving_cost, RECOVERY_FACTOR, recovery_time,
-                                                   refusal_kind, refusals, run_metrics,
-                                                   RunSignals, squared_errors)
+                                                   refusals, run_metrics, RunSignals,
+                                                   squared_errors)
 
 
 def test_moving_cost_is_the_trailing_mean():
@@ -40,7 +42,12 @@ def signals(y, ref, version=None, requests=()):
                       request=np.isin(steps, requests),
                       trigger=['triggered' if k in requests else '' for k in steps],
                       ref=np.asarray(ref, float).reshape(n - 1, 1), compute=[0.2],
-                      model_status=['ok'] * (n - 1))
+                      events=[()] * (n - 1))
+
+
+def event(outcome, cause='check', reason=''):
+    """A recorded model event (metampc_msgs/ModelEvent's fields read here)."""
+    return SimpleNamespace(outcome=outcome, cause=cause, reason=reason)
 
 
 def test_run_metrics_against_hand_computed_costs():
@@ -122,42 +129,53 @@ def test_identical_runs_started_at_different_stamps_get_identical_metrics():
     assert got[0]['cost_after'] == pytest.approx(e2[300:].mean())
 
 
-def test_refusals_are_the_statuses_that_turn_to_a_new_rejection():
+def test_refusals_are_the_refused_model_events_by_cause():
+    """Every refused event, two in one status too, each with its cause as its kind; the
+    other outcomes are none (a version that would count a flown or queued model fails)."""
     sig = signals(np.zeros(8), np.zeros(7))
-    sig.model_status = ['ok', 'rejected: check: a', 'rejected: check: a', 'ok',
-                        'rejected: bad weights: nan', 'rejected: check: b', 'rejected: check: b']
-    assert refusals(sig) == [[1, 'check: a'], [4, 'bad weights: nan'], [5, 'check: b']]
-    assert run_metrics(sig, None, None, [0], 0.1)['refusals'] == refusals(sig)
+    sig.events = [(event('flew', 'unchecked'),), (event('refused', reason='check: a'),), (),
+                  (event('queued', 'unchecked'), event('flew', 'check', 'check passed: x')),
+                  (event('refused', 'weights', 'bad weights: nan'),
+                   event('refused', reason='check: b')), (event('on_trial', 'unchecked'),),
+                  (event('kept', reason='check passed: y'),)]
+    assert refusals(sig) == [[1, 'check: a', 'check'], [4, 'bad weights: nan', 'weights'],
+                             [4, 'check: b', 'check']]
+    m = run_metrics(sig, None, None, [0], 0.1)
+    assert m['refusals'] == [r[:2] for r in refusals(sig)]
+    assert m['refusal_kinds'] == {'check': 2, 'weights': 1}
 
 
 def test_a_revert_after_probation_is_counted_as_one_and_is_no_swap():
     """Model 2 flies at step 2 and is reverted to model 1 at step 5: one swap (2), one
     refusal of kind 'revert' with its whole status."""
     sig = signals(np.zeros(8), np.zeros(7), version=[1, 1, 2, 2, 2, 1, 1])
-    sig.model_status = ['ok'] * 5 + ['reverted: check: worse'] * 2
+    sig.events = [()] * 7
+    sig.events[2] = (event('flew', reason='check passed: better'),)
+    sig.events[5] = (event('reverted', reason='check: worse'),)
     m = run_metrics(sig, None, None, [0], 0.1)
     assert m['swaps'] == [2] and m['adaptations'] == 1
     assert m['refusals'] == [[5, 'reverted: check: worse']]
-    assert refusal_kind(m['refusals'][0][1]) == 'revert'
-    assert refusal_kind('check: b') == 'check'
+    assert m['refusal_kinds'] == {'revert': 1}
 
 
 def test_each_adapting_mode_is_paired_with_none_by_seed(tmp_path):
     """Two seeds: periodic costs 0.5x and 2x none's after the change (worse on 1 of 2, worst
     2, geometric mean 1); the refusals are counted by kind."""
-    def seed(k, none, periodic, refused):
+    def seed(k, none, periodic, refused, kinds):
         return {'seed': k, 'theta': [0.0], 'runs': {
             'imaml/none': {'cost_after': none},
-            'imaml/periodic': {'cost_after': periodic, 'refusals': refused}}}
-    reports = [seed(0, 2.0, 1.0, [[40, 'check: x']]),
-               seed(1, 1.0, 2.0, [[40, 'check: y'], [90, 'bad weights: z']])]
+            'imaml/periodic': {'cost_after': periodic, 'refusals': refused,
+                               'refusal_kinds': kinds}}}
+    reports = [seed(0, 2.0, 1.0, [[40, 'check: x']], {'check': 1}),
+               seed(1, 1.0, 2.0, [[40, 'check: y'], [90, 'bad weights: z']],
+                    {'check': 1, 'weights': 1})]
     config = {'drift': {'modes': ['none', 'periodic'], 'methods': ['imaml'],
                         'constant_check': False}}
     report = drift_experiment_report(reports, str(tmp_path), config, 1.0)
     row = report['table']['imaml/periodic']
     assert row['vs_none']['values'] == [0.5, 2.0] and row['vs_none']['worse'] == 1
     assert row['vs_none']['worst'] == 2.0 and row['vs_none']['geomean'] == pytest.approx(1.0)
-    assert row['refusals'] == [1, 2] and row['refusal_kinds'] == {'check': 2, 'bad weights': 1}
+    assert row['refusals'] == [1, 2] and row['refusal_kinds'] == {'check': 2, 'weights': 1}
     assert report['table']['imaml/none']['vs_none'] is None
     md = (tmp_path / 'report.md').read_text()
-    assert '| 1 of 2, 2, 1 |' in md and '3 (bad weights 1, check 2)' in md
+    assert '| 1 of 2, 2, 1 |' in md and '3 (check 2, weights 1)' in md

@@ -21,9 +21,8 @@ import numpy as np
 from metampc_controller.adaptation_trigger import AdaptationTrigger, Request
 from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_common.excitation import excitation, ExcitationConfig
-from metampc_controller.model_check import applies, check, Verdict
 from metampc_controller.local_mpc import LocalLinearMpc
-from metampc_controller.model_swap import ModelSwap
+from metampc_controller.model_gate import ModelEvent, ModelGate
 from metampc_controller.mpc import LatentMpc, MpcConfig, NO_TIME_LIMIT
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.planner import Planner, PlanResult
@@ -350,6 +349,85 @@ def bounds_exceeding(u_min: np.ndarray, u_max: np.ndarray, plant: 'PlantDescript
     return ''
 
 
+def tuning_refusal(config: ControllerConfig, n_u: int, n_y: int,
+                   plant: Optional[PlantDescription], model: Optional[ModelBundle]) -> str:
+    """What a running controller of n_u inputs and n_y outputs, on `plant` (None: not told)
+    with `model` in use, refuses of a parsed config, beyond its parse: '' or the reason
+    (other numbers of inputs or outputs; bounds beyond the plant's; an offset-free form the
+    model in use fails)."""
+    if config.n_y != n_y:
+        return f'q needs one weight per output ({n_y}), got {list(config.mpc.q)}'
+    if config.n_u not in (1, n_u):
+        return (f'r, u_min and u_max need one value per input ({n_u}) or one for all, '
+                f'got {list(np.atleast_1d(config.mpc.r))}, {list(config.mpc.u_min)}, '
+                f'{list(config.mpc.u_max)}')
+    if plant is not None and len(plant.u_min) == n_u:
+        exceeding = bounds_exceeding(*config.mpc.bounds(n_u), plant)
+        if exceeding:
+            return f'{exceeding} (plant_info): a change must stay within them'
+    if model is not None and model.latent is not None and config.mpc.offset_free != 'none':
+        try:
+            disturbance_model(model.latent, config.mpc.offset_free)
+        except ValueError as err:
+            return f'{err}, for the model in use (version {model.version})'
+    return ''
+
+
+class TickReferences:
+    """The references a tick reads: set-points overriding the reference (a node's
+    ``reference`` topic), else a table by step (an in-process caller), else the tuning's."""
+
+    def __init__(self, n_y: int):
+        self.n_y = n_y
+        self._override: Optional[np.ndarray] = None
+        self._table: Optional[np.ndarray] = None
+
+    def set_override(self, values: Sequence[float]) -> str:
+        """Set-points per output overriding the reference ([] clears); returns an error or ''."""
+        values = np.asarray(values, dtype=float)
+        if values.size == 0:
+            self._override = None
+        elif values.shape != (self.n_y,) or not np.all(np.isfinite(values)):
+            return f'expected {self.n_y} finite set-points (or none), got {values.tolist()}'
+        else:
+            self._override = values
+        return ''
+
+    def set_table(self, table: Optional[np.ndarray]) -> None:
+        """References by step for an in-process caller (online collection): row j of `table`
+        (K, n_y) is r_j of every episode from the plant's reset on, in place of the tuning's
+        reference (an override still wins); the tick answering step t reads rows t + 1..t + N,
+        so K > the last step answered + N. None: the tuning's reference again.
+
+        Raises:
+            ValueError: a table that is not (K, n_y) and finite.
+        """
+        if table is not None:
+            table = np.array(table, dtype=float)
+            if table.ndim != 2 or table.shape[1] != self.n_y or not np.all(np.isfinite(table)):
+                raise ValueError(f'references need a finite (K, {self.n_y}) table, got shape '
+                                 f'{table.shape}')
+            table.flags.writeable = False     # ticks hand out views of it (y_ref)
+        self._table = table
+
+    def horizon(self, step: int, tuning: Tuning, dt: float) -> np.ndarray:
+        """(N, n_y) references of the horizon of the tick answering `step` under `tuning`,
+        at sample time dt (s)."""
+        n = tuning.config.mpc.horizon
+        override, table = self._override, self._table
+        if override is not None:
+            out = np.empty((n, self.n_y))
+            out[:] = override
+            return out
+        if table is not None:
+            rows = table[step + 1:step + 1 + n]
+            if len(rows) < n:
+                raise ValueError(f'the reference table has {len(table)} rows; step {step} '
+                                 f'needs rows up to {step + n}')
+            return rows
+        return tuning.reference.evaluate(step * dt, dt, n)
+
+
 @dataclass
 class TickResult:
     """One answer: the input and what the MpcStatus message reports (units as there).
@@ -365,8 +443,8 @@ class TickResult:
     residual: the solver's optimality residual (:class:`~planner.PlanResult`; NaN: none).
     failed_linearisations: the model in use's ticks whose linearisation failed (a feature
         NARX's planner; 0 otherwise).
-    verdict: the check's line on an answer whose trial this tick ended ('' if none): it
-        flies from this tick (``check passed``) or was refused (model_status says so too).
+    events: the model gate's decisions since the previous answer (:mod:`model_gate`).
+    detector: the adaptation trigger's CUSUM statistic and baseline after this tick.
     config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
 
@@ -390,23 +468,70 @@ class TickResult:
     request: Optional[Request] = None
     disturbance: np.ndarray = field(default_factory=lambda: np.zeros(0))
     slack: float = 0.0
-    verdict: str = ''
+    events: Tuple[ModelEvent, ...] = ()
     residual: float = math.nan
     failed_linearisations: int = 0
+    detector: Tuple[float, float] = (0.0, math.nan)
 
 
 # No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
 NO_ERRORS = (math.nan, math.nan, math.nan)
 
 
-class ModelRefused(ValueError):
-    """A new model the check refused (the reason is the message); the model in use stays."""
-
-
 def nmpc_unavailable(reason: str) -> str:
     """The line that says the nmpc planner has no model of the plant, and why."""
     return (f'planner nmpc: the plant\'s model is not available ({reason}); answering with the '
             'pre-model input')
+
+
+class TrueModelPlanner:
+    """The planner on the plant's equations (a kind not learned: nmpc): built once per plant
+    (family, dt), theta told first, or tuning; it takes a new theta by set_theta. Its
+    ``problem``: why there is none ('' if there is one, or nothing to say yet)."""
+
+    def __init__(self, kind):
+        self.kind = kind
+        self.planner: Optional[Planner] = None
+        self.theta: Tuple[float, ...] = ()      # the newest sample's theta ((): untold)
+        self.problem = ''
+
+    def build(self, plant: Optional[PlantDescription], tuning: Tuning) -> str:
+        """Build it with the samples' theta and the tuning (NMPC: no set-up, cheap) and swap
+        it in as one reference; '' or why there is none. No sample has told theta yet: none,
+        and nothing to say."""
+        if plant is None or self.kind.learned:
+            return ''
+        try:
+            family = get_family(plant.family)
+            if not self.theta:
+                self.planner = None
+                return ''
+            planner = self.kind.build(tuning.config, TrueModel(family, self.theta, plant.dt))
+        except ValueError as err:     # unknown family, or a wrong theta
+            self.planner = None
+            return str(err)
+        self.planner = planner
+        return ''
+
+    def tell(self, theta: Tuple[float, ...], plant: Optional[PlantDescription],
+             tuning: Tuning) -> None:
+        """A sample's theta (() : untold; ControllerCore.observe)."""
+        if not theta:
+            if not self.theta:
+                self.problem = nmpc_unavailable('the plant\'s samples tell no theta')
+            return
+        if theta == self.theta:
+            return
+        self.theta = theta
+        planner, error = self.planner, ''
+        if planner is None:
+            error = self.build(plant, tuning)
+        else:
+            try:
+                planner.set_theta(theta)    # warm start kept, nothing rebuilt
+            except ValueError as err:
+                self.planner, error = None, str(err)
+        self.problem = nmpc_unavailable(error) if error else ''
 
 
 class _Setup(NamedTuple):
@@ -416,15 +541,26 @@ class _Setup(NamedTuple):
     model: Optional[ModelBundle]
     model_status: str
 
+    def after(self, events: Sequence[ModelEvent]) -> '_Setup':
+        """The set-up once the gate's `events` took effect (the model they fly, their
+        status)."""
+        setup = self
+        for event in events:
+            if event.model is not None:
+                setup = setup._replace(model=event.model)
+            if event.status is not None:
+                setup = setup._replace(model_status=event.status)
+        return setup
+
 
 class ControllerCore:
     """The controller's state and tick, in physical units (module docstring).
 
-    Threading: everything runs on the node's executor thread except :meth:`offer_model`,
-    :meth:`reject_model` and :meth:`retune`, which the node's builder thread calls, one at a
+    Threading: everything runs on the node's executor thread except :meth:`offer`,
+    :meth:`refuse` and :meth:`retune`, which the node's builder thread calls, one at a
     time and in the order of their requests. They replace one (tuning, model, status) tuple
     that a tick reads once, so a new model or tuning is swapped in between two ticks and a
-    tick never mixes two.
+    tick never mixes two. When a new model flies is the gate's (:attr:`gate`).
     """
 
     def __init__(self, config: ControllerConfig):
@@ -432,18 +568,13 @@ class ControllerCore:
         self.n_u, self.n_y = config.n_u, config.n_y
         self.history = History(MAX_HISTORY, self.n_u, self.n_y)
         self.plant: Optional[PlantDescription] = None
-        self._override: Optional[np.ndarray] = None
-        self._table: Optional[np.ndarray] = None    # set_references()
-        # The planner on the plant's equations (a kind not learned: nmpc), built once per
-        # plant, theta told first, or tuning; it takes a new theta by set_theta. A learned
-        # kind's planner is its model's (ModelBundle.mpc).
-        self._true_planner: Optional[Planner] = None
-        self._theta: Tuple[float, ...] = ()     # the newest sample's theta (nmpc; (): untold)
-        self.nmpc_problem = ''      # why the nmpc planner has no model of the plant, or ''
+        self._references = TickReferences(self.n_y)
+        self._true = TrueModelPlanner(self.kind)    # nmpc; a learned kind's is its model's
         self._setup = _Setup(Tuning.of(config, 0, self.n_u), None, 'none')
         self._setup_lock = threading.Lock()     # the builder thread and a queued swap
+        self._events: List[ModelEvent] = []     # the gate's, until a tick publishes them
         self.trigger = AdaptationTrigger(config.trigger)
-        self.swap: ModelSwap[ModelBundle] = ModelSwap(self.trigger)
+        self.gate: ModelGate[ModelBundle] = ModelGate(self.trigger, self.history.snapshot)
 
     # --- inputs from other callbacks ----------------------------------------------------
 
@@ -472,27 +603,28 @@ class ControllerCore:
     def model_status(self) -> str:
         return self._setup.model_status
 
-    def offer_model(self, bundle: ModelBundle, request_step: int = 0) -> Optional[int]:
-        """Use this model (built for :attr:`tuning`, :meth:`vet` passed) as the swap rules say
-        (builder thread, :mod:`~metampc_controller.model_swap`): the answer to the pending
-        adaptation request (`request_step` its step) is queued, and its step is returned (0:
-        the next tick), where it flies or, if :meth:`tried` says so, starts its trial; any
-        other model is used from the next tick on (None). ModelRefused: a model left to a
-        trial whose request ended meanwhile failed the check at arrival."""
-        trial = self.tried(request_step)
+    def offer(self, bundle: ModelBundle, request_step: int = 0) -> ModelEvent:
+        """A new model (built for :attr:`tuning`; builder thread), naming the adaptation
+        request of `request_step` (0: none), to the gate: the event it decided at arrival
+        (flew: in use from the next tick; queued; refused)."""
         with self._setup_lock:      # not between set_plant's clock rule and the offer
             bundle.mpc.set_time_limit(self._time_limit())
-            start = self.swap.offer(bundle, request_step, trial, self._probation(request_step))
-        if start is None and trial:
-            # Its request ended (given up) since vet() left it to a trial: a late answer now,
-            # checked at arrival like one.
-            reason = self.vet(bundle, request_step)
-            if reason:
-                raise ModelRefused(reason)
-        if start is None:
-            with self._setup_lock:
-                self._setup = self._setup._replace(model=bundle, model_status='ok')
-        return start
+        event = self.gate.offer(bundle, request_step, self.model, self.config)
+        self._take([event])
+        return event
+
+    def refuse(self, version: int, request_step: int, reason: str) -> ModelEvent:
+        """Weights that could not be built (`reason`: why; builder thread): the model in use
+        stays, the event says why."""
+        event = self.gate.refuse(version, request_step, reason)
+        self._take([event])
+        return event
+
+    def _take(self, events: List[ModelEvent]) -> None:
+        """Apply the gate's `events` to the set-up and keep them for the next tick's answer."""
+        with self._setup_lock:
+            self._setup = self._setup.after(events)
+            self._events.extend(events)
 
     def _time_limit(self, config: Optional[ControllerConfig] = None) -> float:
         """OSQP's wall-clock cap per solve for the planners (of `config`, default the
@@ -505,93 +637,14 @@ class ControllerCore:
             return NO_TIME_LIMIT
         return (config or self.config).mpc.time_limit
 
-    def vet(self, bundle: ModelBundle, request_step: int = 0) -> str:
-        """The check a new model must pass before :meth:`offer_model` (builder thread): ''
-        to fly it, else the reason (:mod:`model_check`), and the model in use stays. Under
-        ``requested`` every model naming a request is checked, late ones included; a refused
-        answer to the pending adaptation request ends that request, so that the loop goes on
-        with the model in use at once. The answer to the pending request is not checked here
-        when it is to be tried (:meth:`tried`): its trial decides. The yardstick is the model
-        in use when `bundle` is of its method (an update of it), persistence otherwise."""
-        config = self.tuning.config
-        # Any answer to one of our requests, also a late one (its request given up or
-        # forgotten by a reset), which is then used from the next tick like any model.
-        if (not applies(config.model_check, bool(request_step)) or self.tried(request_step)
-                or bundle.latent is None):     # a feature NARX: unchecked (describe())
-            return ''
-        verdict = self._verdict(bundle)
-        if verdict.ok:
-            return ''
-        self.swap.refused(request_step)
-        return verdict.reason
-
-    def tried(self, request_step: int) -> int:
-        """Samples the answer naming `request_step` is tried on before it flies (0: none; it is
-        checked at arrival, if at all): ``model_check_trial`` for the answer to the pending
-        request when the check applies and a model is in use to go on meanwhile."""
-        config = self.tuning.config
-        if (not applies(config.model_check, bool(request_step)) or self.model is None
-                or not self.swap.answers(request_step)):
-            return 0
-        return config.model_check.model_check_trial
-
-    def _probation(self, request_step: int) -> int:
-        """Samples the answer naming `request_step` is on probation for once it flies (0:
-        none): ``model_check_probation`` for the answer to the pending request when the check
-        applies."""
-        config = self.tuning.config
-        if not (applies(config.model_check, bool(request_step))
-                and self.swap.answers(request_step)):
-            return 0
-        return config.model_check.model_check_probation
-
-    def _verdict(self, bundle: ModelBundle, reference: Optional[ModelBundle] = None,
-                 **samples) -> Verdict:
-        """:func:`model_check.check` of `bundle` on the episode's samples (`samples`: check's
-        `scored` and `where`; default the latest window) against `reference` (default the
-        model in use) when `bundle` is of its method, persistence otherwise."""
-        u, y = self.history.snapshot()
-        current, config = reference or self.model, self.config
-        same = current is not None and current.method == bundle.method
-        planned = config.model_check.model_check_as_planned
-        return check(bundle.predictor, current.predictor if same else None, u, y,
-                     config.mpc.horizon, config.model_check,
-                     offset_free=config.mpc.offset_free if planned else 'none',
-                     disturbance_gain=config.mpc.disturbance_gain,
-                     current_name='the model it replaced' if reference else 'the model in use',
-                     **samples)
-
-    def reject_model(self, reason: str) -> None:
-        """Report rejected weights; the previous model stays in use (builder thread)."""
-        with self._setup_lock:
-            self._setup = self._setup._replace(model_status=f'rejected: {reason}')
-
     def waits_for_model(self) -> bool:
         """True if the newest sample's answer must wait for the requested model (lockstep:
         its swap step has come and the model is not there yet)."""
-        return self.swap.waits(self.history.step)
+        return self.gate.waits(self.history.step)
 
     def check_tuning(self, config: ControllerConfig) -> str:
-        """What the running controller refuses of a parsed config, beyond its parse: '' or
-        the reason (other numbers of inputs or outputs; bounds beyond the plant's)."""
-        if config.n_y != self.n_y:
-            return f'q needs one weight per output ({self.n_y}), got {list(config.mpc.q)}'
-        if config.n_u not in (1, self.n_u):
-            return (f'r, u_min and u_max need one value per input ({self.n_u}) or one for all, '
-                    f'got {list(np.atleast_1d(config.mpc.r))}, {list(config.mpc.u_min)}, '
-                    f'{list(config.mpc.u_max)}')
-        plant = self.plant
-        if plant is not None and len(plant.u_min) == self.n_u:
-            exceeding = bounds_exceeding(*config.mpc.bounds(self.n_u), plant)
-            if exceeding:
-                return f'{exceeding} (plant_info): a change must stay within them'
-        model = self.model
-        if model is not None and model.latent is not None and config.mpc.offset_free != 'none':
-            try:
-                disturbance_model(model.latent, config.mpc.offset_free)
-            except ValueError as err:
-                return f'{err}, for the model in use (version {model.version})'
-        return ''
+        """What the running controller refuses of a parsed config: :func:`tuning_refusal`."""
+        return tuning_refusal(config, self.n_u, self.n_y, self.plant, self.model)
 
     def retune(self, config: ControllerConfig, version: int) -> None:
         """Use `config` as tuning `version` from the next tick on (builder thread).
@@ -612,41 +665,25 @@ class ControllerCore:
             if model is not None:
                 model = rebuilt(model)
             tuning = Tuning.of(config, version, self.n_u)
-            if self._true_planner is not None:
-                self._build_true_planner(tuning)    # here, never in the tick
-            self.swap.retune(rebuilt)
+            if self._true.planner is not None:
+                self._true.build(self.plant, tuning)    # here, never in the tick
+            self.gate.retune(rebuilt)
             self._setup = setup._replace(tuning=tuning, model=model)
         self.trigger.config = config.trigger
+
+    @property
+    def nmpc_problem(self) -> str:
+        """Why the nmpc planner has no model of the plant, or ''."""
+        return self._true.problem
 
     @property
     def dt(self) -> float:
         """Sample time, s: the plant's, or 1 / rate_hz until plant_info has arrived."""
         return self.plant.dt if self.plant is not None else 1.0 / self.config.rate_hz
 
-    def _build_true_planner(self, tuning: Tuning) -> str:
-        """Build the planner on the plant's equations (plant_info: family, dt) with the
-        samples' theta and the tuning (NMPC: no set-up, cheap) and swap it in as one
-        reference; '' or why there is none. No sample has told theta yet: none, and nothing
-        to say."""
-        plant = self.plant
-        if plant is None or self.kind.learned:
-            return ''
-        try:
-            family = get_family(plant.family)
-            if not self._theta:
-                self._true_planner = None
-                return ''
-            planner = self.kind.build(tuning.config,
-                                      TrueModel(family, self._theta, plant.dt))
-        except ValueError as err:     # unknown family, or a wrong theta
-            self._true_planner = None
-            return str(err)
-        self._true_planner = planner
-        return ''
-
     def set_plant(self, plant: PlantDescription) -> List[str]:
         """Take the plant's description; returns warnings about disagreeing settings."""
-        self.swap.lockstep = plant.lockstep
+        self.gate.lockstep = plant.lockstep
         tuning = self.tuning
         cfg = tuning.config
         warnings = []
@@ -668,7 +705,7 @@ class ControllerCore:
         if known is None or known.lockstep != plant.lockstep:
             self._apply_time_limit()
         if known is None or (known.family, known.dt) != (plant.family, plant.dt):
-            error = self._build_true_planner(tuning)
+            error = self._true.build(plant, tuning)
             if error:
                 warnings.append(nmpc_unavailable(error))
         return warnings
@@ -684,35 +721,15 @@ class ControllerCore:
             limit = self._time_limit()
             if self.model is not None:
                 limited(self.model)
-            self.swap.retune(limited)
+            self.gate.retune(limited)
 
     def set_override(self, values: Sequence[float]) -> str:
-        """Set-points per output overriding the reference ([] clears); returns an error or ''."""
-        values = np.asarray(values, dtype=float)
-        if values.size == 0:
-            self._override = None
-        elif values.shape != (self.n_y,) or not np.all(np.isfinite(values)):
-            return f'expected {self.n_y} finite set-points (or none), got {values.tolist()}'
-        else:
-            self._override = values
-        return ''
+        """:meth:`TickReferences.set_override`."""
+        return self._references.set_override(values)
 
     def set_references(self, table: Optional[np.ndarray]) -> None:
-        """References by step for an in-process caller (online collection): row j of `table`
-        (K, n_y) is r_j of every episode from the plant's reset on, in place of the tuning's
-        reference (an override still wins); the tick answering step t reads rows t + 1..t + N,
-        so K > the last step answered + N. None: the tuning's reference again.
-
-        Raises:
-            ValueError: a table that is not (K, n_y) and finite.
-        """
-        if table is not None:
-            table = np.array(table, dtype=float)
-            if table.ndim != 2 or table.shape[1] != self.n_y or not np.all(np.isfinite(table)):
-                raise ValueError(f'references need a finite (K, {self.n_y}) table, got shape '
-                                 f'{table.shape}')
-            table.flags.writeable = False     # ticks hand out views of it (y_ref)
-        self._table = table
+        """:meth:`TickReferences.set_table`."""
+        self._references.set_table(table)
 
     def observe(self, step: int, u: Sequence[float], y: Sequence[float],
                 theta: Sequence[float] = ()) -> bool:
@@ -733,64 +750,31 @@ class ControllerCore:
         new_episode = self.history.append(step, u, y)
         if new_episode:
             model = self.model
-            for planner in (self._true_planner, model.mpc if model is not None else None):
+            for planner in (self._true.planner, model.mpc if model is not None else None):
                 if planner is not None:
                     planner.reset()
             self.trigger.new_episode()
-            self.swap.new_episode()
+            self.gate.new_episode()
         if not self.kind.learned:
-            self._tell_theta(tuple(theta))
+            self._true.tell(tuple(theta), self.plant, self.tuning)
         return new_episode
-
-    def _tell_theta(self, theta: Tuple[float, ...]) -> None:
-        """A sample's theta (() : untold) for the NMPC (:meth:`observe`)."""
-        if not theta:
-            if not self._theta:
-                self.nmpc_problem = nmpc_unavailable('the plant\'s samples tell no theta')
-            return
-        if theta == self._theta:
-            return
-        self._theta = theta
-        planner, error = self._true_planner, ''
-        if planner is None:
-            error = self._build_true_planner(self.tuning)
-        else:
-            try:
-                planner.set_theta(theta)    # warm start kept, nothing rebuilt
-            except ValueError as err:
-                self._true_planner, error = None, str(err)
-        self.nmpc_problem = nmpc_unavailable(error) if error else ''
 
     # --- the tick -----------------------------------------------------------------------
 
     def references(self, step: int, tuning: Optional[Tuning] = None) -> np.ndarray:
         """(N, n_y) references of the horizon of the tick answering `step` (with `tuning`,
         default the next tick's)."""
-        tuning = self.tuning if tuning is None else tuning
-        n = tuning.config.mpc.horizon
-        override, table = self._override, self._table
-        if override is not None:
-            out = np.empty((n, self.n_y))
-            out[:] = override
-            return out
-        if table is not None:
-            rows = table[step + 1:step + 1 + n]
-            if len(rows) < n:
-                raise ValueError(f'the reference table has {len(table)} rows; step {step} '
-                                 f'needs rows up to {step + n}')
-            return rows
-        dt = self.dt
-        return tuning.reference.evaluate(step * dt, dt, n)
+        return self._references.horizon(step, self.tuning if tuning is None else tuning,
+                                        self.dt)
 
     def tick(self) -> TickResult:
         """Answer the newest sample (observe() must have been called at least once)."""
         history = self.history
         step = history.step
         with self._setup_lock:  # not between a retune's rebuild of the answer and its swap
-            answer = self.swap.due(step, self.model)
-            if answer is not None:
-                self._setup = self._setup._replace(model=answer, model_status='ok')
-            verdict = self._end_trial(step) or self._end_probation(step)
+            decided = self.gate.tick(step, self.model, self.config)
+            self._setup = self._setup.after(decided)
+            events, self._events = tuple(self._events + decided), []
         tuning, model, model_status = self._setup
         u_prev = history.u
         y_ref = self.references(step, tuning)
@@ -806,7 +790,7 @@ class ControllerCore:
                                                   model.version)
                 planner, version = model.mpc, model.version
         else:
-            planner = self._true_planner
+            planner = self._true.planner
         if planner is not None:
             res = planner.solve(state, u_prev, y_ref, history.y, step)
             if model is not None:
@@ -815,63 +799,32 @@ class ControllerCore:
             res = PlanResult(u=tuning.pre_model.value(step, self.dt), u_plan=np.zeros(
                 (0, self.n_u)), y_pred=np.zeros((0, self.n_y)), cost=math.nan,
                 status=self.kind.waiting, iterations=-1, solve_time=0.0)
-        return self._answer(step, tuning, model_status, y_ref, u_prev, res, version, errors,
-                            request, verdict, failed)
+        return tick_result(step, tuning, model_status, y_ref, u_prev, res, version, errors,
+                           request, events, failed, (self.trigger.statistic,
+                                                     self.trigger.baseline))
 
-    def _end_trial(self, step: int) -> str:
-        """Judge the answer whose trial the tick of `step` ends (under the set-up lock): it
-        flies from this tick, or the model in use stays with the reason in model_status.
-        Returns the verdict's line ('' if no trial ended)."""
-        tried = self.swap.trial_over(step)
-        if tried is None:
-            return ''
-        first, bundle = tried
-        # Scored on samples first..step (the H before them as history).
-        verdict = self._verdict(bundle, scored=step - first + 1,
-                                where=f'its trial from step {first}, unseen by its adaptation')
-        self.swap.judged(step, bundle, verdict.ok, self.model)
-        self._setup = self._setup._replace(model=bundle, model_status='ok') if verdict.ok \
-            else self._setup._replace(model_status=f'rejected: {verdict.reason}')
-        return verdict.reason
 
-    def _end_probation(self, step: int) -> str:
-        """Judge the flown answer whose probation the tick of `step` ends (under the set-up
-        lock), on the samples of its own loop against the model it replaced: kept, or that
-        model comes back with the reason in model_status ('reverted: ...'). Returns the
-        verdict's line ('' if no probation ended)."""
-        over = self.swap.probation_over(step)
-        if over is None:
-            return ''
-        first, flown, replaced = over
-        verdict = self._verdict(flown, replaced, scored=step - first + 1,
-                                where=f'its probation from step {first}, on its own loop')
-        self.swap.kept(flown, verdict.ok)
-        if not verdict.ok:
-            replaced.mpc.reset()        # cold, as on a new model: its plan and p are stale
-            self._setup = self._setup._replace(model=replaced,
-                                               model_status=f'reverted: {verdict.reason}')
-        return verdict.reason
-
-    @staticmethod
-    def _answer(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,
+def tick_result(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,
                 u_prev: np.ndarray, res: PlanResult, version: int, errors: tuple,
-                request: Optional[Request], verdict: str = '', failed: int = 0) -> TickResult:
-        """The tick's result from any planner's plan, with u checked: finite (else u_prev, or
-        0, and `fallback`) and clipped into the tuning's bounds (the planners promise both;
-        the plant must get it)."""
-        u, fallback = np.asarray(res.u, dtype=float), res.fallback
-        if not all(map(math.isfinite, u.tolist())):
-            u = np.where(np.isfinite(u_prev), u_prev, 0.0)
-            fallback = True
-        u = np.maximum(u, tuning.u_min)     # np.clip's result, without its overhead
-        np.minimum(u, tuning.u_max, out=u)
-        return TickResult(step=step, u=u, planner=tuning.config.planner,
-                          model_status=model_status, y_ref=y_ref,
-                          config_version=tuning.version, q=tuning.q, fallback=fallback,
-                          model_version=version, terminal_fallback=res.terminal_fallback,
-                          solver_status=res.status, cost=float(res.cost),
-                          iterations=int(res.iterations), solve_time=res.solve_time,
-                          u_plan=res.u_plan, y_pred=res.y_pred, prediction_errors=errors,
-                          request=request, disturbance=res.disturbance, slack=res.slack,
-                          verdict=verdict, residual=res.residual,
-                          failed_linearisations=failed)
+                request: Optional[Request], events: Tuple[ModelEvent, ...] = (),
+                failed: int = 0, detector: Tuple[float, float] = (0.0, math.nan)
+                ) -> TickResult:
+    """The tick's result from any planner's plan, with u checked: finite (else u_prev, or
+    0, and `fallback`) and clipped into the tuning's bounds (the planners promise both;
+    the plant must get it)."""
+    u, fallback = np.asarray(res.u, dtype=float), res.fallback
+    if not all(map(math.isfinite, u.tolist())):
+        u = np.where(np.isfinite(u_prev), u_prev, 0.0)
+        fallback = True
+    u = np.maximum(u, tuning.u_min)     # np.clip's result, without its overhead
+    np.minimum(u, tuning.u_max, out=u)
+    return TickResult(step=step, u=u, planner=tuning.config.planner,
+                      model_status=model_status, y_ref=y_ref,
+                      config_version=tuning.version, q=tuning.q, fallback=fallback,
+                      model_version=version, terminal_fallback=res.terminal_fallback,
+                      solver_status=res.status, cost=float(res.cost),
+                      iterations=int(res.iterations), solve_time=res.solve_time,
+                      u_plan=res.u_plan, y_pred=res.y_pred, prediction_errors=errors,
+                      request=request, disturbance=res.disturbance, slack=res.slack,
+                      events=events, residual=res.residual, failed_linearisations=failed,
+                      detector=detector)

@@ -5,11 +5,11 @@ step k, held over (k, k+1]) and then ``mpc_status`` (MpcStatus), planning with e
 latest accepted NSSM (``nssm_weights``, latched; checked and built on a worker thread) or with the
 family's true-model NMPC (theta from every y). Also takes ``plant_info``, an optional ``reference``
 override and ``set_active``; publishes ``u_hold`` when a lockstep answer waits for a requested
-model (adaptation in the loop: :mod:`metampc_controller.adaptation_trigger`,
-:mod:`metampc_controller.model_swap`). Refuses: a bad parameter (one error line, exit 2), a bad
-live change (refused with the reason), invalid weights (``model_status = 'rejected: ...'``, the
-previous model stays). Parameters: :data:`metampc_controller.controller_params.PARAMETERS`;
-interfaces, ticks, live changes and faults: docs/controller.md.
+model (adaptation in the loop: :mod:`metampc_controller.adaptation_trigger`; new models pass
+:mod:`metampc_controller.model_gate`, whose events ``mpc_status`` carries). Refuses: a bad
+parameter (one error line, exit 2), a bad live change (with the reason), invalid weights (a
+refused model event; the model in use stays). Parameters: :data:`metampc_controller.
+controller_params.PARAMETERS`; interfaces, ticks, live changes and faults: docs/controller.md.
 """
 from array import array
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -24,8 +24,8 @@ from metampc_common.node_main import (declare_parameters, EventCounts, LiveParam
                                       loop_executor, run_node)
 from metampc_common.qos import LATCHED, SPARSE, STREAM
 from metampc_common.replies import Replies
-from metampc_msgs.msg import (AdaptRefusal, ControlInput, MpcStatus, NssmWeights, PlantInfo,
-                              PlantOutput, StepHold)
+from metampc_msgs.msg import (AdaptRefusal, ControlInput, ModelEvent, MpcStatus, NssmWeights,
+                              PlantInfo, PlantOutput, StepHold)
 from metampc_msgs.srv import SetActive
 import numpy as np
 from rclpy.clock import Clock, ClockType
@@ -36,8 +36,10 @@ from std_msgs.msg import Float64MultiArray
 
 from metampc_controller.adaptation_trigger import Request
 from metampc_controller.controller_core import (AnswerRule, build_model, ControllerCore,
-                                                ModelRefused, TickResult)
+                                                TickResult)
 from metampc_controller.controller_params import ControllerConfig, PARAMETERS, parse_params
+from metampc_controller.model_gate import Cause, Outcome
+from metampc_controller.model_gate import ModelEvent as GateEvent
 from metampc_model.weights_codec import fields_of, model_from_fields, WeightsError
 from metampc_plant.plant_description import PlantDescription
 
@@ -175,26 +177,32 @@ class ControllerNode(Node):
             self._stopped_by_itself(f'answered step {res.step}')
         tick_time = time.perf_counter() - start
         self._publish_status(res, tick_time)
-        if res.verdict:
-            self._end_of_trial(res)
+        for event in res.events:
+            if not event.at_arrival:
+                self._decided(res, event)
         self._counts['answered'] += 1
         self._counts['pre_model'] += res.iterations < 0
         self._counts['fallbacks'] += res.fallback
 
-    def _end_of_trial(self, res: TickResult) -> None:
-        """Say what the tick that ended a requested model's trial or probation decided."""
-        if res.model_status.startswith('reverted:'):
+    def _decided(self, res: TickResult, event: GateEvent) -> None:
+        """Say what the gate decided at this tick (a requested model's swap step, the end of
+        its trial or probation)."""
+        outcome, reason = event.outcome, event.reason
+        if outcome is Outcome.REVERTED:
             self._counts['reverted_models'] += 1
             self.get_logger().error(f'reverted to model version {res.model_version} at step '
-                                    f'{res.step}: {res.verdict}')
-        elif res.model_status.startswith('rejected:'):
+                                    f'{res.step}: {reason}')
+        elif outcome is Outcome.REFUSED:
             self._counts['refused_models'] += 1
             self._counts['rejected_weights'] += 1
             self.get_logger().error(f'refused the model tried until step {res.step}: '
-                                    f'{res.verdict}; model in use: {res.model_version}')
+                                    f'{reason}; model in use: {res.model_version}')
+        elif outcome is Outcome.ON_TRIAL:
+            self.get_logger().info(f'model version {event.version} tried from step {res.step} '
+                                   f'for {event.trial} samples')
         else:
-            self.get_logger().info(f'model version {res.model_version} in use at step '
-                                   f'{res.step}: {res.verdict}')
+            self.get_logger().info(f'model version {event.version} in use at step {res.step}'
+                                   + (f': {reason}' if reason else ''))
 
     def _publish_status(self, res: TickResult, tick_time: float) -> None:
         status = self._status_msg
@@ -214,6 +222,7 @@ class ControllerNode(Node):
         status.config_version = res.config_version
         status.planner = res.planner
         status.model_status = res.model_status
+        status.model_events = [_event_message(e) for e in res.events]
         status.failed_linearisations = res.failed_linearisations
         status.u_plan = _doubles(res.u_plan)
         status.y_pred = _doubles(res.y_pred)
@@ -221,19 +230,19 @@ class ControllerNode(Node):
         status.q = res.q
         (status.prediction_error, status.prediction_error_t,
          status.output_change_t) = res.prediction_errors
-        trigger, request = self.core.trigger, res.request
+        request = res.request
         status.adapt_request = request is not None
         status.adapt_trigger = request.trigger if request is not None else ''
         status.swap_step = request.swap_step if request is not None else 0
-        status.detector_statistic, status.detector_baseline = trigger.statistic, trigger.baseline
+        status.detector_statistic, status.detector_baseline = res.detector
         self._pub_status.publish(status)
         if request is not None:
             self._watch_request(request)
             self._counts['adapt_requests'] += 1
             self.get_logger().info(
                 f'adaptation request at step {request.step} ({request.trigger}, model '
-                f'version {request.version}; CUSUM {trigger.statistic:.2f}, baseline '
-                f'{trigger.baseline:.3g}); under lockstep the answer of step '
+                f'version {request.version}; CUSUM {res.detector[0]:.2f}, baseline '
+                f'{res.detector[1]:.3g}); under lockstep the answer of step '
                 f'{request.swap_step} waits for it')
 
     def _stopped_by_itself(self, why: str) -> None:
@@ -341,24 +350,24 @@ class ControllerNode(Node):
         then (in either clock mode: an unanswered request blocks the next ones)."""
         def expire():
             self.destroy_timer(timer)
-            # Answered (or given up) already, or its answer is queued, tried or on probation.
-            if self.core.trigger.pending is not request or self.core.swap.holds_answer():
-                return
-            self._give_up('adapt_timeouts', f'no model answered the adaptation request of step '
-                          f'{request.step} within {self.cfg.trigger.adapt_timeout} s: going on '
-                          f'with model version {request.version}')
+            # Not if answered (or given up) already, or its answer is queued, tried or on
+            # probation.
+            if self.core.gate.time_out(request):
+                self._gave_up('adapt_timeouts', f'no model answered the adaptation request of '
+                              f'step {request.step} within {self.cfg.trigger.adapt_timeout} s: '
+                              f'going on with model version {request.version}')
         timer = self.create_timer(self.cfg.trigger.adapt_timeout, expire, clock=self._steady)
 
     def _on_refusal(self, msg: AdaptRefusal) -> None:
         """The learner cannot answer the request of msg.request_step: give it up now."""
-        if self.core.swap.answers(msg.request_step):
-            self._give_up('adapt_refusals', f'the learner refused the adaptation request of '
+        request = self.core.gate.learner_refused(msg.request_step)
+        if request is not None:
+            self._gave_up('adapt_refusals', f'the learner refused the adaptation request of '
                           f'step {msg.request_step} ({msg.reason}): going on with model '
-                          f'version {self.core.trigger.pending.version}')
+                          f'version {request.version}')
 
-    def _give_up(self, counter: str, text: str) -> None:
-        """End the pending request; an answer waiting for it goes on now."""
-        self.core.trigger.give_up()
+    def _gave_up(self, counter: str, text: str) -> None:
+        """The pending request ended: say why; an answer waiting for it goes on now."""
         self._warn(counter, text)
         if self._hold_timer is not None:
             self._on_hold()
@@ -368,47 +377,43 @@ class ControllerNode(Node):
         self._builder.submit(self._build, msg)
 
     def _build(self, msg: NssmWeights) -> None:
-        """Check and build a model on the builder thread; the next tick uses it."""
+        """Build a model on the builder thread and offer it to the core's gate."""
         core = self.core
         try:    # with the latest tuning: retune() runs on this thread too, in order
             bundle = build_model(model_from_fields(fields_of(msg)), msg.version, msg.method,
                                  msg.stage, core.config.mpc, core.n_u, core.n_y,
                                  core.config.history)
         except WeightsError as err:
-            self._reject(msg, str(err))
+            self._refused(msg, core.refuse(msg.version, msg.request_step, str(err)))
             return
         except Exception as err:    # a bug, not bad weights: say so, never lose it silently
-            self._reject(msg, f'{type(err).__name__}: {err}')
+            self._refused(msg, core.refuse(msg.version, msg.request_step,
+                                           f'{type(err).__name__}: {err}'))
             return
-        trial = core.tried(msg.request_step)
-        try:
-            refused = core.vet(bundle, msg.request_step)
-            requested = None if refused else core.offer_model(bundle, msg.request_step)
-        except ModelRefused as err:
-            refused = str(err)
-        if refused:
-            self._counts['refused_models'] += 1
-            self._reject(msg, refused)
+        event = core.offer(bundle, msg.request_step)
+        if event.outcome is Outcome.REFUSED:
+            self._refused(msg, event)
             return
         self._counts['models'] += 1
-        if requested is None:
+        if event.outcome is Outcome.FLEW:
             when = 'in use from the next tick'
         else:
-            where = f'step {requested}' if requested else 'the next tick'
-            when = (f'tried from {where} for {trial} samples, in use after if it passes the '
-                    f'check' if trial else f'in use from {where}')
+            where = f'step {event.start}' if event.start else 'the next tick'
+            when = (f'tried from {where} for {event.trial} samples, in use after if it passes '
+                    f'the check' if event.trial else f'in use from {where}')
             when += f' (it answers the request of step {msg.request_step})'
         self.get_logger().info(f'model version {msg.version} ({msg.method}, {msg.stage}) {when}; '
                                f'{bundle.describe()}')
 
-    def _reject(self, msg: NssmWeights, reason: str) -> None:
-        """Keep the model in use; report the reason in model_status and one log line."""
-        core = self.core
-        core.reject_model(reason)
+    def _refused(self, msg: NssmWeights, event: GateEvent) -> None:
+        """The model in use stays; the event (published with the next status) says why, and
+        one log line."""
+        self._counts['refused_models'] += event.cause is Cause.CHECK
         self._counts['rejected_weights'] += 1
-        kept = core.model.version if core.model is not None else 'none'
+        model = self.core.model
+        kept = model.version if model is not None else 'none'
         self.get_logger().error(f'rejected weights version {msg.version} ({msg.method}, '
-                                f'{msg.stage}): {reason}; model in use: {kept}')
+                                f'{msg.stage}): {event.reason}; model in use: {kept}')
 
     def destroy_node(self) -> None:
         """Destroy the node, then log what was counted over the run."""
@@ -419,6 +424,16 @@ class ControllerNode(Node):
         self.get_logger().info(
             ('stopped before any sample: ' if step is None else f'stopped at step {step}: ')
             + self._events.summary())
+
+
+def _event_message(event: GateEvent) -> ModelEvent:
+    """The gate's event as MpcStatus carries it (metampc_msgs/ModelEvent)."""
+    verdict = event.verdict
+    return ModelEvent(outcome=event.outcome.value, version=event.version,
+                      request_step=event.request_step, cause=event.cause.value,
+                      candidate_error=verdict.candidate if verdict is not None else math.nan,
+                      reference_error=verdict.reference if verdict is not None else math.nan,
+                      start_step=event.start, trial=event.trial, reason=event.reason)
 
 
 def main(args=None) -> int:

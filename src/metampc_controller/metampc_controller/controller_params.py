@@ -18,6 +18,7 @@ from metampc_common.params import (build, param, ParameterError, ParamSpec, Sect
 from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_common.excitation import amplitude_param, center_param, ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
+from metampc_controller.model_gate import GateConfig
 from metampc_controller.mpc import MpcConfig
 from metampc_controller.nmpc import SOLVERS as NMPC_SOLVERS
 from metampc_controller.planner_registry import REGISTRY
@@ -143,7 +144,8 @@ class ControllerConfig:
         history: required H of the weights, 0 for any up to MAX_HISTORY.
         active: publish inputs from the start.
         trigger: when to ask the learner for adaptation in the loop.
-        model_check: the check a new model must pass before it flies.
+        gate: when a new model may fly (which are checked, trial, probation).
+        model_check: how the check a new model must pass scores it.
         hold: whether u and mpc_status wait for a full reader that keeps all.
     """
 
@@ -171,6 +173,7 @@ class ControllerConfig:
                             f'{MAX_HISTORY})', ge=0, le=MAX_HISTORY)
     active: bool = param(True, 'publish inputs from the start (service set_active toggles)')
     trigger: TriggerConfig = field(default_factory=TriggerConfig)
+    gate: GateConfig = field(default_factory=GateConfig)
     model_check: ModelCheckConfig = field(default_factory=ModelCheckConfig)
     hold: HoldConfig = field(default_factory=HoldConfig)
 
@@ -179,10 +182,11 @@ MPC = Section(MpcConfig)
 REFERENCE = Section(ReferenceParams, 'reference_', rename={'kind': 'reference'})
 EXCITATION = Section(ExcitationParams, 'excitation_')
 TRIGGER = Section(TriggerConfig)
+GATE = Section(GateConfig)
 CHECK = Section(ModelCheckConfig)
 HOLD = Section(HoldConfig)
 NODE = Section(ControllerConfig)
-SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, CHECK, HOLD)
+SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, GATE, CHECK, HOLD)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -212,9 +216,10 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
         raise ParameterError(str(err)) from None
     node.excitation_seed = excitation.seed
     node.trigger = build(TRIGGER, values)
+    node.gate = build(GATE, values)
     node.model_check = build(CHECK, values)
     for name in ('model_check_trial', 'model_check_probation'):
-        samples = getattr(node.model_check, name)
+        samples = getattr(node.gate, name)
         if 0 < samples < mpc.horizon:
             raise ParameterError(f'{name} must be 0 or at least horizon ({mpc.horizon}) '
                                  f'samples, so that its check scores at least one prediction; '

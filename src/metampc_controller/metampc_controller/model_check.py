@@ -1,14 +1,13 @@
-"""The check a new model must pass before the controller flies it.
+"""The check a new model must pass before the controller flies it: a score, no rule of when.
 
 Scores the N-step prediction of the plant under the inputs really applied, on samples of the
 episode (u (K, n_u), y (K, n_y)): from every ``stride``-th start t, z_t by eq. (z) from H
-samples, y_hat by eqs. (z_next), (haty) under u_{t+1..t+N}; E = mean ((y - y_hat) / s_i)^2,
-s_i the std of output i. It passes when E_candidate <= (1 + margin) E_reference: the model in
-use when the candidate updates it, else persistence (y_hat = y_t). An answer to the pending
-adaptation request is scored on the ``model_check_trial`` samples after its swap step (unseen
-by its adaptation; the model in use controls meanwhile), any other model at arrival on the
-latest ``model_check_window``. Too few samples: unchecked. Pure numpy (no rclpy); why and what
-it refused: docs/mpc.md#the-check-before-a-model-flies.
+samples, y_hat by eqs. (z_next), (haty) under u_{t+1..t+N} (N: the planner's horizon);
+E = mean ((y - y_hat) / s_i)^2, s_i the std of output i. It passes when E_candidate <=
+(1 + margin) E_reference: the model in use when the candidate updates it, else persistence
+(y_hat = y_t). Too few samples: unchecked. Which samples, which models and when: the gate
+(:mod:`~metampc_controller.model_gate`). Pure numpy (no rclpy); why and what it refused:
+docs/mpc.md#the-check-before-a-model-flies.
 """
 from dataclasses import dataclass
 import math
@@ -17,36 +16,21 @@ from typing import Optional
 import numpy as np
 
 from metampc_common.params import param
-from metampc_controller.offset_free import DisturbanceEstimator, disturbance_model
+from metampc_controller.mpc import MpcConfig
+from metampc_controller.offset_free import DisturbanceEstimator
 from metampc_model.predictor import NssmPredictor
-
-CHECKED = ('requested', 'all', 'off')
 
 
 @dataclass
 class ModelCheckConfig:
-    """Settings of the check (node parameters, live)."""
+    """How the check scores (node parameters, live)."""
 
-    model_check: str = param('requested', 'which new models must pass the check before they '
-                                          'fly: requested (answers to adaptation requests, '
-                                          'late ones too), all, off', choices=CHECKED,
-                             live=True)
     model_check_margin: float = param(0.0, 'a new model flies if its error is at most (1 + '
                                            'margin) times the yardstick\'s: > 0 lets a '
                                            'slightly worse one fly, < 0 asks for a clear gain',
                                       gt=-1, live=True)
     model_check_window: int = param(200, 'latest samples of the episode the check scores at a '
                                          'model\'s arrival', ge=1, le=900, live=True)
-    model_check_trial: int = param(50, 'samples an answer to an adaptation request is tried on '
-                                       'before it flies, the model in use going on meanwhile '
-                                       '(scored on them alone: its adaptation never saw them); '
-                                       '0: checked at arrival like any model; else at least '
-                                       'the horizon', ge=0, le=900, live=True)
-    model_check_probation: int = param(0, 'samples a requested model that flew is judged on, '
-                                          'on its own loop, against the model it replaced, '
-                                          'which comes back if it predicts them better; 0: '
-                                          'none; else at least the horizon', ge=0, le=900,
-                                       live=True)
     model_check_stride: int = param(5, 'samples between the starts of the scored predictions',
                                     ge=1, live=True)
     model_check_as_planned: bool = param(False, 'score each model as the MPC plans with it: '
@@ -54,25 +38,47 @@ class ModelCheckConfig:
                                                 'estimate (when offset_free is on)', live=True)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Verdict:
-    """The check's answer.
+    """The check's answer, in fields (:meth:`reason` words them).
 
     Attributes:
         ok: the candidate may fly.
-        reason: one line: why it may not, or what was compared ('unchecked: ...' without data).
         candidate, reference: E of the candidate and of the yardstick (nan when unchecked).
+        scored: samples scored (0: unchecked: `held` in the episode, `needed` to check).
+        held, needed: see `scored`.
+        persistence: the yardstick is persistence (no model of the candidate's method).
+        score: what E is ('20-step prediction error', '... (offset-free state, as planned)').
+        limit: 1 + ``model_check_margin``: E_candidate may be at most limit x E_reference.
+        error: why the candidate cannot be scored (its disturbance is not detectable), or ''.
     """
 
     ok: bool
-    reason: str
     candidate: float = math.nan
     reference: float = math.nan
+    scored: int = 0
+    held: int = 0
+    needed: int = 0
+    persistence: bool = False
+    score: str = ''
+    limit: float = 1.0
+    error: str = ''
 
-
-def applies(config: ModelCheckConfig, requested: bool) -> bool:
-    """Whether a new model is checked: `requested` if it answers an adaptation request."""
-    return config.model_check == 'all' or (config.model_check == 'requested' and requested)
+    def reason(self, where: str = 'the latest of the episode',
+               yardstick: str = 'the model in use') -> str:
+        """One line: why it may not fly, or what was compared; `where` names the scored
+        samples, `yardstick` the model compared against (persistence says itself)."""
+        if self.error:
+            return f'check: {self.error}'
+        if not self.scored:
+            return (f'unchecked: {self.held} samples in the episode, the check needs '
+                    f'{self.needed}')
+        what = 'persistence (y stays)' if self.persistence else yardstick
+        if not self.ok:
+            return (f'check: its {self.score} {self.candidate:.4g} on {self.scored} samples '
+                    f'({where}) exceeds {self.limit:g} x {self.reference:.4g} of {what}')
+        return (f'check passed: {self.score} {self.candidate:.4g} on {self.scored} samples '
+                f'({where}) against {self.reference:.4g} of {what}')
 
 
 def n_step_error(predict, y: np.ndarray, first: int, horizon: int, stride: int,
@@ -104,14 +110,14 @@ def warmup(gain: float) -> int:
     return 1 if gain >= 1.0 else math.ceil(math.log(1e-3) / math.log(1.0 - gain))
 
 
-def _corrected(model: NssmPredictor, u: np.ndarray, y: np.ndarray, horizon: int, first: int,
-               form: str, gain: float):
+def _corrected(model: NssmPredictor, u: np.ndarray, y: np.ndarray, first: int,
+               mpc: MpcConfig):
     """The prediction the MPC plans with when offset-free: the model's disturbance estimate p_t
-    (offset_free.DisturbanceEstimator run over every sample from the H-th on) shifts its
-    constants e, d for the N steps after t. Raises ValueError (the rank test) for a model
-    whose disturbance is not detectable."""
-    latent, h = model.latent, model.config.history
-    est = DisturbanceEstimator(latent, disturbance_model(latent, form), gain)
+    (the MPC's estimator, run over every sample from the H-th on) shifts its constants e, d
+    for the N steps after t. Raises ValueError (the rank test) for a model whose disturbance
+    is not detectable."""
+    latent, h, horizon = model.latent, model.config.history, mpc.horizon
+    est = DisturbanceEstimator.of(latent, mpc.offset_free, mpc.disturbance_gain)
     n_z, const, start = latent.n_z, np.empty(latent.n_z + latent.n_y), {}
     for t in range(h - 1, len(y) - horizon):
         z = model.encode(u[t - h + 1:t + 1], y[t - h + 1:t + 1])
@@ -121,32 +127,27 @@ def _corrected(model: NssmPredictor, u: np.ndarray, y: np.ndarray, horizon: int,
 
     def predict(t: int) -> np.ndarray:
         z, c = start[t]
-        out = np.empty((horizon, latent.n_y))
-        for k in range(horizon):
-            z = latent.A @ z + latent.B @ u[t + 1 + k] + c[:n_z]
-            out[k] = latent.C @ z + c[n_z:]
-        return out
+        return latent.rollout(z, u[t + 1:t + 1 + horizon], c[:n_z], c[n_z:])
     return predict
 
 
 def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndarray,
-          y: np.ndarray, horizon: int, config: ModelCheckConfig, scored: Optional[int] = None,
-          where: str = 'the latest of the episode', offset_free: str = 'none',
-          disturbance_gain: float = 0.5, current_name: str = 'the model in use') -> Verdict:
+          y: np.ndarray, mpc: MpcConfig, config: ModelCheckConfig,
+          scored: Optional[int] = None) -> Verdict:
     """Verdict on `candidate` against `current` (None: persistence) on the last `scored`
     samples (default ``model_check_window``) of the episode's u (K, n_u), y (K, n_y), the H
-    before them as history (module docstring); `where` names them in the reason. With an
-    `offset_free` form each model is scored as the MPC plans with it: corrected by its own
-    disturbance estimate (gain `disturbance_gain`), run from up to :func:`warmup` samples
-    before the scored ones; `current_name` names `current` in the reason. Which models to
-    check is the caller's (:func:`applies`)."""
+    before them as history (module docstring), predicting N = the planner's (`mpc`) horizon
+    steps. With ``model_check_as_planned`` and the planner's offset-free form each model is
+    scored as the MPC plans with it: corrected by its own disturbance estimate (the planner's
+    gain), run from up to :func:`warmup` samples before the scored ones. Which models to
+    check, and when, is the gate's (:mod:`model_gate`)."""
+    horizon = mpc.horizon
     h = max(candidate.config.history, current.config.history if current is not None else 1)
     scored = config.model_check_window if scored is None else scored
     if min(len(y), scored + h) < h + horizon + 1:
-        return Verdict(True, f'unchecked: {min(len(y), scored + h)} samples in the episode, '
-                             f'the check needs {h + horizon + 1}')
-    corrected = offset_free != 'none'
-    rows = scored + h + (warmup(disturbance_gain) if corrected else 0)
+        return Verdict(True, held=min(len(y), scored + h), needed=h + horizon + 1)
+    corrected = config.model_check_as_planned and mpc.offset_free != 'none'
+    rows = scored + h + (warmup(mpc.disturbance_gain) if corrected else 0)
     u, y = u[-rows:], y[-rows:]
     first = max(h, len(y) - scored) - 1      # y_{first+1} is the first scored sample
     scale = np.std(y[first + 1 - h:], axis=0)      # the scored samples and their history
@@ -156,22 +157,16 @@ def check(candidate: NssmPredictor, current: Optional[NssmPredictor], u: np.ndar
         if model is None:
             return _persistence(y, horizon)
         if corrected:
-            return _corrected(model, u, y, horizon, first, offset_free, disturbance_gain)
+            return _corrected(model, u, y, first, mpc)
         return _plain(model, u, y, horizon)
     args = (y, first, horizon, config.model_check_stride, scale)
     try:
         new = n_step_error(scorer(candidate), *args)
     except ValueError as err:          # its disturbance is not detectable: it cannot fly
-        return Verdict(False, f'check: {err}')
+        return Verdict(False, error=str(err))
     ref = n_step_error(scorer(current), *args)
-    what = current_name if current is not None else 'persistence (y stays)'
-    kind = f'{horizon}-step prediction error' + (
-        f' (offset-free {offset_free}, as planned)' if corrected else '')
-    n = len(y) - first - 1
-    limit = (1.0 + config.model_check_margin) * ref
-    if not math.isfinite(new) or new > limit:
-        margin = config.model_check_margin
-        return Verdict(False, f'check: its {kind} {new:.4g} on {n} samples ({where}) exceeds '
-                              f'{1 + margin:g} x {ref:.4g} of {what}', new, ref)
-    return Verdict(True, f'check passed: {kind} {new:.4g} on {n} samples ({where}) against '
-                         f'{ref:.4g} of {what}', new, ref)
+    limit = 1.0 + config.model_check_margin
+    return Verdict(math.isfinite(new) and not new > limit * ref, new, ref, len(y) - first - 1,
+                   persistence=current is None, limit=limit,
+                   score=f'{horizon}-step prediction error' + (
+                       f' (offset-free {mpc.offset_free}, as planned)' if corrected else ''))

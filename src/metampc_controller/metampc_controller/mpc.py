@@ -23,8 +23,7 @@ import scipy.sparse as sp
 from metampc_common.params import param
 from metampc_model.latent_model import LatentModel
 from metampc_controller.planner import PlannerConfig, PlanResult
-from metampc_controller.offset_free import (DisturbanceEstimator, disturbance_model, FORMS,
-                                            SteadyStateTarget)
+from metampc_controller.offset_free import DisturbanceEstimator, FORMS, SteadyStateTarget
 from metampc_controller.terminal_cost import terminal_cost, TerminalCost
 
 # OSQP's Ctrl-C listener takes a SIGINT that arrives during a solve (status OSQP_SIGINT,
@@ -342,9 +341,7 @@ class LatentMpc:
                            for v in (cfg.r, cfg.u_min, cfg.u_max))
         term = terminal_cost(model, q, r, cfg.terminal_reg,
                              None if old is None or old.terminal.fallback else old.terminal.P)
-        on = cfg.offset_free != 'none'
-        estimator = DisturbanceEstimator(model, disturbance_model(model, cfg.offset_free),
-                                         cfg.disturbance_gain) if on else None
+        estimator = DisturbanceEstimator.of(model, cfg.offset_free, cfg.disturbance_gain)
         L, G, y_u, y_w = _least_squares(model, term, q, r, N)
         n = N * n_u
         lo, hi = np.tile(u_min, N), np.tile(u_max, N)
@@ -360,7 +357,7 @@ class LatentMpc:
                                  Gw=np.vstack([-2.0 * L.T @ G, y_w, G]), Yu=y_u, lo=lo, hi=hi,
                                  warm=bool(cfg.warm_start),
                                  target=SteadyStateTarget(model, q, term.ss_r, term.ss_e, u_min,
-                                                          u_max, bounded=on),
+                                                          u_max, bounded=estimator is not None),
                                  estimator=estimator, soft=soft)
         # The plan's size changes only with n_u, and then it says nothing about the new inputs.
         if self._plan is not None and self._plan.shape != (n,):

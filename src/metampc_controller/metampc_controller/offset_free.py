@@ -124,6 +124,13 @@ class DisturbanceEstimator:
         self._const = np.concatenate([model.e, model.d])
         self._dist_map = np.vstack([dist.Bd, dist.Cd])
 
+    @classmethod
+    def of(cls, model: LatentModel, form: str, gain: float) -> Optional['DisturbanceEstimator']:
+        """The estimator of `model` in offset-free `form` with gain `gain` (None: form
+        'none'); ValueError (:func:`disturbance_model`) for a model that fails its rank test.
+        The one constructor of the MPC's estimator and the model check's."""
+        return None if form == 'none' else cls(model, disturbance_model(model, form), gain)
+
     def reset(self) -> None:
         """A new episode: p = 0, no previous latent state."""
         self.p[:] = 0.0

@@ -9,7 +9,7 @@ import pytest
 from metampc_controller.adaptation_trigger import AdaptationTrigger, TriggerConfig
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
-from metampc_controller.model_check import ModelCheckConfig
+from metampc_controller.model_gate import GateConfig
 from metampc_model.manual_model import linearised_vdp_nssm
 from metampc_controller.mpc import MpcConfig
 from metampc_model.weights_codec import DecodedWeights
@@ -106,16 +106,16 @@ def test_the_core_swaps_a_requested_model_exactly_at_the_swap_step_under_lockste
     bundle = build_model(DecodedWeights(*linearised_vdp_nssm(0.5, DT, 10)), 1, 'manual',
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
     config = ControllerConfig(trigger=TriggerConfig(adaptation='periodic', adapt_period=2.0),
-                              model_check=ModelCheckConfig(model_check_trial=0))
+                              gate=GateConfig(model_check_trial=0))
     core = ControllerCore(config)
     core.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
-    core.offer_model(bundle)
+    core.offer(bundle)
     plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
     y, u, versions, requests = plant.output(), 0.0, [], []
     for k in range(40):
         core.observe(k, [u], y)
         if k == 25:
-            assert core.offer_model(dataclasses.replace(bundle, version=2), 20) == 30
+            assert core.offer(dataclasses.replace(bundle, version=2), 20).start == 30
         assert core.waits_for_model() is False
         res = core.tick()
         versions.append(res.model_version)
@@ -128,7 +128,7 @@ def test_the_core_swaps_a_requested_model_exactly_at_the_swap_step_under_lockste
     # Without the model, the answer of the swap step waits (and not before).
     core2 = ControllerCore(config)
     core2.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
-    core2.offer_model(bundle)
+    core2.offer(bundle)
     for k in range(31):
         core2.observe(k, [0.0], [0.3, 0.0])
         assert core2.waits_for_model() == (k == 30)
@@ -177,7 +177,7 @@ def _lockstep_core(trigger: TriggerConfig):
                          'adapted', MpcConfig(time_limit=30.0), 1, 2)
     core = ControllerCore(ControllerConfig(trigger=trigger))
     core.set_plant(PlantDescription('vanderpol', DT, (-1.0,), (1.0,), 2, True))
-    core.offer_model(bundle)
+    core.offer(bundle)
     return core, bundle
 
 
@@ -211,7 +211,7 @@ def test_the_core_goes_on_after_a_given_up_request_and_forgets_one_at_a_plant_re
     run(45, before=give_up)
     assert [(k, s) for k, _, _, s in log if s is not None] == [(20, 30), (40, 50)]
     assert not any(w for _, w, _, _ in log) and {v for _, _, v, _ in log} == {1}
-    assert core.offer_model(dataclasses.replace(bundle, version=2), 40) == 50   # queued
+    assert core.offer(dataclasses.replace(bundle, version=2), 40).start == 50   # queued
     log.clear()
     y, u = plant.reset(), 0.0
     run(31)

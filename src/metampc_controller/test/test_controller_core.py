@@ -186,7 +186,7 @@ def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
     plant = Plant(PlantConfig(theta=(0.8,)))
     before = closed_loop(core, plant, 3)
     assert [(r.solver_status, r.iterations, r.u[0]) for r in before] == [('no_model', -1, 0.0)] * 3
-    core.offer_model(manual_bundle(version=2, theta=0.8))
+    core.offer(manual_bundle(version=2, theta=0.8))
     results = closed_loop(core, plant, 80, start=3)
     last = results[-1]
     assert (last.solver_status, last.model_version, last.model_status) == ('solved', 2, 'ok')
@@ -197,9 +197,11 @@ def test_latent_mpc_tracks_a_setpoint_with_the_steady_state_input():
     assert not any(r.fallback for r in results)
 
     # Rejected weights: the status says so, the model stays.
-    core.reject_model('non-finite weights')
+    core.refuse(3, 0, 'non-finite weights')
     res = closed_loop(core, plant, 1, start=83)[0]
     assert (res.model_version, res.model_status) == (2, 'rejected: non-finite weights')
+    assert [(e.outcome.value, e.version, e.cause.value) for e in res.events] == [
+        ('refused', 3, 'weights')]
 
 
 def test_reference_time_restarts_with_each_episode_and_override():
@@ -346,7 +348,7 @@ def test_each_episode_starts_cold_whatever_came_before(planner):
         core = ControllerCore(cfg)
         core.set_plant(vdp_plant())
         if planner == 'latent_mpc':
-            core.offer_model(manual_bundle(theta=0.5, mpc=cfg.mpc))
+            core.offer(manual_bundle(theta=0.5, mpc=cfg.mpc))
         return core
 
     reference = episode(fresh())
@@ -366,7 +368,7 @@ def test_retune_applies_from_the_next_tick_as_a_core_started_with_it(planner):
         core = ControllerCore(cfg)
         core.set_plant(vdp_plant())
         if planner == 'latent_mpc':
-            core.offer_model(manual_bundle(theta=0.5, mpc=cfg.mpc))
+            core.offer(manual_bundle(theta=0.5, mpc=cfg.mpc))
         return core
 
     old = ControllerConfig(planner=planner, mpc=MpcConfig(time_limit=NO_TIME_LIMIT),
@@ -423,7 +425,7 @@ def test_a_model_the_offset_free_form_cannot_take_is_refused_and_the_loop_goes_o
                                            r'detectable, rank .* = 4 < n_z \+ n_d = 5 \(A has '
                                            r'an eigenvalue at 1:'):
         manual_bundle(n_z=3, extra_decay=1.0, mpc=output_form)
-    core.offer_model(manual_bundle(version=4, n_z=3, extra_decay=1.0))
+    core.offer(manual_bundle(version=4, n_z=3, extra_decay=1.0))
     first = closed_loop(core, plant, 60)
     assert core.check_tuning(ControllerConfig(mpc=output_form)).startswith(
         'offset_free output: the disturbance model is not detectable')
@@ -440,7 +442,7 @@ def test_run_episode_is_the_lockstep_loop_replayed_exactly():
     pairs y_{k+1}, r_{k+1}). A plant that escapes ends the episode at the escape."""
     core = ControllerCore(ControllerConfig(mpc=MpcConfig(time_limit=NO_TIME_LIMIT)))
     core.set_plant(vdp_plant())
-    core.offer_model(manual_bundle(theta=0.5))
+    core.offer(manual_bundle(theta=0.5))
     episode = run_episode(core, Plant(PlantConfig(theta=(0.5,))), 120, (0.5,), (0.0, 0.0))
     replay = Plant(PlantConfig(theta=(0.5,)))
     y = [replay.reset((0.5,), (0.0, 0.0))] + [replay.step(u) for u in episode.u[1:]]
@@ -467,7 +469,7 @@ def test_run_episode_warmup_noise_and_reference_table():
     mpc = MpcConfig(horizon=4, time_limit=NO_TIME_LIMIT)
     core = ControllerCore(ControllerConfig(mpc=mpc))
     bundle = manual_bundle(theta=0.5, history=3, mpc=mpc)
-    core.offer_model(bundle)
+    core.offer(bundle)
     rng = np.random.default_rng(1)
     table = np.column_stack([rng.uniform(-0.8, 0.8, 50), np.zeros(50)])
     core.set_references(table)
@@ -524,7 +526,7 @@ def _capped_loop(cap: float, plant_at: int, lockstep: bool, reset_at: int = -1, 
     mpc = MpcConfig(time_limit=cap)
     core = ControllerCore(ControllerConfig(reference_kind='setpoint', mpc=mpc,
                                            reference_params={'value': 0.5}))
-    core.offer_model(manual_bundle(mpc=mpc))
+    core.offer(manual_bundle(mpc=mpc))
     plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
     y, u, out, k = plant.output(), 0.0, [], 0
     for i in range(steps):

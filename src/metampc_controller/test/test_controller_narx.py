@@ -48,7 +48,7 @@ def test_the_core_flies_a_feature_narx_as_the_study_does():
     bundle = build_model(decoded, 7, 'imaml', 'adapted', core.config.mpc, 1, 2)
     assert bundle.history == 2 and bundle.latent is None and bundle.prediction is None
     assert 'feature NARX p=2, F=16' in bundle.describe()
-    core.offer_model(bundle)
+    core.offer(bundle)
     episode = run_episode(core, Plant(PLANT), STEPS, THETA, (0.0, 0.0))
     assert episode.escaped_at is None
     ticks = episode.ticks
@@ -83,7 +83,7 @@ def test_a_failed_linearisation_is_counted_in_the_tick_and_the_plan_shifted():
     bad = FeatureNarx(model.shape, model.norm, {**head, 'head': torch.full_like(
         head['head'], float('nan'))})
     decoded = model_from_fields(fields_from_narx(model.shape, model.norm, model.params))
-    core.offer_model(build_model(decoded, 1, 'imaml', 'adapted', core.config.mpc, 1, 2))
+    core.offer(build_model(decoded, 1, 'imaml', 'adapted', core.config.mpc, 1, 2))
     core.observe(0, [0.0], [0.1, 0.0])
     first = core.tick()
     assert first.failed_linearisations == 0

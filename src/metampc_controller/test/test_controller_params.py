@@ -136,7 +136,7 @@ def test_a_trial_shorter_than_the_horizon_is_refused():
     """model_check_trial: 0 (no trial) or at least N samples, else its check scores nothing."""
     with pytest.raises(ParameterError, match='model_check_trial must be 0 or at least horizon'):
         parse_params(values(model_check_trial=10, horizon=20))
-    assert parse_params(values(model_check_trial=20, horizon=20)).model_check.model_check_trial \
+    assert parse_params(values(model_check_trial=20, horizon=20)).gate.model_check_trial \
         == 20
-    assert parse_params(values(model_check_trial=0, horizon=20)).model_check.model_check_trial \
+    assert parse_params(values(model_check_trial=0, horizon=20)).gate.model_check_trial \
         == 0

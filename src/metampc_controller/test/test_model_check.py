@@ -1,9 +1,11 @@
-"""The check a new model must pass before it flies (model_check.py, ControllerCore.vet).
+"""The check a new model must pass before it flies (model_check.py; through the controller's
+gate: ControllerCore.offer and its ticks).
 
 Independent answers: the plant core's own data; a model linearised at the plant's theta
 (good), the same model with its input matrix negated (it predicts the plant to move the
 wrong way: bad), and persistence computed by hand.
 """
+import dataclasses
 import math
 
 import numpy as np
@@ -13,8 +15,8 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_controller.controller_core import build_model, ControllerCore, TickResult
 from metampc_controller.controller_params import ControllerConfig
 from metampc_model.manual_model import linearised_vdp_nssm
-from metampc_controller.model_check import (applies, check, ModelCheckConfig, n_step_error,
-                                            warmup)
+from metampc_controller.model_check import check, ModelCheckConfig, n_step_error, warmup
+from metampc_controller.model_gate import GateConfig, Outcome
 from metampc_controller.mpc import MpcConfig
 from metampc_model.predictor import NssmPredictor
 from metampc_model.weights_codec import DecodedWeights
@@ -62,40 +64,33 @@ def test_a_good_model_passes_a_bad_one_is_refused():
     u, y = plant_data()
     cfg = ModelCheckConfig()
     good, bad = predictor(), predictor(flip=True)
-    first = check(good, None, u, y, 20, cfg)              # against persistence
+    first = check(good, None, u, y, MPC, cfg)              # against persistence
     assert first.ok and first.candidate < first.reference
-    assert first.reason.startswith('check passed') and 'persistence' in first.reason
-    refused = check(bad, good, u, y, 20, cfg)
+    assert first.reason().startswith('check passed') and 'persistence' in first.reason()
+    refused = check(bad, good, u, y, MPC, cfg)
     assert not refused.ok and refused.candidate > 1.25 * refused.reference
-    assert refused.reason.startswith('check: its 20-step prediction error')
-    assert 'of the model in use' in refused.reason
-    assert check(good, bad, u, y, 20, cfg).ok            # better than the one in use
-    short = check(bad, good, u[:25], y[:25], 20, cfg)     # 25 < H + N + 1 = 31 samples
-    assert short.ok and short.reason.startswith('unchecked: 25 samples') and math.isnan(
-        short.candidate)
-
-
-def test_which_models_are_checked():
-    requested, all_, off = (ModelCheckConfig(model_check=m) for m in ('requested', 'all', 'off'))
-    assert [applies(c, True) for c in (requested, all_, off)] == [True, True, False]
-    assert [applies(c, False) for c in (requested, all_, off)] == [False, True, False]
+    assert refused.reason().startswith('check: its 20-step prediction error')
+    assert 'of the model in use' in refused.reason()
+    assert check(good, bad, u, y, MPC, cfg).ok            # better than the one in use
+    short = check(bad, good, u[:25], y[:25], MPC, cfg)     # 25 < H + N + 1 = 31 samples
+    assert short.ok and short.reason().startswith('unchecked: 25 samples') and math.isnan(
+        short.candidate) and not short.scored
 
 
 def test_a_model_the_check_must_refuse_is_refused_and_the_loop_goes_on():
     core = ControllerCore(ControllerConfig(reference_kind='setpoint',
                                            reference_params={'value': 0.5}, mpc=MPC,
-                                           model_check=ModelCheckConfig(model_check='all')))
+                                           gate=GateConfig(model_check='all')))
     plant = Plant(PlantConfig(theta=(0.5,)))
     good = build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2)
-    assert core.vet(good) == ''
-    core.offer_model(good)
+    assert core.offer(good).outcome is Outcome.FLEW
     y, u = plant.output(), 0.0
     for k in range(200):
         if k == 100:    # a bad model arrives mid-run
             bad = build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2)
-            reason = core.vet(bad)
-            assert reason.startswith('check: its 20-step prediction error')
-            core.reject_model(reason)
+            event = core.offer(bad)
+            assert event.outcome is Outcome.REFUSED
+            assert event.reason.startswith('check: its 20-step prediction error')
         core.observe(k, [u], y)
         res = core.tick()
         assert res.model_version == 1 and res.solver_status == 'solved'
@@ -105,13 +100,14 @@ def test_a_model_the_check_must_refuse_is_refused_and_the_loop_goes_on():
     assert abs(plant.output()[0] - 0.5) < 1e-2
 
 
-def _ran_60_steps(check_config: ModelCheckConfig) -> ControllerCore:
+def _ran_60_steps(gate: GateConfig, check_config: ModelCheckConfig = ModelCheckConfig()
+                  ) -> ControllerCore:
     """A core with the good model in use after 60 steps of the plant (theta 0.5, set-point
-    0.5), the check configured by `check_config`."""
+    0.5), the gate and the check configured by `gate` and `check_config`."""
     core = ControllerCore(ControllerConfig(reference_kind='setpoint',
                                            reference_params={'value': 0.5}, mpc=MPC,
-                                           model_check=check_config))
-    core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
+                                           gate=gate, model_check=check_config))
+    core.offer(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
     plant = Plant(PlantConfig(theta=(0.5,)))
     y, u = plant.output(), 0.0
     for k in range(60):
@@ -125,12 +121,16 @@ def test_a_late_answer_to_a_given_up_request_is_checked_too():
     """Under `requested`, an answer whose request was given up (it came after adapt_timeout)
     is still an answer to this controller's request: it is used from the next tick if it
     passes, so it must pass the check like a timely one."""
-    core = _ran_60_steps(ModelCheckConfig())
-    assert core.tuning.config.model_check.model_check == 'requested'
+    core = _ran_60_steps(GateConfig())
+    assert core.tuning.config.gate.model_check == 'requested'
     late = build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2)
     assert core.trigger.pending is None     # no request pending: any earlier one is over
-    assert core.vet(late, request_step=40).startswith('check: its 20-step prediction error')
-    assert core.vet(late) == '', 'a model naming no request is not checked under requested'
+    refused = core.offer(late, request_step=40)
+    assert refused.outcome is Outcome.REFUSED and refused.reason.startswith(
+        'check: its 20-step prediction error')
+    unchecked = core.offer(late)
+    assert unchecked.outcome is Outcome.FLEW and unchecked.verdict is None, (
+        'a model naming no request is not checked under requested')
 
 
 def test_history_snapshot_is_the_episode_oldest_first():
@@ -149,24 +149,23 @@ def _tried_run(trial: int, candidate: DecodedWeights, flip_at: int = 10 ** 9,
     every 4 s (step 40, swap step 50), `candidate` answering the first one at step 45 (tried
     for `trial` samples, then on `probation`), and the plant's input negated from step
     `flip_at` to `flip_until` (a plant that changed at once: the flipped model is then the
-    right one). Returns the tick results of steps 0..steps - 1, the answer's vet or
-    offer_model result before that of step 45."""
+    right one). Returns the tick results of steps 0..steps - 1, the answer's arrival event
+    before that of step 45."""
     config = ControllerConfig(reference_kind='setpoint', reference_params={'value': 0.5},
                               mpc=MPC, trigger=TriggerConfig(adaptation='periodic',
                                                              adapt_period=4.0),
-                              model_check=ModelCheckConfig(model_check_trial=trial,
-                                                           model_check_probation=probation))
+                              gate=GateConfig(model_check_trial=trial,
+                                              model_check_probation=probation))
     core = ControllerCore(config)
     core.set_plant(PlantDescription('vanderpol', 0.1, (-1.0,), (1.0,), 2, True))
-    core.offer_model(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
+    core.offer(build_model(manual(), 1, 'manual', 'adapted', MPC, 1, 2))
     plant = Plant(PlantConfig(theta=(0.5,)))
     y, u, results = plant.output(), 0.0, []
     for k in range(steps):
         core.observe(k, [u], y)
         if k == 45:
             bundle = build_model(candidate, 2, 'manual', 'adapted', MPC, 1, 2)
-            reason = core.vet(bundle, 40)
-            results.append(reason or core.offer_model(bundle, 40))
+            results.append(core.offer(bundle, 40))
         res = core.tick()
         results.append(res)
         u = float(res.u[0])
@@ -174,19 +173,26 @@ def _tried_run(trial: int, candidate: DecodedWeights, flip_at: int = 10 ** 9,
     return results
 
 
+def judged(ticks):
+    """(step, outcome) of every verdict a tick took effect with."""
+    return [(r.step, e.outcome) for r in ticks for e in r.events if e.verdict is not None]
+
+
 def test_a_requested_answer_is_judged_on_its_trial_samples_alone():
     """The plant changes at the swap step (50) to the flipped model's: on the samples before,
     which the arrival check scores, the flipped model is wrong and is refused; on the trial's
     samples after the swap step it is right and flies at step 50 + trial exactly."""
     at_arrival = _tried_run(0, manual(flip=True), flip_at=50)
-    assert at_arrival[45].startswith('check: its 20-step prediction error')
+    assert at_arrival[45].outcome is Outcome.REFUSED
+    assert at_arrival[45].reason.startswith('check: its 20-step prediction error')
     tried = _tried_run(25, manual(flip=True), flip_at=50)
-    assert tried[45] == 50      # queued for its trial: nothing refused at arrival
+    assert (tried[45].outcome, tried[45].start) == (Outcome.QUEUED, 50)    # nothing refused
     ticks = [r for r in tried if isinstance(r, TickResult)]
     assert [r.model_version for r in ticks] == [1] * 75 + [2] * 25
-    assert ticks[75].verdict.startswith('check passed') and 'its trial from step 50' in (
-        ticks[75].verdict) and '26 samples' in ticks[75].verdict
-    assert [r.step for r in ticks if r.verdict] == [75] and ticks[75].model_status == 'ok'
+    assert judged(ticks) == [(75, Outcome.FLEW)] and ticks[75].model_status == 'ok'
+    verdict = ticks[75].events[0].reason
+    assert verdict.startswith('check passed') and 'its trial from step 50' in verdict and (
+        '26 samples' in verdict)
     assert [r.request.step for r in ticks if r.request] == [40, 80]
 
 
@@ -196,8 +202,9 @@ def test_a_tried_answer_that_predicts_worse_is_refused_and_the_loop_goes_on():
     ticks = [r for r in _tried_run(25, manual(flip=True)) if isinstance(r, TickResult)]
     assert {r.model_version for r in ticks} == {1}
     assert all(r.solver_status == 'solved' for r in ticks)
-    assert ticks[75].verdict.startswith('check: its 20-step prediction error')
-    assert all(r.model_status.startswith('rejected: check:') for r in ticks[75:])
+    assert judged(ticks) == [(75, Outcome.REFUSED)]
+    assert ticks[75].events[0].reason.startswith('check: its 20-step prediction error')
+    assert all(r.model_status == f'rejected: {ticks[75].events[0].reason}' for r in ticks[75:])
     assert [r.request.step for r in ticks if r.request] == [40, 80]
 
 
@@ -210,12 +217,13 @@ def test_a_flown_answer_that_predicts_its_own_loop_worse_is_reverted_and_the_loo
     ticks = [r for r in _tried_run(25, manual(flip=True), flip_at=50, probation=50,
                                    flip_until=75, steps=150) if isinstance(r, TickResult)]
     assert [r.model_version for r in ticks] == [1] * 75 + [2] * 50 + [1] * 25
-    assert [r.step for r in ticks if r.verdict] == [75, 125]
-    assert ticks[75].verdict.startswith('check passed')
-    assert ticks[125].verdict.startswith('check: its 20-step prediction error') and (
-        'on 51 samples (its probation from step 75, on its own loop)' in ticks[125].verdict
-        and ticks[125].verdict.endswith('of the model it replaced'))
-    assert all(r.model_status.startswith('reverted: check:') for r in ticks[125:])
+    assert judged(ticks) == [(75, Outcome.FLEW), (125, Outcome.REVERTED)]
+    assert ticks[75].events[0].reason.startswith('check passed')
+    verdict = ticks[125].events[0].reason
+    assert verdict.startswith('check: its 20-step prediction error') and (
+        'on 51 samples (its probation from step 75, on its own loop)' in verdict
+        and verdict.endswith('of the model it replaced'))
+    assert all(r.model_status == f'reverted: {verdict}' for r in ticks[125:])
     assert [r.request.step for r in ticks if r.request] == [40, 125]
     assert all(r.solver_status == 'solved' for r in ticks)
 
@@ -226,8 +234,9 @@ def test_a_flown_answer_that_stays_the_better_predictor_is_kept_after_its_probat
     ticks = [r for r in _tried_run(25, manual(flip=True), flip_at=50, probation=50,
                                    steps=150) if isinstance(r, TickResult)]
     assert [r.model_version for r in ticks] == [1] * 75 + [2] * 75
-    assert [r.step for r in ticks if r.verdict] == [75, 125]
-    assert ticks[125].verdict.startswith('check passed') and ticks[125].model_status == 'ok'
+    assert judged(ticks) == [(75, Outcome.FLEW), (125, Outcome.KEPT)]
+    assert ticks[125].events[0].reason.startswith('check passed')
+    assert ticks[125].model_status == 'ok'
     assert [r.request.step for r in ticks if r.request] == [40, 125]
 
 
@@ -258,10 +267,11 @@ def test_with_offset_free_each_model_is_scored_as_the_mpc_plans_with_it():
     in_use = NssmPredictor(d.config, d.norm, knows_offset)
     in_use.latent.d = in_use.latent.d + np.array([0.3, -0.2])
     cfg = ModelCheckConfig(model_check_window=150)      # the estimate starts 10 before
-    plain = check(exact, in_use, u, y, 20, cfg)
+    plain = check(exact, in_use, u, y, MPC, cfg)    # offset_free state, not as planned
     assert not plain.ok and plain.candidate > plain.reference
-    corrected = check(exact, in_use, u, y, 20, cfg, offset_free='state', disturbance_gain=0.5)
-    assert corrected.ok and 'offset-free state, as planned' in corrected.reason
+    corrected = check(exact, in_use, u, y, MpcConfig(offset_free='state', disturbance_gain=0.5),
+                      dataclasses.replace(cfg, model_check_as_planned=True))
+    assert corrected.ok and 'offset-free state, as planned' in corrected.reason()
     # The estimate starts warmup(g) samples before the scored ones, (1 - g)^W <= 1e-3: the
     # squared error left is at most ~1e-6 of the uncorrected offset's.
     assert corrected.candidate < 1e-6 * plain.candidate
@@ -277,18 +287,19 @@ def test_a_candidate_whose_disturbance_is_not_detectable_is_refused_by_the_check
     a[1, :], a[1, 1] = 0.0, 1.0          # the second latent state integrates: eigenvalue 1
     integrating = NssmPredictor(d.config, d.norm, dict(d.params, A=a))
     u, y = plant_data()
-    verdict = check(integrating, predictor(), u, y, 20, ModelCheckConfig(),
-                    offset_free='output')
-    assert not verdict.ok and 'not detectable' in verdict.reason and 'eigenvalue at 1' in (
-        verdict.reason)
+    verdict = check(integrating, predictor(), u, y, MpcConfig(offset_free='output'),
+                    ModelCheckConfig(model_check_as_planned=True))
+    assert not verdict.ok and 'not detectable' in verdict.reason() and 'eigenvalue at 1' in (
+        verdict.reason())
 
 
 def test_the_controller_scores_as_planned_when_asked():
     """model_check_as_planned: the core hands the check its MPC's offset-free form and gain."""
     for planned in (False, True):
-        core = _ran_60_steps(ModelCheckConfig(model_check='all',
-                                              model_check_as_planned=planned))
-        reason = core.vet(build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1, 2))
+        core = _ran_60_steps(GateConfig(model_check='all'),
+                             ModelCheckConfig(model_check_as_planned=planned))
+        reason = core.offer(build_model(manual(flip=True), 2, 'manual', 'adapted', MPC, 1,
+                                        2)).reason
         assert reason.startswith('check: its 20-step prediction error') and (
             ('(offset-free state, as planned)' in reason) == planned), reason
 
@@ -315,10 +326,10 @@ def test_the_errors_are_those_of_exactly_the_scored_samples():
     that scored one sample more or fewer (its starts shifted by one) would not."""
     u, y = plant_data()
     good, bad = predictor(), predictor(flip=True)
-    verdict = check(bad, good, u, y, 20, ModelCheckConfig(), scored=100)
+    verdict = check(bad, good, u, y, MPC, ModelCheckConfig(), scored=100)
     assert verdict.candidate == pytest.approx(error_by_hand(bad, u, y, 20, 100, 5), rel=1e-9)
     assert verdict.reference == pytest.approx(error_by_hand(good, u, y, 20, 100, 5), rel=1e-9)
-    assert 'on 100 samples' in verdict.reason
+    assert 'on 100 samples' in verdict.reason() and verdict.scored == 100
 
 
 def test_the_margin_lets_a_candidate_a_known_factor_worse_fly_just_above_that_factor():
@@ -328,15 +339,15 @@ def test_the_margin_lets_a_candidate_a_known_factor_worse_fly_just_above_that_fa
     good, bad = predictor(), predictor(flip=True)
     factor = error_by_hand(bad, u, y, 20, 100, 5) / error_by_hand(good, u, y, 20, 100, 5)
     assert factor > 1.25
-    above = check(bad, good, u, y, 20, ModelCheckConfig(model_check_margin=factor - 1 + 1e-6),
+    above = check(bad, good, u, y, MPC, ModelCheckConfig(model_check_margin=factor - 1 + 1e-6),
                   scored=100)
-    below = check(bad, good, u, y, 20, ModelCheckConfig(model_check_margin=factor - 1 - 1e-6),
+    below = check(bad, good, u, y, MPC, ModelCheckConfig(model_check_margin=factor - 1 - 1e-6),
                   scored=100)
     assert above.ok and not below.ok
-    assert f'exceeds {factor - 1e-6:g} x ' in below.reason
+    assert f'exceeds {factor - 1e-6:g} x ' in below.reason()
 
 
 def test_a_candidate_exactly_as_good_as_the_model_in_use_passes_at_margin_0():
     u, y = plant_data()
-    verdict = check(predictor(), predictor(), u, y, 20, ModelCheckConfig(), scored=100)
+    verdict = check(predictor(), predictor(), u, y, MPC, ModelCheckConfig(), scored=100)
     assert verdict.candidate == verdict.reference and verdict.ok

@@ -72,7 +72,7 @@ def test_the_tick_reports_the_errors_of_the_model_in_use():
 
     def errors(theta_plant):
         core = ControllerCore(ControllerConfig())
-        core.offer_model(dataclasses.replace(bundle, prediction=PredictionError(
+        core.offer(dataclasses.replace(bundle, prediction=PredictionError(
             bundle.predictor.latent, bundle.predictor.norm.y_std, horizon)))
         plant = Plant(PlantConfig(theta=(theta_plant,), x0=(0.3, 0.0)))
         y, u, out = plant.output(), 0.0, []
@@ -103,7 +103,7 @@ def test_a_model_without_monitor_measures_nothing_asks_nothing_and_controls_alik
                    ModelBundle.of(NssmPredictor(decoded.config, decoded.norm, decoded.params),
                                   1, 'manual', 'adapted', mpc, monitor=False)):
         core = ControllerCore(config)
-        core.offer_model(bundle)
+        core.offer(bundle)
         plant = Plant(PlantConfig(theta=(0.5,), x0=(0.3, 0.0)))
         y, u, ticks = plant.output(), 0.0, []
         for k in range(40):

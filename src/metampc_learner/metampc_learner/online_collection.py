@@ -137,7 +137,7 @@ class OnlineCollector:
         core = ControllerCore(ControllerConfig(
             rate_hz=1.0 / self.source.dt, mpc=self._mpc_config, n_y=self.family.n_y,
             n_u=self.family.n_u))
-        core.offer_model(bundle)
+        core.offer(bundle)
         out = []
         for episode in range(self.config.episodes):
             rng = np.random.default_rng((self.config.seed, task, call, episode))

@@ -12,6 +12,7 @@ with this affine form so that references, bounds and weights stay in physical un
 Index convention: ``u_{k+1}`` is the input held over ``(k, k+1]``; it moves ``z_k`` to ``z_{k+1}``.
 """
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -66,3 +67,16 @@ class LatentModel:
     def output(self, z: np.ndarray) -> np.ndarray:
         """y_k (n_y,) from z_k (n_z,)."""
         return self.C @ z + self.d
+
+    def rollout(self, z: np.ndarray, u_future: np.ndarray, e: Optional[np.ndarray] = None,
+                d: Optional[np.ndarray] = None) -> np.ndarray:
+        """y_{k+1..k+K} (K, n_y) from z_k (n_z,) under u_{k+1..k+K} (K, n_u), eqs. (z_next),
+        (haty); `e` (n_z,), `d` (n_y,) in place of the model's constants (an offset-free
+        estimate's correction, :mod:`metampc_controller.offset_free`)."""
+        e = self.e if e is None else e
+        d = self.d if d is None else d
+        out = np.empty((len(u_future), self.n_y))
+        for k, u in enumerate(u_future):
+            z = self.A @ z + self.B @ u + e
+            out[k] = self.C @ z + d
+        return out

@@ -83,10 +83,5 @@ class NssmPredictor:
     def predict(self, u_hist: np.ndarray, y_hist: np.ndarray, u_future: np.ndarray
                 ) -> np.ndarray:
         """Physical y_{t+1..t+K} (K, n_y) from the histories and u_{t+1..t+K} (K, n_u)."""
-        z = self.encode(u_hist, y_hist)
-        u_future = np.asarray(u_future, dtype=np.float64).reshape(-1, self.config.n_u)
-        out = np.empty((u_future.shape[0], self.config.n_y))
-        for k, u in enumerate(u_future):
-            z = self.latent.step(z, u)
-            out[k] = self.latent.output(z)
-        return out
+        return self.latent.rollout(self.encode(u_hist, y_hist), np.asarray(
+            u_future, dtype=np.float64).reshape(-1, self.config.n_u))

@@ -5,7 +5,7 @@ and 'constant'; the NMPC's ``nmpc``), from the outputs and statuses stamped with
 the tracking cost before and after the first theta change, as a ratio to the NMPC's on the
 same samples; the time to recover (the 5-s moving cost over the NMPC's back within
 :data:`RECOVERY_FACTOR` after the change); the adaptation requests, swaps and their compute
-times, and the models the controller refused (model_status 'rejected: ...', with the reason);
+times, and the models the controller refused or reverted (its model events, with the reason);
 the detector's error over time (plotted). :func:`drift_experiment_report` gathers the seeds
 into report.json and report.md (median and worst seed per method and mode; each adapting mode
 against 'none' of the same method, paired by seed; the spurious adaptations of the constant
@@ -45,7 +45,8 @@ class RunSignals:
     error_t [m] (T-step prediction error), change_t [m] (the outputs' T-step change),
     request [m] (bool), trigger [m], ref [m, n_y]
     (reference of the output of step k + 1); compute [a] s: the training time of each online
-    model the run used; model_status [m]."""
+    model the run used; events [m]: each status's model events (metampc_msgs/ModelEvent:
+    outcome, cause, reason; none in recordings from before them)."""
 
     t: np.ndarray
     y: np.ndarray
@@ -58,7 +59,7 @@ class RunSignals:
     trigger: List[str]
     ref: np.ndarray
     compute: List[float]
-    model_status: List[str] = field(default_factory=list)
+    events: List[Sequence[Any]] = field(default_factory=list)
 
 
 def drift_runs(events: List[ExperimentEvent]) -> Dict[str, Dict[str, Any]]:
@@ -109,7 +110,7 @@ def run_signals(recording, runs: Dict[str, Dict[str, Any]]) -> Dict[str, RunSign
             ref=np.array([list(m.y_ref[:n_y]) for _, m in stats], dtype=float
                          ).reshape(len(stats), n_y),
             compute=[trained[v] for v in versions if v in trained],
-            model_status=[m.model_status for _, m in stats])
+            events=[getattr(m, 'model_events', ()) for _, m in stats])
     return out
 
 
@@ -164,24 +165,17 @@ def _mean(values: np.ndarray) -> Optional[float]:
 
 
 def refusals(sig: RunSignals) -> List[List[Any]]:
-    """[step, reason] of each model the controller refused or reverted after its probation: a
-    status whose model_status turns to a new 'rejected: <reason>' (reason) or 'reverted:
-    <reason>' (kept whole)."""
-    out, last = [], ''
-    for step, status in zip(sig.step, sig.model_status):
-        if status != last and status.startswith(('rejected: ', 'reverted: ')):
-            out.append([int(step), status[len('rejected: '):]
-                        if status.startswith('rejected: ') else status])
-        last = status
+    """[step, reason, kind] of each model the controller refused (kind 'check': by the check,
+    'weights': weights it could not build) or reverted after its probation ('revert'; the
+    reason begins 'reverted: '), from the model events of its statuses."""
+    out = []
+    for step, events in zip(sig.step, sig.events):
+        for event in events:
+            if event.outcome == 'reverted':
+                out.append([int(step), f'reverted: {event.reason}', 'revert'])
+            elif event.outcome == 'refused':
+                out.append([int(step), event.reason, event.cause])
     return out
-
-
-def refusal_kind(reason: str) -> str:
-    """'check' for the model check's refusals, 'revert' for a model reverted after its
-    probation, else the reason's first words (bad weights)."""
-    if reason.startswith('reverted: '):
-        return 'revert'
-    return 'check' if reason.startswith('check:') else reason.split(':')[0][:40]
 
 
 def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[float],
@@ -194,12 +188,17 @@ def run_metrics(sig: RunSignals, nmpc: Optional[RunSignals], t_change: Optional[
     t = (sig.step + 1) * dt     # the time of the output each error is of
     swaps = [int(sig.step[i]) for i in range(1, len(sig.step))     # reverts are no swap
              if sig.model_version[i] != sig.model_version[i - 1]
-             and not sig.model_status[i].startswith('reverted: ')]
+             and not any(e.outcome == 'reverted' for e in sig.events[i])]
+    refused = refusals(sig)
+    kinds: Dict[str, int] = {}
+    for _, _, kind in refused:
+        kinds[kind] = kinds.get(kind, 0) + 1
     out: Dict[str, Any] = {
         'steps': int(len(sig.step)), 'cost': _mean(e2),
         'requests': [[int(k), tr] for k, r, tr in zip(sig.step, sig.request, sig.trigger) if r],
         'swaps': swaps, 'compute_s': sig.compute,
-        'adaptations': len(swaps), 'refusals': refusals(sig)}
+        'adaptations': len(swaps), 'refusals': [r[:2] for r in refused],
+        'refusal_kinds': kinds}
     if t_change is None:
         return out
     after = _after(t, t_change)
@@ -313,8 +312,8 @@ def drift_experiment_report(seed_reports: List[Dict], out_dir: str, config: Dict
             per = [r['runs'].get(name, {}) for r in seed_reports]
             kinds: Dict[str, int] = {}
             for p in per:
-                for _, reason in p.get('refusals', []):
-                    kinds[refusal_kind(reason)] = kinds.get(refusal_kind(reason), 0) + 1
+                for kind, n in p.get('refusal_kinds', {}).items():
+                    kinds[kind] = kinds.get(kind, 0) + n
             table[name] = {
                 'refusals': [len(p.get('refusals', [])) for p in per], 'refusal_kinds': kinds,
                 'vs_none': _paired(per, [r['runs'].get(f'{method}/none', {})

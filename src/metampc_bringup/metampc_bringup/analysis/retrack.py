@@ -72,18 +72,17 @@ def check_verdicts(experiment: ExperimentConfig, seed: int, recording: str,
     """What model_check says of each recorded adapted model on `episode`'s samples (e.g. the
     NMPC's tracking run of the seed, which a controller holds when the adapted models come):
     against its own meta-model (an update of it) and against persistence (a first model)."""
-    cfg = experiment.resolved()
-    config = controller_config(cfg, seed, {})
-    horizon, config = config.mpc.horizon, config.model_check
+    config = controller_config(experiment.resolved(), seed, {})
     metas = adapted_models(recording, 'meta')
+
+    def verdict(new: NssmPredictor, against: Optional[NssmPredictor]) -> Dict[str, Any]:
+        v = check(new, against, episode.u, episode.y, config.mpc, config.model_check)
+        return {**asdict(v), 'reason': v.reason()}
     out = {}
     for method, msg in adapted_models(recording).items():
-        new = _predictor(msg)
-        meta = metas.get(method)
-        out[method] = {
-            'vs_meta': asdict(check(new, _predictor(meta), episode.u, episode.y, horizon,
-                                    config)) if meta is not None else None,
-            'vs_persistence': asdict(check(new, None, episode.u, episode.y, horizon, config))}
+        new, meta = _predictor(msg), metas.get(method)
+        out[method] = {'vs_meta': verdict(new, _predictor(meta)) if meta is not None else None,
+                       'vs_persistence': verdict(new, None)}
     return out
 
 
@@ -103,8 +102,13 @@ def controller_config(experiment: ExperimentConfig, seed: int, overrides: Mappin
                       ) -> ControllerConfig:
     """The controller's configuration of `seed` with parameter `overrides`, checked as the
     node checks it (ParameterError naming the parameter)."""
-    return parse_controller(_with_defaults(CONTROLLER_PARAMETERS,
-                                           controller_values(experiment, seed, overrides)))
+    return controller_settings(controller_values(experiment, seed, overrides))
+
+
+def controller_settings(values: Mapping[str, Any]) -> ControllerConfig:
+    """The controller's configuration of its parameter `values` (a run's controller section),
+    its declared defaults filled in, checked as the node checks it."""
+    return parse_controller(_with_defaults(CONTROLLER_PARAMETERS, values))
 
 
 def plant_config(plant: Mapping[str, Any], theta: Sequence[float]) -> PlantConfig:
@@ -132,8 +136,8 @@ def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence
     core.set_plant(PlantDescription(plant_cfg.family, plant_cfg.dt,
                                     plant_cfg.u_min, plant_cfg.u_max, core.n_y, True))
     if weights is not None:
-        core.offer_model(build_model(weights, 1, 'retrack', 'adapted', core.config.mpc,
-                                     core.n_u, core.n_y, core.config.history))
+        core.offer(build_model(weights, 1, 'retrack', 'adapted', core.config.mpc, core.n_u,
+                               core.n_y, core.config.history))
     return run_episode(core, Plant(plant_cfg), steps, theta, x0)
 
 
