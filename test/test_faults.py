@@ -370,7 +370,10 @@ def test_controller_rejects_malformed_nan_and_wrong_shape_weights(procs, probe, 
     for version, (change, reason) in enumerate(BAD_WEIGHTS, start=2):
         pub.publish(change(weights(version)))
         st = rig.wait_status(lambda s: reason in s.model_status, f'version {version} rejected')
-        assert st.model_status.startswith('rejected: ') and st.model_version == 1, st
+        events = [e for s in rig.heard['mpc_status'] for e in s.model_events
+                  if e.version == version]
+        assert [(e.outcome, e.cause) for e in events] == [('refused', 'weights')], events
+        assert st.model_status == f'rejected: {events[0].reason}' and st.model_version == 1, st
         rig.wait_steps(3)
         assert {s.model_version for s in rig.heard['mpc_status'][-3:]} == {1}
     good = len(BAD_WEIGHTS) + 2

@@ -192,7 +192,6 @@ class ModelGate(Generic[Model]):
             verdict, event = self._arrival_check(model, request_step, in_use, settings)
             if event is not None:
                 return event
-        trial = self.tried(request_step, in_use, settings)
         start = self._queue(model, request_step, trial, self._probation_of(request_step,
                                                                            settings))
         if start is not None:

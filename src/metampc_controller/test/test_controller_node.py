@@ -150,6 +150,14 @@ class Loop:
         self.probe.wait_for(lambda: self.status and predicate(self.status[-1]), timeout, what)
         return self.status[-1]
 
+    def wait_event(self, version: int, what: str, timeout: float = 30.0):
+        """(the first model event about `version`, the status that carried it)."""
+        def found():
+            return next(((e, s) for s in list(self.status) for e in s.model_events
+                         if e.version == version), None)
+        self.probe.wait_for(found, timeout, what)
+        return found()
+
     def inputs(self, steps: int) -> dict:
         """{k: u_k[0]} for k < steps, once the probe has them (u and y are different topics:
         y_{k+1} may reach the probe before the u_k it answers)."""
@@ -217,14 +225,16 @@ def test_excitation_tracking_swaps_rejections_and_restart(procs, probe):
     bad = weights(2)
     bad.params[7] = math.nan
     loop.weights.publish(bad)
-    st = loop.wait_status(lambda s: s.model_status.startswith('rejected'), 'NaN rejected')
-    assert 'non-finite' in st.model_status and st.model_version == 1, st
+    event, st = loop.wait_event(2, 'NaN refused')
+    assert (event.outcome, event.cause) == ('refused', 'weights') and 'non-finite' in (
+        event.reason) and st.model_version == 1, st
+    assert st.model_status == f'rejected: {event.reason}'
     bad = weights(3)
     bad.shapes[0] += 1
     loop.weights.publish(bad)
-    st = loop.wait_status(lambda s: 'encoder.0.weight has shape' in s.model_status,
-                          'wrong shapes rejected')
-    assert st.model_status.startswith('rejected: ') and st.model_version == 1, st
+    event, st = loop.wait_event(3, 'wrong shapes refused')
+    assert (event.outcome, event.cause) == ('refused', 'weights') and (
+        'encoder.0.weight has shape' in event.reason) and st.model_version == 1, st
 
     # A model of another architecture is swapped in mid-run without a missed step.
     loop.weights.publish(weights(4, n_z=4, hidden=(8, 8), history=5))

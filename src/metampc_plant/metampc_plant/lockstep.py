@@ -23,7 +23,7 @@ class Lockstep:
     * Timeout: ``input_timeout`` s after each y without its answer, the plant steps with the
       held input (0: wait forever). The node arms a timer with :attr:`timeout_s` after each y.
     * Announced hold: a controller that holds its answer to the current step (it waits for
-      a model it asked for, metampc_controller.model_swap) says so, with the longest it may
+      a model it asked for, metampc_controller.model_gate) says so, with the longest it may
       hold it (hold_s); the step then waits hold_s + input_timeout s from that notice
       (:meth:`hold_timeout_s`), however long the timeout: the swap stays exact, and a plant
       whose controller died while holding still moves on.
