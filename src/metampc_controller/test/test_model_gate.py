@@ -313,3 +313,20 @@ def test_which_models_are_checked():
     requested, all_, off = (GateConfig(model_check=m) for m in ('requested', 'all', 'off'))
     assert [c.checks(True) for c in (requested, all_, off)] == [True, True, False]
     assert [c.checks(False) for c in (requested, all_, off)] == [False, True, False]
+
+
+def test_an_answer_whose_request_ends_while_it_is_offered_is_checked_like_a_late_one(stubbed):
+    """The request given up (its timeout, on the executor thread) after the gate found the
+    answer to be tried but before it queued it: no trial to judge it, so it is checked at
+    arrival like a late answer: a worse one refused, a better one flown with its verdict."""
+    for model, outcome in ((BAD, Outcome.REFUSED), (GOOD, Outcome.FLEW)):
+        gate, config = asked(lockstep=True, trial=5)
+        queue = gate._queue
+
+        def timed_out_first(*args):
+            gate.trigger.give_up()
+            return queue(*args)
+        gate._queue = timed_out_first
+        event = gate.offer(model, 20, IN_USE, config)
+        assert (event.outcome, event.cause.value) == (outcome, 'check')
+        assert event.verdict.scored == 200 and gate.trigger.pending is None
