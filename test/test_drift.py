@@ -74,13 +74,13 @@ def test_requests_swaps_and_theta_steps_are_where_the_rules_put_them(two_runs):
             continue
         # Each request's answer tried from exactly request + swap_delay and in use after its
         # trial (within the run), or refused by the model check at its trial's end or at
-        # arrival (the model in use stays and model_status says why from then on).
-        status = {m.step: m.model_status for m in run['mpc_status']}
+        # arrival (the model in use stays and a model event says why).
+        refused = {m.step for m in run['mpc_status'] for e in m.model_events
+                   if (e.outcome, e.cause) == ('refused', 'check')}
         answered = [k + SWAP_DELAY + TRIAL for k in requests if k + SWAP_DELAY + TRIAL < n]
         assert set(swaps) <= set(answered), name
         for k in set(answered) - set(swaps):
-            assert any(status[j].startswith('rejected: check:')
-                       for j in range(k - SWAP_DELAY - TRIAL, n) if j in status), (name, k)
+            assert any(j in refused for j in range(k - SWAP_DELAY - TRIAL, n)), (name, k)
         if name.endswith('/periodic'):
             period = int(round(4.0 / config.dt))     # controller.adapt_period of ci_drift
             assert requests == list(range(period, n, period)), name
