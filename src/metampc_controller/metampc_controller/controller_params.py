@@ -19,6 +19,7 @@ from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_common.excitation import amplitude_param, center_param, ExcitationConfig
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.narx_rls import RlsConfig
 from metampc_controller.nmpc import SOLVERS as NMPC_SOLVERS
 from metampc_controller.planner_registry import REGISTRY
 from metampc_controller.references import make_reference, SetpointSequenceConfig
@@ -145,6 +146,7 @@ class ControllerConfig:
         trigger: when to ask the learner for adaptation in the loop.
         model_check: the check a new model must pass before it flies.
         hold: whether u and mpc_status wait for a full reader that keeps all.
+        rls: a feature NARX's head adapted at every tick (off by default).
     """
 
     rate_hz: float = param(10.0, 'tick rate on the node clock, Hz (sim time under a lockstep '
@@ -173,6 +175,7 @@ class ControllerConfig:
     trigger: TriggerConfig = field(default_factory=TriggerConfig)
     model_check: ModelCheckConfig = field(default_factory=ModelCheckConfig)
     hold: HoldConfig = field(default_factory=HoldConfig)
+    rls: RlsConfig = field(default_factory=RlsConfig)
 
 
 MPC = Section(MpcConfig)
@@ -181,8 +184,9 @@ EXCITATION = Section(ExcitationParams, 'excitation_')
 TRIGGER = Section(TriggerConfig)
 CHECK = Section(ModelCheckConfig)
 HOLD = Section(HoldConfig)
+RLS = Section(RlsConfig)
 NODE = Section(ControllerConfig)
-SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, CHECK, HOLD)
+SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, CHECK, HOLD, RLS)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -220,6 +224,7 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
                                  f'samples, so that its check scores at least one prediction; '
                                  f'got {samples}')
     node.hold = build(HOLD, values)
+    node.rls = build(RLS, values)
     return node
 
 
