@@ -227,6 +227,7 @@ def bench_core(ticks: int, setup: Setup) -> dict:
             'fallbacks': sum(s.fallback for s in status),
             'terminal_fallback': bool(status[-1].terminal_fallback),
             'solver_statuses': sorted({s.solver_status for s in status}),
+            'one_step_std_sizes': sorted({len(s.one_step_std) for s in status}),
         }
     finally:
         spin.shutdown()
