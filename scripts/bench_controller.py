@@ -31,9 +31,14 @@ offset_free: the core ticks run twice, with the default offset-free form (core) 
 offset_free none (core_offset_free_none, eq. (mpc) as the paper writes it);
 offset_free_tick_ratio is on / off at p50 and p99 (goal p99 <= 1.2).
 
+rls (--rls FORGETTING): a feature NARX of the default size (seeded features, its head fitted
+in closed form to excitation episodes of the plant at theta) instead, its core ticks without
+and with the in-loop RLS of its head (rls_tick_ratio, on / off at p50 and p99, goal p99 <=
+1.2; docs/adaptation.md), offset-free none (its planner's); no ROS round trips.
+
 Usage: python scripts/bench_controller.py [--ticks 2000] [--ros-ticks 1000]
        [--family vanderpol] [--theta 0.5 (comma-separated; default: 0.5 for van der Pol,
-       else the family's nominal)]
+       else the family's nominal)] [--rls 0.99]
 """
 import argparse
 from dataclasses import dataclass, replace
@@ -63,6 +68,8 @@ class Setup:
     family: str
     theta: List[float]
     offset_free: str = 'state'
+    narx: bool = False          # a feature NARX of the default size in place of the NSSM
+    rls_forgetting: float = 0.0
 
     @property
     def plant_family(self):
@@ -76,18 +83,22 @@ class Setup:
     def controller_params(self) -> dict:
         """The family's bounds and tracked outputs; van der Pol: the node's defaults."""
         fam = self.plant_family
+        own = {'offset_free': self.offset_free, 'rls_forgetting': self.rls_forgetting}
         if fam.name == 'vanderpol':
-            return {'offset_free': self.offset_free}
+            return own
         tracked = list(fam.tracked)
-        return {'offset_free': self.offset_free, 'u_min': list(fam.u_min),
+        return {**own, 'u_min': list(fam.u_min),
                 'u_max': list(fam.u_max), 'rate_hz': 1.0 / fam.dt,
                 'q': [1.0 if j in tracked else 0.0 for j in range(fam.n_y)],
                 'reference': 'setpoint', 'reference_outputs': tracked,
                 'reference_values': [float(fam.reference[tracked[0]])]}
 
     def model_message(self):
-        """The default-size NSSM as an NssmWeights message (see the module docstring)."""
+        """The default-size NSSM (or feature NARX) as an NssmWeights message (see the module
+        docstring)."""
         fam = self.plant_family
+        if self.narx:
+            return narx_message(self)
         if fam.name == 'vanderpol':
             return manual_weights(self.theta[0], fam.dt, **NSSM)
         from metampc_model.normalisation import Normalisation
@@ -101,6 +112,34 @@ class Setup:
                              np.ones(fam.n_y))
         return NssmWeights(version=1, method='manual', stage='adapted',
                            **fields_from_weights(config, norm, init_params(config, seed=0)))
+
+
+def narx_message(setup: 'Setup'):
+    """A feature NARX of the default size (order 2, F = 32, g [64]) for the setup's plant as an
+    NssmWeights message: seeded random features, the head fitted in closed form (toward zero,
+    gamma 1e-5: narx_learning.adapt) to 10 seeded excitation episodes of 200 samples of the
+    plant at theta, as a flown model is."""
+    from metampc_bringup.studies.nonlinear_regime import collect
+    from metampc_common.excitation import ExcitationConfig
+    from metampc_learner.narx_learning import adapt
+    from metampc_model.feature_narx import FeatureNarx, init_params
+    from metampc_model.narx_shape import NarxShape
+    from metampc_model.normalisation import Normalisation
+    from metampc_model.weights_codec import fields_from_narx
+    from metampc_msgs.msg import NssmWeights
+    from metampc_plant.simulator import PlantConfig
+    fam = setup.plant_family
+    plant = PlantConfig(family=fam.name, theta=tuple(setup.theta), dt=fam.dt)
+    excite = ExcitationConfig(u_min=tuple(fam.u_min), u_max=tuple(fam.u_max))
+    starts = np.random.default_rng(0).uniform(fam.x0_low, fam.x0_high, (10, fam.n_x))
+    records = [collect(excite, plant, setup.theta, x0, 200, seed)
+               for seed, x0 in enumerate(starts)]
+    u, y = (np.concatenate([r[i] for r in records]) for i in (0, 1))
+    norm = Normalisation(u.mean(0), u.std(0) + 1e-9, y.mean(0), y.std(0) + 1e-9)
+    shape = NarxShape(fam.n_u, fam.n_y, 2, 32, (64,))
+    model = adapt(FeatureNarx(shape, norm, init_params(shape, 0)), records, 1e-5).model
+    return NssmWeights(version=1, method='manual', stage='adapted',
+                       **fields_from_narx(shape, norm, model.params))
 
 
 class PlantLoop:
@@ -188,6 +227,7 @@ def bench_core(ticks: int, setup: Setup) -> dict:
             'fallbacks': sum(s.fallback for s in status),
             'terminal_fallback': bool(status[-1].terminal_fallback),
             'solver_statuses': sorted({s.solver_status for s in status}),
+            'one_step_std_sizes': sorted({len(s.one_step_std) for s in status}),
         }
     finally:
         spin.shutdown()
@@ -276,6 +316,27 @@ def bench_ros(ticks: int, setup: Setup, timeout: float) -> dict:
             group.stop_all()
 
 
+def bench_rls(ticks: int, setup: Setup, forgetting: float) -> int:
+    """The feature NARX's core ticks without and with the in-loop RLS, in one run."""
+    if not 0 < forgetting < 1:
+        print(f'bench_controller: --rls needs a forgetting factor in (0, 1), got {forgetting}',
+              file=sys.stderr)
+        return 2
+    out = {'family': setup.family, 'model': 'feature NARX p=2, F=32, g [64]', 'horizon': 20,
+           'theta': setup.theta, 'ticks': ticks, 'rls_forgetting': forgetting,
+           'loadavg_1min_start': round(os.getloadavg()[0], 2)}
+    out['core'] = bench_core(ticks, replace(setup, offset_free='none'))
+    out['core_rls'] = bench_core(ticks, replace(setup, offset_free='none',
+                                                rls_forgetting=forgetting))
+    out['rls_tick_ratio'] = {
+        p: round(out['core_rls'][f'tick_{p}_us'] / out['core'][f'tick_{p}_us'], 3)
+        for p in ('p50', 'p99')}
+    out['loadavg_1min_end'] = round(os.getloadavg()[0], 2)
+    out['goals_met'] = {'rls_tick_p99_ratio_le_1.2': out['rls_tick_ratio']['p99'] <= 1.2}
+    print(json.dumps(out))
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--ticks', type=int, default=2000, help='in-process ticks to time')
@@ -286,6 +347,10 @@ def main() -> int:
                                         "else the family's nominal)")
     parser.add_argument('--timeout', type=float, default=180.0,
                         help='give up on the ROS round trips after this many s')
+    parser.add_argument('--rls', type=float, metavar='FORGETTING',
+                        help='time a feature NARX of the default size instead, its tick with '
+                             'the in-loop RLS of its head at this forgetting factor against '
+                             'without (rls_tick_ratio, goal p99 <= 1.2); no ROS round trips')
     args = parser.parse_args()
     from metampc_plant.registry import get_family
     try:
@@ -299,6 +364,8 @@ def main() -> int:
     setup = Setup(family.name, theta)
     from metampc_bringup.orchestration.domain import isolate
     domain = isolate()
+    if args.rls is not None:
+        return bench_rls(args.ticks, replace(setup, narx=True), args.rls)
     out = {'family': family.name, 'n_u': family.n_u, 'n_y': family.n_y,
            'nssm': {'hidden': [128, 128], 'n_z': 5, 'history': 10}, 'horizon': 20,
            'theta': theta, 'ticks': args.ticks, 'ros_ticks': args.ros_ticks,

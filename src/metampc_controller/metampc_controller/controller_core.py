@@ -23,6 +23,7 @@ from metampc_controller.controller_params import ControllerConfig, MAX_HISTORY
 from metampc_common.excitation import excitation, ExcitationConfig
 from metampc_controller.local_mpc import LocalLinearMpc
 from metampc_controller.model_gate import ModelEvent, ModelGate
+from metampc_controller.narx_rls import NarxRls, RlsCounts
 from metampc_controller.mpc import LatentMpc, MpcConfig, NO_TIME_LIMIT
 from metampc_controller.offset_free import disturbance_model
 from metampc_controller.planner import Planner, PlanResult
@@ -445,6 +446,10 @@ class TickResult:
         NARX's planner; 0 otherwise).
     events: the model gate's decisions since the previous answer (:mod:`model_gate`).
     detector: the adaptation trigger's CUSUM statistic and baseline after this tick.
+    one_step_std: (n_y,) with rls_forgetting on a feature NARX: the std its head's posterior
+        gave y_k's one-step prediction (:mod:`narx_rls`; NaN: none yet); empty otherwise.
+    rls_event: what :mod:`narx_rls` did this tick that the log says ('' nothing).
+    rls_counts: its counts for the model in use so far (the object it updates), or None.
     config_version: the :class:`Tuning` the tick used; q: its output weights.
     """
 
@@ -472,10 +477,14 @@ class TickResult:
     residual: float = math.nan
     failed_linearisations: int = 0
     detector: Tuple[float, float] = (0.0, math.nan)
+    one_step_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rls_event: str = ''
+    rls_counts: Optional[RlsCounts] = None
 
 
 # No model, no prediction: the (one-step, T-step, T-step change) of a tick without the model.
 NO_ERRORS = (math.nan, math.nan, math.nan)
+NO_SPREAD = np.zeros(0)     # no in-loop RLS: no one-step std
 
 
 def nmpc_unavailable(reason: str) -> str:
@@ -575,6 +584,8 @@ class ControllerCore:
         self._events: List[ModelEvent] = []     # the gate's, until a tick publishes them
         self.trigger = AdaptationTrigger(config.trigger)
         self.gate: ModelGate[ModelBundle] = ModelGate(self.trigger, self.history.snapshot)
+        # A feature NARX's head adapted at every tick (rls_forgetting > 0; not live).
+        self.rls = NarxRls(config.rls) if config.rls.rls_forgetting > 0 else None
 
     # --- inputs from other callbacks ----------------------------------------------------
 
@@ -779,11 +790,15 @@ class ControllerCore:
         u_prev = history.u
         y_ref = self.references(step, tuning)
         errors, request, version, state, failed = NO_ERRORS, None, 0, None, 0
+        spread = NO_SPREAD
         if self.kind.learned:
             planner = None
             if model is not None:
                 u_hist, y_hist = history.window(model.history)
                 state = model.predictor.encode(u_hist, y_hist)
+                if self.rls is not None and model.latent is None:
+                    spread = self.rls.tick(model.predictor, step, state, u_prev, history.y,
+                                           tuning.u_min, tuning.u_max)
                 if model.prediction is not None:
                     errors = model.prediction.update(step, u_prev, history.y, state)
                     request = self.trigger.update(step, self.dt, errors[1], errors[2],
@@ -799,9 +814,13 @@ class ControllerCore:
             res = PlanResult(u=tuning.pre_model.value(step, self.dt), u_plan=np.zeros(
                 (0, self.n_u)), y_pred=np.zeros((0, self.n_y)), cost=math.nan,
                 status=self.kind.waiting, iterations=-1, solve_time=0.0)
-        return tick_result(step, tuning, model_status, y_ref, u_prev, res, version, errors,
-                           request, events, failed, (self.trigger.statistic,
-                                                     self.trigger.baseline))
+        result = tick_result(step, tuning, model_status, y_ref, u_prev, res, version, errors,
+                             request, events, failed, (self.trigger.statistic,
+                                                       self.trigger.baseline))
+        if self.rls is not None:
+            result.one_step_std, result.rls_event = spread, self.rls.event
+            result.rls_counts = self.rls.counts
+        return result
 
 
 def tick_result(step: int, tuning: Tuning, model_status: str, y_ref: np.ndarray,

@@ -230,6 +230,9 @@ class ControllerNode(Node):
         status.q = res.q
         (status.prediction_error, status.prediction_error_t,
          status.output_change_t) = res.prediction_errors
+        status.one_step_std = _doubles(res.one_step_std)
+        if res.rls_event:
+            self.get_logger().warning(res.rls_event)
         request = res.request
         status.adapt_request = request is not None
         status.adapt_trigger = request.trigger if request is not None else ''

@@ -20,6 +20,7 @@ from metampc_common.excitation import amplitude_param, center_param, ExcitationC
 from metampc_controller.model_check import ModelCheckConfig
 from metampc_controller.model_gate import GateConfig
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.narx_rls import RlsConfig
 from metampc_controller.nmpc import SOLVERS as NMPC_SOLVERS
 from metampc_controller.planner_registry import REGISTRY
 from metampc_controller.references import make_reference, SetpointSequenceConfig
@@ -147,6 +148,7 @@ class ControllerConfig:
         gate: when a new model may fly (which are checked, trial, probation).
         model_check: how the check a new model must pass scores it.
         hold: whether u and mpc_status wait for a full reader that keeps all.
+        rls: a feature NARX's head adapted at every tick (off by default).
     """
 
     rate_hz: float = param(10.0, 'tick rate on the node clock, Hz (sim time under a lockstep '
@@ -176,6 +178,7 @@ class ControllerConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     model_check: ModelCheckConfig = field(default_factory=ModelCheckConfig)
     hold: HoldConfig = field(default_factory=HoldConfig)
+    rls: RlsConfig = field(default_factory=RlsConfig)
 
 
 MPC = Section(MpcConfig)
@@ -185,8 +188,9 @@ TRIGGER = Section(TriggerConfig)
 GATE = Section(GateConfig)
 CHECK = Section(ModelCheckConfig)
 HOLD = Section(HoldConfig)
+RLS = Section(RlsConfig)
 NODE = Section(ControllerConfig)
-SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, GATE, CHECK, HOLD)
+SECTIONS = (NODE, MPC, REFERENCE, EXCITATION, TRIGGER, GATE, CHECK, HOLD, RLS)
 PARAMETERS: Dict[str, ParamSpec] = table(SECTIONS)
 
 
@@ -225,6 +229,7 @@ def parse_params(values: Mapping[str, Value]) -> ControllerConfig:
                                  f'samples, so that its check scores at least one prediction; '
                                  f'got {samples}')
     node.hold = build(HOLD, values)
+    node.rls = build(RLS, values)
     return node
 
 

@@ -1,6 +1,8 @@
 """A learned feature NARX flown by the controller core (one process: closed_loop.run_episode):
 through the weights message's fields, its regressor state built from the history each tick,
 planned on its linearisation (local_mpc), against the study's own loop on the same model."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -12,6 +14,7 @@ from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.local_mpc import LINEARISATION_FAILED, LocalLinearMpc
 from metampc_controller.mpc import MpcConfig
+from metampc_controller.narx_rls import RlsConfig
 from metampc_controller.references import make_reference
 from metampc_learner.narx_learning import adapt
 from metampc_model.feature_narx import FeatureNarx, init_params, NarxShape
@@ -94,3 +97,37 @@ def test_a_failed_linearisation_is_counted_in_the_tick_and_the_plan_shifted():
     assert (res.failed_linearisations, res.solver_status, res.fallback) == (
         1, LINEARISATION_FAILED, True)
     np.testing.assert_allclose(res.u, first.u_plan[1])
+
+
+def test_with_rls_the_tick_adapts_the_head_and_publishes_its_one_step_std():
+    model = _narx()
+    decoded = model_from_fields(fields_from_narx(model.shape, model.norm, model.params))
+    plant = replace(PLANT, theta_schedule=(5.0, 5.0, -0.5))    # theta 1 -> -0.5 at 5 s
+    runs = {}
+    for forgetting in (0.0, 0.95):
+        core = ControllerCore(replace(CONTROLLER, rls=RlsConfig(rls_forgetting=forgetting)))
+        core.offer_model(build_model(decoded, 1, 'imaml', 'adapted', core.config.mpc, 1, 2))
+        episode = run_episode(core, Plant(plant), STEPS, THETA, (0.0, 0.0))
+        runs[forgetting] = (episode, core.model.predictor.head.copy())
+    off, on = runs[0.0][0], runs[0.95][0]
+    assert all(t.one_step_std.size == 0 and t.rls_counts is None for t in off.ticks)
+    assert np.array_equal(runs[0.0][1], decoded.params['head'])
+    stds = np.array([t.one_step_std for t in on.ticks])
+    # NaN until a first sample is taken (none at step 0, no noise estimate yet after it)
+    assert stds.shape == (STEPS, 2) and np.isnan(stds[:2]).all()
+    assert np.all(np.isfinite(stds[-100:])) and np.all(stds[-100:] > 0)
+    counts = on.ticks[-1].rls_counts
+    assert counts.taken > 0 and counts.resets == 0
+    assert counts.taken + counts.refused + counts.saturated + counts.nonfinite == STEPS - 1
+    assert not np.allclose(runs[0.95][1], decoded.params['head'])
+    # the adapted head predicts the changed plant's last 50 samples better than the prior
+    # (0.53 of its mean squared one-step error, measured)
+    u, y = on.u, on.y
+    errors = {}
+    for name, head in (('prior', decoded.params['head']), ('rls', runs[0.95][1])):
+        predictor = core.model.predictor
+        predictor.set_head(head)
+        errors[name] = np.mean([(predictor.step(predictor.encode(u[k - 1:k + 1], y[k - 1:k + 1]),
+                                                u[k + 1]) - y[k + 1]) ** 2
+                                for k in range(STEPS - 50, STEPS - 1)])
+    assert errors['rls'] < 0.75 * errors['prior']

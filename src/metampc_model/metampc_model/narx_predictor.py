@@ -8,7 +8,7 @@ is one step, :meth:`~NarxPredictor.linearise` the affine model exact to first or
 Jacobian by the chain rule through its tanh layers), :meth:`~NarxPredictor.predict` the T-step
 prediction. No torch.
 """
-from typing import Any, Mapping, Tuple
+from typing import Any, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -66,9 +66,25 @@ class NarxPredictor:
                 jac = (1.0 - h * h)[:, None] * (w if jac is None else w @ jac)
         return h if self._layers else np.zeros(0), jac
 
-    def _one_step(self, s_n: np.ndarray, u_n: np.ndarray, jacobian: bool = False):
-        """Normalised y_{t+1}, and with `jacobian` (dy/ds_n, dy/du_n) too."""
-        sh, head = self.shape, self._head
+    @property
+    def head(self) -> np.ndarray:
+        """Theta (n_y, n_phi), normalised units (read-only view)."""
+        view = self._head.view()
+        view.flags.writeable = False
+        return view
+
+    def set_head(self, head: np.ndarray) -> None:
+        """Fly `head` (n_y, n_phi) from now on (the in-loop RLS: metampc_controller.narx_rls)."""
+        head = np.array(head, dtype=np.float64)
+        if head.shape != self._head.shape:
+            raise ValueError(f'head of shape {head.shape}, the model has {self._head.shape}')
+        self._head = head
+
+    def _one_step(self, s_n: np.ndarray, u_n: np.ndarray, jacobian: bool = False,
+                  head: Optional[np.ndarray] = None):
+        """Normalised y_{t+1}, and with `jacobian` (dy/ds_n, dy/du_n) too (of `head`, default
+        the model's)."""
+        sh, head = self.shape, self._head if head is None else head
         g, jac = self._features(s_n, jacobian)
         y_n = head @ np.concatenate([s_n, g, u_n, [1.0]])
         if not jacobian:
@@ -106,14 +122,15 @@ class NarxPredictor:
             s = self.shift(s, out[k], u)
         return out
 
-    def linearise(self, s: np.ndarray, u_next: np.ndarray) -> LatentModel:
+    def linearise(self, s: np.ndarray, u_next: np.ndarray, head: Optional[np.ndarray] = None
+                  ) -> LatentModel:
         """The affine model of s_{t+1} = F(s_t, u_{t+1}) at (s, u_next), physical units:
         z = s, z+ = A z + B u + e exact to first order there (A the companion matrix whose
-        first n_y rows are dF/ds), y = C z (C selects y_t), d = 0. ValueError if the
-        Jacobian is not finite."""
+        first n_y rows are dF/ds), y = C z (C selects y_t), d = 0; of `head` in place of the
+        model's where given. ValueError if the Jacobian is not finite."""
         sh, nm = self.shape, self.norm
         s, u_next = np.asarray(s, np.float64), np.asarray(u_next, np.float64)
-        y_n, d_s, d_u = self._one_step(*self._normalised(s, u_next), jacobian=True)
+        y_n, d_s, d_u = self._one_step(*self._normalised(s, u_next), jacobian=True, head=head)
         top_s = d_s * nm.y_std[:, None] / self._std[None, :]
         top_u = d_u * nm.y_std[:, None] / nm.u_std[None, :]
         y_next = y_n * nm.y_std + nm.y_mean

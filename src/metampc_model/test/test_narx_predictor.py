@@ -1,5 +1,6 @@
 """The numpy feature NARX of the controller (narx_predictor) against the torch model."""
 import numpy as np
+import pytest
 import torch
 
 from metampc_model.feature_narx import init_params, rollout
@@ -46,3 +47,29 @@ def test_the_regressors_are_the_torch_model_s_in_normalised_units():
                       torch.from_numpy((u - norm.u_mean) / norm.u_std)).numpy()
     np.testing.assert_allclose(pred.regressors(s, u), want, atol=1e-12)
     assert pred.regressors(s, u)[-1] == 1.0
+
+
+def test_a_head_in_place_of_the_models():
+    """The one-step prediction is the head times the regressors; a head given to linearise()
+    or set by set_head() is the one used; a head of another shape is refused."""
+    shape = NarxShape(n_u=1, n_y=2, order=2, features=3, hidden=(4,))
+    params = {k: v.numpy() for k, v in init_params(shape, 5).items()}
+    rng = np.random.default_rng(1)
+    head, other = rng.normal(size=(2, shape.n_phi)), rng.normal(size=(2, shape.n_phi))
+    norm = Normalisation(np.array([0.2]), np.array([1.5]), np.array([0.1, -0.3]),
+                         np.array([2.0, 0.5]))
+    pred = NarxPredictor(shape, norm, {**params, 'head': head})
+    s, u = rng.normal(size=shape.n_s), rng.normal(size=1)
+    np.testing.assert_allclose(pred.step(s, u),
+                               head @ pred.regressors(s, u) * norm.y_std + norm.y_mean,
+                               atol=1e-12)
+    given = pred.linearise(s, u, other)
+    assert np.array_equal(pred.head, head)
+    pred.set_head(other)
+    assert np.array_equal(pred.head, other)
+    np.testing.assert_allclose(pred.step(s, u),
+                               other @ pred.regressors(s, u) * norm.y_std + norm.y_mean,
+                               atol=1e-12)
+    np.testing.assert_array_equal(pred.linearise(s, u).A, given.A)
+    with pytest.raises(ValueError):
+        pred.set_head(other[:, 1:])
