@@ -17,7 +17,11 @@ CLEANED = ('src/metampc_learner/metampc_learner/learner_session.py',
            'src/metampc_learner/metampc_learner/target_fit.py',
            'src/metampc_learner/metampc_learner/offline_adaptation.py',
            'src/metampc_bringup/metampc_bringup/analysis/experiment_report.py',
-           'scripts/cascaded_tanks_benchmark.py')
+           'scripts/cascaded_tanks_benchmark.py',
+           'src/metampc_bringup/metampc_bringup/studies/cascaded_tanks.py',
+           'src/metampc_bringup/metampc_bringup/studies/cascaded_tanks_narx.py',
+           'src/metampc_bringup/metampc_bringup/studies/cascaded_tanks_run.py',
+           'src/metampc_bringup/metampc_bringup/analysis/cascaded_tanks_report.py')
 
 
 def assignments(name: str) -> list:

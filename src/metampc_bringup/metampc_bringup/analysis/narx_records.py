@@ -5,7 +5,7 @@ A record (u (N, n_u), y (N, n_y)), physical, in the data convention of
 measured record only where a model may: the simulation its first p samples (the initial
 state s_{p-1}), the predictor the samples up to each origin; everything after comes from the
 model's own outputs (:func:`metampc_model.feature_narx.rollout`). Used by
-``scripts/cascaded_tanks_benchmark.py`` (docs/real_data.md).
+``studies/cascaded_tanks_narx.py`` (docs/real_data.md).
 """
 from typing import Sequence
 

@@ -6,7 +6,7 @@ family at the grey-box parameters fitted to that record, started at the fit's in
 its x(0), so the set-points of ``reference_inputs`` are the twin's steady states);
 :func:`track_twin` flies NSSMs fitted to the record (the latent MPC of the experiment's
 controller section) and the true-model NMPC, the yardstick, on it
-(:func:`retrack.track_models`). No ROS. Used by scripts/cascaded_tanks_benchmark.py.
+(:func:`retrack.track_models`). No ROS. Used by studies/cascaded_tanks_run.py.
 """
 from dataclasses import replace
 from typing import Dict, Mapping, Optional, Sequence
