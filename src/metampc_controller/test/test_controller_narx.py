@@ -106,7 +106,7 @@ def test_with_rls_the_tick_adapts_the_head_and_publishes_its_one_step_std():
     runs = {}
     for forgetting in (0.0, 0.95):
         core = ControllerCore(replace(CONTROLLER, rls=RlsConfig(rls_forgetting=forgetting)))
-        core.offer_model(build_model(decoded, 1, 'imaml', 'adapted', core.config.mpc, 1, 2))
+        core.offer(build_model(decoded, 1, 'imaml', 'adapted', core.config.mpc, 1, 2))
         episode = run_episode(core, Plant(plant), STEPS, THETA, (0.0, 0.0))
         runs[forgetting] = (episode, core.model.predictor.head.copy())
     off, on = runs[0.0][0], runs[0.95][0]
