@@ -10,7 +10,9 @@ from metampc_bringup.studies.nonlinear_regime import (
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.references import make_reference
-from metampc_learner.narx_learning import NarxMetaConfig
+from metampc_learner.narx_learning import arx_model, NarxMetaConfig
+from metampc_model.feature_narx import FeatureNarx, init_params, NarxShape
+from metampc_model.normalisation import Normalisation
 from metampc_plant.registry import get_family
 from metampc_plant.simulator import PlantConfig, simulate
 
@@ -83,3 +85,38 @@ def test_the_cache_gives_back_the_same_meta_model_and_keys_on_its_settings(tmp_p
                          meta=NarxMetaConfig(iterations=3, batch_size=2, windows=4))
     meta_models(other, said.append, str(tmp_path))
     assert said[2].startswith('meta-trained') and len(list(tmp_path.iterdir())) == 2
+
+
+def test_the_lags_are_the_familys_learner_narx_order():
+    """The study's p is the experiment's learner ``narx_order`` (the pendulum's 1, van der
+    Pol's default 2) unless given; fails on a study that fixes p = 2."""
+    tiny = dict(seeds=(0,), features=2, hidden=(3,),
+                meta=NarxMetaConfig(iterations=1, batch_size=2, windows=4))
+    pend = RegimeConfig(experiment='config/pendulum.yaml', **tiny)
+    assert load('config/pendulum.yaml').node_config('learner', 0).narx.order == 1
+    assert meta_models(pend, print)['imaml'].shape.order == 1
+    assert meta_models(RegimeConfig(**tiny), print)['imaml'].shape.order == 2
+    assert meta_models(RegimeConfig(order=3, **tiny), print)['imaml'].shape.order == 3
+
+
+def test_the_pendulums_second_lags_fit_a_mode_its_plant_does_not_have():
+    """Why the pendulum's p is 1 (docs/studies/2026-12-08-pendulum-lags.md): its outputs are
+    its state, so the second lags are redundant in the one-step equations and the least
+    squares sets them by the noise: on validation seed 109's 300 samples ARX(2) has an
+    eigenvalue 1.076 (unstable; its MPC tracked at 2.8x the NMPC) where the plant's are
+    exp(-b dt / (2 m l^2)) = 0.9994 and ARX(1)'s 0.9995 (it tracked at 1.0x)."""
+    tgt = targets(RegimeConfig(experiment='config/pendulum.yaml', seeds=(109,)))[0]
+    plant = tgt.plant()
+    records = [collect(tgt.controller().excitation, plant, tgt.theta,
+                       tgt.experiment.collect_x0, 300, 109)]
+    m, length, b = tgt.theta
+    true = np.exp(-b * plant.dt / (2 * m * length ** 2))
+    norm = Normalisation(np.zeros(1), np.ones(1), np.zeros(2), np.ones(2))
+    radius = {}
+    for p in (1, 2):
+        shape = NarxShape(1, 2, p, 0, ())
+        arx = arx_model(FeatureNarx(shape, norm, init_params(shape, 0)), records)
+        lin = arx.linearise(arx.state(np.zeros((p, 1)), np.zeros((p, 2))), np.zeros(1))
+        radius[p] = np.abs(np.linalg.eigvals(np.asarray(lin.A))).max()
+    assert radius[1] == pytest.approx(true, abs=1e-3)
+    assert radius[2] > 1.05

@@ -6,7 +6,8 @@ higher training loss than the least-squares ARX(p) of the same samples (:func:`a
 the ARX's head instead, if it would be). Meta-training (eqs. (outer), (inner_imaml)): per
 outer step B source systems, the head adapted on D_tr in closed form, the T-step rollout loss on
 D_test; 'imaml' differentiates through the solve (the exact implicit meta-gradient), 'maml' is
-first order (eq. (outer_maml): d psi / d omega = I). Measured: docs/nonlinear.md.
+first order (eq. (outer_maml): d psi / d omega = I) with its own proximal strength (the paper's
+finite inner loop, which stays near the meta-model). Measured: docs/nonlinear.md.
 """
 from dataclasses import dataclass, field
 import math
@@ -27,6 +28,8 @@ Record = Tuple[np.ndarray, np.ndarray]     # (u (K, n_u), y (K, n_y)) physical, 
 VALIDATION_SHARE = 1.0 / 3.0
 VALIDATION_HORIZON = 10
 NARX_METHODS = ('imaml', 'maml')
+# NarxMetaConfig.maml_gamma's default, chosen on validation seeds (docs/nonlinear.md).
+MAML_GAMMA = 1e-2
 
 
 @dataclass
@@ -39,7 +42,11 @@ class NarxMetaConfig:
         horizon: T of the outer (D_test) rollout loss, samples.
         lr: Adam step size.
         gamma: proximal strength of the closed-form inner solve (mean-loss units), in
-            meta-training and in the adaptation to the target alike.
+            iMAML's meta-training and in the adaptation to the target (either method's).
+        maml_gamma: the proximal strength of first-order MAML's inner solve in meta-training:
+            the paper's M gradient steps of size beta from the meta-model regularise toward it
+            as gamma ~ 1 / (M beta) does, and the first-order gradient is off by
+            G (G + gamma/2 I)^{-1} (G the regressors' Gram matrix), ~I at gamma 1e-5.
         seed: initial weights and the draws of systems and windows.
 
     Defaults: the van der Pol calibration of docs/nonlinear.md (gamma 1e-3 made the prior
@@ -57,6 +64,8 @@ class NarxMetaConfig:
     gamma: float = param(1e-5, 'proximal strength of the closed-form head fit towards the '
                                "meta-model's head, meta-training's inner solve and "
                                'adaptation (mean-loss units)', ge=0)
+    maml_gamma: float = param(MAML_GAMMA, "proximal strength of first-order MAML's closed-form "
+                                          'inner solve in meta-training (mean-loss units)', gt=0)
     seed: int = 0
 
     def validate(self) -> None:
@@ -65,8 +74,9 @@ class NarxMetaConfig:
         for name in ('iterations', 'batch_size', 'windows', 'horizon'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-        if not (self.lr > 0 and self.gamma >= 0):
-            raise ValueError(f'need lr > 0 and gamma >= 0, got {self.lr}, {self.gamma}')
+        if not (self.lr > 0 and self.gamma >= 0 and self.maml_gamma > 0):
+            raise ValueError(f'need lr > 0, gamma >= 0 and maml_gamma > 0, got {self.lr}, '
+                             f'{self.gamma}, {self.maml_gamma}')
 
 
 @dataclass
@@ -94,6 +104,26 @@ def _windows(shape: NarxShape, norm: Normalisation, records: Sequence[Record], h
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
 
+def outer_loss(shape: NarxShape, params: Params, train: Tuple[torch.Tensor, ...],
+               test: Tuple[torch.Tensor, ...], config: NarxMetaConfig) -> torch.Tensor:
+    """One outer step's loss, eq. (outer): each task's head solved on its D_tr one-step
+    equations (`train` = (s (B, W, n_s), u (B, W, 1, n_u), y (B, W, 1, n_y))), the mean T-step
+    rollout loss on D_test (`test`, T = its second-last size). 'imaml': gamma, autograd through
+    the solve; 'maml': maml_gamma, first order: the value the adapted head, its gradient the
+    outer loss's at that head, to the features by their direct path only and to the prior head
+    as to the adapted one (d psi / d omega = I, eq. (outer_maml))."""
+    (s_tr, u_tr, y_tr), (s_te, u_te, y_te) = train, test
+    phi = regressors(shape, params, s_tr, u_tr[..., 0, :])
+    prior = params['head']
+    if config.method == 'maml':
+        fitted = ridge(phi.detach(), y_tr[..., 0, :], prior.detach(), config.maml_gamma)
+        head = prior + (fitted - prior.detach())
+    else:
+        head = ridge(phi, y_tr[..., 0, :], prior, config.gamma)
+    y_hat = rollout(shape, params, s_te, u_te, head[:, None])
+    return (y_hat - y_te).square().sum(-1).mean()
+
+
 def meta_train(shape: NarxShape, norm: Normalisation, systems: Sequence[Sequence[Record]],
                config: NarxMetaConfig, progress: Optional[Callable[[int, float], None]] = None
                ) -> MetaResult:
@@ -113,7 +143,6 @@ def meta_train(shape: NarxShape, norm: Normalisation, systems: Sequence[Sequence
         tasks.append((w_tr, w_te))
     params = {k: v.requires_grad_() for k, v in init_params(shape, config.seed).items()}
     opt = torch.optim.Adam(list(params.values()), lr=config.lr)
-    first_order = config.method == 'maml'
     result = MetaResult(params={})
     start = time.monotonic()
     for it in range(config.iterations):
@@ -124,15 +153,7 @@ def meta_train(shape: NarxShape, norm: Normalisation, systems: Sequence[Sequence
                             for j in range(3))
         s_te, u_te, y_te = (torch.from_numpy(np.stack([w[j][idx] for w, idx in pick[1::2]]))
                             for j in range(3))
-        phi = regressors(shape, params, s_tr, u_tr[..., 0, :])
-        prior = params['head']
-        if first_order:
-            fitted = ridge(phi.detach(), y_tr[..., 0, :], prior.detach(), config.gamma)
-            head = prior + (fitted - prior.detach())
-        else:
-            head = ridge(phi, y_tr[..., 0, :], prior, config.gamma)
-        y_hat = rollout(shape, params, s_te, u_te, head[:, None])
-        loss = (y_hat - y_te).square().sum(-1).mean()
+        loss = outer_loss(shape, params, (s_tr, u_tr, y_tr), (s_te, u_te, y_te), config)
         if not torch.isfinite(loss):
             raise ValueError(f'meta-training loss turned non-finite at step {it}')
         opt.zero_grad()
@@ -263,5 +284,6 @@ def heldout_loss(model: FeatureNarx, records: Sequence[Record], horizon: int) ->
         return float((rollout(model.shape, model.params, s, u) - y).square().sum(-1).mean())
 
 
-__all__ = ['NARX_METHODS', 'NarxMetaConfig', 'MetaResult', 'AdaptedNarx', 'meta_train', 'adapt',
-           'arx_model', 'heldout_loss', 'one_step_data', 'one_step_loss']
+__all__ = ['NARX_METHODS', 'MAML_GAMMA', 'NarxMetaConfig', 'MetaResult', 'AdaptedNarx',
+           'outer_loss', 'meta_train', 'adapt', 'arx_model', 'heldout_loss', 'one_step_data',
+           'one_step_loss']

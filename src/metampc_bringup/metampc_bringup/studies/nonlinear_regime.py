@@ -44,7 +44,8 @@ class RegimeConfig:
         thetas: test targets theta* (each a row of n_theta values); empty: each seed's draw.
         seeds: test seeds (with thetas: the data seeds of every target).
         methods: meta-learning methods of the feature NARX ('imaml', 'maml').
-        order, features, hidden: the feature NARX's sizes (:class:`NarxShape`).
+        order: p, the lags (None: the experiment's learner ``narx_order``, the family's).
+        features, hidden: the feature NARX's other sizes (:class:`NarxShape`).
         meta: meta-training settings (method overridden per method; its gamma is the
             adaptation's too).
         oracle: also fly the oracle of each method's features.
@@ -57,7 +58,7 @@ class RegimeConfig:
     thetas: Sequence[Sequence[float]] = ()
     seeds: Sequence[int] = (0, 1)
     methods: Sequence[str] = ('imaml',)
-    order: int = 2
+    order: Optional[int] = None
     features: int = 32
     hidden: Tuple[int, ...] = (64,)
     meta: NarxMetaConfig = field(default_factory=NarxMetaConfig)
@@ -150,7 +151,8 @@ def meta_models(config: RegimeConfig, log: Callable[[str], None],
     data = simulate_source(source)
     norm = normalisation_from([t for ts in data.trajectories for t in ts])
     fam = exp.plant_family
-    shape = NarxShape(fam.n_u, fam.n_y, config.order, config.features, tuple(config.hidden))
+    order = config.order or exp.node_config('learner', config.seeds[0]).narx.order
+    shape = NarxShape(fam.n_u, fam.n_y, order, config.features, tuple(config.hidden))
     systems = [[(t.u, t.y) for t in ts] for ts in data.trajectories if ts]
     out = {}
     for method in config.methods:
@@ -211,7 +213,7 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print,
         for name, (model, train, rule) in models.items():
             planner = LocalLinearMpc(ctrl.mpc, model)
             cost = track(planner, plant, tgt.theta, exp.track_x0, reference, steps, tracked,
-                         model.state, config.order)
+                         model.state, model.shape.order)
             row = dict(theta=list(tgt.theta), seed=tgt.seed, model=name, rule=rule,
                        cost=cost, nmpc=c_nmpc, ratio=cost / c_nmpc, train_loss=train,
                        heldout=heldout_loss(model, held, HELDOUT_HORIZON),
