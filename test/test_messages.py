@@ -8,7 +8,7 @@ import metampc_msgs.msg
 import metampc_msgs.srv
 
 MESSAGES = ['PlantOutput', 'PlantInfo', 'ControlInput', 'NssmWeights', 'MpcStatus',
-            'TrainingProgress', 'StepHold', 'AdaptRefusal']
+            'TrainingProgress', 'StepHold', 'AdaptRefusal', 'ModelEvent']
 SERVICES = ['ResetPlant', 'MetaTrain', 'Adapt', 'SetActive', 'SetBuffering']
 
 
@@ -33,13 +33,15 @@ def _value(type_name: str, seed: int):
         h = Header(frame_id=f'frame-{seed}')
         h.stamp.sec, h.stamp.nanosec = 12 + seed, 345
         return h
+    if type_name.startswith('metampc_msgs/'):     # a message of ours inside another
+        return _filled(getattr(metampc_msgs.msg, type_name.split('/')[1]), seed)
     raise AssertionError(f'no test value for field type {type_name}')
 
 
-def _filled(cls):
+def _filled(cls, seed: int = 0):
     msg = cls()
     for i, (name, type_name) in enumerate(cls.get_fields_and_field_types().items()):
-        setattr(msg, name, _value(type_name, i))
+        setattr(msg, name, _value(type_name, seed + i))
     return msg
 
 
