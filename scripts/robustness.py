@@ -33,7 +33,7 @@ from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.experiment_config import ConfigError, load
 from metampc_bringup.orchestration.cluster import slots
 from metampc_bringup.orchestration.cluster_cli import add_arguments, cluster_spec
-from metampc_bringup.studies.offline import settings_from
+from metampc_bringup.studies.learning_setup import settings_from
 from metampc_bringup.studies.robustness import robustness_jobs, robustness_summary
 from metampc_bringup.studies.study_jobs import ResultCache, run_jobs, run_study
 from metampc_bringup.studies.tuning import TuneConfig

@@ -59,7 +59,7 @@ TESTED_ELSEWHERE: Dict[str, Tuple[str, str]] = {
         'test/test_idempotent_calls.py', 'its calls against live nodes, a first answer dropped'),
     'metampc_bringup.orchestration.domain': (
         'src/metampc_bringup/test/test_lifeline.py', 'a domain held by a killed run\'s nodes'),
-    'metampc_bringup.studies.offline': (
+    'metampc_bringup.studies.learning_setup': (
         'src/metampc_bringup/test/test_tuning.py', 'the job runner under the search and sweep'),
     'metampc_bringup.analysis.input_sources': _RUN_SERIES,
     'metampc_bringup.analysis.plots': (

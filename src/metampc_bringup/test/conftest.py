@@ -1,5 +1,5 @@
 """Fixtures of the metampc_bringup tests (the recording ones are in test/recording_fixtures.py):
-an experiment small enough for the offline scripts' tests."""
+an experiment small enough for the study scripts' tests."""
 from pathlib import Path
 
 import pytest
@@ -17,7 +17,7 @@ meta_train:
 
 @pytest.fixture
 def tiny_config(tmp_path) -> Path:
-    """An experiment YAML small enough to meta-train in seconds (the offline scripts'
+    """An experiment YAML small enough to meta-train in seconds (the study scripts'
     tests)."""
     path = tmp_path / 'tiny.yaml'
     path.write_text(TINY_EXPERIMENT)
@@ -41,13 +41,13 @@ def direct(monkeypatch, untimed):
     process pool's workers ran it before the cluster layer (1 torch thread, the settings
     set), untimed; this process's torch threads and job state are restored after."""
     import torch
-    from metampc_bringup.studies import offline
-    monkeypatch.setattr(offline, '_VALIDATIONS', {})
-    monkeypatch.setattr(offline, '_SETTINGS', None)
+    from metampc_bringup.studies import learning_setup
+    monkeypatch.setattr(learning_setup, '_VALIDATIONS', {})
+    monkeypatch.setattr(learning_setup, '_SETTINGS', None)
     threads = torch.get_num_threads()
 
-    def run(settings, job, fn=offline.run_job):
-        offline.use(settings, 1)
+    def run(settings, job, fn=learning_setup.run_job):
+        learning_setup.use(settings, 1)
         return untimed(fn(job))
 
     yield run

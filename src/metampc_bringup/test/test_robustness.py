@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from metampc_bringup.experiment_config import load
-from metampc_bringup.studies.offline import settings_from
+from metampc_bringup.studies.learning_setup import settings_from
 from metampc_bringup.studies.robustness import robustness_jobs, robustness_summary
 from metampc_bringup.studies.tuning import TuneConfig
 from metampc_testing import loopback_dask

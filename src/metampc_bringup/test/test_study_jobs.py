@@ -11,7 +11,7 @@ import time
 import pytest
 
 from metampc_bringup.orchestration.cluster import ClusterSpec, job_cancelled
-from metampc_bringup.studies.offline import Job, settings_from
+from metampc_bringup.studies.learning_setup import Job, settings_from
 from metampc_bringup.studies.study_jobs import (ResultCache, run_jobs, study_cluster,
                                                 StudyError)
 from metampc_bringup.studies.sweep import measured_run

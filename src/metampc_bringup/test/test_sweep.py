@@ -14,7 +14,7 @@ import pytest
 
 from metampc_bringup.experiment_config import load
 from metampc_bringup.orchestration.cluster import ClusterSpec
-from metampc_bringup.studies.offline import Job, settings_from, TEST_HELDOUT_SAMPLES
+from metampc_bringup.studies.learning_setup import Job, settings_from, TEST_HELDOUT_SAMPLES
 from metampc_bringup.studies.study_jobs import study_cluster
 from metampc_bringup.analysis.paired_stats import median_ci
 from metampc_bringup.studies.sweep import (ADAPT_LRS, estimate_cpu_s, evaluation_jobs, GRIDS,

@@ -16,7 +16,7 @@ import pytest
 from metampc_bringup.experiment_config import load
 
 from metampc_bringup.studies import tuning
-from metampc_bringup.studies.offline import Job, settings_from
+from metampc_bringup.studies.learning_setup import Job, settings_from
 from metampc_bringup.studies.search import open_storage
 from metampc_bringup.studies.tuning import (ADAPT_LRS, best_of, CALIBRATION, CG_STEPS, CURVATURE,
                                             draw_jobs, GAMMA_GRID, request_fields, robust_jobs,
@@ -203,18 +203,18 @@ def test_control_score_is_the_closed_loop_tracking_of_the_adapted_models(monkeyp
     closed loop run again (deterministic). That the in-process loop is the experiment's is
     test_experiment's check (retrack reproduces every recorded tracking cost)."""
     import numpy as np
-    from metampc_bringup.studies import offline
+    from metampc_bringup.studies import learning_setup
     config = os.path.join(ROOT, 'config', 'ci.yaml')
-    settings = offline.settings_from(config, 2, 2, {'batch_size': 4}, control=True)
+    settings = learning_setup.settings_from(config, 2, 2, {'batch_size': 4}, control=True)
     scoring = settings.control
     assert len(scoring.nmpc) == 2 and all(0 < c < math.inf for c in scoring.nmpc)
-    assert offline.track(scoring, settings.thetas[0], None) == scoring.nmpc[0]
+    assert learning_setup.track(scoring, settings.thetas[0], None) == scoring.nmpc[0]
     # This process's worker state (other tests' settings and validation sets) set aside.
-    monkeypatch.setattr(offline, '_VALIDATIONS', {})
-    monkeypatch.setattr(offline, '_SETTINGS', None)
-    offline.use(settings, 1)
-    job = offline.Job('maml', 0, {'inner_steps': 2}, 3, (0.05,), 'search')
-    out = offline.run_job(job)
+    monkeypatch.setattr(learning_setup, '_VALIDATIONS', {})
+    monkeypatch.setattr(learning_setup, '_SETTINGS', None)
+    learning_setup.use(settings, 1)
+    job = learning_setup.Job('maml', 0, {'inner_steps': 2}, 3, (0.05,), 'search')
+    out = learning_setup.run_job(job)
     entry = out['adapt'][0]
     assert len(entry['control_ratios']) == 2 and entry['prediction_score'] == pytest.approx(
         float(np.mean(entry['heldout_final'])))
@@ -231,13 +231,13 @@ def test_a_job_above_its_pruning_threshold_stops_there_and_says_so(tiny_config, 
     the results of the job without thresholds."""
     import numpy as np
     from dataclasses import replace
-    from metampc_bringup.studies import offline
+    from metampc_bringup.studies import learning_setup
     from metampc_learner.meta_train import meta_train
     settings = settings_from(str(tiny_config), 1, 2, {'batch_size': 2, 'curvature': CURVATURE})
     job = Job('maml', 0, {'inner_steps': 2}, 30, (0.05,), 'search')
     full = direct(settings, job)
-    val = offline.validation(job.source_seed, job.nssm)
-    losses = meta_train(val.model, val.source, offline.meta_config(job, settings)).losses
+    val = learning_setup.validation(job.source_seed, job.nssm)
+    losses = meta_train(val.model, val.source, learning_setup.meta_config(job, settings)).losses
     assert full['meta_loss_reports'] == pytest.approx(
         [float(np.mean(losses[i:i + 10])) for i in (0, 10, 20)], rel=1e-12)
     best = min(full['meta_loss_reports'][:2])
@@ -304,7 +304,7 @@ def test_a_study_adapts_by_the_experiments_rule(tmp_path, tiny_config, direct):
     its held-out losses are those of the learner's own Levenberg-Marquardt adaptation
     (``adapt.supervised`` with that rule on the job's validation data), not the gradient's."""
     from dataclasses import replace as with_fields
-    from metampc_bringup.studies import offline
+    from metampc_bringup.studies import learning_setup
     from metampc_learner.adapt import supervised
     config = tmp_path / 'gauss_newton.yaml'
     config.write_text(tiny_config.read_text().replace(
@@ -314,12 +314,12 @@ def test_a_study_adapts_by_the_experiments_rule(tmp_path, tiny_config, direct):
     result = direct(settings, Job('supervised', 0, {}, 0, ADAPT_LRS, 'search'))
     assert [a['lr'] for a in result['adapt']] == [ADAPT_LRS[0]]
     from metampc_learner.data import Windows
-    val = offline.validation(offline.VALIDATION_SEED, {})
+    val = learning_setup.validation(learning_setup.VALIDATION_SEED, {})
     train, held = (Windows.from_trajectories(part[0], val.model.norm, val.model.config)
                    for part in (val.train, val.heldout))
     step = with_fields(settings.learner.adapt, steps=2, lr=ADAPT_LRS[0], gamma=0.0)
     expected = supervised(val.model, train, held, step,
-                          seed=offline.VALIDATION_SEED).heldout_loss[-1]
+                          seed=learning_setup.VALIDATION_SEED).heldout_loss[-1]
     gradient = supervised(val.model, train, held, with_fields(step, rule='gradient'),
-                          seed=offline.VALIDATION_SEED).heldout_loss[-1]
+                          seed=learning_setup.VALIDATION_SEED).heldout_loss[-1]
     assert result['adapt'][0]['heldout_final'] == [expected] != [gradient]

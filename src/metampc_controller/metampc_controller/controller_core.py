@@ -266,7 +266,7 @@ class ModelBundle:
                     'check, prediction-error monitor or adaptation request: the NSSM\'s)')
         cfg, term = p.config, self.mpc.terminal
         return (f'H={cfg.history}, n_z={cfg.n_z}, encoder {list(cfg.hidden)}'
-                + (f'; terminal cost fallback: {term.reason}' if term.fallback else '')
+                + (f'; terminal cost fallback: {term.reason}' if term.dare_unusable else '')
                 + f'; offset-free {self.mpc.describe_offset_free()}')
 
     @classmethod

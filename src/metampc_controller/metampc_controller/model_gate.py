@@ -9,7 +9,7 @@ own loop against the model it replaced, which comes back if it fails. The reques
 until the last verdict; a refusal ends it. Each decision is a :class:`ModelEvent` that the
 controller applies and publishes as it is (MpcStatus.model_events). Pure Python (no rclpy):
 :meth:`ModelGate.offer` and :meth:`~ModelGate.retune` run on the builder thread, the rest on
-the executor thread; held answers are handed over under a lock. Why: docs/controller.md.
+the executor thread; answers are handed over under a lock. Why: docs/controller.md.
 """
 from dataclasses import dataclass
 from enum import Enum
@@ -145,8 +145,8 @@ class ModelEvent(Generic[Model]):
         return None
 
 
-class _Held(NamedTuple):
-    """An answer the gate holds: from `step` on (queued: its tick; tried or on probation:
+class _Answer(NamedTuple):
+    """An answer the gate has: from `step` on (queued: its tick; tried or on probation:
     the first scored), the `trial` and `probation` samples it has, the request it answers,
     and (on probation) the model it replaced."""
 
@@ -175,9 +175,9 @@ class ModelGate(Generic[Model]):
         self.samples = samples
         self.lockstep = lockstep
         self._lock = threading.Lock()
-        self._queued: Optional[_Held] = None
-        self._trial: Optional[_Held] = None
-        self._probation: Optional[_Held] = None
+        self._queued: Optional[_Answer] = None
+        self._trial: Optional[_Answer] = None
+        self._probation: Optional[_Answer] = None
 
     # --- offers (builder thread) ----------------------------------------------------------
 
@@ -243,14 +243,14 @@ class ModelGate(Generic[Model]):
 
     def _queue(self, model: Model, request_step: int, trial: int, probation: int
                ) -> Optional[int]:
-        """Hold the answer to the pending request until its step: that step (0: the next
+        """Queue the answer to the pending request until its step: that step (0: the next
         tick), or None for any other model."""
         pending = self.trigger.pending      # once: a reset may forget it meanwhile
         if not request_step or pending is None or request_step != pending.step:
             return None
         start = pending.swap_step if self.lockstep else 0
         with self._lock:
-            self._queued = _Held(start, model, trial, probation, request_step)
+            self._queued = _Answer(start, model, trial, probation, request_step)
         return start
 
     def retune(self, rebuild: Callable[[Model], Model]) -> None:
@@ -259,13 +259,13 @@ class ModelGate(Generic[Model]):
         for slot, name in (('_queued', 'model'), ('_trial', 'model'),
                            ('_probation', 'replaced')):
             with self._lock:
-                held = getattr(self, slot)
-            if held is None:
+                answer = getattr(self, slot)
+            if answer is None:
                 continue
-            model = rebuild(getattr(held, name))
+            model = rebuild(getattr(answer, name))
             with self._lock:
-                if getattr(self, slot) is held:     # not used or forgotten meanwhile
-                    setattr(self, slot, held._replace(**{name: model}))
+                if getattr(self, slot) is answer:     # not used or forgotten meanwhile
+                    setattr(self, slot, answer._replace(**{name: model}))
 
     # --- requests -------------------------------------------------------------------------
 
@@ -274,18 +274,18 @@ class ModelGate(Generic[Model]):
         pending = self.trigger.pending
         return bool(request_step) and pending is not None and request_step == pending.step
 
-    def holds_answer(self) -> bool:
+    def has_answer(self) -> bool:
         """True while the answer to the pending request is queued, tried or on probation."""
         return (self._queued, self._trial, self._probation) != (None, None, None)
 
     def waits(self, step: int) -> bool:
         """True if the tick of `step` must wait for the requested model (lockstep: its swap
-        step has come and no answer is held)."""
-        return self.lockstep and not self.holds_answer() and self.trigger.waits(step)
+        step has come and the gate has no answer)."""
+        return self.lockstep and not self.has_answer() and self.trigger.waits(step)
 
     def time_out(self, request: Request) -> bool:
-        """`request` waited too long: given up (True) if still pending with no answer held."""
-        if self.trigger.pending is not request or self.holds_answer():
+        """`request` waited too long: given up (True) if still pending with no answer in hand."""
+        if self.trigger.pending is not request or self.has_answer():
             return False
         self.trigger.give_up()
         return True
@@ -335,13 +335,13 @@ class ModelGate(Generic[Model]):
         return ModelEvent(Outcome.FLEW, queued.model.version, queued.request,
                           model=queued.model)
 
-    def _fly(self, step: int, held: _Held, replaced: Optional[Model]) -> None:
-        """`held`'s model is used from the tick of `step`: on probation, or answered."""
-        if held.probation and replaced is not None:
+    def _fly(self, step: int, answer: _Answer, replaced: Optional[Model]) -> None:
+        """`answer`'s model is used from the tick of `step`: on probation, or answered."""
+        if answer.probation and replaced is not None:
             with self._lock:
-                self._probation = held._replace(step=step, replaced=replaced)
+                self._probation = answer._replace(step=step, replaced=replaced)
         else:
-            self.trigger.answered(held.model.version)
+            self.trigger.answered(answer.model.version)
 
     def _end_trial(self, step: int, in_use: Optional[Model], settings: Settings
                    ) -> Optional[ModelEvent]:
@@ -368,21 +368,21 @@ class ModelGate(Generic[Model]):
         samples of its own loop against the model it replaced: KEPT (the request is
         answered) or REVERTED (that model comes back, cold; the request ends)."""
         with self._lock:
-            held = self._probation
-            if held is None or step < held.step + held.probation:
+            answer = self._probation
+            if answer is None or step < answer.step + answer.probation:
                 return None
             self._probation = None
-        flown, replaced = held.model, held.replaced
-        verdict = self._check(flown, replaced, settings, scored=step - held.step + 1)
-        where, yardstick = (f'its probation from step {held.step}, on its own loop',
+        flown, replaced = answer.model, answer.replaced
+        verdict = self._check(flown, replaced, settings, scored=step - answer.step + 1)
+        where, yardstick = (f'its probation from step {answer.step}, on its own loop',
                             'the model it replaced')
         if verdict.ok:
             self.trigger.answered(flown.version)
-            return ModelEvent(Outcome.KEPT, flown.version, held.request, verdict, where,
+            return ModelEvent(Outcome.KEPT, flown.version, answer.request, verdict, where,
                               yardstick)
         self.trigger.give_up()
         replaced.mpc.reset()        # cold, as on a new model: its plan and p are stale
-        return ModelEvent(Outcome.REVERTED, flown.version, held.request, verdict, where,
+        return ModelEvent(Outcome.REVERTED, flown.version, answer.request, verdict, where,
                           yardstick, model=replaced)
 
     def _check(self, model: Model, against: Optional[Model], settings: Settings,

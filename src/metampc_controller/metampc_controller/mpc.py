@@ -281,7 +281,7 @@ class LatentMpc:
 
     @property
     def terminal(self) -> Optional[TerminalCost]:
-        """Terminal cost of the current model (P, DARE residual, fallback flag), or None."""
+        """Terminal cost of the current model (P, DARE residual, `dare_unusable`), or None."""
         return None if self._problem is None else self._problem.terminal
 
     def describe_offset_free(self) -> str:
@@ -340,7 +340,7 @@ class LatentMpc:
         r, u_min, u_max = (np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
                            for v in (cfg.r, cfg.u_min, cfg.u_max))
         term = terminal_cost(model, q, r, cfg.terminal_reg,
-                             None if old is None or old.terminal.fallback else old.terminal.P)
+                             None if old is None or old.terminal.dare_unusable else old.terminal.P)
         estimator = DisturbanceEstimator.of(model, cfg.offset_free, cfg.disturbance_gain)
         L, G, y_u, y_w = _least_squares(model, term, q, r, N)
         n = N * n_u
@@ -495,7 +495,7 @@ class LatentMpc:
         return PlanResult(u=plan[:n_u], u_plan=plan.reshape(-1, n_u),
                           y_pred=y_pred.reshape(pb.ref_shape), cost=cost, status=status,
                           iterations=iters, solve_time=time.perf_counter() - start,
-                          fallback=fallback, terminal_fallback=pb.terminal.fallback,
+                          fallback=fallback, terminal_fallback=pb.terminal.dare_unusable,
                           disturbance=disturbance, slack=slack)
 
     def last_qp(self) -> QpSnapshot:
@@ -587,7 +587,7 @@ def _least_squares(model: LatentModel, term: TerminalCost, q: np.ndarray, r: np.
     t_z, t_u = term.T[:, :n_z], term.T[:, n_z:]               # T s_N = t_z z_N + t_u u_N
     l_rows.append(t_z @ gz[-1])
     l_rows[-1][:, n - n_u:] += t_u
-    if term.fallback:       # T s_N - M (r_N - d')
+    if term.dare_unusable:  # T s_N - M (r_N - d')
         g_blocks.append(g_rows(N - 1, t_z, term.M, term.M))
     else:                   # T (s_N - s_ss)
         zero = np.zeros((len(t_z), n_y))

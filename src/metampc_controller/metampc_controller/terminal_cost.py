@@ -32,15 +32,16 @@ class TerminalCost:
     """Terminal weight of eq. (mpc) on s_N = [z_N; u_N].
 
     Attributes:
-        P: (n_s, n_s) terminal weight (DARE solution, or Cbar' Q Cbar in the fallback).
+        P: (n_s, n_s) terminal weight (DARE solution, or Cbar' Q Cbar when the DARE is unusable).
         T: (m, n_s) factor with P = T' T (m = n_s, or the number of tracked outputs).
-        M: (m, n_y) fallback only: map from the terminal reference offset r_N - d to the
-            target of T s_N (zeros with the DARE, whose target is T s_ss).
+        M: (m, n_y) with `dare_unusable` only: map from the terminal reference offset r_N - d
+            to the target of T s_N (zeros with the DARE, whose target is T s_ss).
         ss_r: (n_s, n_y), ss_e: (n_s, n_z): the steady state s_ss = ss_r (r_N - d) + ss_e e
             (affine in the model's constants, so a corrected e or d moves it exactly).
-        fallback: True when the DARE was unusable and the output weight is used instead.
+        dare_unusable: True when the DARE was unusable and the output weight is used instead
+            (``MpcStatus.terminal_fallback``).
         residual: relative DARE residual ||DARE(P)||_F / ||P||_F (nan if no solution).
-        reason: why the fallback was taken ('' otherwise).
+        reason: why the DARE was unusable ('' otherwise).
     """
 
     P: np.ndarray
@@ -48,7 +49,7 @@ class TerminalCost:
     M: np.ndarray
     ss_r: np.ndarray
     ss_e: np.ndarray
-    fallback: bool
+    dare_unusable: bool
     residual: float
     reason: str
 
@@ -138,10 +139,10 @@ def terminal_cost(model: LatentModel, q: np.ndarray, r: np.ndarray, reg: float,
         sq = np.sqrt(q[tracked])
         return TerminalCost(P=q_out, T=sq[:, None] * c_bar[tracked],
                             M=sq[:, None] * np.eye(len(q))[tracked], ss_r=s_r, ss_e=s_e,
-                            fallback=True, residual=residual, reason=reason)
+                            dare_unusable=True, residual=residual, reason=reason)
     t_fac = np.linalg.cholesky(p).T
     return TerminalCost(P=p, T=t_fac, M=np.zeros((n_s, len(q))), ss_r=s_r, ss_e=s_e,
-                        fallback=False, residual=residual, reason='')
+                        dare_unusable=False, residual=residual, reason='')
 
 
 def _steady_state_map(model: LatentModel, q: np.ndarray, c_bar: np.ndarray) -> tuple:

@@ -234,11 +234,11 @@ def test_a_new_episode_forgets_the_held_answer(stubbed):
         gate.offer(GOOD, 20, IN_USE, config)
         if trial or probation:
             gate.tick(30, IN_USE, config)      # tried, or flown on probation
-        assert gate.holds_answer()
+        assert gate.has_answer()
         gate.trigger.new_episode()
         gate.new_episode()
-        assert not gate.holds_answer() and [gate.tick(k, IN_USE, config) for k in range(30, 40)
-                                            ] == [[]] * 10
+        assert not gate.has_answer() and [gate.tick(k, IN_USE, config) for k in range(30, 40)
+                                          ] == [[]] * 10
 
 
 def test_a_retune_rebuilds_the_held_answer_and_the_model_a_flown_one_replaced(stubbed):

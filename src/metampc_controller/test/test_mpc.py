@@ -72,7 +72,7 @@ def reference_lsq(mpc: LatentMpc, model: LatentModel, z0, u_prev, y_ref) -> tupl
     def residual(plan: np.ndarray) -> np.ndarray:
         ys, z_n = simulate(model, z0, plan[:, None])
         rows = [(np.sqrt(q) * (ys[:-1] - y_ref[:-1])).ravel()]
-        if term.fallback:
+        if term.dare_unusable:
             rows.append(np.sqrt(q) * (ys[-1] - y_ref[-1]))
         else:
             s_n = np.concatenate([z_n, plan[-1:]])
@@ -102,7 +102,7 @@ def test_qp_is_bounded_least_squares(seed, radius, model_kind):
     # Unconstrained: the normal equations.
     mpc = LatentMpc(replace(base, u_min=-np.inf, u_max=np.inf))
     mpc.set_model(model)
-    assert mpc.terminal.fallback == (model_kind == 'non-stabilisable')
+    assert mpc.terminal.dare_unusable == (model_kind == 'non-stabilisable')
     res = mpc.solve(z0, u_prev, y_ref)
     mat, vec = reference_lsq(mpc, model, z0, u_prev, y_ref)
     expected = np.linalg.solve(mat.T @ mat, mat.T @ vec)
@@ -139,7 +139,7 @@ def test_terminal_weight_solves_the_dare(seed, radius):
     mpc = LatentMpc(cfg)
     mpc.set_model(model)
     term = mpc.terminal
-    assert not term.fallback and term.reason == ''
+    assert not term.dare_unusable and term.reason == ''
     # The augmented Delta-u system and its weights, written out here.
     n_z = model.n_z
     a = np.block([[model.A, model.B], [np.zeros((1, n_z)), np.eye(1)]])
@@ -173,7 +173,7 @@ def test_newton_from_a_nearby_solution_is_the_qz_solution(seed, radius):
     near = perturbed(model, seed, 0.05)
     cold = terminal_cost(near, q, r, 1e-8)
     warm = terminal_cost(near, q, r, 1e-8, warm=terminal_cost(model, q, r, 1e-8).P)
-    assert not cold.fallback and not warm.fallback
+    assert not cold.dare_unusable and not warm.dare_unusable
     np.testing.assert_allclose(warm.P, cold.P, rtol=1e-9, atol=1e-9 * np.abs(cold.P).max())
     assert warm.residual <= 1e-12
     # Newton itself answered (terminal_cost would fall back to QZ where it does not).
@@ -223,7 +223,7 @@ def test_non_stabilisable_pair_falls_back_to_the_output_weight():
     mpc = LatentMpc(cfg)
     mpc.set_model(model)
     term = mpc.terminal
-    assert term.fallback and term.reason
+    assert term.dare_unusable and term.reason
     c = np.hstack([model.C, np.zeros((2, 1))])
     np.testing.assert_allclose(term.P, c.T @ np.diag(cfg.q) @ c)
     z, u = np.array([1.0, 0.5, -0.5, 0.2, 0.0]), np.zeros(1)

@@ -71,7 +71,7 @@ def test_solve_is_a_second_osqp_on_the_same_qp_and_q_is_the_simulated_one():
     mpc = LatentMpc(cfg)
     mpc.set_model(model)
     assert mpc._problem.ext is not None, 'the osqp wrapper changed: solve() lost its fast path'
-    assert not mpc.terminal.fallback
+    assert not mpc.terminal.dare_unusable
     reference = make_reference('setpoint_sequence', segment=3.0)
     second = None
     z, u = np.zeros(5), np.zeros(1)

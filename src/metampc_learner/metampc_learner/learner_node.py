@@ -331,8 +331,8 @@ class LearnerNode(Node):
                     f'{curve[0]:.4g} -> {curve[-1]:.4g} on {out.heldout_samples} samples')
             if out.gain_check:
                 text += f'; {out.gain_check}'
-            if out.fallback:
-                text += (f': the {out.fallback} model of the same samples flies in its place '
+            if out.replaced_by:
+                text += (f': the {out.replaced_by} model of the same samples flies in its place '
                          f'(training loss {rec.train_loss:.4g})')
             return out, rec, text
 
@@ -343,7 +343,7 @@ class LearnerNode(Node):
             response.model_version = outcome.record.version
             response.loss_before, response.loss_after = curve[0], curve[-1]
             response.loss_curve = curve
-            response.fallback = outcome.fallback
+            response.fallback = outcome.replaced_by
         return response
 
     # --- adaptation in the loop -----------------------------------------------------------

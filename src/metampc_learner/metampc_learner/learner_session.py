@@ -107,7 +107,7 @@ class AdaptOutcome:
     """A finished adaptation: the record, the core's result (held-out curve: index 0 before
     the first step), and the samples of D_target used (in all, for training, held out); with
     ``gain_check`` on, its verdict (`gain_check`: one line, '' when not checked) and the
-    method whose model flies in the adapted one's place (`fallback`: 'arx' or ''); a feature
+    method whose model flies in the adapted one's place (`replaced_by`: 'arx' or ''); a feature
     NARX's closed-form fit (`rule`: :class:`~metampc_learner.narx_learning.AdaptedNarx`'s,
     'least_squares' for the arx; '' for an NSSM)."""
 
@@ -117,7 +117,7 @@ class AdaptOutcome:
     train_samples: int
     heldout_samples: int
     gain_check: str = ''
-    fallback: str = ''
+    replaced_by: str = ''
     rule: str = ''
 
 
@@ -323,7 +323,7 @@ class LearnerSession:
             train_steps=fitted.steps, train_samples=samples_in(train), seed=cfg.meta.seed,
             train_time=fitted.result.elapsed)
         return AdaptOutcome(record, fitted.result, used, samples_in(train), samples_in(held),
-                            fitted.gain_check, fitted.fallback, fitted.rule)
+                            fitted.gain_check, fitted.replaced_by, fitted.rule)
 
     def _nssm_start(self, method: str) -> Tuple[Nssm, Optional[Params]]:
         """The NSSM a method fits (its architecture and normalisation) and the meta-model's

@@ -239,7 +239,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
     except FitError as err:
         raise OfflineError(str(err)) from None
     if fitted.gain_check:
-        log(fitted.gain_check + ('; the ARX written in its place' if fitted.fallback else ''))
+        log(fitted.gain_check + ('; the ARX written in its place' if fitted.replaced_by else ''))
     written, result = fitted.model, fitted.result
     written_held = held_w if written is model else Windows.from_trajectories(
         held, written.norm, written.config, dtype)
@@ -256,7 +256,7 @@ def run_offline(recording: str, mapping_path: str, checkpoint: str, out: str,
         'steps': steps.steps, 'lr': steps.lr, 'rule': steps.rule, 'cg_steps': steps.cg_steps,
         'gamma': 0.0 if method in (SUPERVISED, ARX) else steps.gamma, 'seed': config.seed,
         'arx_order': settings.arx_order, 'settings_from': settings_from,
-        'gain_check': fitted.gain_check, 'fallback': fitted.fallback,
+        'gain_check': fitted.gain_check, 'fallback': fitted.replaced_by,
         'history': cfg.history, 'loss_horizon': cfg.loss_horizon,
         'outputs': [o.name for o in mapping.outputs], 'units': [o.unit for o in mapping.outputs],
         'samples': {

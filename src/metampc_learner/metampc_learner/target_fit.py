@@ -75,7 +75,8 @@ class TargetFit:
         steps: steps that made the flying model (0: least squares, closed form, or the ARX
             in the adapted model's place).
         gain_check: the gain check's verdict, one line ('' when not checked).
-        fallback: 'arx' when the ARX flies in the adapted model's place, else ''.
+        replaced_by: 'arx' when the ARX flies in the adapted model's place, else ''
+            (the Adapt answer's ``fallback``).
         rule: a feature NARX's closed-form rule (``AdaptedNarx.rule``, 'least_squares' for the
             arx); '' for an NSSM.
     """
@@ -86,7 +87,7 @@ class TargetFit:
     heldout_loss: float
     steps: int
     gain_check: str = ''
-    fallback: str = ''
+    replaced_by: str = ''
     rule: str = ''
 
 

@@ -238,7 +238,7 @@ def test_the_gain_check_flies_the_arx_in_place_of_a_model_of_the_wrong_sign(monk
     meta = session.meta_train(replace(cfg.meta, method='maml'), False).record
     samples = _target(cfg, 40)
     arx = session.adapt(AdaptJob('arx', 0, 0.0, 0.0, 0), samples, None)
-    assert (arx.gain_check, arx.fallback) == ('', '')           # the ARX is not checked
+    assert (arx.gain_check, arx.replaced_by) == ('', '')           # the ARX is not checked
 
     def latent(model, params):
         return NssmPredictor(model.config, model.norm, params).latent
@@ -256,13 +256,13 @@ def test_the_gain_check_flies_the_arx_in_place_of_a_model_of_the_wrong_sign(monk
         return adapted
     monkeypatch.setattr(fit_module, 'adapt', signed(sign))
     kept = session.adapt(AdaptJob('', 4, 0.05, 0.0, 0), samples, None)
-    assert kept.fallback == '' and kept.gain_check.startswith('gain check passed')
+    assert kept.replaced_by == '' and kept.gain_check.startswith('gain check passed')
     assert torch.equal(kept.record.params['B'], sign * plain.params['B'])
     assert kept.record.model.config == meta.model.config
 
     monkeypatch.setattr(fit_module, 'adapt', signed(-sign))
     out = session.adapt(AdaptJob('', 4, 0.05, 0.0, 0), samples, None)
-    assert out.fallback == 'arx' and 'disagrees in sign' in out.gain_check
+    assert out.replaced_by == 'arx' and 'disagrees in sign' in out.gain_check
     assert (out.record.method, out.record.stage) == ('maml', 'adapted')
     assert out.record.model.config == arx.record.model.config
     assert _equal(out.record.params, arx.record.params)

@@ -74,10 +74,11 @@ def test_a_strong_prior_that_loses_to_the_arx_is_dropped():
     assert adapted.rule in ('ridge', 'ridge_to_arx')
 
 
-def test_the_fallback_stays_regularised_where_features_are_collinear_with_the_lags():
+def test_the_ridge_to_arx_stays_regularised_where_features_are_collinear_with_the_lags():
     """Features that are (nearly) linear in the lags on the samples: plain least squares
     gives a head whose feature and lag columns cancel on the data with large weights; the
-    fallback toward the ARX's head keeps them near the ARX's (fails on gamma = 0 there)."""
+    ridge toward the ARX's head ('ridge_to_arx') keeps them near the ARX's (fails on gamma = 0
+    there)."""
     records, theta = _arx2_records(4, noise=1e-2)
     shape = NarxShape(1, 2, order=2, features=3, hidden=(4,))
     meta = _random_meta(shape, 4)

@@ -51,7 +51,7 @@ def test_each_method_is_its_core_on_the_same_windows():
     assert ours.result.heldout_loss == theirs.heldout_loss
     assert (ours.train_loss, ours.heldout_loss) == (theirs.train_loss[-1],
                                                     theirs.heldout_loss[-1])
-    assert (ours.gain_check, ours.fallback, ours.rule) == ('', '', '')
+    assert (ours.gain_check, ours.replaced_by, ours.rule) == ('', '', '')
     ours = fit_target(SUPERVISED, model, None, train, held, settings)
     theirs = supervised(model, *windows, settings.adapt, cfg.meta.seed)
     assert _equal(ours.result.params, theirs.params)
@@ -79,8 +79,8 @@ def test_the_gain_check_flies_the_arx_in_place_of_a_model_of_the_wrong_sign():
     start = init_params(model.config, 3)
     fits = [fit_target('imaml', model, {**start, 'B': sign * start['B']}, train, held,
                        settings) for sign in (1.0, -1.0)]
-    assert sorted(f.fallback for f in fits) == ['', ARX]
-    kept, refused = sorted(fits, key=lambda f: f.fallback)
+    assert sorted(f.replaced_by for f in fits) == ['', ARX]
+    kept, refused = sorted(fits, key=lambda f: f.replaced_by)
     assert kept.gain_check.startswith('gain check passed') and kept.model is model
     assert 'disagrees in sign' in refused.gain_check
     arx = fit_target(ARX, model, None, train, held, settings)
@@ -102,7 +102,7 @@ def test_an_arx_it_cannot_write_is_one_fit_error_and_leaves_the_gain_check_unche
         fit_target(ARX, model, None, train, held, settings)
     fitted = fit_target('imaml', model, init_params(model.config, 3), train, held, settings)
     assert fitted.gain_check == ('gain check: unchecked, the ARX: ARX(4) reads 4 samples; the '
-                                 'model history H is 3') and fitted.fallback == ''
+                                 'model history H is 3') and fitted.replaced_by == ''
 
 
 def test_a_feature_narx_is_adapted_as_narx_learning_adapts_it():

@@ -52,7 +52,7 @@ class PlantNode(Node):
         self.family = self.plant.family
         self._zero_u = (0.0,) * self.family.n_u
         self.lockstep: Optional[Lockstep] = None   # realtime: none
-        self._held_u = self._zero_u     # last applied (saturated) input
+        self._applied_u = self._zero_u     # last applied (saturated) input
         self._requested_u = self._zero_u  # realtime: latest accepted input, before saturation
         self._y0 = self.plant.output()  # y_0 of the first episode, drawn before any step
         self._n_resets = 0
@@ -192,7 +192,7 @@ class PlantNode(Node):
             self.get_logger().info(f'theta {list(self.plant.theta)} from step '
                                    f'{self.plant.step_index} (t = {self.plant.time:g} s)')
             self._publish_info()
-        self._held_u = u
+        self._applied_u = u
         if self.plant.diverged and not was_diverged:
             self.get_logger().error(
                 f'plant diverged at step {self.plant.step_index} (theta='
@@ -239,9 +239,9 @@ class PlantNode(Node):
         u, why = self._check_input(msg.u)
         if u is None:
             self._warn('rejected', f'rejected the input for step {msg.step} ({why}); holding '
-                       f'u = {list(self._held_u)}')
+                       f'u = {list(self._applied_u)}')
             if self.lockstep is not None:
-                self._answered(self._held_u)
+                self._answered(self._applied_u)
             return
         if self.lockstep is not None:
             self._answered(u)
@@ -250,8 +250,8 @@ class PlantNode(Node):
 
     def _on_timeout(self) -> None:
         self._warn('timeouts', f'no input for step {self.plant.step_index} within '
-                   f'{self.cfg.input_timeout} s; holding u = {list(self._held_u)}')
-        self._answered(self._held_u)
+                   f'{self.cfg.input_timeout} s; holding u = {list(self._applied_u)}')
+        self._answered(self._applied_u)
 
     def _on_hold(self, msg: StepHold) -> None:
         """The controller holds its answer to msg.step: wait as long as it said, then the
@@ -321,7 +321,7 @@ class PlantNode(Node):
             return response
         y0 = self.plant.reset(list(request.theta) or None, list(request.x0) or None,
                               list(request.theta_schedule) or None)
-        self._held_u = self._requested_u = self._zero_u
+        self._applied_u = self._requested_u = self._zero_u
         self._n_resets += 1
         self._publish_info()
         self._end_gate()  # a reset before the lockstep start starts it

@@ -482,10 +482,10 @@ def markdown(report: Dict[str, Any]) -> str:
     lines += [_claim_row(f'(c) tracking cost: {_claim_name(key)}', stats)
               for key, stats in cl['c_tracking_cost_stats'].items()]
     for method, entry in cl['c_tracking_cost'].items():
-        fallbacks = (f"; the ARX flew in its place on seeds {entry['fallbacks']}"
-                     if entry.get('fallbacks') else '')
+        arx_flew = (f"; the ARX flew in its place on seeds {entry['fallbacks']}"
+                    if entry.get('fallbacks') else '')
         medians.append(f'| (c) tracking cost of {NAMES.get(method, method)} (escaped '
-                       f"{entry['escaped']}/{n}{fallbacks}) | {_fmt(_median(entry['cost']))}; "
+                       f"{entry['escaped']}/{n}{arx_flew}) | {_fmt(_median(entry['cost']))}; "
                        f"vs oracle {_fmt(_median(entry['vs_oracle']))}, "
                        f"vs NMPC {_fmt(_median(entry['vs_nmpc']))} |")
     lines += medians

@@ -40,7 +40,7 @@ CONTROLLERS = {'controller': 'set_active', 'controller_nmpc': 'set_active_nmpc'}
 MAX_COLLECT_ESCAPES = 20
 MAX_EPISODE_STARTS = 5
 EPISODE_START_S = 3.0   # wall time for the controller to receive y_0 after a reset
-HOLD_POLL_S = 0.02       # how often to ask the controller for its newest y meanwhile
+Y0_POLL_S = 0.02         # how often to ask the controller for its newest y meanwhile
 MATCH_POLL_S = 0.1       # how often to ask whether a node's side has matched the plant
 _META_RESULT = ['model_version', 'final_loss', 'loss_curve', 'message']
 _ADAPT_RESULT = ['model_version', 'loss_before', 'loss_after', 'loss_curve', 'message',
@@ -256,7 +256,7 @@ class SeedRun:
         diverged y, unanswered (a fast lockstep loop would otherwise run on while the
         orchestrator looks, and how far would depend on timing).
 
-        The controller is activated once it holds this y_0 (its newest y, asked inactive):
+        The controller is activated once it has received this y_0 (its newest y, asked inactive):
         activated before, it answers an older sample at once, and an older y_0 (the one the
         plant sent at start-up) the plant takes for the answer to this one, since it matches
         inputs by step; the controller's answer to the new y_0 is then stale and the loop
@@ -276,7 +276,7 @@ class SeedRun:
                               f'{what}: y_0 after the plant reset')
             start = client.last.stamp
             client.reset_counts()   # count the new episode only
-            if self._holds(controller, start):
+            if self._receives_y0(controller, start):
                 answered = client.set_active(
                     controller, True, until_step=max(steps - 1, 0),
                     stop_at_escape=steps > 0).answered_step
@@ -290,12 +290,12 @@ class SeedRun:
         raise ExperimentError(f'{what}: {controller} never received y_0 in '
                               f'{MAX_EPISODE_STARTS} plant resets')
 
-    def _holds(self, controller: str, stamp: float) -> bool:
+    def _receives_y0(self, controller: str, stamp: float) -> bool:
         """Whether the (inactive) `controller` receives the y_0 stamped `stamp` within
         EPISODE_START_S s of wall time."""
         return self.client.poll_inactive(
             controller, lambda a: a.latest_step == 0 and time_seconds(a.latest_stamp) == stamp,
-            EPISODE_START_S, HOLD_POLL_S)
+            EPISODE_START_S, Y0_POLL_S)
 
     def _wait_outputs_matched(self, controller: str, readers_u: int, readers_status: int,
                               deadline: float) -> None:

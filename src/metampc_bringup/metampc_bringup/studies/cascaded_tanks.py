@@ -22,7 +22,7 @@ from metampc_bringup.analysis.nssm_records import record_windows, simulate_nssm,
 from metampc_bringup.analysis.twin import nssm_weights
 from metampc_bringup.experiment_config import learner_config
 from metampc_bringup.studies.json_cache import cached, save
-from metampc_bringup.studies.offline import request_meta_config
+from metampc_bringup.studies.learning_setup import request_meta_config
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.checkpoint import load_checkpoint, save_checkpoint
 from metampc_learner.data import normalisation_from, simulate_source, SourceSet, Trajectory

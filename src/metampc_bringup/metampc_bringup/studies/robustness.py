@@ -1,5 +1,5 @@
 """Robustness of meta-training (``scripts/robustness.py``, docs/experiments.md): the
-experiment's requests on many source sets as jobs of :mod:`metampc_bringup.studies.offline`,
+experiment's requests on many source sets as jobs of :mod:`metampc_bringup.studies.learning_setup`,
 and which runs diverged."""
 import math
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -7,7 +7,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from metampc_bringup.experiment_config import ExperimentConfig
-from metampc_bringup.studies.offline import Job, request_meta_config
+from metampc_bringup.studies.learning_setup import Job, request_meta_config
 from metampc_learner.meta_train import MetaConfig
 
 DIVERGED_FACTOR = 10.0   # a run whose final loss exceeds 10x its method's median diverged

@@ -1,13 +1,14 @@
-"""The offline studies' jobs (:mod:`.offline`) on the cluster layer
+"""The learning studies' jobs (:mod:`.learning_setup`) on the cluster layer
 (:mod:`metampc_bringup.orchestration.cluster`): ``--jobs N`` or ``--scheduler ADDRESS`` of
 robustness.py, sweep_inner_steps.py and tune.py.
 
-A job (``fn(job)``, default :func:`.offline.run_job`) runs on a worker with the study's settings
-and torch threads (:func:`.offline.use`), or with ``fresh`` in a child process of its own (the
-sweep's peak RSS per run; the child dies with the worker, :mod:`..orchestration.lifeline`). Its
-result comes back to the client (no shared filesystem), which keeps it in the study's
-:class:`ResultCache` as soon as it lands: a stopped study resumes with only the missing jobs.
-A job that raises is reported with its error (:class:`StudyError`) after the others finished.
+A job (``fn(job)``, default :func:`.learning_setup.run_job`) runs on a worker with the study's
+settings and torch threads (:func:`.learning_setup.use`), or with ``fresh`` in a child process of
+its own (the sweep's peak RSS per run; the child dies with the worker,
+:mod:`..orchestration.lifeline`). Its result comes back to the client (no shared filesystem),
+which keeps it in the study's :class:`ResultCache` as soon as it lands: a stopped study resumes
+with only the missing jobs. A job that raises is reported with its error (:class:`StudyError`)
+after the others finished.
 """
 import contextlib
 import dataclasses
@@ -24,7 +25,7 @@ from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple, Typ
 from metampc_bringup.orchestration.cluster import (ClusterError, ClusterSpec, connect,
                                                    job_cancelled, run_batch, SchedulerLost)
 from metampc_bringup.orchestration.lifeline import child_env, hold
-from metampc_bringup.studies.offline import Job, run_job, Settings, use
+from metampc_bringup.studies.learning_setup import Job, run_job, Settings, use
 
 log = logging.getLogger('metampc.study_jobs')
 
@@ -38,7 +39,7 @@ class StudyError(Exception):
 
 class ResultCache:
     """The results of finished jobs on the client's disk, ``<folder>/<key>.json`` (the key:
-    :meth:`.offline.Job.key` of the job and the settings), written whole or not at all."""
+    :meth:`.learning_setup.Job.key` of the job and the settings), written whole or not at all."""
 
     def __init__(self, folder: str, settings: Settings):
         self.folder = folder
@@ -70,7 +71,7 @@ def run_jobs(client, jobs: Sequence[Job], what: str, settings: Settings, cache: 
              landed: Optional[Callable[[Job, dict], None]] = None,
              progress: bool = True) -> List[dict]:
     """The results of `jobs` (in their order): from `cache`, or run on `client`'s cluster,
-    longest first (:meth:`.offline.Job.cost`), each cached as it lands. ``landed(job,
+    longest first (:meth:`.learning_setup.Job.cost`), each cached as it lands. ``landed(job,
     result)`` for each, cached ones first. `what` labels the progress line.
 
     Raises:

@@ -2,7 +2,7 @@
 
 Meta-trains iMAML (eq. (inner_imaml), Gauss-Newton curvature, eq. (cg)), first-order MAML and
 unrolled MAML (eqs. (inner_maml), (outer_maml); M <= :data:`UNROLLED_MAX_M`) at each inner-step
-count M on the learning cores without ROS (:mod:`metampc_bringup.studies.offline`): each
+count M on the learning cores without ROS (:mod:`metampc_bringup.studies.learning_setup`): each
 (method, M) tuned on validation data with the same budget (:data:`GRIDS`, :data:`ADAPT_LRS`),
 then tested on the experiment's seeds; iMAML and first-order MAML compared paired by seed
 (:func:`metampc_bringup.analysis.paired_stats.paired_claim`). Runs: jobs of
@@ -25,9 +25,10 @@ import numpy as np
 from metampc_bringup.analysis.paired_stats import claim_cells, median_ci, paired_claim
 from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.experiment_config import ExperimentConfig, load
-from metampc_bringup.studies.offline import (CURVE_STEPS, Job, request_meta_config, run_job,
-                                             Settings, settings_from, TEST_HELDOUT_SAMPLES,
-                                             validation, VALIDATION_SEED)
+from metampc_bringup.studies.learning_setup import (CURVE_STEPS, Job, request_meta_config,
+                                                    run_job, Settings, settings_from,
+                                                    TEST_HELDOUT_SAMPLES, validation,
+                                                    VALIDATION_SEED)
 from metampc_bringup.studies.study_jobs import ResultCache, run_jobs
 from metampc_learner.meta_train import META_METHODS
 
@@ -164,7 +165,7 @@ def _peak_rss_mb() -> float:
 
 
 def measured_run(job: Job) -> dict:
-    """:func:`offline.run_job` with its cost: peak RSS of the process (MB) before and after
+    """:func:`learning_setup.run_job` with its cost: peak RSS of the process (MB) before and after
     meta-training and adaptation, wall time per outer step (s) and of the whole job (s)."""
     start = time.monotonic()
     validation(job.source_seed, job.nssm, job.target_theta, job.heldout_samples)
@@ -466,7 +467,7 @@ def sweep(client, config: str, plan: Plan, out: str, jobs: int = 1,
 
 
 def settings_for(config: str, plan: Plan) -> Settings:
-    """The offline settings of the sweep: the experiment's learner set-up, `plan.thetas`
+    """The settings of the sweep without ROS: the experiment's learner set-up, `plan.thetas`
     validation targets, `plan.adapt_steps` adaptation steps."""
     return settings_from(config, plan.thetas, plan.adapt_steps)
 

@@ -24,8 +24,8 @@ import numpy as np
 from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.experiment_config import load
 from metampc_bringup.orchestration.cluster import slots
-from metampc_bringup.studies.offline import (HELDOUT_SAMPLES, Job, settings_from, THETA_STREAM,
-                                             VALIDATION_SEED)
+from metampc_bringup.studies.learning_setup import (HELDOUT_SAMPLES, Job, settings_from,
+                                                    THETA_STREAM, VALIDATION_SEED)
 from metampc_bringup.studies.pruning import MedianRule
 from metampc_bringup.studies.search import Search, Trial, without_password
 from metampc_bringup.studies.study_jobs import ResultCache, run_jobs
