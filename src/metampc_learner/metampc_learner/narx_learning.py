@@ -73,7 +73,8 @@ class NarxMetaConfig:
 
 @dataclass
 class MetaResult:
-    """Meta-trained parameters and the D_test loss of every outer step (normalised units)."""
+    """Meta-trained parameters and the outer loss of every outer step (normalised units:
+    iMAML's D_test rollout loss, MAML's projected loss)."""
 
     params: Params
     curve: List[float] = field(default_factory=list)
@@ -125,7 +126,8 @@ def projected_loss(shape: NarxShape, params: Params, s: torch.Tensor, u_next: to
                    y_next: torch.Tensor, gamma: float) -> torch.Tensor:
     """The variable-projection loss of :func:`outer_loss`'s 'maml', averaged over tasks:
     s (B, M, n_s), u_next (B, M, n_u), y_next (B, M, n_y) one-step equations; the head
-    solved without a graph, the gradient the partial one at it (exact, the envelope theorem).
+    solved without a graph, the gradient the partial one at it (exact, the envelope theorem;
+    to the ridge's relative floor RIDGE_FLOOR where gamma / 2 is below it).
     """
     phi = regressors(shape, params, s, u_next)
     prior = params['head']
