@@ -200,8 +200,7 @@ def resolve_narx_request(request, base: NarxMetaConfig, meta: MetaConfig) -> Nar
     """A MetaTrain request of a feature NARX learner (model_class feature_narx) -> its checked
     config: `method` ('': the node's ``method``), `iterations`, `batch_size` and `seed` as for
     the NSSM, `lr_outer` its Adam step size and `gamma` (> 0) the inner solve's proximal
-    strength of the method (`gamma` for imaml, `maml_gamma` for maml; <= 0: the ``narx_``
-    parameters); the NSSM's inner-loop fields (`inner_steps`, `lr_inner`,
+    strength (<= 0: ``narx_gamma``); the NSSM's inner-loop fields (`inner_steps`, `lr_inner`,
     `cg_steps`, `init_loss_weight`) mean nothing to its closed-form inner solve and are ignored.
 
     Raises:
@@ -219,11 +218,10 @@ def resolve_narx_request(request, base: NarxMetaConfig, meta: MetaConfig) -> Nar
             raise ValueError(f'{name} must be finite, got {getattr(request, name)}')
     if request.lr_outer < 0:
         raise ValueError(f'lr_outer must be >= 0 (0: parameter), got {request.lr_outer}')
-    inner = 'maml_gamma' if method == 'maml' else 'gamma'
     config = replace(base, method=method, iterations=request.iterations or base.iterations,
                      batch_size=request.batch_size or base.batch_size,
                      lr=request.lr_outer or base.lr, seed=request.seed or meta.seed,
-                     **{inner: request.gamma if request.gamma > 0 else getattr(base, inner)})
+                     gamma=request.gamma if request.gamma > 0 else base.gamma)
     config.validate()
     return config
 

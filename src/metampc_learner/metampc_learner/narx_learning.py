@@ -3,11 +3,11 @@
 Adaptation (Algorithm 2, eq. (infer) solved exactly): g stays the meta-model's, the head is the
 closed-form ridge fit toward the meta-model's head on the target's one-step equations; never a
 higher training loss than the least-squares ARX(p) of the same samples (:func:`adapt`: toward
-the ARX's head instead, if it would be). Meta-training (eqs. (outer), (inner_imaml)): per
-outer step B source systems, the head adapted on D_tr in closed form, the T-step rollout loss on
-D_test; 'imaml' differentiates through the solve (the exact implicit meta-gradient), 'maml' is
-first order (eq. (outer_maml): d psi / d omega = I) with its own proximal strength (the paper's
-finite inner loop, which stays near the meta-model). Measured: docs/nonlinear.md.
+the ARX's head instead, if it would be). Meta-training, per outer step B source systems, each
+task's head solved in closed form: 'imaml' (eqs. (outer), (inner_imaml)) the T-step rollout
+loss on D_test through the solve on D_tr (the exact implicit meta-gradient); 'maml' first order
+by variable projection, the inner objective itself at the solved head, whose partial gradient
+is the exact one there (the envelope theorem). Measured: docs/nonlinear.md.
 """
 from dataclasses import dataclass, field
 import math
@@ -28,25 +28,20 @@ Record = Tuple[np.ndarray, np.ndarray]     # (u (K, n_u), y (K, n_y)) physical, 
 VALIDATION_SHARE = 1.0 / 3.0
 VALIDATION_HORIZON = 10
 NARX_METHODS = ('imaml', 'maml')
-# NarxMetaConfig.maml_gamma's default, chosen on validation seeds (docs/nonlinear.md).
-MAML_GAMMA = 1e-2
 
 
 @dataclass
 class NarxMetaConfig:
     """Attributes (the numbers are also the learner's node parameters ``narx_<name>``):
-        method: 'imaml' (exact meta-gradient through the solve) or 'maml' (first order).
+        method: 'imaml' (exact meta-gradient through the solve) or 'maml' (first order, by
+            variable projection: :func:`outer_loss`).
         iterations: outer steps.
         batch_size: B, source systems per step.
         windows: windows drawn per system per step, for D_tr and for D_test each.
         horizon: T of the outer (D_test) rollout loss, samples.
         lr: Adam step size.
         gamma: proximal strength of the closed-form inner solve (mean-loss units), in
-            iMAML's meta-training and in the adaptation to the target (either method's).
-        maml_gamma: the proximal strength of first-order MAML's inner solve in meta-training:
-            the paper's M gradient steps of size beta from the meta-model regularise toward it
-            as gamma ~ 1 / (M beta) does, and the first-order gradient is off by
-            G (G + gamma/2 I)^{-1} (G the regressors' Gram matrix), ~I at gamma 1e-5.
+            either method's meta-training and in the adaptation to the target.
         seed: initial weights and the draws of systems and windows.
 
     Defaults: the van der Pol calibration of docs/nonlinear.md (gamma 1e-3 made the prior
@@ -64,8 +59,6 @@ class NarxMetaConfig:
     gamma: float = param(1e-5, 'proximal strength of the closed-form head fit towards the '
                                "meta-model's head, meta-training's inner solve and "
                                'adaptation (mean-loss units)', ge=0)
-    maml_gamma: float = param(MAML_GAMMA, "proximal strength of first-order MAML's closed-form "
-                                          'inner solve in meta-training (mean-loss units)', gt=0)
     seed: int = 0
 
     def validate(self) -> None:
@@ -74,14 +67,14 @@ class NarxMetaConfig:
         for name in ('iterations', 'batch_size', 'windows', 'horizon'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-        if not (self.lr > 0 and self.gamma >= 0 and self.maml_gamma > 0):
-            raise ValueError(f'need lr > 0, gamma >= 0 and maml_gamma > 0, got {self.lr}, '
-                             f'{self.gamma}, {self.maml_gamma}')
+        if not (self.lr > 0 and self.gamma >= 0):
+            raise ValueError(f'need lr > 0 and gamma >= 0, got {self.lr}, {self.gamma}')
 
 
 @dataclass
 class MetaResult:
-    """Meta-trained parameters and the D_test loss of every outer step (normalised units)."""
+    """Meta-trained parameters and the outer loss of every outer step (normalised units:
+    iMAML's D_test rollout loss, MAML's projected loss)."""
 
     params: Params
     curve: List[float] = field(default_factory=list)
@@ -106,22 +99,42 @@ def _windows(shape: NarxShape, norm: Normalisation, records: Sequence[Record], h
 
 def outer_loss(shape: NarxShape, params: Params, train: Tuple[torch.Tensor, ...],
                test: Tuple[torch.Tensor, ...], config: NarxMetaConfig) -> torch.Tensor:
-    """One outer step's loss, eq. (outer): each task's head solved on its D_tr one-step
-    equations (`train` = (s (B, W, n_s), u (B, W, 1, n_u), y (B, W, 1, n_y))), the mean T-step
-    rollout loss on D_test (`test`, T = its second-last size). 'imaml': gamma, autograd through
-    the solve; 'maml': maml_gamma, first order: the value the adapted head, its gradient the
-    outer loss's at that head, to the features by their direct path only and to the prior head
-    as to the adapted one (d psi / d omega = I, eq. (outer_maml))."""
+    """One outer step's loss (`train` = (s (B, W, n_s), u (B, W, 1, n_u), y (B, W, 1, n_y))
+    D_tr's one-step windows, `test` D_test's T-step windows, T its second-last size).
+
+    'imaml', eq. (outer): each task's head solved on D_tr at gamma, the mean T-step rollout
+    loss on D_test, autograd through the solve (the exact implicit meta-gradient).
+    'maml', first order by variable projection (Golub & Pereyra; ANIL's head-only
+    adaptation): each task's head solved at gamma on all its one-step equations (D_tr's and
+    the first step of D_test's windows), the loss the inner objective itself, one-step loss +
+    gamma/2 ||Theta* - Theta_bar||^2, at that head held fixed (no gradient through the
+    solve). Since Theta* minimises that objective, its partial derivatives at the held head
+    are the total ones (the envelope theorem): the first-order gradient is exact here.
+    """
     (s_tr, u_tr, y_tr), (s_te, u_te, y_te) = train, test
-    phi = regressors(shape, params, s_tr, u_tr[..., 0, :])
-    prior = params['head']
     if config.method == 'maml':
-        fitted = ridge(phi.detach(), y_tr[..., 0, :], prior.detach(), config.maml_gamma)
-        head = prior + (fitted - prior.detach())
-    else:
-        head = ridge(phi, y_tr[..., 0, :], prior, config.gamma)
+        return projected_loss(shape, params, torch.cat([s_tr, s_te], 1),
+                              torch.cat([u_tr[..., 0, :], u_te[..., 0, :]], 1),
+                              torch.cat([y_tr[..., 0, :], y_te[..., 0, :]], 1), config.gamma)
+    phi = regressors(shape, params, s_tr, u_tr[..., 0, :])
+    head = ridge(phi, y_tr[..., 0, :], params['head'], config.gamma)
     y_hat = rollout(shape, params, s_te, u_te, head[:, None])
     return (y_hat - y_te).square().sum(-1).mean()
+
+
+def projected_loss(shape: NarxShape, params: Params, s: torch.Tensor, u_next: torch.Tensor,
+                   y_next: torch.Tensor, gamma: float) -> torch.Tensor:
+    """The variable-projection loss of :func:`outer_loss`'s 'maml', averaged over tasks:
+    s (B, M, n_s), u_next (B, M, n_u), y_next (B, M, n_y) one-step equations; the head
+    solved without a graph, the gradient the partial one at it (exact, the envelope theorem;
+    to the ridge's relative floor RIDGE_FLOOR where gamma / 2 is below it).
+    """
+    phi = regressors(shape, params, s, u_next)
+    prior = params['head']
+    with torch.no_grad():
+        head = ridge(phi, y_next, prior, gamma)
+    return (mean_loss(phi, y_next, head)
+            + gamma / 2 * (head - prior).square().sum((-1, -2))).mean()
 
 
 def meta_train(shape: NarxShape, norm: Normalisation, systems: Sequence[Sequence[Record]],
@@ -284,6 +297,6 @@ def heldout_loss(model: FeatureNarx, records: Sequence[Record], horizon: int) ->
         return float((rollout(model.shape, model.params, s, u) - y).square().sum(-1).mean())
 
 
-__all__ = ['NARX_METHODS', 'MAML_GAMMA', 'NarxMetaConfig', 'MetaResult', 'AdaptedNarx',
-           'outer_loss', 'meta_train', 'adapt', 'arx_model', 'heldout_loss', 'one_step_data',
+__all__ = ['NARX_METHODS', 'NarxMetaConfig', 'MetaResult', 'AdaptedNarx', 'outer_loss',
+           'projected_loss', 'meta_train', 'adapt', 'arx_model', 'heldout_loss', 'one_step_data',
            'one_step_loss']

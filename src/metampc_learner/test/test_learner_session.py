@@ -350,12 +350,10 @@ def test_what_a_feature_narx_learner_refuses():
         resolve_narx_request(_request(online_collection=True), cfg.narx_meta, cfg.meta)
     got = resolve_narx_request(_request(method='maml', iterations=3, lr_outer=0.01, gamma=0.5),
                                cfg.narx_meta, cfg.meta)
-    # a request's gamma is the inner solve's strength of the method it trains
-    assert (got.method, got.iterations, got.lr, got.maml_gamma, got.batch_size) == (
+    assert (got.method, got.iterations, got.lr, got.gamma, got.batch_size) == (
         'maml', 3, 0.01, 0.5, 3)
+    got = resolve_narx_request(_request(method='imaml', gamma=0), cfg.narx_meta, cfg.meta)
     assert got.gamma == cfg.narx_meta.gamma
-    got = resolve_narx_request(_request(method='imaml', gamma=0.5), cfg.narx_meta, cfg.meta)
-    assert (got.gamma, got.maml_gamma) == (0.5, cfg.narx_meta.maml_gamma)
     for name in ('gain_check', 'loop_adaptation', 'online_collection'):
         with pytest.raises(ParameterError, match=f"{name}: the NSSM's only"):
             _narx_config(**{name: True})

@@ -130,64 +130,103 @@ def test_imaml_meta_gradient_is_the_exact_gradient_through_the_solve():
         assert float(leaves[name].grad[idx]) == pytest.approx(fd, rel=1e-5, abs=1e-9)
 
 
-def test_first_order_maml_gradient_is_the_outer_gradient_at_the_adapted_head():
-    """Eq. (outer_maml): the value is the outer loss at the head solved with maml_gamma (a dense
-    least squares here), the gradient the outer loss's with that head held fixed, to a feature
-    weight by its direct path and to the prior head as to the adapted one (central differences
-    of that loss). Fails on the exact gradient through the solve (iMAML's) and on the solve
-    with `gamma` in place of `maml_gamma`."""
+def _split_batch(seed):
+    """A batch of 2 tasks: D_tr's 12 one-step windows and D_test's 5 windows of T = 2."""
+    rng = np.random.default_rng(seed)
+    s_tr, y_tr, s_te = (torch.from_numpy(rng.normal(size=(2, n, 1))) for n in (12, 12, 5))
+    u_tr, u_te, y_te = (torch.from_numpy(rng.normal(size=(2, n, k, 1)))
+                        for n, k in ((12, 1), (5, 2), (5, 2)))
+    return (s_tr, u_tr, y_tr[..., None, :]), (s_te, u_te, y_te)
+
+
+def _central(f, params, name, idx, eps=1e-6):
+    plus, minus = ({k: v.clone() for k, v in params.items()} for _ in range(2))
+    plus[name][idx] += eps
+    minus[name][idx] -= eps
+    return (f(plus) - f(minus)) / (2 * eps)
+
+
+def test_first_order_maml_gradient_is_exact_by_the_envelope_theorem():
+    """'maml' (variable projection): the value is min over the head of the one-step loss on
+    all of a task's one-step equations (D_tr's and D_test's first steps) + gamma/2 ||Theta -
+    Theta_bar||^2, solved densely here; its first-order gradient (no gradient through the
+    solve) equals central differences of that minimum, the head solved again at each point,
+    in a feature weight and the prior head. Fails on the loss without the prior term, on the
+    support D_tr only, on the head solved at another strength than the loss's, and on the
+    prior term's gradient dropped (its prior detached)."""
     shape = NarxShape(1, 1, order=1, features=3, hidden=(4,))
     params = _random_meta(shape, 3).params
-    rng = np.random.default_rng(1)
-    s_tr, y_tr, s_te, y_te = (torch.from_numpy(rng.normal(size=(2, n, 1))) for n in (20, 20, 6, 6))
-    u_tr, u_te = (torch.from_numpy(rng.normal(size=(2, n, 1, 1))) for n in (20, 6))
-    s_te, u_te, y_te = s_te, torch.cat([u_te, u_te], -2), torch.stack([y_te, -y_te], -2)
-    config = NarxMetaConfig(method='maml', gamma=1e-6, maml_gamma=0.5)
-    phi = regressors(shape, params, s_tr, u_tr[..., 0, :]).numpy()
-    gram = np.einsum('bmi,bmj->bij', phi, phi) / 20 + 0.25 * np.eye(shape.n_phi)
-    rhs = np.einsum('bmi,bmj->bij', phi, y_tr.numpy()) / 20 + 0.25 * params['head'].numpy().T
-    adapted = torch.from_numpy(np.linalg.solve(gram, rhs).transpose(0, 2, 1))
+    train, test = _split_batch(1)
+    gamma = 0.3
+    config = NarxMetaConfig(method='maml', gamma=gamma)
+    s = torch.cat([train[0], test[0]], 1)
+    u, y = (torch.cat([train[i][..., 0, :], test[i][..., 0, :]], 1) for i in (1, 2))
 
-    def at_adapted(p, head):                  # the outer loss, the head held at `head`
-        y_hat = rollout(shape, p, s_te, u_te, head[:, None])
-        return float((y_hat - y_te).square().sum(-1).mean())
+    def minimum(p):                           # dense: the objective at its minimiser, per task
+        phi, out = regressors(shape, p, s, u).numpy(), y.numpy()
+        prior = p['head'].numpy()[0]
+        total = 0.0
+        for b in range(2):
+            m = len(phi[b])
+            head = np.linalg.solve(phi[b].T @ phi[b] / m + gamma / 2 * np.eye(shape.n_phi),
+                                   phi[b].T @ out[b][:, 0] / m + gamma / 2 * prior)
+            total += (np.mean((out[b][:, 0] - phi[b] @ head) ** 2)
+                      + gamma / 2 * np.sum((head - prior) ** 2))
+        return total / 2
 
     leaves = {k: v.clone().requires_grad_() for k, v in params.items()}
-    loss = outer_loss(shape, leaves, (s_tr, u_tr, y_tr[..., None, :]), (s_te, u_te, y_te),
-                      config)
-    assert float(loss.detach()) == pytest.approx(at_adapted(params, adapted), rel=1e-10)
+    loss = outer_loss(shape, leaves, train, test, config)
+    assert float(loss.detach()) == pytest.approx(minimum(params), rel=1e-10)
     loss.backward()
-    eps = 1e-6
-    plus, minus = ({k: v.clone() for k, v in params.items()} for _ in range(2))
-    plus['g.0.weight'][1, 0] += eps
-    minus['g.0.weight'][1, 0] -= eps
-    fd = (at_adapted(plus, adapted) - at_adapted(minus, adapted)) / (2 * eps)
-    assert float(leaves['g.0.weight'].grad[1, 0]) == pytest.approx(fd, rel=1e-5, abs=1e-9)
-    step = torch.zeros_like(adapted)
-    step[:, 0, 2] = eps                       # every task's adapted head moved alike
-    fd = (at_adapted(params, adapted + step) - at_adapted(params, adapted - step)) / (2 * eps)
-    assert float(leaves['head'].grad[0, 2]) == pytest.approx(fd, rel=1e-5, abs=1e-9)
+    for name, idx in (('g.0.weight', (1, 0)), ('head', (0, 2)), ('head', (0, 0))):
+        fd = _central(minimum, params, name, idx)
+        assert float(leaves[name].grad[idx]) == pytest.approx(fd, rel=1e-5, abs=1e-9)
 
 
-def test_first_order_maml_near_the_meta_model_learns_where_the_exact_solve_does_not():
-    """First-order MAML on the toy family: with its inner solve kept near the meta-model
-    (maml_gamma 0.1) the D_test loss falls and the adapted fits beat the ARX on unseen systems;
-    with the inner solve at the adaptation's strength (1e-4), where d psi / d omega = I is
-    wrong, the D_test loss rises (measured: 4.5e-3 -> 2.3e-2)."""
+def test_the_first_order_gradient_of_a_query_loss_is_not_the_exact_one():
+    """Where the loss is not the inner problem's own (iMAML's: the T-step rollout on D_test
+    at the head solved on D_tr) the partial gradient at the held head misses the head's
+    sensitivity: against autograd through the solve (the exact gradient, central differences
+    in test_imaml_meta_gradient_is_the_exact_gradient_through_the_solve) its error is large,
+    where the envelope theorem makes the 'maml' one exact. Fails on iMAML's loss made first
+    order (its solve detached)."""
+    shape = NarxShape(1, 1, order=1, features=3, hidden=(4,))
+    params = _random_meta(shape, 3).params
+    train, test = _split_batch(1)
+    config = NarxMetaConfig(method='imaml', gamma=0.3)
+
+    def gradient(first_order):
+        leaves = {k: v.clone().requires_grad_() for k, v in params.items()}
+        if first_order:
+            with torch.no_grad():
+                phi = regressors(shape, leaves, train[0], train[1][..., 0, :])
+                head = ridge(phi, train[2][..., 0, :], leaves['head'], config.gamma)
+            y_hat = rollout(shape, leaves, test[0], test[1], head[:, None])
+            loss = (y_hat - test[2]).square().sum(-1).mean()
+        else:
+            loss = outer_loss(shape, leaves, train, test, config)
+        loss.backward()
+        return leaves['g.0.weight'].grad.flatten()
+
+    exact, first = gradient(False), gradient(True)
+    assert float((first - exact).norm() / exact.norm()) > 0.1
+
+
+def test_first_order_maml_learns_features_that_beat_the_arx_on_unseen_systems():
+    """First-order MAML by variable projection on the toy family, its inner solve at the
+    adaptation's strength: the projected loss falls and the adapted fits beat the ARX on
+    unseen systems."""
     systems = _toy_systems(np.random.default_rng(5).normal(size=30), 0)
     norm = Normalisation(np.zeros(1), np.ones(1), np.zeros(1), np.ones(1))
     shape = NarxShape(1, 1, order=1, features=4, hidden=(16,))
-    config = NarxMetaConfig(method='maml', iterations=150, batch_size=8, windows=32, horizon=5,
-                            lr=1e-2, gamma=1e-4, maml_gamma=0.1)
-    res = meta_train(shape, norm, systems, config)
+    res = meta_train(shape, norm, systems, NarxMetaConfig(method='maml', iterations=150,
+                                                          batch_size=8, windows=32,
+                                                          horizon=5, lr=1e-2, gamma=1e-4))
     assert np.mean(res.curve[-10:]) < 0.5 * np.mean(res.curve[:10])
     meta = FeatureNarx(shape, norm, res.params)
     for records in _toy_systems([-1.2, -0.8, 0.8, 1.2, 1.5], 99):
         adapted = adapt(meta, records, 1e-4)
         assert adapted.train_loss < 0.5 * adapted.arx_loss
-    exact = meta_train(shape, norm, systems, NarxMetaConfig(**{**config.__dict__,
-                                                               'maml_gamma': 1e-4}))
-    assert np.mean(exact.curve[-10:]) > np.mean(exact.curve[:10])
 
 
 def test_imaml_meta_training_learns_features_that_beat_the_arx_on_unseen_systems():
