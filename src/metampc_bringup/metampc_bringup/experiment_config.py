@@ -3,12 +3,11 @@
 A YAML mapping with the keys of :class:`ExperimentConfig` (a missing key keeps its default, an
 unknown key is an error). The node sections (``plant``, ``learner``, ``controller``,
 ``recorder``) are ROS parameters handed to the nodes as they are (the nodes check them);
-``family``, ``dt``, ``u_min``, ``u_max`` are set once and copied into every node that takes
-them; the family fills in what the file leaves null. ``meta_train.<method>`` and
-``adapt.<method>`` are the request fields per method, applied by the ``protocol``: 'tuned'
-(as written, plain adaptation steps) or 'paper_settings' (Algorithm 1 with online collection,
-eq. (ub); iMAML adapts by eq. (infer) with its meta-training gamma). A method 'narx_<m>' is
-the learner's <m> of the feature NARX beside the learner's own class (:func:`learner_method`).
+``family``, ``dt``, ``u_min``, ``u_max`` are set once, copied into every node taking them.
+``meta_train.<method>`` and ``adapt.<method>`` are the request fields per method, applied by
+the ``protocol``: 'tuned' (as written, plain adaptation steps) or 'paper_settings' (Algorithm
+1 with online collection, eq. (ub); iMAML adapts by eq. (infer) with its meta-training gamma).
+A method 'narx_<m>' is the learner's <m> of the feature NARX (:func:`learner_method`).
 Renamed names work for one release, with a warning (:mod:`metampc_common.renames`); a bad
 file is a :class:`ConfigError`. Keys, protocols and renames: docs/experiments.md.
 """
