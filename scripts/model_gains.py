@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Per seed and method of a run folder: the adapted model's steady-state gain and slowest pole
+"""Per seed and method of a run folder: the adapted NSSM's steady-state gain and slowest pole
 against the target plant's, and its N-step prediction as the MPC plans with it on the NMPC's
 closed loop (metampc_bringup.analysis.model_gains; docs/mpc.md).
 
@@ -82,6 +82,8 @@ def main(argv=None) -> int:
         nmpc_cost = nmpc[seed]['tracking']['tracking']['cost']
         models = {}
         for method, msg in adapted_models(recordings[seed]).items():
+            if msg.model_class == 'feature_narx':      # an NSSM's latent model only
+                continue
             decoded = weights_from_fields(fields_of(msg))
             models[method] = decoded, NssmPredictor(decoded.config, decoded.norm, decoded.params)
         arx = models.get('arx')

@@ -2,8 +2,8 @@
 """Run the paper's experiment on the ROS 2 graph and write a run folder with its report.
 
 Examples:
-    python scripts/run_experiment.py                          # defaults: 1 seed, all methods
-    python scripts/run_experiment.py --seeds 10               # the paper's comparison
+    python scripts/run_experiment.py                          # defaults: 1 seed, both classes
+    python scripts/run_experiment.py --seeds 10 --methods imaml,maml,supervised,oracle,arx,nmpc
     python scripts/run_experiment.py --seeds 10 --jobs 2      # two seeds at a time
     python scripts/run_experiment.py --seeds 10 --out runs/ten   # again after Ctrl-C: resumes
     python scripts/run_experiment.py --seeds 10 --scheduler tcp://127.0.0.1:8786   # a cluster
@@ -71,7 +71,9 @@ def main(argv=None) -> int:
     parser.add_argument('--family', help='plant family (docs/families.md); overrides the '
                                          "config's family key")
     parser.add_argument('--methods', help='comma-separated: imaml,maml,maml_unrolled,'
-                                          'supervised,oracle,arx,nmpc')
+                                          'supervised,oracle,arx (the NSSM), narx_imaml,'
+                                          'narx_maml,narx_oracle,narx_arx (the feature NARX), '
+                                          'nmpc')
     parser.add_argument('--seeds', type=int, help='number of seeds')
     parser.add_argument('--first-seed', type=int, help='seed of the first run')
     add_arguments(parser, 'seeds run at once on an embedded cluster, each in a ROS domain of '

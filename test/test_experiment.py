@@ -240,20 +240,21 @@ def _interrupt_after_collection(args, collections: int, timeout: float,
     return proc.returncode, ''.join(lines) + rest
 
 
-def test_a_feature_narx_experiment_flies_the_class_end_to_end(tmp_path):
-    """learner.model_class feature_narx (config/feature_narx.yaml's class, CI-sized): the
-    learner meta-trains and adapts it, the recorded weights are of that class, the report
-    scores them on the held-out set, the adapted model's training loss is not above the
-    ARX's, and the same tracking in one process (retrack) gives the recorded costs."""
+def test_both_model_classes_fly_in_one_run_each_with_its_report_rows(tmp_path):
+    """config/default.yaml's form, CI-sized: one learner of the NSSM's class meta-trains and
+    adapts the feature NARX (narx_*) and the paper's NSSM on the same D_target; the recorded
+    weights of each row are of its class, the report scores each on the held-out set and
+    compares the NARX with the ARX of its class, the adapted NARX's training loss is not
+    above its ARX's, and the same tracking in one process (retrack, by the report's names)
+    gives the recorded costs."""
     base = load(CI_CONFIG)
-    learner = {**base.learner, 'model_class': 'feature_narx', 'narx_features': 8,
-               'narx_hidden': [16], 'narx_iterations': 20, 'narx_batch_size': 4,
-               'narx_windows': 16}
-    config = load(CI_CONFIG, {'methods': ['imaml', 'arx', 'nmpc'], 'learner': learner,
-                              'meta_train': {'imaml': {}},
-                              'adapt': {'imaml': {}, 'arx': {}}})
+    learner = {**base.learner, 'narx_features': 8, 'narx_hidden': [16],
+               'narx_iterations': 20, 'narx_batch_size': 4, 'narx_windows': 16}
+    config = load(CI_CONFIG, {'methods': ['narx_imaml', 'narx_arx', 'imaml', 'arx', 'nmpc'],
+                              'learner': learner})
     out = str(tmp_path / 'run')
-    per_seed = run_experiment(config, out, progress=False)['per_seed'][0]
+    report = run_experiment(config, out, progress=False)
+    per_seed = report['per_seed'][0]
     assert per_seed['complete']
     mcap = os.path.join(out, 'seed_0', 'recording.mcap')
     for method in config.methods:
@@ -261,13 +262,21 @@ def test_a_feature_narx_experiment_flies_the_class_end_to_end(tmp_path):
         assert not tracking['escaped'] and tracking['steps'] == config.track_steps(), method
         assert set(tracking['planner']) == {'nmpc' if method == 'nmpc' else 'latent_mpc'}
     models = {m: _weights(mcap, per_seed['methods'][m]['adapt']['model_version'])
-              for m in ('imaml', 'arx')}
-    assert {(w.model_class, w.features, w.history) for w in models.values()} == {
-        ('feature_narx', 8, 2)}
-    assert models['imaml'].train_loss <= models['arx'].train_loss * (1 + 1e-9)
-    for method in ('imaml', 'arx'):
+              for m in ('narx_imaml', 'narx_arx', 'imaml', 'arx')}
+    assert {m: (w.model_class, w.method) for m, w in models.items()} == {
+        'narx_imaml': ('feature_narx', 'imaml'), 'narx_arx': ('feature_narx', 'arx'),
+        'imaml': ('nssm', 'imaml'), 'arx': ('nssm', 'arx')}
+    assert models['narx_imaml'].features == 8 and models['imaml'].history == 10
+    assert models['narx_imaml'].train_loss <= models['narx_arx'].train_loss * (1 + 1e-9)
+    for method in ('narx_imaml', 'narx_arx', 'imaml', 'arx'):
         assert math.isfinite(per_seed['methods'][method]['heldout']['adapted']), method
+    held = report['claims']['b_heldout_large']['adapted']['stats']
+    assert set(held) == {'imaml<arx', 'narx_imaml<narx_arx'}
+    costs = report['claims']['c_tracking_cost_stats']
+    assert {'narx_imaml<narx_arx', 'narx_imaml<arx', 'narx_imaml<imaml', 'imaml<arx'} <= set(
+        costs)
     again = retrack_seed(config, per_seed['seed'], mcap, {})
+    assert set(again) == set(config.methods)
     for method, result in again.items():
         recorded = per_seed['methods'][method]['tracking']['tracking']['cost']
         assert result.cost == pytest.approx(recorded, rel=1e-9, abs=1e-12), method

@@ -10,7 +10,7 @@ import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ONCE = ('METHODS', 'META_METHODS', 'ADAPT_METHODS', 'BASELINES', 'NARX_METHODS',
-        'NARX_ADAPT_METHODS', 'NARX_EXPERIMENT_METHODS')
+        'NARX_ADAPT_METHODS', 'NARX_EXPERIMENT_METHODS', 'PREFIXED_NARX_METHODS')
 NAMES = {'imaml', 'maml', 'maml_unrolled', 'supervised', 'oracle', 'arx', 'nmpc'}
 # Modules cleaned of literal method sets (issue 53); the list only grows.
 CLEANED = ('src/metampc_learner/metampc_learner/learner_session.py',

@@ -1,18 +1,18 @@
 """Configuration of an experiment (``scripts/run_experiment.py --config FILE``), without rclpy.
 
-A YAML mapping with the keys of :class:`ExperimentConfig`: a missing key keeps its default, an
-unknown key is an error. The node sections (``plant``, ``learner``, ``controller``,
+A YAML mapping with the keys of :class:`ExperimentConfig` (a missing key keeps its default, an
+unknown key is an error). The node sections (``plant``, ``learner``, ``controller``,
 ``recorder``) are ROS parameters handed to the nodes as they are (the nodes check them);
-``family``, ``dt``, ``u_min``, ``u_max`` are set once and copied into every node that takes
-them; the family fills in what the file leaves null. ``meta_train.<method>`` and
-``adapt.<method>`` are the request fields per method, applied by the ``protocol``: 'tuned'
-(as written, plain adaptation steps) or 'paper_settings' (Algorithm 1 with online collection,
-eq. (ub); iMAML adapts by eq. (infer) with its meta-training gamma). Names renamed in this
-release still work for one release, with a warning (:mod:`metampc_common.renames`). Refuses a
-bad file with :class:`ConfigError`. Keys, protocols and renames: docs/experiments.md.
+``family``, ``dt``, ``u_min``, ``u_max`` are set once, copied into every node taking them.
+``meta_train.<method>`` and ``adapt.<method>`` are the request fields per method, applied by
+the ``protocol``: 'tuned' (as written, plain adaptation steps) or 'paper_settings' (Algorithm
+1 with online collection, eq. (ub); iMAML adapts by eq. (infer) with its meta-training gamma).
+A method 'narx_<m>' is the learner's <m> of the feature NARX (:func:`learner_method`).
+Renamed names work for one release, with a warning (:mod:`metampc_common.renames`); a bad
+file is a :class:`ConfigError`. Keys, protocols and renames: docs/experiments.md.
 """
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import Any, Dict, List, Optional, Union
+from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 import yaml
@@ -36,14 +36,35 @@ SCENARIOS = ('adapt_once', 'drift')
 # Values renamed in this release, {key: {old: new}}: the old ones work until the next.
 _RENAMED = {'protocol': {'paper': 'paper_settings'}, 'scenario': {'paper': 'adapt_once'}}
 DRIFT_MODES = ('none', 'periodic', 'triggered')
-METHODS = (*ADAPT_METHODS, 'nmpc')       # what an experiment compares
+# The feature NARX's methods beside the NSSM's in one run (the learner's model_class nssm, each
+# request naming the class): 'narx_imaml' is the learner's 'imaml' of model_class feature_narx.
+NARX_PREFIX = 'narx_'
+PREFIXED_NARX_METHODS = tuple(NARX_PREFIX + m for m in NARX_ADAPT_METHODS)
+METHODS = (*ADAPT_METHODS, *PREFIXED_NARX_METHODS, 'nmpc')       # what an experiment compares
 # ... with learner.model_class feature_narx (no supervised or unrolled MAML of that class)
 NARX_EXPERIMENT_METHODS = (*NARX_ADAPT_METHODS, 'nmpc')
 SHARED = ('family', 'dt', 'u_min', 'u_max')
 _TAKES_SHARED = {'plant': SHARED, 'learner': SHARED, 'controller': ('u_min', 'u_max')}
 # The request fields a config may set: the services' own (method and seed are the run's).
-_META_FIELDS = set(MetaTrain.Request.get_fields_and_field_types()) - {'method', 'seed'}
-_ADAPT_FIELDS = set(Adapt.Request.get_fields_and_field_types()) - {'method'}
+# (The model class is the method's: learner_method.)
+_META_FIELDS = (set(MetaTrain.Request.get_fields_and_field_types())
+                - {'method', 'seed', 'model_class'})
+_ADAPT_FIELDS = set(Adapt.Request.get_fields_and_field_types()) - {'method', 'model_class'}
+
+
+def learner_method(method: str) -> Tuple[str, str]:
+    """The learner's (method, model_class) of an experiment's `method`: 'narx_imaml' ->
+    ('imaml', 'feature_narx'); any other its own name and '' (the learner's model_class)."""
+    if method in PREFIXED_NARX_METHODS:
+        return method[len(NARX_PREFIX):], 'feature_narx'
+    return method, ''
+
+
+def experiment_method(method: str, model_class: str, learner_class: str) -> str:
+    """The experiment's name of a model the learner published as `method` of `model_class`,
+    on a learner whose model_class is `learner_class` (:func:`learner_method` inverted)."""
+    return (NARX_PREFIX + method if model_class == 'feature_narx' != learner_class
+            else method)
 
 
 class ConfigError(ValueError):
@@ -182,8 +203,8 @@ class ExperimentConfig:
         return out
 
     def meta_methods(self) -> List[str]:
-        """Meta methods to meta-train: those compared, in order."""
-        return [m for m in self.methods if m in META_METHODS]
+        """Meta methods to meta-train: those compared, in order (experiment names)."""
+        return [m for m in self.methods if learner_method(m)[0] in META_METHODS]
 
     def drift_config(self) -> DriftConfig:
         """The drift scenario's settings (ConfigError on an unknown key)."""
@@ -313,6 +334,10 @@ class ExperimentConfig:
                 and 'gamma' not in (self.meta_train.get('imaml') or {})):
             raise ConfigError('protocol paper_settings: iMAML adapts with its meta-training '
                               'gamma; set meta_train.imaml.gamma')
+        narx = [m for m in self.meta_methods() if m in PREFIXED_NARX_METHODS]
+        if self.protocol == 'paper_settings' and narx:
+            raise ConfigError(f'protocol paper_settings collects online, the NSSM\'s only: '
+                              f'not for {", ".join(narx)}')
         if self.scenario not in SCENARIOS:
             raise ConfigError(f'scenario must be one of {", ".join(SCENARIOS)}, got '
                               f'{self.scenario!r}')
@@ -320,8 +345,11 @@ class ExperimentConfig:
             _check_drift(self, fam, cfg)
         if self.reference_inputs is not None:
             _check_reference_inputs(self, fam)
-        _check_requests('meta_train', self.meta_train, META_METHODS, _META_FIELDS)
-        _check_requests('adapt', self.adapt, ADAPT_METHODS, _ADAPT_FIELDS)
+        _check_requests('meta_train', self.meta_train,
+                        [m for m in METHODS if learner_method(m)[0] in META_METHODS],
+                        _META_FIELDS)
+        _check_requests('adapt', self.adapt, (*ADAPT_METHODS, *PREFIXED_NARX_METHODS),
+                        _ADAPT_FIELDS)
         for node in _NODE_PARAMS:
             self.node_config(node, self.first_seed)
         if self.node_config('learner', self.first_seed).model_class == 'feature_narx':

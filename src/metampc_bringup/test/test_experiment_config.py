@@ -140,18 +140,54 @@ def test_bad_reference_inputs_are_one_config_error(changes, message):
         from_mapping({'family': 'quadruple_tank', **changes}).validate()
 
 
-def test_the_feature_narx_config_loads_and_methods_not_of_its_class_are_refused():
-    """config/feature_narx.yaml: the learner's model class; supervised has none of it."""
+def test_the_default_config_compares_both_model_classes_in_one_learner():
+    """config/default.yaml: the feature NARX's methods (narx_*) beside the paper's NSSM's on
+    a learner of the NSSM's class, each request naming its class; the paper's method alone
+    is the same file with --methods imaml,maml,supervised,oracle,arx,nmpc."""
     import os
-    from metampc_bringup.experiment_config import load
-    path = os.path.join(os.path.dirname(__file__), '..', '..', '..', 'config',
-                        'feature_narx.yaml')
+    from metampc_bringup.experiment_config import (experiment_method, learner_method, load,
+                                                   METHODS)
+    path = os.path.join(os.path.dirname(__file__), '..', '..', '..', 'config', 'default.yaml')
     config = load(path)
-    learner = config.node_config('learner', 0)
-    assert (learner.model_class, learner.gain_check) == ('feature_narx', False)
-    assert config.methods == ['imaml', 'maml', 'oracle', 'arx', 'nmpc']
-    with pytest.raises(ConfigError, match='methods supervised: not of learner.model_class '
-                                          'feature_narx'):
-        load(path, {'methods': ['imaml', 'supervised', 'nmpc']})
+    assert config.node_config('learner', 0).model_class == 'nssm'
+    assert config.methods == ['narx_imaml', 'narx_maml', 'narx_oracle', 'narx_arx', 'imaml',
+                              'maml', 'supervised', 'oracle', 'arx', 'nmpc']
+    assert config.meta_methods() == ['narx_imaml', 'narx_maml', 'imaml', 'maml']
+    assert [learner_method(m) for m in config.meta_methods()] == [
+        ('imaml', 'feature_narx'), ('maml', 'feature_narx'), ('imaml', ''), ('maml', '')]
+    assert learner_method('arx') == ('arx', '') and learner_method('narx_arx') == (
+        'arx', 'feature_narx')
+    # the name a recorded model gets back, on either learner class
+    for method in METHODS:
+        name, model_class = learner_method(method)
+        assert experiment_method(name, model_class or 'nssm', 'nssm') == method
+    assert experiment_method('imaml', 'feature_narx', 'feature_narx') == 'imaml'
+    paper = load(path, {'methods': ['imaml', 'maml', 'supervised', 'oracle', 'arx', 'nmpc']})
+    assert paper.meta_request('imaml')['iterations'] == 300
+    # requests per experiment name; the class is the name's, never a request field
+    assert load(path, {'meta_train': {'narx_imaml': {'iterations': 5}}}).meta_request(
+        'narx_imaml') == {'iterations': 5}
+    with pytest.raises(ConfigError, match='meta_train: unknown method .narx_supervised.'):
+        load(path, {'meta_train': {'narx_supervised': {}}})
+    with pytest.raises(ConfigError, match=r'adapt.narx_imaml: unknown field\(s\) model_class'):
+        load(path, {'adapt': {'narx_imaml': {'model_class': 'nssm'}}})
+    with pytest.raises(ConfigError, match='methods must be distinct names out of'):
+        load(path, {'methods': ['narx_supervised', 'nmpc']})
+    with pytest.raises(ConfigError, match="the NSSM's only: not for narx_imaml"):
+        load(path, {'protocol': 'paper_settings'})
+
+
+def test_a_feature_narx_learner_refuses_methods_not_of_its_class():
+    """learner.model_class feature_narx: its methods by their own names; supervised and the
+    narx_ names (the other class's prefix) are refused, as is the NSSM's gain check."""
+    narx = {'learner': {'model_class': 'feature_narx'}}
+    config = from_mapping({**narx, 'methods': ['imaml', 'maml', 'oracle', 'arx', 'nmpc']})
+    assert config.validate().node_config('learner', 0).model_class == 'feature_narx'
+    for methods, unfit in ((['imaml', 'supervised', 'nmpc'], 'supervised'),
+                           (['narx_imaml', 'nmpc'], 'narx_imaml')):
+        with pytest.raises(ConfigError, match=f'methods {unfit}: not of learner.model_class '
+                                              'feature_narx'):
+            from_mapping({**narx, 'methods': methods}).validate()
     with pytest.raises(ConfigError, match="gain_check: the NSSM's only"):
-        load(path, {'learner': {**config.learner, 'gain_check': True}})
+        from_mapping({'learner': {'model_class': 'feature_narx', 'gain_check': True},
+                      'methods': ['imaml']}).validate()

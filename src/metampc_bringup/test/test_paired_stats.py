@@ -310,3 +310,49 @@ def test_the_arx_baseline_is_compared_with_both_meta_methods():
     assert ('| (c) tracking cost of iMAML (escaped 0/5; the ARX flew in its place on seeds '
             '[1, 3]) |') in text
     assert '| (c) tracking cost of MAML (escaped 0/5) |' in text
+
+
+def test_the_feature_narx_rows_are_compared_with_the_arx_of_their_class_and_the_nssm():
+    """Both model classes in one run (config/default.yaml): the narx_* rows against the ARX of
+    their class on the large held-out set and in tracking, and in tracking against the
+    NSSM's ARX, the NSSM's method of the same name and the NMPC; the paper's rows stay."""
+    rng = np.random.default_rng(4)
+    reports = [_fake_seed_report(seed, rng) for seed in range(5)]
+    for r in reports:
+        m, r['heldout'] = r['methods'], {'samples': 2000}
+        cost = m['maml']['tracking']['tracking']['cost']
+        for method, c, loss in (('arx', 1.0, 8.0), ('narx_imaml', 0.2, 1.0),
+                                ('narx_maml', 0.4, 4.0), ('narx_arx', 0.25, 2.0)):
+            m[method] = {'tracking': {'escaped': False,
+                                      'tracking': {'cost': c * cost, 'rmse': 0.1}},
+                         'heldout': {'meta': None, 'adapted': loss}}
+        for method, loss in (('imaml', 0.5), ('maml', 16.0)):
+            m[method]['heldout'] = {'meta': None, 'adapted': loss}
+    cl = claims(reports)
+    large = cl['b_heldout_large']['adapted']['stats']
+    assert large['narx_imaml<narx_arx']['median_ratio'] == pytest.approx(0.5)
+    assert large['narx_maml<narx_arx']['median_ratio'] == pytest.approx(2.0)
+    assert large['imaml<arx']['median_ratio'] == pytest.approx(0.5 / 8.0)
+    assert 'narx_imaml<arx' not in large      # another class's windows: not compared
+    costs = cl['c_tracking_cost_stats']
+    assert costs['narx_imaml<narx_arx']['median_ratio'] == pytest.approx(0.8)
+    assert costs['narx_maml<narx_arx']['median_ratio'] == pytest.approx(1.6)
+    assert costs['narx_imaml<arx']['median_ratio'] == pytest.approx(0.2)
+    assert costs['narx_imaml<imaml']['median_ratio'] == pytest.approx(0.4)
+    assert costs['narx_maml<nmpc']['median_ratio'] == pytest.approx(0.5)
+    assert costs['imaml<maml']['median_ratio'] == pytest.approx(0.5)
+    report = json_safe({
+        'methods': ['narx_imaml', 'narx_maml', 'narx_arx', 'imaml', 'maml', 'supervised',
+                    'oracle', 'arx', 'nmpc'],
+        'seeds': [r['seed'] for r in reports], 'thetas': [r['theta'] for r in reports],
+        'wall_time_s': 10.0, 'claims': cl, 'figures': [],
+        'config': {k: {} for k in ('meta_train', 'adapt', 'learner', 'controller')},
+        'per_seed': reports})
+    text = markdown(_restore(report))
+    assert ('| (b) adapted model on the large held-out set: NARX iMAML < NARX ARX | 5/5 | '
+            '0.5 [0.5, 0.5] |') in text
+    assert '| (c) tracking cost: NARX MAML < NARX ARX | 0/5 | 1.6 [1.6, 1.6] |' in text
+    assert '| (c) tracking cost: NARX iMAML vs NMPC | 5/5 |' in text
+    assert '| (c) tracking cost of NARX iMAML (escaped 0/5) |' in text
+    assert '| (a) final meta-training loss: iMAML < MAML | 5/5 |' in text
+    assert '| narx_imaml | n/a | 1 |' in text and '| imaml | n/a | 0.5 |' in text

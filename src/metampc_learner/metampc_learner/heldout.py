@@ -7,7 +7,8 @@ source excitation settings and the plant's dt, substeps, bounds and state box, s
 :func:`heldout_seed` (``SeedSequence([s, HELDOUT_STREAM])``: shares nothing with the run's
 collection). Each model is scored in its own normalisation and architecture (the decoded
 NssmWeights) on windows of H + T samples with ``nssm.prediction_loss`` (l_SSM of eq. (SSM),
-normalised units). How it enters the report: docs/experiments.md. No rclpy here.
+normalised units); a feature NARX on the same T predicted samples of each window (its p lags
+the window's last). How it enters the report: docs/experiments.md. No rclpy here.
 """
 import math
 from dataclasses import replace
@@ -70,18 +71,22 @@ def heldout_loss(model: Nssm, params: Mapping[str, torch.Tensor], windows: Windo
 
 
 def model_heldout_loss(weights: Union[DecodedWeights, DecodedNarx],
-                       trajectories: List[Trajectory], loss_horizon: int) -> float:
+                       trajectories: List[Trajectory], loss_horizon: int,
+                       history: int = 0) -> float:
     """l_SSM of a decoded model on windows of H + `loss_horizon` samples of `trajectories`
     (physical units), normalised with the model's own normalisation; a feature NARX's: its
-    T-step rollout loss from every state of p samples (:func:`narx_learning.heldout_loss`).
+    T-step rollout loss from every state of p samples (:func:`narx_learning.heldout_loss`)
+    after each trajectory's first `history` - p, so that it predicts the samples an NSSM of
+    H = `history` predicts (0: from the start).
 
     The message carries no T, so the learner's is passed; the published A is the effective
     one (bounded already when ``stable_latent``), so the parameters are used as they are.
     """
     if isinstance(weights, DecodedNarx):
         params = {k: torch.from_numpy(v.astype(np.float64)) for k, v in weights.params.items()}
+        skip = max(int(history) - weights.shape.order, 0)
         return narx_learning.heldout_loss(FeatureNarx(weights.shape, weights.norm, params),
-                                          [(t.u, t.y) for t in trajectories],
+                                          [(t.u[skip:], t.y[skip:]) for t in trajectories],
                                           int(loss_horizon))
     config = replace(weights.config, loss_horizon=int(loss_horizon))
     windows = Windows.from_trajectories(trajectories, weights.norm, config)

@@ -33,8 +33,8 @@ import torch
 
 from metampc_learner.job_slot import JobCancelled, JobSlot, JobStatus
 from metampc_learner.learner_params import (LearnerNodeConfig, parse_params, PARAMETERS,
-                                            resolve_adapt_request, resolve_meta_request,
-                                            resolve_narx_request)
+                                            request_class, resolve_adapt_request,
+                                            resolve_meta_request, resolve_narx_request)
 from metampc_learner.learner_session import LearnerError, LearnerSession, ModelRecord
 from metampc_learner.loop_adaptation import BEYOND_WINDOW, RecentSamples
 from metampc_learner.meta_train import MetaTrainingError
@@ -277,8 +277,8 @@ class LearnerNode(Node):
                              ) -> MetaTrain.Response:
         if not self._slot.claim_after('loop_adapt', LOOP_JOB_WAIT_S):
             return self._refuse(response, self._slot.busy_reason())
-        narx = self.cfg.model_class == 'feature_narx'
         try:
+            narx = request_class(request, self.cfg) == 'feature_narx'
             config, online = ((resolve_narx_request(request, self.cfg.narx_meta, self.cfg.meta),
                                False) if narx else
                               resolve_meta_request(request, self.cfg.meta,
@@ -315,7 +315,8 @@ class LearnerNode(Node):
         if not self._slot.claim_after('loop_adapt', LOOP_JOB_WAIT_S):
             return self._refuse(response, self._slot.busy_reason())
         try:
-            job = resolve_adapt_request(request, self.cfg.adapt, self.cfg.oracle)
+            job = resolve_adapt_request(request, self.cfg.adapt, self.cfg.oracle,
+                                        request_class(request, self.cfg))
         except ValueError as err:
             self._slot.release(False)
             return self._refuse(response, f'adapt: bad request: {err}')
@@ -336,7 +337,8 @@ class LearnerNode(Node):
                          f'(training loss {rec.train_loss:.4g})')
             return out, rec, text
 
-        outcome = await self._run(response, 'adapt', job.method or self.session.latest_meta,
+        outcome = await self._run(response, 'adapt',
+                                  job.method or self.session.latest.get(job.model_class, ''),
                                   job.steps, train)
         if outcome is not None:
             curve = [float(v) for v in outcome.result.heldout_loss]

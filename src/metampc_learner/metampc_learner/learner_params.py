@@ -162,6 +162,20 @@ def parse_params(values: Mapping[str, Value]) -> LearnerNodeConfig:
                  narx_meta=build(NARX_META, values))
 
 
+def request_class(request, config: 'LearnerNodeConfig') -> str:
+    """The model class a MetaTrain or Adapt request asks for: its ``model_class``, '' the
+    node's ``model_class`` parameter.
+
+    Raises:
+        ValueError: a class that is not one of MODEL_CLASSES.
+    """
+    model_class = request.model_class or config.model_class
+    if model_class not in MODEL_CLASSES:
+        raise ValueError(f'unknown model_class {request.model_class!r}; expected one of '
+                         f'{", ".join(repr(c) for c in ("", *MODEL_CLASSES))}')
+    return model_class
+
+
 def resolve_meta_request(request, base: MetaConfig, online_default: bool
                          ) -> Tuple[MetaConfig, bool]:
     """A MetaTrain request (0 / empty: the parameter; gamma <= 0 and init_loss_weight < 0 too)
@@ -236,6 +250,7 @@ class AdaptJob:
         lr: step size.
         gamma: proximal strength of eq. infer (>= 0; ignored by supervised and oracle).
         n_samples: buffered samples to use, the first ones (0: all).
+        model_class: the class of the model it fits ('': the node's ``model_class``).
     """
 
     method: str
@@ -243,10 +258,13 @@ class AdaptJob:
     lr: float
     gamma: float
     n_samples: int
+    model_class: str = ''
 
 
-def resolve_adapt_request(request, adapt: AdaptConfig, oracle: OracleConfig) -> AdaptJob:
-    """An Adapt request (0 / empty: the parameter; gamma < 0: the parameter) -> AdaptJob.
+def resolve_adapt_request(request, adapt: AdaptConfig, oracle: OracleConfig,
+                          model_class: str = '') -> AdaptJob:
+    """An Adapt request (0 / empty: the parameter; gamma < 0: the parameter) -> AdaptJob of
+    `model_class` (:func:`request_class`; '': the node's).
 
     Raises:
         ValueError: unknown method, non-finite or negative lr, non-finite gamma.
@@ -264,7 +282,8 @@ def resolve_adapt_request(request, adapt: AdaptConfig, oracle: OracleConfig) -> 
     else:
         steps, lr = request.steps or adapt.steps, request.lr or adapt.lr
     gamma = request.gamma if request.gamma >= 0 else adapt.gamma
-    return AdaptJob(method, int(steps), float(lr), float(gamma), int(request.n_samples))
+    return AdaptJob(method, int(steps), float(lr), float(gamma), int(request.n_samples),
+                    model_class)
 
 
 def fit_settings(config: LearnerNodeConfig, job: AdaptJob) -> FitSettings:
@@ -281,6 +300,7 @@ def fit_settings(config: LearnerNodeConfig, job: AdaptJob) -> FitSettings:
         narx_horizon=config.narx_meta.horizon)
 
 
-__all__ = ['PARAMETERS', 'LearnerNodeConfig', 'parse_params', 'resolve_meta_request',
+__all__ = ['PARAMETERS', 'LearnerNodeConfig', 'parse_params', 'request_class',
+           'resolve_meta_request',
            'resolve_narx_request', 'AdaptJob', 'resolve_adapt_request', 'fit_settings',
            'default_config', 'ADAPT_METHODS', 'ParameterError']

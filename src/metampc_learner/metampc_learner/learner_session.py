@@ -7,7 +7,8 @@ each is saved) and serves the node's jobs one at a time: :meth:`LearnerSession.m
 (eq. (infer), or the 'supervised' / 'oracle' / 'arx' baselines, with the gain check: all by
 :func:`~metampc_learner.target_fit.fit_target`) and :meth:`LearnerSession.loop_adapt`. With
 ``model_class`` 'feature_narx' the models are feature NARXs (:mod:`.narx_learning`; no gain
-check, no adaptation in the loop). Requests it cannot carry out raise :class:`LearnerError`.
+check, no adaptation in the loop); a request may name the other class (its meta-models kept
+apart). Requests it cannot carry out raise :class:`LearnerError`.
 Services and versions: docs/learner.md.
 """
 import math
@@ -86,6 +87,11 @@ class ModelRecord:
             return fields_from_narx(model.shape, model.norm, self.params)
         return fields_from_weights(model.config, model.norm, self.params)
 
+    @property
+    def model_class(self) -> str:
+        """'feature_narx' or 'nssm' (weights_codec.MODEL_CLASSES)."""
+        return 'feature_narx' if isinstance(self.model, FeatureNarx) else 'nssm'
+
 
 @dataclass
 class MetaOutcome:
@@ -123,12 +129,13 @@ class AdaptOutcome:
 
 @dataclass
 class LearnerSession:
-    """The learner's state: meta-models per method, versions, cached source data."""
+    """The learner's state: meta-models per model class and method (`by_class`, `latest`),
+    versions, cached source data."""
 
     config: LearnerNodeConfig
-    meta_models: Dict[str, ModelRecord] = field(default_factory=dict)
+    by_class: Dict[str, Dict[str, ModelRecord]] = field(default_factory=dict)
     records: Dict[int, ModelRecord] = field(default_factory=dict)   # by version, the latest
-    latest_meta: str = ''
+    latest: Dict[str, str] = field(default_factory=dict)    # per class, its latest method
     version: int = 0
     _source: Optional[SourceData] = field(default=None, repr=False)
 
@@ -147,8 +154,8 @@ class LearnerSession:
         for old in sorted(self.records)[:-KEPT_RECORDS]:
             del self.records[old]
         if record.stage == 'meta':
-            self.meta_models[record.method] = record
-            self.latest_meta = record.method
+            self.by_class.setdefault(record.model_class, {})[record.method] = record
+            self.latest[record.model_class] = record.method
         self._save(record)
         return record
 
@@ -250,17 +257,19 @@ class LearnerSession:
 
     # --- adaptation -----------------------------------------------------------------------
 
-    def _meta_for(self, method: str) -> ModelRecord:
+    def _meta_for(self, method: str, model_class: str) -> ModelRecord:
+        """The meta-model of `method` ('': the latest) of `model_class`."""
+        metas = self.by_class.get(model_class, {})
         if not method:
-            if not self.latest_meta:
+            if model_class not in self.latest:
                 raise LearnerError("no meta-model yet: call meta_train first (or start with "
                                    "meta_model_path), or adapt with 'supervised' or 'oracle'")
-            method = self.latest_meta
-        if method not in self.meta_models:
-            have = ', '.join(sorted(self.meta_models)) or 'none'
-            raise LearnerError(f"no meta-model for method '{method}' (have: {have}): call "
-                               f"meta_train with method '{method}' first")
-        return self.meta_models[method]
+            method = self.latest[model_class]
+        if method not in metas:
+            have = ', '.join(sorted(metas)) or 'none'
+            raise LearnerError(f"no {model_class} meta-model for method '{method}' (have: "
+                               f"{have}): call meta_train with method '{method}' first")
+        return metas[method]
 
     def _plant_source(self, plant: PlantDescription) -> SourceConfig:
         """The source settings with the target plant's dynamics, bounds and box."""
@@ -296,7 +305,8 @@ class LearnerSession:
             raise LearnerError("the oracle needs the target's theta: no plant_info received"
                                if plant is None else "the oracle needs the target's theta: "
                                'plant_info gives none (not a simulated plant)')
-        narx = cfg.model_class == 'feature_narx'
+        model_class = job.model_class or cfg.model_class
+        narx = model_class == 'feature_narx'
         if narx and job.method not in ('', *NARX_ADAPT_METHODS):
             methods = ('', *NARX_ADAPT_METHODS)
             raise LearnerError(f'model_class feature_narx adapts with '
@@ -319,7 +329,8 @@ class LearnerSession:
             raise LearnerError(str(err)) from None
         record = self._new_record(
             model=fitted.model, params=fitted.result.params,
-            method=job.method or self.latest_meta, stage='adapted', train_loss=fitted.train_loss,
+            method=job.method or self.latest[model_class], stage='adapted',
+            train_loss=fitted.train_loss,
             train_steps=fitted.steps, train_samples=samples_in(train), seed=cfg.meta.seed,
             train_time=fitted.result.elapsed)
         return AdaptOutcome(record, fitted.result, used, samples_in(train), samples_in(held),
@@ -331,7 +342,7 @@ class LearnerSession:
         parameters)."""
         if method in BASELINES:
             return self._fresh_model(), None
-        meta = self._meta_for(method)
+        meta = self._meta_for(method, 'nssm')
         return meta.model, meta.params
 
     def _narx_start(self, method: str) -> FeatureNarx:
@@ -339,12 +350,12 @@ class LearnerSession:
         latest); the arx's base: the latest meta-model, else a fresh one of the node
         parameters."""
         if method == ARX:
-            if self.latest_meta:
-                return self.meta_models[self.latest_meta].model
+            if 'feature_narx' in self.latest:
+                return self._meta_for('', 'feature_narx').model
             shape = self.config.narx
             return FeatureNarx(shape, self._source_norm(),
                                narx_init_params(shape, self.config.meta.seed))
-        return self._meta_for('' if method == ORACLE else method).model
+        return self._meta_for('' if method == ORACLE else method, 'feature_narx').model
 
     def _check_nssm_samples(self, model: Nssm, samples: TargetSamples, train: List[Trajectory],
                             held: List[Trajectory], used: int) -> None:
@@ -447,7 +458,7 @@ class LearnerSession:
         if record is None:
             raise LearnerError(f'model version {version} is not one of the last '
                                f'{KEPT_RECORDS} models of this learner')
-        meta = self.meta_models.get(record.method)
+        meta = self.by_class.get(record.model_class, {}).get(record.method)
         # A model the gain check replaced by the ARX has the ARX's architecture: its own anchor.
         anchor = (meta.params if meta is not None and meta.model.config == record.model.config
                   else record.params)

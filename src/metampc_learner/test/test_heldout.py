@@ -142,3 +142,46 @@ def test_loss_of_a_published_model_equals_the_numpy_rollout():
     assert _numpy_loss(params, other, config, trajs) != pytest.approx(expected, rel=1e-3)
     assert np.isnan(heldout_loss(Nssm(config, norm), params, Windows.from_trajectories(
         trajs, norm, replace(config, loss_horizon=20))))
+
+
+def _arx2_trajectories(n_traj: int, n: int = 60, seed: int = 0):
+    """Trajectories of a stable ARX(2) plant (2 outputs, 1 input) with a little noise."""
+    rng = np.random.default_rng(seed)
+    a1, a2 = np.array([[0.5, 0.2], [-0.1, 0.6]]), np.array([[0.1, 0.0], [0.05, -0.2]])
+    b0, b1 = np.array([1.0, -0.5]), np.array([0.3, 0.2])
+    out = []
+    for _ in range(n_traj):
+        u, y = rng.uniform(-1, 1, (n, 1)), np.zeros((n, 2))
+        for t in range(2, n):
+            y[t] = (a1 @ y[t - 1] + a2 @ y[t - 2] + b0 * u[t, 0] + b1 * u[t - 1, 0]
+                    + 0.01 * rng.normal(size=2))
+        out.append(Trajectory(np.arange(n), u, y))
+    return out
+
+
+def test_a_feature_narx_is_scored_on_the_samples_an_nssm_predicts():
+    """The same least-squares ARX(2), once as an NSSM of history H (arx.arx_nssm) and once as
+    a feature NARX whose feature columns are zero (narx_learning.arx_model): with `history` H
+    both are scored on the same T predicted samples of each window, so on the same loss;
+    from the start (history 0) the NARX's windows are others."""
+    from metampc_learner.arx import arx_nssm
+    from metampc_learner.narx_learning import arx_model
+    from metampc_model.feature_narx import FeatureNarx, init_params as narx_init
+    from metampc_model.narx_shape import NarxShape
+    from metampc_model.weights_codec import fields_from_narx, model_from_fields
+    trajs = _arx2_trajectories(10)
+    norm = Normalisation([0.0], [0.6], [0.2, -0.1], [1.5, 1.0])
+    history, horizon = 6, 4
+    base = NssmConfig(history=history, loss_horizon=horizon, hidden=(16, 16), n_z=5)
+    config, arx_norm, params = arx_nssm(trajs[:4], 2, base, norm)
+    nssm = weights_from_fields(fields_from_weights(config, arx_norm, params))
+    shape = NarxShape(n_u=1, n_y=2, order=2, features=4, hidden=(8,))
+    narx = arx_model(FeatureNarx(shape, norm, narx_init(shape, 0)),
+                     [(t.u, t.y) for t in trajs[:4]])
+    decoded = model_from_fields(fields_from_narx(shape, norm, narx.params))
+    held = trajs[4:]
+    expected = model_heldout_loss(nssm, held, horizon)
+    # (the NSSM's weights are float32 on the message)
+    assert model_heldout_loss(decoded, held, horizon, history) == pytest.approx(expected,
+                                                                                rel=1e-3)
+    assert model_heldout_loss(decoded, held, horizon) != pytest.approx(expected, rel=1e-2)

@@ -10,7 +10,8 @@ from metampc_model.nssm_config import NssmConfig
 from metampc_learner.adapt import AdaptConfig
 from metampc_learner.data import SourceConfig, windows
 from metampc_learner.learner_params import (AdaptJob, parse_params, ParameterError, PARAMETERS,
-                                            resolve_adapt_request, resolve_meta_request)
+                                            request_class, resolve_adapt_request,
+                                            resolve_meta_request)
 from metampc_learner.meta_train import MetaConfig
 from metampc_learner.online_collection import OnlineCollectionConfig
 from metampc_learner.oracle import OracleConfig
@@ -179,6 +180,22 @@ def test_adapt_request_zero_means_the_parameter():
         'oracle', 500, 3e-3, 0.0, 0)
 
 
+def test_a_request_names_its_model_class_or_takes_the_nodes():
+    nssm = parse_params({name: spec.default for name, spec in PARAMETERS.items()})
+    narx = replace(nssm, model_class='feature_narx')
+    for request in (MetaTrain.Request, Adapt.Request):
+        assert request_class(request(), nssm) == 'nssm'
+        assert request_class(request(), narx) == 'feature_narx'
+        assert request_class(request(model_class='feature_narx'), nssm) == 'feature_narx'
+        assert request_class(request(model_class='nssm'), narx) == 'nssm'
+        with pytest.raises(ValueError, match="unknown model_class 'narx'; expected one of '', "
+                                             "'nssm', 'feature_narx'"):
+            request_class(request(model_class='narx'), nssm)
+    job = resolve_adapt_request(Adapt.Request(method='arx'), AdaptConfig(), OracleConfig(),
+                                'feature_narx')
+    assert (job.method, job.model_class) == ('arx', 'feature_narx')
+
+
 @pytest.mark.parametrize('fields,match', [
     ({'method': 'reptile'}, "unknown method 'reptile'"),
     ({'lr': -0.1}, 'lr must be finite and >= 0'),
@@ -193,10 +210,12 @@ def test_bad_adapt_requests(fields, match):
 def test_the_request_defaults_and_only_they_are_live():
     """Live: the parameter behind each request field that falls back to one (docs/learner.md);
     a change reaches the next request, resolved against the re-parsed config."""
-    # request_id names a call (docs/nodes.md, calls that are safe to repeat): no default.
-    meta_fields = set(MetaTrain.Request.get_fields_and_field_types()) - {'request_id'}
-    adapt_fields = set(Adapt.Request.get_fields_and_field_types()) - {'method', 'n_samples',
-                                                                      'request_id'}
+    # request_id names a call (docs/nodes.md, calls that are safe to repeat): no default;
+    # model_class falls back to the node's class, read-only.
+    meta_fields = set(MetaTrain.Request.get_fields_and_field_types()) - {'request_id',
+                                                                         'model_class'}
+    adapt_fields = set(Adapt.Request.get_fields_and_field_types()) - {
+        'method', 'n_samples', 'request_id', 'model_class'}
     expected = meta_fields | {f'adapt_{f}' for f in adapt_fields} | {
         f'oracle_{f}' for f in adapt_fields - {'gamma'}}
     assert {name for name, spec in PARAMETERS.items() if spec.live} == expected

@@ -57,7 +57,7 @@ def test_meta_train_numbers_saves_and_reproduces(tmp_path):
     rec = out.record
     assert (rec.version, rec.stage, rec.method) == (1, 'meta', 'imaml')
     assert (rec.seed, rec.train_steps) == (2, 12)
-    assert session.latest_meta == 'imaml' and session.meta_models['imaml'] is rec
+    assert session.latest == {'nssm': 'imaml'} and session.by_class['nssm']['imaml'] is rec
     assert len(out.losses) == 12 and out.final_loss == np.mean(out.losses[-10:])
     assert [r.iteration for r in reports] == list(range(1, 13))
     assert out.collection is None and out.collected_samples == 0
@@ -82,7 +82,8 @@ def test_adapt_methods_match_the_cores_on_the_same_split(tmp_path):
     with pytest.raises(LearnerError, match='no meta-model yet: call meta_train first'):
         session.adapt(job, _target(cfg, 40), None)
     meta = session.meta_train(replace(cfg.meta, method='maml'), False).record
-    with pytest.raises(LearnerError, match=r"no meta-model for method 'imaml' \(have: maml\)"):
+    with pytest.raises(LearnerError,
+                       match=r"no nssm meta-model for method 'imaml' \(have: maml\)"):
         session.adapt(AdaptJob('imaml', 4, 0.05, 0.0, 0), _target(cfg, 40), None)
     with pytest.raises(LearnerError, match='too few target samples: 12 buffered, 12 used, of '
                                            'which 9 valid for training and 3 held out'):
@@ -186,7 +187,7 @@ def test_versions_continue_after_the_checkpoints_on_disk(tmp_path):
     assert (loaded.version, loaded.stage, loaded.method) == (8, 'meta', 'imaml')
     assert load_checkpoint(str(tmp_path / 'meta_imaml_v8.pt')).info['dt'] == 0.1
     assert _equal(load_checkpoint(str(tmp_path / 'meta_imaml_v8.pt')).params, rec.params)
-    assert second.latest_meta == 'imaml'
+    assert second.latest == {'nssm': 'imaml'}
 
 
 def test_load_meta_refuses_what_is_not_a_meta_model(tmp_path):
@@ -202,7 +203,7 @@ def test_load_meta_refuses_what_is_not_a_meta_model(tmp_path):
     with pytest.raises(LearnerError, match="holds a model of dt = 0.05 s; this learner "
                                            "samples at dt = 0.1 s"):
         session.load_meta(path)
-    assert session.version == 0 and not session.meta_models
+    assert session.version == 0 and not session.by_class
 
 
 def test_arx_is_fitted_on_the_training_part_and_refused_with_the_reason():
@@ -367,3 +368,23 @@ def test_what_a_feature_narx_learner_refuses():
     few = TargetSamples(samples.steps[:12], samples.u[:12], samples.y[:12])
     with pytest.raises(LearnerError, match='too few target samples: 12 buffered'):
         session.adapt(AdaptJob('arx', 4, 0.05, 0.0, 0), few, PLANT)
+
+
+def test_an_nssm_learner_keeps_a_feature_narx_of_the_same_method_apart():
+    """A request may name the other class (an experiment compares both): an NSSM learner
+    meta-trains iMAML of each class, and each class's adaptation starts from its own."""
+    cfg = _config(**{k: v for k, v in NARX.items() if k != 'model_class'})
+    assert cfg.model_class == 'nssm'
+    session = LearnerSession(cfg)
+    nssm = session.meta_train(cfg.meta, False).record
+    narx = session.meta_train(resolve_narx_request(_request(), cfg.narx_meta, cfg.meta),
+                              False).record
+    assert session.by_class == {'nssm': {'imaml': nssm}, 'feature_narx': {'imaml': narx}}
+    samples = _target(cfg, 80)
+    own = session.adapt(AdaptJob('imaml', 2, 0.05, 0.0, 0), samples, PLANT)
+    other = session.adapt(AdaptJob('imaml', 0, 0.0, 0.0, 0, 'feature_narx'), samples, PLANT)
+    assert own.record.model is nssm.model and own.record.model_class == 'nssm'
+    assert other.record.model.shape == narx.model.shape and other.rule
+    # the node's class before the request's: no NSSM meta-model of maml
+    with pytest.raises(LearnerError, match="no nssm meta-model for method 'maml'"):
+        session.adapt(AdaptJob('maml', 2, 0.05, 0.0, 0), samples, PLANT)

@@ -25,14 +25,14 @@ from metampc_bringup.analysis.paired_stats import claim_cells, paired_claim
 from metampc_bringup.analysis.plots import signal_labels
 from metampc_bringup.analysis.run_report import json_safe
 from metampc_bringup.analysis.run_series import RunSeries, SeriesBuilder
-from metampc_bringup.experiment_config import from_mapping, learner_config
+from metampc_bringup.experiment_config import (from_mapping, learner_config, learner_method,
+                                               NARX_PREFIX)
 from metampc_bringup.experiment_events import (Adapted, BufferingStopped, CollectEnd, Done,
                                                ExperimentEvent, MetaTrained, read_events, Start,
                                                TrackEnd, TrackStart)
 from metampc_learner.heldout import (HELDOUT_STREAM, heldout_seed, model_heldout_loss,
                                      plant_source, target_heldout)
 from metampc_learner.meta_train import META_METHODS
-from metampc_learner.target_fit import ARX
 from metampc_model.weights_codec import (DecodedNarx, DecodedWeights, fields_of,
                                          model_from_fields)
 from metampc_recording.recording_reader import read_recording
@@ -107,7 +107,7 @@ def heldout_losses(recording, events: List[ExperimentEvent], config: Dict[str, A
     (rebuilt from the run config) at the dt, substeps, input bounds and state box of the last
     recorded plant_info, seeded by ``heldout_seed(seed)``. Each model is scored in its own
     normalisation on windows of H + T samples (T: the learner's loss_horizon parameter; a feature
-    NARX's: p + T, T its narx_horizon).
+    NARX's: the same windows' last p + T, T its narx_horizon).
 
     Returns:
         (the set: samples, episodes, seed, stream, elapsed_s (wall time of decoding,
@@ -138,7 +138,7 @@ def heldout_losses(recording, events: List[ExperimentEvent], config: Dict[str, A
             None if weights is None
             else model_heldout_loss(weights, trajectories,
                                     learner.narx_meta.horizon if isinstance(weights, DecodedNarx)
-                                    else learner.nssm.loss_horizon))
+                                    else learner.nssm.loss_horizon, learner.nssm.history))
     about = {'samples': samples, 'episodes': len(trajectories), 'seed': heldout_seed(seed),
              'stream': HELDOUT_STREAM, 'elapsed_s': time.monotonic() - t0}
     return about, losses
@@ -308,13 +308,21 @@ B_ORDER = ('imaml', 'maml', 'supervised')
 # Pairwise claims 'a < b' with statistics; the chain of (b) is the first two; (a) the first.
 ADAPT_PAIRS = (('imaml', 'maml'), ('maml', 'supervised'), ('imaml', 'supervised'))
 # The yardsticks (true model, target's own data): compared 'vs', no curve in Fig. 3.
-REFERENCES = ('nmpc', 'oracle')
+REFERENCES = ('nmpc', 'oracle', NARX_PREFIX + 'oracle')
 # The linear ARX baseline (learner method 'arx'): the yardstick of the meta-learned models.
 ARX_PAIRS = (('imaml', 'arx'), ('maml', 'arx'))
+# The feature NARX's (experiment methods narx_*) against the ARX of its class (the same
+# least-squares ARX(p), scored on the same windows), and in tracking against the NSSM's.
+NARX_ARX_PAIRS = tuple((NARX_PREFIX + a, NARX_PREFIX + b) for a, b in ARX_PAIRS)
+NARX_TRACKING_PAIRS = (*NARX_ARX_PAIRS, *((NARX_PREFIX + a, b) for a, b in ARX_PAIRS),
+                       *((NARX_PREFIX + a, a) for a, _ in ARX_PAIRS),
+                       *((NARX_PREFIX + a, 'nmpc') for a, _ in ARX_PAIRS))
 TRACKING_PAIRS = (('imaml', 'maml'), ('imaml', 'supervised'), ('maml', 'supervised'),
                   ('imaml', 'nmpc'), ('imaml', 'oracle'), ('maml', 'nmpc'), ('maml', 'oracle'),
-                  *ARX_PAIRS)
+                  *ARX_PAIRS, *NARX_TRACKING_PAIRS)
 NAMES = {'imaml': 'iMAML', 'maml': 'MAML', 'nmpc': 'NMPC', 'arx': 'ARX'}
+NAMES.update({NARX_PREFIX + m: f'NARX {NAMES.get(m, m)}'
+              for m in ('imaml', 'maml', 'arx', 'oracle')})
 
 
 def pairwise(values_per_seed: List[Dict[str, float]], pairs: Sequence[Tuple[str, str]]
@@ -351,9 +359,9 @@ def claims(reports: List[Dict]) -> Dict[str, Any]:
     out['b_adaptation_order'] = b
     large = {}     # the same pairs on >= 2000 independent samples: meta-model, adapted model
     for stage in ('meta', 'adapted'):
-        values = [{m: _heldout(r, m, stage) for m in (*B_ORDER, ARX)}
-                  for r in reports]
-        large[stage] = {'losses': values, 'stats': pairwise(values, ADAPT_PAIRS + ARX_PAIRS)}
+        values = [{m: _heldout(r, m, stage) for m in r['methods']} for r in reports]
+        large[stage] = {'losses': values,
+                        'stats': pairwise(values, ADAPT_PAIRS + ARX_PAIRS + NARX_ARX_PAIRS)}
     out['b_heldout_large'] = large
     c = {}
     present = sorted({m for r in reports for m in r['methods']})
@@ -514,7 +522,7 @@ def experiment_report(seed_reports: List[Dict], out_dir: str, config: Dict[str, 
     """Gather per-seed reports into `out_dir`: report.json, report.md and the figures."""
     methods = list(config['methods'])
     figures = []
-    meta = [m for m in methods if m in META_METHODS]
+    meta = [m for m in methods if learner_method(m)[0] in META_METHODS]
     fig2 = plot_loss_figure(seed_reports, meta, 'meta_train',
                             os.path.join(out_dir, 'fig2_meta_training.png'),
                             'Meta-training loss (Fig. 2)', 'outer step')

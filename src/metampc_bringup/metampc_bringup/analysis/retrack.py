@@ -19,7 +19,8 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from metampc_bringup.analysis.paired_stats import paired_claim
-from metampc_bringup.experiment_config import ExperimentConfig
+from metampc_bringup.experiment_config import (experiment_method, ExperimentConfig,
+                                               from_mapping)
 from metampc_controller.closed_loop import Episode, run_episode
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
@@ -57,19 +58,22 @@ class MethodResult:
 
 
 def adapted_models(recording: str, stage: str = 'adapted') -> Dict[str, Any]:
-    """The last NssmWeights message of `stage` of each method in a recording."""
+    """The last NssmWeights message of `stage` of each method in a recording, by the
+    experiment's method name (a feature NARX beside an NSSM learner's: 'narx_<method>')."""
     rec = read_recording(recording)
+    experiment = from_mapping(rec.run_config()['experiment'])
+    learner_class = experiment.node_config('learner', experiment.first_seed).model_class
     topics = [t.name for t in rec.topics.values() if t.type_name == NSSM_WEIGHTS]
     out: Dict[str, Any] = {}
     for _, _, msg in rec.decoded(topics):
         if msg.stage == stage:
-            out[msg.method] = msg
+            out[experiment_method(msg.method, msg.model_class, learner_class)] = msg
     return out
 
 
 def check_verdicts(experiment: ExperimentConfig, seed: int, recording: str,
                    episode: Episode) -> Dict[str, Dict[str, Any]]:
-    """What model_check says of each recorded adapted model on `episode`'s samples (e.g. the
+    """What model_check says of each recorded adapted NSSM on `episode`'s samples (e.g. the
     NMPC's tracking run of the seed, which a controller holds when the adapted models come):
     against its own meta-model (an update of it) and against persistence (a first model)."""
     config = controller_config(experiment.resolved(), seed, {})
@@ -80,6 +84,8 @@ def check_verdicts(experiment: ExperimentConfig, seed: int, recording: str,
         return {**asdict(v), 'reason': v.reason()}
     out = {}
     for method, msg in adapted_models(recording).items():
+        if msg.model_class == 'feature_narx':     # the check is the latent MPC's, an NSSM's
+            continue
         new, meta = _predictor(msg), metas.get(method)
         out[method] = {'vs_meta': verdict(new, _predictor(meta)) if meta is not None else None,
                        'vs_persistence': verdict(new, None)}

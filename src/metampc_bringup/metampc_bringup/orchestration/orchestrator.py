@@ -22,7 +22,7 @@ import time
 from typing import Any, Callable, Dict, Iterator, List, Optional
 
 from metampc_bringup import experiment_events as events
-from metampc_bringup.experiment_config import ExperimentConfig
+from metampc_bringup.experiment_config import ExperimentConfig, learner_method
 from metampc_bringup.orchestration.experiment_client import (ExperimentClient, ExperimentError,
                                                              process_status, response_dict,
                                                              time_seconds)
@@ -402,7 +402,8 @@ class SeedRun:
         of the phases one after the other)."""
         client, config = self.client, self.config
         fields = config.meta_request(method)
-        request = MetaTrain.Request(method=method, **fields)
+        name, model_class = learner_method(method)
+        request = MetaTrain.Request(method=name, model_class=model_class, **fields)
         client.progress = None
         started = time.monotonic()
         call = client.start('meta_train', request)
@@ -423,7 +424,9 @@ class SeedRun:
     def _adapt(self, method: str) -> int:
         client, config = self.client, self.config
         fields = config.adapt_request(method)
-        response = client.call('adapt', Adapt.Request(method=method, **fields),
+        name, model_class = learner_method(method)
+        response = client.call('adapt', Adapt.Request(method=name, model_class=model_class,
+                                                      **fields),
                                config.timeouts.adapt, f'adapt {method}')
         client.event(events.Adapted(method=method, request=fields,
                                     **response_dict(response, _ADAPT_RESULT)))
