@@ -272,8 +272,8 @@ def _soft_bounds(cfg: MpcConfig, y_u: np.ndarray, lo: np.ndarray, hi: np.ndarray
 class LatentMpc:
     """Receding-horizon latent MPC, a :class:`~metampc_controller.planner.Planner`; call
     set_model() (outside the control tick), then solve() once per tick. solve() is not
-    reentrant; set_model() may run in another thread (it swaps one reference), and the
-    previous plan survives a model swap (it is a plan of inputs)."""
+    reentrant; set_model() may run in another thread (it swaps one reference; not with
+    near=True), and the previous plan survives a model swap (it is a plan of inputs)."""
 
     def __init__(self, config: MpcConfig):
         self._config = config
@@ -334,8 +334,9 @@ class LatentMpc:
 
         near: the model is a relinearisation of the one in use (LocalLinearMpc): where the
         QP's size is unchanged, the OSQP instance is updated in place (the new H; its iterates
-        and rho kept) instead of a new one set up (~0.6 ms), and the state weight of the
-        DARE is kept where C is; the same QP either way."""
+        and rho kept) instead of a new one set up (~0.6 ms), the problem in use takes the new
+        matrices (so: not while solve() runs; LocalLinearMpc calls both in its tick), and the
+        DARE's state weight is kept where C is; the same QP either way."""
         model.validate()
         old = self._problem if near else None
         cfg = self._config
@@ -373,14 +374,21 @@ class LatentMpc:
         else:
             solver = _setup_solver(cond.p_matrix(p_x, cons.shape[1]), cons,
                                    *((lo, hi) if soft is None else (soft.l, soft.u)), cfg)
+        target = SteadyStateTarget(model, cond.q, term.ss_r, term.ss_e, lo[:n_u], hi[:n_u],
+                                   bounded=estimator is not None)
+        if old is not None and solver is old.solver and old.Gw.shape == Gw.shape:
+            # The same sizes: the problem in use takes the new model (its buffers kept).
+            old.model, old.terminal, old.condensing, old.p_x, old.A = model, term, cond, p_x, cons
+            old.L, old.Gw, old.Yu, old.target, old.estimator, old.soft = (L, Gw, y_u, target,
+                                                                          estimator, soft)
+            old.views[6][:n_z], old.views[6][n_z:] = model.e, model.d
+            return
         self._problem = _Problem(model=model, terminal=term, solver=solver, condensing=cond,
                                  p_x=p_x, A=cons, L=L, Gw=Gw, Yu=y_u, lo=lo, hi=hi,
-                                 warm=bool(cfg.warm_start),
-                                 target=SteadyStateTarget(model, cond.q, term.ss_r, term.ss_e,
-                                                          lo[:n_u], hi[:n_u],
-                                                          bounded=estimator is not None),
+                                 warm=bool(cfg.warm_start), target=target,
                                  estimator=estimator, soft=soft,
-                                 ext=old.ext if old is not None else None)
+                                 ext=old.ext if old is not None and solver is old.solver
+                                 else None)
         # The plan's size changes only with n_u, and then it says nothing about the new inputs.
         if self._plan is not None and self._plan.shape != (lo.size,):
             self.reset()
