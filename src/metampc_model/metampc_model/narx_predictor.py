@@ -8,7 +8,6 @@ is one step, :meth:`~NarxPredictor.linearise` the affine model exact to first or
 Jacobian by the chain rule through its tanh layers), :meth:`~NarxPredictor.predict` the T-step
 prediction. No torch.
 """
-import math
 from typing import Any, Mapping, Optional, Tuple
 
 import numpy as np
@@ -155,8 +154,8 @@ class NarxPredictor:
         y_n, d_s, d_u = self._one_step(*self._normalised(s, u_next), jacobian=True, head=head)
         top_s, top_u = d_s * self._scale_s, d_u * self._scale_u
         y_next = y_n * nm.y_std + nm.y_mean
-        # One sum each finds a nan or inf (or entries summing beyond 1e308).
-        if not math.isfinite(top_s.sum() + top_u.sum() + y_next.sum()):
+        if not (np.isfinite(top_s).all() and np.isfinite(top_u).all()
+                and np.isfinite(y_next).all()):
             raise ValueError('the feature NARX has a non-finite Jacobian here')
         a, b, c, d = self._shifts
         A, B, e = a.copy(), b.copy(), np.zeros(a.shape[0])
