@@ -560,10 +560,11 @@ def _same_pattern(a: sp.csc_matrix, b: sp.csc_matrix) -> bool:
 
 def _extension(solver: osqp.OSQP):
     """The compiled solver inside an osqp.OSQP (osqp 1.x keeps it as ``_solver``: the object
-    whose update_data_vec, warm_start and solve the wrapper's update, warm_start and solve
-    call), or None where it lacks one of them; solve() then goes through the wrapper."""
+    whose update_data_vec, update_data_mat, warm_start and solve the wrapper's update,
+    warm_start and solve call), or None where it lacks one of them; solve() and set_model()
+    then go through the wrapper."""
     ext = getattr(solver, '_solver', None)
-    calls = ('update_data_vec', 'warm_start', 'solve', 'info', 'solution')
+    calls = ('update_data_vec', 'update_data_mat', 'warm_start', 'solve', 'info', 'solution')
     if ext is None or not all(hasattr(ext, name) for name in calls):
         return None
     return ext
