@@ -36,9 +36,16 @@ in closed form to excitation episodes of the plant at theta) instead, its core t
 and with the in-loop RLS of its head (rls_tick_ratio, on / off at p50 and p99, goal p99 <=
 1.2; docs/adaptation.md), offset-free none (its planner's); no ROS round trips.
 
+narx (--narx): the core ticks of that feature NARX (the locally linear MPC: linearised, a new
+QP set up and solved each tick) against the NSSM's (the linear latent MPC, set up once), both
+offset-free none, in one run: narx_tick_ratio (NARX / NSSM at p50 and p99, wall clock; goal
+<= 2), narx_cpu_ratio (the same in thread CPU time), and the true-model NMPC's solve on the
+same task for scale (nmpc_solve_*_us, `--nmpc-ticks` ticks; nonlinear_regime.track's loop, as
+scripts/bench_local_mpc.py times it); no ROS round trips.
+
 Usage: python scripts/bench_controller.py [--ticks 2000] [--ros-ticks 1000]
        [--family vanderpol] [--theta 0.5 (comma-separated; default: 0.5 for van der Pol,
-       else the family's nominal)] [--rls 0.99]
+       else the family's nominal)] [--rls 0.99] [--narx [--nmpc-ticks 30]]
 """
 import argparse
 from dataclasses import dataclass, replace
@@ -221,7 +228,7 @@ def bench_core(ticks: int, setup: Setup) -> dict:
         return {
             **percentiles([s.tick_time for s in status], key='tick_{}_us', **US),
             **percentiles(wall, key='callback_{}_us', **US),
-            **percentiles(cpu, (99,), 1e6, 1, key='callback_cpu_{}_us'),
+            **percentiles(cpu, (50, 99), 1e6, 1, key='callback_cpu_{}_us'),
             **percentiles([s.solve_time for s in status], key='solve_{}_us', **US),
             'iter_mean': round(float(np.mean([s.iterations for s in solver])), 2),
             'fallbacks': sum(s.fallback for s in status),
@@ -337,6 +344,50 @@ def bench_rls(ticks: int, setup: Setup, forgetting: float) -> int:
     return 0
 
 
+def nmpc_solve(ticks: int, setup: Setup) -> dict:
+    """The true-model NMPC's solve on the setup's task (the controller's parameters, the
+    plant core at theta from the family's x0), p50/p99/max in us."""
+    from metampc_bringup.studies.nonlinear_regime import track
+    from metampc_controller.controller_params import PARAMETERS, parse_params
+    from metampc_controller.planner_registry import nmpc, TrueModel
+    from metampc_controller.references import make_reference
+    from metampc_plant.simulator import PlantConfig
+    fam = setup.plant_family
+    config = parse_params({**{name: spec.default for name, spec in PARAMETERS.items()},
+                           **setup.controller_params()})
+    planner = nmpc(config.mpc, TrueModel(fam, setup.theta, fam.dt), config.nmpc_tail,
+                   config.nmpc_solver)
+    times = []
+    track(planner, PlantConfig(family=fam.name, theta=tuple(setup.theta), dt=fam.dt,
+                               u_min=tuple(fam.u_min), u_max=tuple(fam.u_max)),
+          setup.theta, fam.x0, make_reference(config.reference_kind, **config.reference_params),
+          ticks, fam.tracked, times=times)
+    return percentiles(times, key='nmpc_solve_{}_us', **US)
+
+
+def bench_narx(ticks: int, setup: Setup, nmpc_ticks: int) -> int:
+    """The feature NARX's core ticks against the NSSM's and the NMPC's solve, in one run."""
+    out = {'family': setup.family, 'theta': setup.theta, 'horizon': 20, 'ticks': ticks,
+           'models': {'narx': 'feature NARX p=2, F=32, g [64] (locally linear MPC)',
+                      'nssm': 'NSSM encoder 128-128, n_z 5, H 10 (linear latent MPC)'},
+           'offset_free': 'none', 'loadavg_1min_start': round(os.getloadavg()[0], 2)}
+    out['core_nssm'] = bench_core(ticks, replace(setup, offset_free='none'))
+    out['core_narx'] = bench_core(ticks, replace(setup, offset_free='none', narx=True))
+    out['nmpc'] = nmpc_solve(nmpc_ticks, setup)
+    nssm, narx = out['core_nssm'], out['core_narx']
+    out['narx_tick_ratio'] = {p: round(narx[f'tick_{p}_us'] / nssm[f'tick_{p}_us'], 3)
+                              for p in ('p50', 'p99')}
+    out['narx_cpu_ratio'] = {p: round(narx[f'callback_cpu_{p}_us']
+                                      / nssm[f'callback_cpu_{p}_us'], 3) for p in ('p50', 'p99')}
+    out['loadavg_1min_end'] = round(os.getloadavg()[0], 2)
+    out['goals_met'] = {'narx_tick_p50_ratio_le_2': out['narx_tick_ratio']['p50'] <= 2.0,
+                        'narx_tick_p99_ratio_le_2': out['narx_tick_ratio']['p99'] <= 2.0,
+                        'narx_tick_p99_below_nmpc_solve_p50':
+                            narx['tick_p99_us'] < out['nmpc']['nmpc_solve_p50_us']}
+    print(json.dumps(out))
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--ticks', type=int, default=2000, help='in-process ticks to time')
@@ -351,6 +402,12 @@ def main() -> int:
                         help='time a feature NARX of the default size instead, its tick with '
                              'the in-loop RLS of its head at this forgetting factor against '
                              'without (rls_tick_ratio, goal p99 <= 1.2); no ROS round trips')
+    parser.add_argument('--narx', action='store_true',
+                        help="time a feature NARX controller's tick against the NSSM's "
+                             "(narx_tick_ratio, goal <= 2) and the NMPC's solve in one run; no "
+                             "ROS round trips")
+    parser.add_argument('--nmpc-ticks', type=int, default=30,
+                        help='with --narx: NMPC solves to time')
     args = parser.parse_args()
     from metampc_plant.registry import get_family
     try:
@@ -366,6 +423,11 @@ def main() -> int:
     domain = isolate()
     if args.rls is not None:
         return bench_rls(args.ticks, replace(setup, narx=True), args.rls)
+    if args.narx:
+        if args.nmpc_ticks < 1:
+            print('bench_controller: --nmpc-ticks must be >= 1', file=sys.stderr)
+            return 2
+        return bench_narx(args.ticks, setup, args.nmpc_ticks)
     out = {'family': family.name, 'n_u': family.n_u, 'n_y': family.n_y,
            'nssm': {'hidden': [128, 128], 'n_z': 5, 'history': 10}, 'horizon': 20,
            'theta': theta, 'ticks': args.ticks, 'ros_ticks': args.ros_ticks,

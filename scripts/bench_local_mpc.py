@@ -2,10 +2,11 @@
 """Cost of the feature NARX: the planner's solve and a meta-training outer step; ONE JSON line.
 
 planner: the paper's tracking task on van der Pol (theta* 1.5, N = 20, the default tuning, the
-plant core in the loop), `--ticks` ticks of each planner on the same adapted feature NARX
-(default sizes: order 2, 32 features, hidden 64; meta-trained for `--meta-steps` steps, adapted
-to 300 samples): `local` linearises it every tick and sets the QP up again
-(LocalLinearMpc.solve: Jacobian, DARE, condensing, OSQP set-up and solve), `fixed` is today's
+plant core in the loop; nonlinear_regime.track's loop), `--ticks` ticks of each planner on the
+same adapted feature NARX (default sizes: order 2, 32 features, hidden 64; meta-trained for
+`--meta-steps` steps, adapted to 300 samples; its numpy predictor, as the controller flies it):
+`local` linearises it every tick and sets the QP up again (LocalLinearMpc.solve: Jacobian,
+DARE, condensing, OSQP update and solve), `fixed` is today's
 linear latent MPC (LatentMpc.solve on one linear model of the same size: the linearisation at
 the first state, set up once); `local_tol` the same with rebuild_tol REBUILD_TOL (a new QP only
 where A or B moved by more than that, relative; local_tol_rebuilds counts them).
@@ -43,7 +44,7 @@ def main() -> int:
               file=sys.stderr)
         return 2
     from metampc_bringup.analysis.percentiles import percentiles
-    from metampc_bringup.studies.nonlinear_regime import collect
+    from metampc_bringup.studies.nonlinear_regime import collect, track
     from metampc_common.excitation import ExcitationConfig
     from metampc_controller.local_mpc import LocalLinearMpc
     from metampc_controller.mpc import LatentMpc, MpcConfig
@@ -57,7 +58,7 @@ def main() -> int:
     from metampc_model.nssm import Nssm
     from metampc_model.nssm_config import NssmConfig
     from metampc_plant.registry import get_family
-    from metampc_plant.simulator import Plant, PlantConfig
+    from metampc_plant.simulator import PlantConfig
     torch.set_num_threads(1)
 
     data = simulate_source(SourceConfig())
@@ -94,29 +95,20 @@ def main() -> int:
                   [collect(exc, plant_cfg, (1.5,), (0.5, 0.0), 300, 0)], 1e-5).model
     config = MpcConfig(horizon=20, q=(1.0, 0.0), r=0.05, u_min=-1.0, u_max=1.0)
     ref = make_reference('setpoint_sequence', n_y=2)
+    predictor = model.predictor
     fixed = LatentMpc(config)
-    fixed.set_model(model.linearise(model.state(np.zeros((2, 1)), np.zeros((2, 2))),
-                                    np.zeros(1)))
-    planners = {'local': LocalLinearMpc(config, model),
-                'local_tol': LocalLinearMpc(config, model, REBUILD_TOL), 'fixed': fixed,
+    fixed.set_model(predictor.linearise(predictor.encode(np.zeros((2, 1)), np.zeros((2, 2))),
+                                        np.zeros(1)))
+    planners = {'local': LocalLinearMpc(config, predictor),
+                'local_tol': LocalLinearMpc(config, predictor, REBUILD_TOL), 'fixed': fixed,
                 'nmpc': Nmpc(NmpcConfig(**config.shared(), dt=0.1), get_family('vanderpol'),
                              (1.5,))}
     for name, planner in planners.items():
-        plant = Plant(plant_cfg)
-        y = plant.reset((1.5,), (0.0, 0.0))
-        u = np.zeros(1)
-        hist_u, hist_y = [u, u], [y, y]
         times = []
-        for k in range(args.nmpc_ticks if name == 'nmpc' else args.ticks):
-            r = ref.evaluate(k * 0.1, 0.1, 20)
-            state = None if name == 'nmpc' else model.state(np.array(hist_u),
-                                                            np.array(hist_y))
-            start = time.perf_counter()
-            res = planner.solve(state, u, r, y, k)
-            times.append(time.perf_counter() - start)
-            u = np.clip(res.u, -1, 1)
-            y = plant.step(u)
-            hist_u, hist_y = hist_u[1:] + [u], hist_y[1:] + [y]
+        nmpc = name == 'nmpc'
+        track(planner, plant_cfg, (1.5,), (0.0, 0.0), ref,
+              args.nmpc_ticks if nmpc else args.ticks, (0,),
+              None if nmpc else predictor.encode, predictor.history, times)
         out.update(percentiles(times, (50, 99), scale=1e6, digits=1,
                                key=f'{name}_solve_{{}}_us'))
     for name in ('local', 'local_tol'):

@@ -1,4 +1,6 @@
 """The nonlinear-regime study's pieces (nonlinear_regime): its loop, targets and collection."""
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -30,8 +32,14 @@ def test_the_studys_loop_is_the_experiments_loop():
     planner = Nmpc(NmpcConfig(**ctrl.mpc.shared(), dt=0.1, tail=ctrl.nmpc_tail),
                    get_family('vanderpol'), (1.5,))
     ref = make_reference(ctrl.reference_kind, **ctrl.reference_params)
-    ours = track(planner, PLANT, (1.5,), exp.track_x0, ref, exp.track_steps(), (0,))
+    times = []
+    start = time.perf_counter()
+    ours = track(planner, PLANT, (1.5,), exp.track_x0, ref, exp.track_steps(), (0,),
+                 times=times)
+    wall = time.perf_counter() - start
     assert ours == pytest.approx(nmpc.tracking_cost([0]), rel=1e-9)
+    # One solve time per step, within the episode's own time (the benchmarks' timing).
+    assert len(times) == exp.track_steps() and min(times) > 0 and sum(times) < wall
 
 
 def test_targets_are_the_given_thetas_by_seed_or_each_seeds_draw():

@@ -8,6 +8,7 @@ is not finite, or that the QP refuses, leaves the tick to the shifted previous p
 at first), counted in ``failed_linearisations``. Why the current state: docs/nonlinear.md.
 """
 from dataclasses import replace
+import math
 import time
 from typing import Optional, Protocol
 
@@ -63,8 +64,8 @@ class LocalLinearMpc:
         """Linearise at (s_t, u_t), set the QP up, solve (module docstring)."""
         start = time.perf_counter()
         try:
-            if state is None or not (np.all(np.isfinite(state))
-                                     and np.all(np.isfinite(u_prev))):
+            # One dot product each finds a nan or inf (or a value beyond 1e154).
+            if state is None or not math.isfinite(np.dot(state, state) + np.dot(u_prev, u_prev)):
                 raise ValueError('state or input not finite')
             self._set(self.model.linearise(np.asarray(state, float),
                                            np.asarray(u_prev, float)))
@@ -81,9 +82,13 @@ class LocalLinearMpc:
         in use within rebuild_tol, else a new QP."""
         built = self._built
         if built is not None and built.A.shape == lin.A.shape and built.B.shape == lin.B.shape:
-            scale = self.rebuild_tol * max(np.max(np.abs(built.A)), np.max(np.abs(built.B)))
-            if (np.max(np.abs(lin.A - built.A)) <= scale
-                    and np.max(np.abs(lin.B - built.B)) <= scale):
+            if self.rebuild_tol == 0.0:
+                same = (lin.A == built.A).all() and (lin.B == built.B).all()
+            else:
+                scale = self.rebuild_tol * max(np.max(np.abs(built.A)), np.max(np.abs(built.B)))
+                same = (np.max(np.abs(lin.A - built.A)) <= scale
+                        and np.max(np.abs(lin.B - built.B)) <= scale)
+            if same:
                 self._mpc.set_constants(lin.e, lin.d)
                 return
         self._built = None

@@ -11,6 +11,7 @@ out-of-bounds input (a failed solve: the previous plan shifted, ``fallback``). D
 settings and measurements: docs/mpc.md.
 """
 from dataclasses import dataclass, field, replace
+import functools
 import math
 import signal
 import time
@@ -158,7 +159,8 @@ class _Problem:
     model: LatentModel
     terminal: TerminalCost
     solver: osqp.OSQP
-    P: sp.csc_matrix
+    condensing: '_Condensing'
+    p_x: np.ndarray        # H's upper-triangle values (_Condensing.p_matrix)
     A: sp.csc_matrix
     L: np.ndarray          # (m, N n_u)
     Gw: np.ndarray         # (N n_u + N n_y + m, n_z + n_u + N n_y + n_z + n_y + n_s)
@@ -175,7 +177,7 @@ class _Problem:
     views: tuple = field(init=False)
     n_u: int = field(init=False)
     ref_shape: tuple = field(init=False)
-    ext: object = field(init=False)     # OSQP's compiled solver, or None (see set_solver)
+    ext: object = None          # OSQP's compiled solver (set_solver), or None
 
     def __post_init__(self):
         n_z, n_u, n_y = self.model.n_z, self.model.n_u, self.model.n_y
@@ -192,11 +194,16 @@ class _Problem:
                       self.qyb[:n], self.qyb[n:n + n_ny], self.qyb[n + n_ny:],
                       self.w[i_e:i_s], self.w[i_s:], self.w[i_e - n_y:i_s])
         self.w[i_e:i_s] = np.concatenate([self.model.e, self.model.d])
-        self.set_solver(self.solver)
+        self.set_solver(self.solver, self.ext)
 
-    def set_solver(self, solver: osqp.OSQP) -> None:
-        """Use this OSQP instance (set up for P, A and osqp_bounds()) from the next solve on."""
-        self.solver, self.ext = solver, _extension(solver)
+    def p_matrix(self) -> sp.csc_matrix:
+        """OSQP's P (upper triangle of H = 2 L'L, zero rows and columns for slacks)."""
+        return self.condensing.p_matrix(self.p_x, self.A.shape[1])
+
+    def set_solver(self, solver: osqp.OSQP, ext: object = None) -> None:
+        """Use this OSQP instance (set up for P, A and osqp_bounds()) from the next solve on;
+        ext: its compiled solver where the caller has it (_extension(solver))."""
+        self.solver, self.ext = solver, ext if ext is not None else _extension(solver)
 
     def osqp_bounds(self) -> Tuple[np.ndarray, np.ndarray]:
         """OSQP's (l, u) at set-up: the input box, and with soft bounds their rows."""
@@ -235,14 +242,14 @@ class _SoftBounds:
         np.subtract(self.y_hi, y0_b, out=self.u[n + n_s:n + 2 * n_s])
 
 
-def _soft_bounds(cfg: MpcConfig, y_u: np.ndarray, hess: sp.csc_matrix, lo: np.ndarray,
-                 hi: np.ndarray, n_y: int) -> tuple:
-    """(_SoftBounds or None, P, A) of the QP with the config's soft output bounds."""
+def _soft_bounds(cfg: MpcConfig, y_u: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                 n_y: int) -> tuple:
+    """(_SoftBounds or None, OSQP's A) of the QP with the config's soft output bounds."""
     n = lo.size
     y_lo, y_hi = cfg.output_bounds(n_y)
     bounded = np.isfinite(y_lo) | np.isfinite(y_hi)
     if not bounded.any():
-        return None, hess, sp.identity(n, format='csc')
+        return None, sp.identity(n, format='csc')
     steps = y_u.shape[0] // n_y
     rows = (np.arange(steps)[:, None] * n_y + np.flatnonzero(bounded)[None, :]).ravel()
     n_s = rows.size
@@ -254,20 +261,19 @@ def _soft_bounds(cfg: MpcConfig, y_u: np.ndarray, hess: sp.csc_matrix, lo: np.nd
     A = sp.vstack([sp.hstack([sp.identity(n), sp.csc_matrix((n, n_s))]),
                    sp.hstack([yb, eye_s]), sp.hstack([yb, -eye_s]),
                    sp.hstack([sp.csc_matrix((n_s, n)), eye_s])], format='csc')
-    P = sp.block_diag([hess, sp.csc_matrix((n_s, n_s))], format='csc')
     inf = np.full(n_s, big)
     soft = _SoftBounds(rows=rows, y_lo=np.tile(y_lo, steps)[rows], y_hi=np.tile(y_hi, steps)[rows],
                        l=np.concatenate([lo, -inf, -inf, np.zeros(n_s)]),
                        u=np.concatenate([hi, inf, inf, inf]),
                        q=np.concatenate([np.zeros(n), np.full(n_s, cfg.soft_penalty)]), n=n)
-    return soft, P, A
+    return soft, A
 
 
 class LatentMpc:
     """Receding-horizon latent MPC, a :class:`~metampc_controller.planner.Planner`; call
     set_model() (outside the control tick), then solve() once per tick. solve() is not
-    reentrant; set_model() may run in another thread (it swaps one reference), and the
-    previous plan survives a model swap (it is a plan of inputs)."""
+    reentrant; set_model() may run in another thread (it swaps one reference; not with
+    near=True), and the previous plan survives a model swap (it is a plan of inputs)."""
 
     def __init__(self, config: MpcConfig):
         self._config = config
@@ -310,7 +316,7 @@ class LatentMpc:
         self._plan = None
         pb = self._problem
         if pb is not None:
-            pb.set_solver(_setup_solver(pb.P, pb.A, *pb.osqp_bounds(), self._config))
+            pb.set_solver(_setup_solver(pb.p_matrix(), pb.A, *pb.osqp_bounds(), self._config))
             if pb.estimator is not None:
                 pb.estimator.reset()
 
@@ -326,41 +332,65 @@ class LatentMpc:
         (once per model). ValueError (one line) if the model does not fit, or fails the
         offset-free form's detectability test.
 
-        near: the model is close to the one in use (a relinearisation, LocalLinearMpc): the DARE
-        by Newton's method from the one in use, and where the QP's sparsity is unchanged the
-        OSQP instance is updated in place (P, A; its iterates and rho kept) instead of a new
-        one set up (~0.6 ms); the same QP either way."""
+        near: the model is a relinearisation of the one in use (LocalLinearMpc): where the
+        QP's size is unchanged, the OSQP instance is updated in place (the new H; its iterates
+        and rho kept) instead of a new one set up (~0.6 ms), the problem in use takes the new
+        matrices (so: not while solve() runs; LocalLinearMpc calls both in its tick), and the
+        DARE's state weight is kept where C is; the same QP either way."""
         model.validate()
         old = self._problem if near else None
         cfg = self._config
-        n_u, n_y, N = model.n_u, model.n_y, cfg.horizon
-        q = np.asarray(cfg.q, dtype=float)
-        if q.shape != (n_y,):
-            raise ValueError(f'q has {q.size} weights, the model has {n_y} outputs')
-        r, u_min, u_max = (np.broadcast_to(np.asarray(v, dtype=float), (n_u,)).copy()
-                           for v in (cfg.r, cfg.u_min, cfg.u_max))
-        term = terminal_cost(model, q, r, cfg.terminal_reg,
-                             None if old is None or old.terminal.dare_unusable else old.terminal.P)
-        estimator = DisturbanceEstimator.of(model, cfg.offset_free, cfg.disturbance_gain)
-        L, G, y_u, y_w = _least_squares(model, term, q, r, N)
-        n = N * n_u
-        lo, hi = np.tile(u_min, N), np.tile(u_max, N)
-        soft, hess, cons = _soft_bounds(cfg, y_u, sp.csc_matrix(np.triu(2.0 * L.T @ L)), lo, hi,
-                                        n_y)
-        if old is not None and _same_pattern(old.P, hess) and _same_pattern(old.A, cons):
-            solver = old.solver
-            solver.update(Px=hess.data, Ax=cons.data)
+        n_z, n_u, n_y, N = model.n_z, model.n_u, model.n_y, cfg.horizon
+        if old is not None and old.condensing.dims == (n_z, n_u, n_y, N):
+            cond, lo, hi = old.condensing, old.lo, old.hi
         else:
-            solver = _setup_solver(hess, cons,
+            old = None
+            q = np.asarray(cfg.q, dtype=float)
+            if q.shape != (n_y,):
+                raise ValueError(f'q has {q.size} weights, the model has {n_y} outputs')
+            r, u_min, u_max = (np.broadcast_to(np.asarray(v, dtype=float), (n_u,))
+                               for v in (cfg.r, cfg.u_min, cfg.u_max))
+            cond = _condensing(n_z, n_u, n_y, N, tuple(q), tuple(r), True)
+            lo, hi = np.tile(u_min, N), np.tile(u_max, N)
+        same_c = old is not None and (old.model.C is model.C
+                                      or np.array_equal(old.model.C, model.C))
+        term = terminal_cost(model, cond.q, cond.r, cfg.terminal_reg,
+                             old.terminal.weights if same_c else None)
+        if cond.usable == term.dare_unusable:
+            cond = _condensing(*cond.dims, tuple(cond.q), tuple(cond.r), not cond.usable)
+        estimator = DisturbanceEstimator.of(model, cfg.offset_free, cfg.disturbance_gain)
+        L, Gw, y_u, p_x = cond.matrices(model, term)
+        if old is not None and old.soft is None:    # the config's: none again
+            soft, cons = None, old.A
+        else:
+            soft, cons = _soft_bounds(cfg, y_u, lo, hi, n_y)
+        if old is not None and (cons is old.A or _same_pattern(old.A, cons)):
+            solver = old.solver
+            if old.ext is not None:
+                old.ext.update_data_mat(P_x=p_x, P_i=None,
+                                        A_x=None if soft is None else cons.data, A_i=None)
+            else:
+                solver.update(Px=p_x, **({} if soft is None else {'Ax': cons.data}))
+        else:
+            solver = _setup_solver(cond.p_matrix(p_x, cons.shape[1]), cons,
                                    *((lo, hi) if soft is None else (soft.l, soft.u)), cfg)
-        self._problem = _Problem(model=model, terminal=term, solver=solver, P=hess, A=cons, L=L,
-                                 Gw=np.vstack([-2.0 * L.T @ G, y_w, G]), Yu=y_u, lo=lo, hi=hi,
-                                 warm=bool(cfg.warm_start),
-                                 target=SteadyStateTarget(model, q, term.ss_r, term.ss_e, u_min,
-                                                          u_max, bounded=estimator is not None),
-                                 estimator=estimator, soft=soft)
+        target = SteadyStateTarget(model, cond.q, term.ss_r, term.ss_e, lo[:n_u], hi[:n_u],
+                                   bounded=estimator is not None)
+        if old is not None and solver is old.solver and old.Gw.shape == Gw.shape:
+            # The same sizes: the problem in use takes the new model (its buffers kept).
+            old.model, old.terminal, old.condensing, old.p_x, old.A = model, term, cond, p_x, cons
+            old.L, old.Gw, old.Yu, old.target, old.estimator, old.soft = (L, Gw, y_u, target,
+                                                                          estimator, soft)
+            old.views[6][:n_z], old.views[6][n_z:] = model.e, model.d
+            return
+        self._problem = _Problem(model=model, terminal=term, solver=solver, condensing=cond,
+                                 p_x=p_x, A=cons, L=L, Gw=Gw, Yu=y_u, lo=lo, hi=hi,
+                                 warm=bool(cfg.warm_start), target=target,
+                                 estimator=estimator, soft=soft,
+                                 ext=old.ext if old is not None and solver is old.solver
+                                 else None)
         # The plan's size changes only with n_u, and then it says nothing about the new inputs.
-        if self._plan is not None and self._plan.shape != (n,):
+        if self._plan is not None and self._plan.shape != (lo.size,):
             self.reset()
 
     def set_constants(self, e: np.ndarray, d: np.ndarray) -> None:
@@ -503,7 +533,7 @@ class LatentMpc:
         pb = self._problem
         lo, hi = pb.osqp_bounds()
         q = pb.views[3] if pb.soft is None else pb.soft.q
-        return QpSnapshot(P=pb.P, q=q.copy(), A=pb.A, l=lo.copy(), u=hi.copy(),
+        return QpSnapshot(P=pb.p_matrix(), q=q.copy(), A=pb.A, l=lo.copy(), u=hi.copy(),
                           x_warm=None if self._x_warm is None else self._x_warm.copy())
 
 
@@ -530,10 +560,11 @@ def _same_pattern(a: sp.csc_matrix, b: sp.csc_matrix) -> bool:
 
 def _extension(solver: osqp.OSQP):
     """The compiled solver inside an osqp.OSQP (osqp 1.x keeps it as ``_solver``: the object
-    whose update_data_vec, warm_start and solve the wrapper's update, warm_start and solve
-    call), or None where it lacks one of them; solve() then goes through the wrapper."""
+    whose update_data_vec, update_data_mat, warm_start and solve the wrapper's update,
+    warm_start and solve call), or None where it lacks one of them; solve() and set_model()
+    then go through the wrapper."""
     ext = getattr(solver, '_solver', None)
-    calls = ('update_data_vec', 'warm_start', 'solve', 'info', 'solution')
+    calls = ('update_data_vec', 'update_data_mat', 'warm_start', 'solve', 'info', 'solution')
     if ext is None or not all(hasattr(ext, name) for name in calls):
         return None
     return ext
@@ -544,62 +575,165 @@ def _shift(v: np.ndarray, n_u: int) -> np.ndarray:
     return np.concatenate((v[n_u:], v[-n_u:]))
 
 
-def _least_squares(model: LatentModel, term: TerminalCost, q: np.ndarray, r: np.ndarray,
-                   N: int) -> tuple:
-    """J(U) = ||L U - G w||^2 with w = [z_t; u_t; r_{t+1..t+N}; e'; d'; s_ss] (eq. (mpc)
-    condensed; e', d' stand for the model's e, d in every row).
+class _Condensing:
+    """Eq. (mpc) condensed, J(U) = ||L U - G w||^2 with w = [z_t; u_t; r_{t+1..t+N}; e'; d';
+    s_ss] (e', d' stand for the model's e, d in every row), for one size (n_z, n_u, n_y, N),
+    weights (q, r) and terminal form (the DARE's n_s rows T s_N, or where it is unusable the
+    tracked outputs at N as at the other steps). Rows of L: Q^{1/2}-weighted tracked outputs
+    at k = 1..N-1, the terminal rows, R^{1/2} du at k = 0..N-1. With it the output prediction
+    y_{t+1..t+N} = Yu U + Yw w.
 
-    Returns L (m, N n_u), G (m, n_w), and the output prediction y_{t+1..t+N} = Yu U + Yw w as
-    Yu (N n_y, N n_u), Yw (N n_y, n_w). Rows of L: Q^{1/2}-weighted tracked outputs at
-    k = 1..N-1, the terminal rows T s_N, R^{1/2} du at k = 0..N-1.
+    Every entry of L, G, Yu, Yw is a constant (0, weights) or one entry of a source vector
+    times a constant: the model's products C A^k (k = 1..N), C sum_{i<k} A^i, C A^k B,
+    T_z A^N, T_z sum_{i<N} A^i, T_z A^k B (+ T_u at k = 0), T; so a model's matrices are a
+    few batched products and one scatter onto the constants, with the index map built here
+    (once per size: a planner relinearising every tick condenses each tick). H = 2 L'L is
+    handed to OSQP as the values of its whole upper triangle (one sparsity pattern for every
+    model of the size).
     """
-    n_z, n_u, n_y = model.n_z, model.n_u, model.n_y
-    n, n_s = N * n_u, n_z + n_u
-    i_r, i_e = n_z + n_u, n_z + n_u + N * n_y          # column offsets of r and e' in w
-    i_d, i_s = i_e + n_z, i_e + n_z + n_y
-    n_w = i_s + n_s
-    # Unrolled dynamics: z_{t+k} = fz[k-1] z_t + gz[k-1] U + hz[k-1] e', k = 1..N.
-    fz, gz, hz = np.empty((N, n_z, n_z)), np.empty((N, n_z, n)), np.empty((N, n_z, n_z))
-    z_f, z_g, z_h = np.eye(n_z), np.zeros((n_z, n)), np.zeros((n_z, n_z))
-    for k in range(N):
-        z_f, z_g, z_h = model.A @ z_f, model.A @ z_g, model.A @ z_h + np.eye(n_z)
-        z_g[:, k * n_u:(k + 1) * n_u] += model.B
-        fz[k], gz[k], hz[k] = z_f, z_g, z_h
 
-    def g_rows(k: int, c_map: np.ndarray, r_map: np.ndarray, d_map: np.ndarray,
-               s_map: Optional[np.ndarray] = None) -> np.ndarray:
-        """Rows of G for a target r_map (r_{t+k+1} - d') + s_map s_ss - c_map z_{t+k+1}|U=0."""
-        out = np.zeros((len(c_map), n_w))
-        out[:, :n_z] = -c_map @ fz[k]
-        out[:, i_r + k * n_y:i_r + (k + 1) * n_y] = r_map
-        out[:, i_e:i_d] = -c_map @ hz[k]
-        out[:, i_d:i_s] = -d_map
-        if s_map is not None:
-            out[:, i_s:] = s_map
-        return out
+    def __init__(self, n_z: int, n_u: int, n_y: int, N: int, q: tuple, r: tuple,
+                 usable: bool):
+        self.dims, self.usable = (n_z, n_u, n_y, N), usable
+        self.q, self.r = np.array(q), np.array(r)
+        n, n_s = N * n_u, n_z + n_u
+        i_r, i_e = n_z + n_u, n_z + n_u + N * n_y         # column offsets of r and e' in w
+        i_d, i_s = i_e + n_z, i_e + n_z + n_y
+        n_w = i_s + n_s
+        trk = np.flatnonzero(self.q > 0)
+        n_t, sq, sr = trk.size, np.sqrt(self.q[trk]), np.sqrt(self.r)
+        k_t = N - 1 if usable else N                        # tracking blocks
+        n_term = n_s if usable else 0
+        m = k_t * n_t + n_term + n
+        # Source vector: [CP (2N, n_y, n_z) | CAB (N, n_y, n_u) | TP (2, n_s, n_z) |
+        # TAB (N, n_s, n_u) | T (n_s, n_s)] (the T parts with a usable DARE only); `one`
+        # marks the constant entries while the map is built.
+        o_cab = 2 * N * n_y * n_z
+        o_tp = o_cab + N * n_y * n_u
+        o_tab = o_tp + 2 * n_term * n_z
+        o_t = o_tab + N * n_term * n_u
+        one = o_t + n_term * n_s
+        self.src_size, self.offsets = one, (o_cab, o_tp, o_tab, o_t)
+        # Output buffer: [Gw = (-2 L'G (n rows); Yw; G) | L | Yu]; -2 L'G computed.
+        shapes = {'top': (n, n_w), 'yw': (N * n_y, n_w), 'g': (m, n_w), 'l': (m, n),
+                  'yu': (N * n_y, n)}
+        self.slices, at = {}, 0
+        for name, shape in shapes.items():
+            self.slices[name] = (at, shape)
+            at += shape[0] * shape[1]
+        idx, scale = np.full(at, -1), np.zeros(at)
 
-    tracked = q > 0
-    sq = np.sqrt(q[tracked])
-    c_t = sq[:, None] * model.C[tracked]                      # Q^{1/2} C, tracked rows
-    sel_t = sq[:, None] * np.eye(n_y)[tracked]                # Q^{1/2}, tracked rows
-    l_rows = [c_t @ gz[k] for k in range(N - 1)]
-    g_blocks = [g_rows(k, c_t, sel_t, sel_t) for k in range(N - 1)]
-    t_z, t_u = term.T[:, :n_z], term.T[:, n_z:]               # T s_N = t_z z_N + t_u u_N
-    l_rows.append(t_z @ gz[-1])
-    l_rows[-1][:, n - n_u:] += t_u
-    if term.dare_unusable:  # T s_N - M (r_N - d')
-        g_blocks.append(g_rows(N - 1, t_z, term.M, term.M))
-    else:                   # T (s_N - s_ss)
-        zero = np.zeros((len(t_z), n_y))
-        g_blocks.append(g_rows(N - 1, t_z, zero, zero, term.T))
-    sr = np.sqrt(r)
-    l_rows.append(np.tile(sr, N)[:, None] * (np.eye(n) - np.eye(n, k=-n_u)))
-    g_du = np.zeros((n, n_w))
-    g_du[:n_u, n_z:n_z + n_u] = np.diag(sr)                   # u_t enters the first du
-    g_blocks.append(g_du)
-    c_blk = np.kron(np.eye(N), model.C)
-    y_w = np.zeros((N * n_y, n_w))
-    y_w[:, :n_z] = c_blk @ fz.reshape(N * n_z, n_z)
-    y_w[:, i_e:i_d] = c_blk @ hz.reshape(N * n_z, n_z)
-    y_w[:, i_d:i_s] = np.tile(np.eye(n_y), (N, 1))
-    return np.vstack(l_rows), np.vstack(g_blocks), c_blk @ gz.reshape(N * n_z, n), y_w
+        def put(name, rows, cols, src, val=1.0):
+            """Entries (rows, cols) of output `name` from sources src times val (broadcast)."""
+            start, (_, width) = self.slices[name]
+            rows, cols, src, val = np.broadcast_arrays(rows, cols, src, val)
+            flat = start + rows * width + cols
+            idx[flat], scale[flat] = src, val
+
+        # Open grids over (output step k, input step j, output i, input v, latent c, ...).
+        k, j, i, v = np.ix_(np.arange(N), np.arange(N), np.arange(n_y), np.arange(n_u))
+        low = np.broadcast_to(j <= k, (N, N, n_y, n_u))
+        # Yu: C A^(k-j) B, output step k+1, input step j <= k.
+        put('yu', np.broadcast_to(k * n_y + i, low.shape)[low],
+            np.broadcast_to(j * n_u + v, low.shape)[low],
+            np.broadcast_to(o_cab + ((k - j) * n_y + i) * n_u + v, low.shape)[low])
+        # Yw: C A^(k+1) on z_t, C (A^0 + ... + A^k) on e', I on d'.
+        k, i, c = np.ix_(np.arange(N), np.arange(n_y), np.arange(n_z))
+        put('yw', k * n_y + i, c, (k * n_y + i) * n_z + c)
+        put('yw', k * n_y + i, i_e + c, ((N + k) * n_y + i) * n_z + c)
+        k, i = np.ix_(np.arange(N), np.arange(n_y))
+        put('yw', k * n_y + i, i_d + i, one)
+        # Tracking rows (blocks b = 0..k_t-1, tracked output trk[t]): G's z_t, e' columns,
+        # its reference and d' entries; L's C A^(b-j) B.
+        b_, t, c = np.ix_(np.arange(k_t), np.arange(n_t), np.arange(n_z))
+        row, out_i, w_t = b_ * n_t + t, trk[t], sq[t]
+        put('g', row, c, (b_ * n_y + out_i) * n_z + c, -w_t)
+        put('g', row, i_e + c, ((N + b_) * n_y + out_i) * n_z + c, -w_t)
+        b_, t = np.ix_(np.arange(k_t), np.arange(n_t))
+        put('g', b_ * n_t + t, i_r + b_ * n_y + trk[t], one, sq[t])
+        put('g', b_ * n_t + t, i_d + trk[t], one, -sq[t])
+        b_, j, t, v = np.ix_(np.arange(k_t), np.arange(N), np.arange(n_t), np.arange(n_u))
+        low = np.broadcast_to(j <= b_, (k_t, N, n_t, n_u))
+        put('l', np.broadcast_to(b_ * n_t + t, low.shape)[low],
+            np.broadcast_to(j * n_u + v, low.shape)[low],
+            np.broadcast_to(o_cab + ((b_ - j) * n_y + trk[t]) * n_u + v, low.shape)[low],
+            np.broadcast_to(sq[t], low.shape)[low])
+        if usable:     # T s_N: T_z A^(N-1-j) B (+ T_u at j = N-1), -T_z A^N, -T_z sum, T
+            t, j, v = np.ix_(np.arange(n_s), np.arange(N), np.arange(n_u))
+            put('l', k_t * n_t + t, j * n_u + v, o_tab + ((N - 1 - j) * n_s + t) * n_u + v)
+            t, c = np.ix_(np.arange(n_s), np.arange(n_z))
+            put('g', k_t * n_t + t, c, o_tp + t * n_z + c, -1.0)
+            put('g', k_t * n_t + t, i_e + c, o_tp + (n_s + t) * n_z + c, -1.0)
+            t, c = np.ix_(np.arange(n_s), np.arange(n_s))
+            put('g', k_t * n_t + t, i_s + c, o_t + t * n_s + c)
+        # R^{1/2} du rows (u_t enters the first).
+        du, w_du = k_t * n_t + n_term + np.arange(n), np.tile(sr, N)
+        put('l', du, np.arange(n), one, w_du)
+        put('l', du[n_u:], np.arange(n - n_u), one, -w_du[n_u:])
+        put('g', du[:n_u], n_z + np.arange(n_u), one, sr)
+        constant = idx == one
+        self.constants = np.where(constant, scale, 0.0)
+        self.constants.flags.writeable = False
+        self.at = np.flatnonzero((idx >= 0) & ~constant)
+        self.src_at, self.scale_at = idx[self.at], scale[self.at]
+        self.views = (shapes['top'], (self.slices['g'][0], m), (self.slices['l'][0], m),
+                      self.slices['yu'][0])
+        self.n_gw, self.eye = n + N * n_y + m, np.eye(n_z)
+        # H's upper triangle, column by column (OSQP's CSC): its values are H.flat[triu].
+        cols = np.repeat(np.arange(n), np.arange(1, n + 1))
+        rows = np.concatenate([np.arange(j + 1) for j in range(n)])
+        self.triu, self.p_indices = rows * n + cols, rows
+        self.p_indptr = np.concatenate([[0], np.cumsum(np.arange(1, n + 1))])
+
+    def matrices(self, model: LatentModel, term: TerminalCost) -> tuple:
+        """(L (m, n), Gw = [-2 L'G; Yw; G], Yu (N n_y, n), H's upper-triangle values) of a
+        model and its terminal cost (of this form: ``dare_unusable == not usable``)."""
+        n_z, n_u, n_y, N = self.dims
+        o_cab, o_tp, o_tab, o_t = self.offsets
+        A, B, C = model.A, model.B, model.C
+        # A^0..A^N by doubling, then the partial sums A^0 + ... + A^k, k = 0..N-1.
+        pw = np.empty((2 * N + 1, n_z, n_z))
+        pw[0], pw[1] = self.eye, A
+        k = 1
+        while k < N:
+            step = min(k, N - k)
+            np.matmul(pw[k], pw[1:step + 1], out=pw[k + 1:k + step + 1])
+            k += step
+        np.cumsum(pw[:N], axis=0, out=pw[N + 1:])
+        src = np.empty(self.src_size)
+        np.matmul(C, pw[1:], out=src[:o_cab].reshape(2 * N, n_y, n_z))
+        ab = np.matmul(pw[:N], B)                                     # A^k B, k = 0..N-1
+        np.matmul(C, ab, out=src[o_cab:o_tp].reshape(N, n_y, n_u))
+        if self.usable:
+            t_z, n_s = term.T[:, :n_z], n_z + n_u
+            np.matmul(t_z, pw[N::N], out=src[o_tp:o_tab].reshape(2, n_s, n_z))   # A^N, sum
+            tab = src[o_tab:o_t].reshape(N, n_s, n_u)
+            np.matmul(t_z, ab, out=tab)
+            tab[0] += term.T[:, n_z:]
+            src[o_t:] = term.T.ravel()
+        out = self.constants.copy()
+        vals = src[self.src_at]
+        vals *= self.scale_at
+        out[self.at] = vals
+        (n, n_w), (g, g_rows), (l_at, m), yu = self.views
+        L = out[l_at:l_at + m * n].reshape(m, n)
+        Gw = out[:self.n_gw * n_w].reshape(self.n_gw, n_w)
+        np.matmul(L.T, out[g:g + g_rows * n_w].reshape(g_rows, n_w), out=Gw[:n])
+        Gw[:n] *= -2.0
+        hess_x = (L.T @ L).ravel()[self.triu]
+        hess_x *= 2.0
+        return L, Gw, out[yu:yu + N * n_y * n].reshape(N * n_y, n), hess_x
+
+    def p_matrix(self, p_x: np.ndarray, size: int) -> sp.csc_matrix:
+        """OSQP's P (size, size) from H's upper-triangle values (matrices()): H in the top
+        left block, zeros (stored: one pattern whatever the values) elsewhere."""
+        n = self.p_indptr.size - 1
+        indptr = np.concatenate([self.p_indptr, np.full(size - n, self.p_indptr[-1])])
+        return sp.csc_matrix((p_x, self.p_indices, indptr), shape=(size, size))
+
+
+@functools.lru_cache(maxsize=32)
+def _condensing(n_z: int, n_u: int, n_y: int, N: int, q: tuple, r: tuple,
+                usable: bool) -> _Condensing:
+    """The condensing of one size, weights and terminal form (built once, shared)."""
+    return _Condensing(n_z, n_u, n_y, N, q, r, usable)

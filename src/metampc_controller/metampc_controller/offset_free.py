@@ -213,7 +213,7 @@ class SteadyStateTarget:
         self._n_z, self._n_y = n_z, n_y
         # z_s = (I - A)^{-1} (B u + e'): exact when I - A is invertible; otherwise the box
         # case clips u_s and solves the equality in least squares.
-        ima = np.eye(n_z) - model.A
+        ima = np.eye(n_z) - model.A if bounded else None
         self._ima, self._B = ima, model.B
         self._map = None
         if bounded and np.linalg.cond(ima) < 1e10:

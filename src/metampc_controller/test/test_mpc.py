@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.linalg import expm
+from scipy.linalg import expm, solve_discrete_are
 from scipy.optimize import lsq_linear
 
 from metampc_model.latent_model import LatentModel
@@ -164,54 +164,85 @@ def perturbed(model: LatentModel, seed: int, size: float) -> LatentModel:
 
 
 @pytest.mark.parametrize('seed,radius', [(0, 0.5), (1, 0.95), (2, 1.05), (3, 1.3)])
-def test_newton_from_a_nearby_solution_is_the_qz_solution(seed, radius):
-    """dare_newton from the previous model's P against scipy's QZ method on the next model
-    (fails on a Stein equation written with A_cl where A_cl' belongs, or a gain of P0 kept)."""
-    from metampc_controller.terminal_cost import augmented, dare_newton, terminal_cost
-    model = random_model(seed, radius)
-    q, r = np.array([1.0, 0.5]), np.array([0.1])
-    near = perturbed(model, seed, 0.05)
-    cold = terminal_cost(near, q, r, 1e-8)
-    warm = terminal_cost(near, q, r, 1e-8, warm=terminal_cost(model, q, r, 1e-8).P)
-    assert not cold.dare_unusable and not warm.dare_unusable
-    np.testing.assert_allclose(warm.P, cold.P, rtol=1e-9, atol=1e-9 * np.abs(cold.P).max())
-    assert warm.residual <= 1e-12
-    # Newton itself answered (terminal_cost would fall back to QZ where it does not).
-    a, b, _, c = augmented(near)
-    q_out = c.T @ np.diag(q) @ c
-    q_bar = q_out + 1e-8 * np.linalg.norm(q_out, 2) * np.eye(6)
-    newton = dare_newton(a, b, q_bar, np.diag(r), terminal_cost(model, q, r, 1e-8).P)
-    assert newton is not None
-    np.testing.assert_allclose(newton, cold.P, rtol=1e-8, atol=1e-8 * np.abs(cold.P).max())
-    # From P0 = 0 the first gain is 0: A's own modes, unstable here: no answer from Newton.
-    if max(abs(np.linalg.eigvals(a))) >= 1.0:
-        assert dare_newton(a, b, q_bar, np.diag(r), np.zeros((6, 6))) is None
+def test_the_dare_is_scipys_stabilising_solution(seed, radius):
+    """terminal_cost.dare (QZ of the reciprocal symplectic pencil, LAPACK directly) against
+    scipy's solve_discrete_are (QZ of the extended pencil, balanced) on the augmented system
+    (fails where the subspace of the eigenvalues outside the unit circle is taken, or R^{-1}
+    is left out of B R^{-1} B'); a pair with an unstable mode no input reaches has none."""
+    from metampc_controller.terminal_cost import augmented, dare
+    # The NARX's P has a condition number 1e11-6e13: the two QZ methods agree to 5e-8 there.
+    for model, reg, tol in ((random_model(seed, radius), 1e-8, 1e-10),
+                            (perturbed(model_narx(), seed, 0.01), 1e-6, 1e-6)):
+        ab, c = augmented(model)
+        n_s = model.n_z + model.n_u
+        a, b = ab[:, :n_s], ab[:, n_s:]
+        q_out = c.T @ np.diag([1.0, 0.0]) @ c
+        q = q_out + reg * np.linalg.norm(q_out, 2) * np.eye(n_s)
+        r = np.array([0.05])
+        p, expected = dare(a, b, q, r), solve_discrete_are(a, b, q, np.diag(r))
+        np.testing.assert_allclose(p, expected, rtol=0, atol=tol * np.abs(expected).max())
+        assert dare_residual(a, b, q, np.diag(r), p) <= 1e-7
+    ab, c = augmented(non_stabilisable_model())
+    with pytest.raises(np.linalg.LinAlgError):     # U1 singular: no stabilising P
+        dare(ab[:, :6], ab[:, 6:], c.T @ c + 1e-6 * np.eye(6), np.array([0.05]))
 
 
-def test_a_near_model_sets_up_the_qp_a_new_one_does():
-    """set_model(near=True) (the Newton DARE, OSQP updated in place) against a fresh
-    LatentMpc on the same model: the same QP matrices, and plans equal to OSQP's tolerance
-    (fails where the solver keeps the old model's P or A)."""
-    model = random_model(4, 0.9)
-    cfg = replace(MpcConfig(horizon=10, q=(1.0, 0.5)), **TIGHT)
-    reused, fresh = LatentMpc(cfg), LatentMpc(cfg)
+def model_narx() -> LatentModel:
+    """A feature NARX's linearisation as the locally linear MPC plans on it (order 2, seeded
+    features fitted to van der Pol at theta* 1.5, entries rounded): z = [y_t; y_{t-1}; u_t],
+    an unstable pair (|1.07|), a singular A (the input lag); its DARE solution (with the
+    Delta-u form's integrator) has a condition number ~2e11."""
+    a = np.zeros((5, 5))
+    a[:2] = [[-3.78, 0.384, 4.78, 0.196, -0.004], [-111.857, 7.429, 111.85, 4.805, -0.057]]
+    a[2:4, :2] = np.eye(2)
+    b = np.zeros((5, 1))
+    b[:2, 0], b[4, 0] = [0.005, 0.093], 1.0
+    c = np.hstack([np.eye(2), np.zeros((2, 3))])
+    return LatentModel(A=a, B=b, C=c, e=np.array([0.0, 0.01, 0.0, 0.0, 0.0]), d=np.zeros(2))
+
+
+@pytest.mark.parametrize('start', ['stable', 'unstable', 'narx'])
+def test_a_near_model_sets_up_the_qp_a_new_one_does(start):
+    """set_model(near=True) on a sequence of relinearisations (the OSQP instance and the
+    problem in use updated in place, the DARE's state weight kept) against a fresh LatentMpc
+    set up on each model, and against the reference least squares of the model's own
+    simulation, with bounds that cut the optimum: the same QP, the same plan to OSQP's
+    tolerance. Then a model whose DARE is unusable (the terminal form changes size), and back.
+    Fails where the update in place keeps the previous H, the terminal rows or steady state
+    of the previous model stay (a stale terminal block), or a du row is off by one step."""
+    model = {'stable': random_model(4, 0.9), 'unstable': random_model(5, 1.3),
+             'narx': model_narx()}[start]
+    n = 12
+    # offset_free none, as LocalLinearMpc plans: the terminal cost centred on the unbounded
+    # steady state, as the reference's is.
+    cfg = replace(MpcConfig(horizon=n, q=(1.0, 0.0), r=0.05, u_min=-0.3, u_max=0.3,
+                            offset_free='none'), **TIGHT)
+    reused = LatentMpc(cfg)
     reused.set_model(model)
-    z0, ref = np.full(5, 0.2), np.tile([0.4, 0.0], (10, 1))
-    reused.solve(z0, np.zeros(1), ref)
-    for k in range(3):
-        model = perturbed(model, 10 + k, 0.1)
+    z0, u_prev = np.array([0.6, -0.3, 0.5, 0.2, 0.1]), np.array([0.1])
+    ref = np.zeros((n, 2))
+    ref[:, 0] = 0.8
+    reused.solve(z0, u_prev, ref)
+    sequence = [perturbed(model, 10 + k, 0.05) for k in range(3)]
+    for model in sequence + [non_stabilisable_model(), sequence[-1]]:
         reused.set_model(model, near=True)
+        fresh = LatentMpc(cfg)
         fresh.set_model(model)
-        a, b = reused.solve(z0, np.zeros(1), ref), fresh.solve(z0, np.zeros(1), ref)
+        a, b = reused.solve(z0, u_prev, ref), fresh.solve(z0, u_prev, ref)
+        assert reused.terminal.dare_unusable == fresh.terminal.dare_unusable
         qa, qb = reused.last_qp(), fresh.last_qp()
-        # The same QP up to the DARE's rounding (Newton's P against QZ's).
-        np.testing.assert_allclose(qa.P.toarray(), qb.P.toarray(), rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(qa.q, qb.q, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(qa.P.toarray(), qb.P.toarray(), rtol=1e-9,
+                                   atol=1e-9 * np.abs(qb.P).max())
+        np.testing.assert_allclose(qa.q, qb.q, rtol=1e-9, atol=1e-9 * np.abs(qb.q).max())
         np.testing.assert_allclose(a.u_plan, b.u_plan, atol=1e-7)
-        np.testing.assert_allclose(a.cost, b.cost, rtol=1e-7)
+        mat, vec = reference_lsq(reused, model, z0, u_prev, ref)
+        expected = lsq_linear(mat, vec, bounds=(-0.3, 0.3), method='bvls', tol=1e-14).x
+        assert np.sum(np.isclose(np.abs(expected), 0.3)) >= 1        # the bounds are active
+        np.testing.assert_allclose(a.u_plan[:, 0], expected, atol=1e-5)
     # Another size (n_z 5 -> 3): a new QP, solved as a fresh one is.
     small = random_model(5, 0.8, n_z=3)
     reused.set_model(small, near=True)
+    fresh = LatentMpc(cfg)
     fresh.set_model(small)
     np.testing.assert_allclose(reused.solve(np.zeros(3), np.zeros(1), ref).u_plan,
                                fresh.solve(np.zeros(3), np.zeros(1), ref).u_plan, atol=1e-7)

@@ -50,14 +50,13 @@ class LatentModel:
     def validate(self) -> None:
         """Raise ValueError if shapes disagree or any entry is non-finite."""
         n_z = self.A.shape[0]
-        shapes = {'A': (self.A.shape, (n_z, n_z)), 'B': (self.B.shape[0:1], (n_z,)),
-                  'C': (self.C.shape[1:2], (n_z,)), 'e': (self.e.shape, (n_z,)),
-                  'd': (self.d.shape, (self.C.shape[0],))}
-        for name, (got, want) in shapes.items():
+        for name, got, want in (('A', self.A.shape, (n_z, n_z)), ('B', self.B.shape[0:1], (n_z,)),
+                                ('C', self.C.shape[1:2], (n_z,)), ('e', self.e.shape, (n_z,)),
+                                ('d', self.d.shape, self.C.shape[0:1])):
             if tuple(got) != want:
                 raise ValueError(f'latent model: {name} has shape {got}, expected {want}')
         for name in 'ABCed':
-            if not np.all(np.isfinite(getattr(self, name))):
+            if not np.isfinite(getattr(self, name)).all():
                 raise ValueError(f'latent model: {name} has non-finite entries')
 
     def step(self, z: np.ndarray, u: np.ndarray) -> np.ndarray:

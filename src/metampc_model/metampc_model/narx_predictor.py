@@ -38,6 +38,21 @@ class NarxPredictor:
         p = shape.order
         self._mean = np.concatenate([norm.y_mean] * p + [norm.u_mean] * (p - 1))
         self._std = np.concatenate([norm.y_std] * p + [norm.u_std] * (p - 1))
+        # linearise's constant parts: dF/ds and dF/du from normalised to physical units, the
+        # companion matrix's shifts, C and d (shared, read-only).
+        n_s, n_y, n_u = shape.n_s, shape.n_y, shape.n_u
+        self._scale_s = np.asarray(norm.y_std)[:, None] / self._std[None, :]
+        self._scale_u = np.asarray(norm.y_std)[:, None] / np.asarray(norm.u_std)[None, :]
+        a, b = np.zeros((n_s, n_s)), np.zeros((n_s, n_u))
+        a[n_y:p * n_y, :(p - 1) * n_y] = np.eye((p - 1) * n_y)     # y lags shift
+        if p > 1:
+            b[p * n_y:p * n_y + n_u] = np.eye(n_u)                 # u_{t+1} becomes a lag
+            a[p * n_y + n_u:, p * n_y:n_s - n_u] = np.eye((p - 2) * n_u)
+        c = np.zeros((n_y, n_s))
+        c[:, :n_y] = np.eye(n_y)
+        self._shifts = (a, b, c, np.zeros(n_y))
+        for part in self._shifts:
+            part.flags.writeable = False
 
     @property
     def history(self) -> int:
@@ -57,14 +72,14 @@ class NarxPredictor:
         return ((np.asarray(s, np.float64) - self._mean) / self._std,
                 (np.asarray(u_next, np.float64) - nm.u_mean) / nm.u_std)
 
-    def _features(self, s_n: np.ndarray, jacobian: bool) -> Tuple[np.ndarray, np.ndarray]:
-        """(g(s_n) (F,), dg/ds_n (F, n_s) or None)."""
-        h, jac = s_n, None
+    def _features(self, s_n: np.ndarray, jacobian: bool) -> Tuple[np.ndarray, list]:
+        """(g(s_n) (F,), each layer's tanh slope 1 - h^2 (its width,), with `jacobian`)."""
+        h, slopes = s_n, []
         for w, b in self._layers:
             h = np.tanh(w @ h + b)
             if jacobian:
-                jac = (1.0 - h * h)[:, None] * (w if jac is None else w @ jac)
-        return h if self._layers else np.zeros(0), jac
+                slopes.append(1.0 - h * h)
+        return h if self._layers else np.zeros(0), slopes
 
     @property
     def head(self) -> np.ndarray:
@@ -83,14 +98,20 @@ class NarxPredictor:
     def _one_step(self, s_n: np.ndarray, u_n: np.ndarray, jacobian: bool = False,
                   head: Optional[np.ndarray] = None):
         """Normalised y_{t+1}, and with `jacobian` (dy/ds_n, dy/du_n) too (of `head`, default
-        the model's)."""
+        the model's): dy/ds_n = head_s + head_g dg/ds_n, the chain rule taken from the left
+        (n_y rows through each layer's slope and weight)."""
         sh, head = self.shape, self._head if head is None else head
-        g, jac = self._features(s_n, jacobian)
+        g, slopes = self._features(s_n, jacobian)
         y_n = head @ np.concatenate([s_n, g, u_n, [1.0]])
         if not jacobian:
             return y_n
         n_s, n_f = sh.n_s, sh.features
-        d_s = head[:, :n_s] + (head[:, n_s:n_s + n_f] @ jac if n_f else 0.0)
+        d_s = head[:, :n_s]
+        if n_f:
+            rows = head[:, n_s:n_s + n_f]
+            for (w, _), slope in zip(reversed(self._layers), reversed(slopes)):
+                rows = (rows * slope) @ w
+            d_s = d_s + rows
         return y_n, d_s, head[:, n_s + n_f:n_s + n_f + sh.n_u]
 
     def regressors(self, s: np.ndarray, u_next: np.ndarray) -> np.ndarray:
@@ -128,27 +149,19 @@ class NarxPredictor:
         z = s, z+ = A z + B u + e exact to first order there (A the companion matrix whose
         first n_y rows are dF/ds), y = C z (C selects y_t), d = 0; of `head` in place of the
         model's where given. ValueError if the Jacobian is not finite."""
-        sh, nm = self.shape, self.norm
+        nm, n_y = self.norm, self.shape.n_y
         s, u_next = np.asarray(s, np.float64), np.asarray(u_next, np.float64)
         y_n, d_s, d_u = self._one_step(*self._normalised(s, u_next), jacobian=True, head=head)
-        top_s = d_s * nm.y_std[:, None] / self._std[None, :]
-        top_u = d_u * nm.y_std[:, None] / nm.u_std[None, :]
+        top_s, top_u = d_s * self._scale_s, d_u * self._scale_u
         y_next = y_n * nm.y_std + nm.y_mean
-        if not all(np.all(np.isfinite(v)) for v in (top_s, top_u, y_next)):
+        if not (np.isfinite(top_s).all() and np.isfinite(top_u).all()
+                and np.isfinite(y_next).all()):
             raise ValueError('the feature NARX has a non-finite Jacobian here')
-        n_s, n_y, n_u, p = sh.n_s, sh.n_y, sh.n_u, sh.order
-        A = np.zeros((n_s, n_s))
-        B = np.zeros((n_s, n_u))
-        e = np.zeros(n_s)
+        a, b, c, d = self._shifts
+        A, B, e = a.copy(), b.copy(), np.zeros(a.shape[0])
         A[:n_y], B[:n_y] = top_s, top_u
         e[:n_y] = y_next - top_s @ s - top_u @ u_next
-        A[n_y:p * n_y, :(p - 1) * n_y] = np.eye((p - 1) * n_y)     # y lags shift
-        if p > 1:
-            B[p * n_y:p * n_y + n_u] = np.eye(n_u)                 # u_{t+1} becomes a lag
-            A[p * n_y + n_u:, p * n_y:n_s - n_u] = np.eye((p - 2) * n_u)
-        C = np.zeros((n_y, n_s))
-        C[:, :n_y] = np.eye(n_y)
-        return LatentModel(A, B, C, e, np.zeros(n_y))
+        return LatentModel(A, B, c, e, d)
 
 
 __all__ = ['NarxPredictor']

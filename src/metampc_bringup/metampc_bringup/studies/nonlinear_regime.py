@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import hashlib
 import math
 import os
+import time
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -89,10 +90,13 @@ def collect(excitation_config: ExcitationConfig, plant: PlantConfig, theta: Sequ
 
 def track(planner, plant: PlantConfig, theta: Sequence[float], x0: Sequence[float],
           reference, steps: int, tracked: Sequence[int],
-          state_of: Optional[Callable] = None, lags: int = 1) -> float:
+          state_of: Optional[Callable] = None, lags: int = 1,
+          times: Optional[List[float]] = None) -> float:
     """The tracking cost of one episode (module docstring). `reference` evaluates the
     planner's (N, n_y) rows; `state_of(u_hist, y_hist)` gives the planner's state from the last
-    `lags` inputs and outputs (None: the planner gets y only, as the NMPC estimates x)."""
+    `lags` inputs and outputs (None: the planner gets y only, as the NMPC estimates x).
+    times: where given, each planner.solve's wall time (s) is appended to it (the
+    benchmarks' planner timing)."""
     sim = Plant(plant)
     y = sim.reset(tuple(theta), tuple(x0))
     n_u, dt, n = sim.family.n_u, plant.dt, planner.config.horizon
@@ -103,8 +107,11 @@ def track(planner, plant: PlantConfig, theta: Sequence[float], x0: Sequence[floa
     for k in range(steps):
         r = reference.evaluate(k * dt, dt, n)
         state = None if state_of is None else state_of(np.array(u_hist), np.array(y_hist))
-        u = np.clip(np.asarray(planner.solve(state, u, r, y, k).u, float), plant.u_min,
-                    plant.u_max)
+        start = time.perf_counter()
+        res = planner.solve(state, u, r, y, k)
+        if times is not None:
+            times.append(time.perf_counter() - start)
+        u = np.clip(np.asarray(res.u, float), plant.u_min, plant.u_max)
         y = sim.step(u)
         if sim.diverged:
             return math.inf
