@@ -4,12 +4,14 @@ One process, no ROS (``scripts/nonlinear_regime.py``). Everything comes from the
 experiment configuration (controller tuning and reference, the excitation that collects
 D_target, source systems, x0, tracked outputs, run length). Per method the feature NARX is
 meta-trained once (the first seed's source systems), then per target: adapted to
-``target_samples`` samples, scored on HELDOUT_SAMPLES others, flown by the locally linear MPC
-beside the ARX(p) of the same samples and the class's oracle; the yardstick is the
+``target_samples`` samples (a share of them collected in closed loop by the model adapted to
+the rest: ``closed_loop``), scored on HELDOUT_SAMPLES others, flown by the locally linear MPC
+beside the ARX(p) of the same collection and the class's oracle; the yardstick is the
 experiment's own NMPC (:func:`~metampc_bringup.analysis.retrack.fly`), the cost the
 experiment's (sum of squared tracking errors; an escape costs inf). Protocol: docs/nonlinear.md.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 import hashlib
 import math
 import os
@@ -26,7 +28,7 @@ from metampc_controller.local_mpc import LocalLinearMpc
 from metampc_controller.references import make_reference
 from metampc_learner.data import normalisation_from, simulate_source
 from metampc_learner.narx_learning import (adapt, arx_model, heldout_loss, meta_train,
-                                           NarxMetaConfig)
+                                           NarxMetaConfig, one_step_loss)
 from metampc_model.feature_narx import FeatureNarx, NarxShape
 from metampc_plant.simulator import Plant, PlantConfig, simulate
 
@@ -52,6 +54,11 @@ class RegimeConfig:
         overrides: configuration keys set on top of the file's; a value for a section
             ('learner', 'controller', 'plant') is merged into it (a declared regime's
             reference, for example).
+        closed_loop: the share of the target's samples collected in closed loop
+            (:func:`closed_loop_record`) with the model adapted to the rest (collected open
+            loop first); every model is then adapted again on all of them. 0: all open loop.
+        exploration: the closed-loop part's exploration, the excitation's band (its
+            amplitude) around zero added to the planner's input.
     """
 
     experiment: Optional[str] = None
@@ -64,6 +71,13 @@ class RegimeConfig:
     meta: NarxMetaConfig = field(default_factory=NarxMetaConfig)
     oracle: bool = True
     overrides: Dict[str, Any] = field(default_factory=dict)
+    closed_loop: float = 0.0
+    exploration: float = 0.2
+
+    def __post_init__(self):
+        if not 0.0 <= self.closed_loop < 1.0 or not 0.0 <= self.exploration <= 1.0:
+            raise ValueError(f'closed_loop must be in [0, 1) and exploration in [0, 1], got '
+                             f'{self.closed_loop}, {self.exploration}')
 
 
 def experiment(config: RegimeConfig, theta: Optional[Sequence[float]] = None
@@ -87,30 +101,43 @@ def collect(excitation_config: ExcitationConfig, plant: PlantConfig, theta: Sequ
     return u[0, 1:n], y[0, 1:n]
 
 
-def track(planner, plant: PlantConfig, theta: Sequence[float], x0: Sequence[float],
-          reference, steps: int, tracked: Sequence[int],
-          state_of: Optional[Callable] = None, lags: int = 1) -> float:
-    """The tracking cost of one episode (module docstring). `reference` evaluates the
-    planner's (N, n_y) rows; `state_of(u_hist, y_hist)` gives the planner's state from the last
-    `lags` inputs and outputs (None: the planner gets y only, as the NMPC estimates x)."""
+def episode(planner, plant: PlantConfig, theta: Sequence[float], x0: Sequence[float],
+            reference, steps: int, tracked: Sequence[int],
+            state_of: Optional[Callable] = None, lags: int = 1,
+            explore: Optional[np.ndarray] = None) -> Tuple[float, Record]:
+    """One closed-loop episode: (its tracking cost, the record (u (K, n_u), y (K, n_y)), u[k]
+    produced y[k]). `reference` evaluates the planner's (N, n_y) rows; `state_of(u_hist,
+    y_hist)` gives the planner's state from the last `lags` inputs and outputs (None: the
+    planner gets y only, as the NMPC estimates x); `explore` (steps, n_u), when given, is added
+    to the planner's input before the bounds clip it. An escape: cost inf, the record cut
+    before it."""
     sim = Plant(plant)
     y = sim.reset(tuple(theta), tuple(x0))
     n_u, dt, n = sim.family.n_u, plant.dt, planner.config.horizon
     u = np.zeros(n_u)
     u_hist, y_hist = [u] * lags, [y] * lags
     planner.reset()
-    cost, tracked = 0.0, list(tracked)
+    cost, tracked, us, ys = 0.0, list(tracked), [], []
     for k in range(steps):
         r = reference.evaluate(k * dt, dt, n)
         state = None if state_of is None else state_of(np.array(u_hist), np.array(y_hist))
-        u = np.clip(np.asarray(planner.solve(state, u, r, y, k).u, float), plant.u_min,
-                    plant.u_max)
+        u = np.asarray(planner.solve(state, u, r, y, k).u, float)
+        u = np.clip(u if explore is None else u + explore[k], plant.u_min, plant.u_max)
         y = sim.step(u)
         if sim.diverged:
-            return math.inf
+            return math.inf, (np.array(us).reshape(-1, n_u), np.array(ys).reshape(-1, len(r[0])))
         u_hist, y_hist = u_hist[1:] + [u], y_hist[1:] + [y]
+        us.append(u)
+        ys.append(y)
         cost += float(np.sum((y[tracked] - r[0, tracked]) ** 2))
-    return cost
+    return cost, (np.array(us), np.array(ys))
+
+
+def track(planner, plant: PlantConfig, theta: Sequence[float], x0: Sequence[float],
+          reference, steps: int, tracked: Sequence[int],
+          state_of: Optional[Callable] = None, lags: int = 1) -> float:
+    """The tracking cost of one episode (module docstring; :func:`episode`'s arguments)."""
+    return episode(planner, plant, theta, x0, reference, steps, tracked, state_of, lags)[0]
 
 
 @dataclass
@@ -127,6 +154,27 @@ class Target:
 
     def plant(self) -> PlantConfig:
         return plant_config(self.experiment.node_parameters('plant', self.seed), self.theta)
+
+
+def closed_loop_record(model: FeatureNarx, tgt: 'Target', samples: int, exploration: float
+                       ) -> Record:
+    """`samples` target samples in closed loop near the operating region: the locally linear
+    MPC on `model` tracks the target's reference from the tracking x0, a set-point sequence's
+    segments shortened so that every set-point is held samples / (their number) samples, with
+    the experiment's excitation (seed 30000 + the target's seed) at amplitude `exploration`,
+    centred on zero, added to its input. Cut before an escape."""
+    ctrl, plant = tgt.controller(), tgt.plant()
+    params = dict(ctrl.reference_params)
+    if 'segment' in params:
+        params['segment'] = samples * plant.dt / len(params['setpoints'])
+    explore = np.zeros((samples, len(plant.u_min)))
+    if exploration > 0:
+        band = replace(ctrl.excitation, amplitude=exploration, center=())
+        lo, hi = band.band()
+        explore = excitation(band, 1, samples, plant.dt, 30_000 + tgt.seed)[0] - (lo + hi) / 2
+    return episode(LocalLinearMpc(ctrl.mpc, model), plant, tgt.theta, tgt.experiment.track_x0,
+                   make_reference(ctrl.reference_kind, **params), samples,
+                   tgt.experiment.tracked_outputs, model.state, model.shape.order, explore)[1]
 
 
 def targets(config: RegimeConfig) -> List[Target]:
@@ -173,6 +221,20 @@ def meta_models(config: RegimeConfig, log: Callable[[str], None],
     return out
 
 
+def _adapted(meta: FeatureNarx, gamma: float, records: Sequence[Record]
+             ) -> Tuple[FeatureNarx, float, str]:
+    """(model, training loss, rule) of the adaptation (:func:`adapt`) to `records`."""
+    ad = adapt(meta, records, gamma)
+    return ad.model, ad.train_loss, ad.rule
+
+
+def _least_squares(meta: FeatureNarx, records: Sequence[Record]
+                   ) -> Tuple[FeatureNarx, float, str]:
+    """(model, training loss, rule) of the least-squares ARX(p) of `records`."""
+    model = arx_model(meta, records)
+    return model, one_step_loss(model, records), 'least_squares'
+
+
 def run(config: RegimeConfig, log: Callable[[str], None] = print,
         cache: Optional[str] = None) -> List[Dict]:
     """Every row of the study (module docstring): one dict per (target, model) with the
@@ -187,16 +249,21 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print,
         c_nmpc = (math.inf if nmpc.escaped_at is not None
                   else nmpc.tracking_cost(tracked))
         log(f'theta* {list(tgt.theta)} seed {tgt.seed}: NMPC cost {c_nmpc:.4g}')
+        closed = round(config.closed_loop * exp.target_samples)
         recs = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0,
-                        exp.target_samples, tgt.seed)]
+                        exp.target_samples - closed, tgt.seed)]
         held = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0, HELDOUT_SAMPLES,
                         10_000 + tgt.seed)]
-        models = {}
-        for method, meta in metas.items():
-            ad = adapt(meta, recs, config.meta.gamma)
-            models[method] = (ad.model, ad.train_loss, ad.rule)
         first = next(iter(metas.values()))
-        models['arx'] = (arx_model(first, recs), ad.arx_loss, 'least_squares')
+        fits = {method: partial(_adapted, meta, config.meta.gamma)
+                for method, meta in metas.items()}
+        fits['arx'] = partial(_least_squares, first)
+        models = {}
+        for name, fit in fits.items():
+            models[name] = fit(recs)
+            if closed:
+                more = closed_loop_record(models[name][0], tgt, closed, config.exploration)
+                models[name] = fit(recs + [more])
         if config.oracle:
             fam = exp.plant_family
             starts = np.random.default_rng([tgt.seed, 77]).uniform(
@@ -247,5 +314,5 @@ def summary(rows: Sequence[Dict]) -> List[str]:
     return lines
 
 
-__all__ = ['RegimeConfig', 'Target', 'collect', 'track', 'targets', 'meta_models', 'run',
-           'summary']
+__all__ = ['RegimeConfig', 'Target', 'collect', 'episode', 'track', 'closed_loop_record',
+           'targets', 'meta_models', 'run', 'summary']
