@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     ap.add_argument('--closed-loop', type=float, default=0.0,
                     help='share of the target samples collected in closed loop by the model '
                          'adapted to the rest (open loop), then adapted again on all; 0: none')
-    ap.add_argument('--exploration', type=float, default=0.2,
+    ap.add_argument('--exploration', type=float, default=0.0,
                     help="the closed-loop part's exploration added to the input (the "
                          "excitation's band, as a share of the input range)")
     ap.add_argument('--cache', help='a folder where meta-models are kept and read back (the '

@@ -64,12 +64,13 @@ def test_collection_is_the_simulators_episode_cut_before_an_escape():
 
 
 def test_the_summary_gives_median_worst_escapes_and_the_paired_claim():
-    rows = [dict(model=m, cost=c, ratio=c / 2.0, heldout=h) for m, c, h in
-            [('imaml', 2.0, 1e-3), ('arx', 4.0, 1e-2), ('imaml', 3.0, 2e-3),
-             ('arx', 2.5, 3e-2), ('imaml', float('inf'), 3e-3), ('arx', 9.0, 5e-2)]]
+    rows = [dict(model=m, cost=c, ratio=c / 2.0, heldout=h, heldout_loop=10 * h)
+            for m, c, h in [('imaml', 2.0, 1e-3), ('arx', 4.0, 1e-2), ('imaml', 3.0, 2e-3),
+                            ('arx', 2.5, 3e-2), ('imaml', float('inf'), 3e-3),
+                            ('arx', 9.0, 5e-2)]]
     lines = summary(rows)
-    assert lines[2] == '| imaml | 1.500 | inf | 1/3 | 2.00e-03 |'
-    assert lines[3] == '| arx | 2.000 | 4.500 | 0/3 | 3.00e-02 |'
+    assert lines[2] == '| imaml | 1.500 | inf | 1/3 | 2.00e-03 | 2.00e-02 |'
+    assert lines[3] == '| arx | 2.000 | 4.500 | 0/3 | 3.00e-02 | 3.00e-01 |'
     assert lines[4].startswith('\nimaml < arx (paired): 1/3; median ratio 1.2')
 
 
