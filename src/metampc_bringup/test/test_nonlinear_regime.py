@@ -213,5 +213,9 @@ def test_the_closed_loop_share_is_taken_from_the_target_samples_not_added(monkey
     rows = study.run(config, log=lambda line: None)
     assert seen == {'open': [70], 'closed': [30, 30], 'fitted': [70, 100, 70, 100]}
     assert [r['model'] for r in rows] == ['imaml', 'arx']
+    # the error where the controller operates is scored on the NMPC's episode, not the
+    # open-loop held-out samples
+    assert all(np.isfinite(r['heldout_loop']) and r['heldout_loop'] != r['heldout']
+               for r in rows)
     with pytest.raises(ValueError):
         RegimeConfig(closed_loop=1.0)
