@@ -209,7 +209,7 @@ def test_the_closed_loop_share_is_taken_from_the_target_samples_not_added(monkey
     config = RegimeConfig(thetas=((1.0,),), seeds=(0,), features=2, hidden=(3,),
                           meta=NarxMetaConfig(iterations=1, batch_size=2, windows=4),
                           oracle=False, closed_loop=0.3,
-                          overrides={'target_samples': 100, 'track_duration': 1.0})
+                          overrides={'target_samples': 100, 'track_duration': 3.0})
     rows = study.run(config, log=lambda line: None)
     assert seen == {'open': [70], 'closed': [30, 30], 'fitted': [70, 100, 70, 100]}
     assert [r['model'] for r in rows] == ['imaml', 'arx']
