@@ -42,6 +42,9 @@ def main(argv=None) -> int:
     ap.add_argument('--exploration', type=float, default=0.0,
                     help="the closed-loop part's exploration added to the input (the "
                          "excitation's band, as a share of the input range)")
+    ap.add_argument('--arx-where-the-prior-loses', action='store_true',
+                    help="where the adaptation's fit toward the meta-model loses to the ARX "
+                         "on the samples, fly the ARX's head (default: a fit toward it)")
     ap.add_argument('--cache', help='a folder where meta-models are kept and read back (the '
                     'same source systems, sizes and settings: the same file)')
     ap.add_argument('--out', help='write the rows as JSON to this file (refused if it exists)')
@@ -104,7 +107,8 @@ def main(argv=None) -> int:
                           meta=NarxMetaConfig(**({} if args.iterations is None
                                                  else {'iterations': args.iterations})),
                           oracle=not args.no_oracle, overrides=overrides,
-                          closed_loop=args.closed_loop, exploration=args.exploration)
+                          closed_loop=args.closed_loop, exploration=args.exploration,
+                          toward_arx=not args.arx_where_the_prior_loses)
     try:
         rows = run(config, log=lambda line: print(line, flush=True), cache=args.cache)
     except ValueError as err:        # a configuration or theta the family refuses

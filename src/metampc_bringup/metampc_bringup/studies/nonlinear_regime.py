@@ -59,6 +59,9 @@ class RegimeConfig:
             loop first); every model is then adapted again on all of them. 0: all open loop.
         exploration: the closed-loop part's exploration, the excitation's band (its
             amplitude) around zero added to the planner's input.
+        toward_arx: the adaptation's rule where its fit toward the meta-model loses to the
+            ARX on the samples (:func:`~metampc_learner.narx_learning.adapt`): a fit toward
+            the ARX's head (True, the learner's) or the ARX's head itself.
     """
 
     experiment: Optional[str] = None
@@ -73,6 +76,7 @@ class RegimeConfig:
     overrides: Dict[str, Any] = field(default_factory=dict)
     closed_loop: float = 0.0
     exploration: float = 0.0
+    toward_arx: bool = True
 
     def __post_init__(self):
         if not 0.0 <= self.closed_loop < 1.0 or not 0.0 <= self.exploration <= 1.0:
@@ -221,10 +225,10 @@ def meta_models(config: RegimeConfig, log: Callable[[str], None],
     return out
 
 
-def _adapted(meta: FeatureNarx, gamma: float, records: Sequence[Record]
+def _adapted(meta: FeatureNarx, gamma: float, toward_arx: bool, records: Sequence[Record]
              ) -> Tuple[FeatureNarx, float, str]:
     """(model, training loss, rule) of the adaptation (:func:`adapt`) to `records`."""
-    ad = adapt(meta, records, gamma)
+    ad = adapt(meta, records, gamma, toward_arx)
     return ad.model, ad.train_loss, ad.rule
 
 
@@ -261,7 +265,7 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print,
         held = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0, HELDOUT_SAMPLES,
                         10_000 + tgt.seed)]
         first = next(iter(metas.values()))
-        fits = {method: partial(_adapted, meta, config.meta.gamma)
+        fits = {method: partial(_adapted, meta, config.meta.gamma, config.toward_arx)
                 for method, meta in metas.items()}
         fits['arx'] = partial(_least_squares, first)
         models = {}
@@ -280,7 +284,7 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print,
                                 for i, x0 in enumerate(starts))
                     if len(r[1]) == ORACLE_SAMPLES]
             for method, meta in metas.items():
-                oracle = adapt(meta, many, config.meta.gamma)
+                oracle = adapt(meta, many, config.meta.gamma, config.toward_arx)
                 models[f'oracle_{method}'] = (oracle.model, math.nan, f'oracle {oracle.rule}')
         reference = make_reference(ctrl.reference_kind, **ctrl.reference_params)
         for name, (model, train, rule) in models.items():
