@@ -4,6 +4,7 @@
     python scripts/nonlinear_regime.py --thetas 1.0,1.25,1.5,1.75,2.0   # van der Pol, 2 seeds
     python scripts/nonlinear_regime.py --config config/duffing.yaml --seeds 10   # the draws
     python scripts/nonlinear_regime.py --thetas 1.5 --seeds 1 --iterations 300   # quick
+    python scripts/nonlinear_regime.py --thetas 1.5 --closed-loop 0.5   # half in closed loop
 
 Targets: --thetas (a one-component family: comma-separated targets; several components: the
 targets separated by ';', their values by ','), each with data seeds 0..--seeds-1; without
@@ -35,6 +36,15 @@ def main(argv=None) -> int:
     ap.add_argument('--iterations', type=int,
                     help="meta-training outer steps (default: NarxMetaConfig's)")
     ap.add_argument('--features', type=int, default=32, help='meta-learned features F')
+    ap.add_argument('--closed-loop', type=float, default=0.0,
+                    help='share of the target samples collected in closed loop by the model '
+                         'adapted to the rest (open loop), then adapted again on all; 0: none')
+    ap.add_argument('--exploration', type=float, default=0.0,
+                    help="the closed-loop part's exploration added to the input (the "
+                         "excitation's band, as a share of the input range)")
+    ap.add_argument('--arx-where-the-prior-loses', action='store_true',
+                    help="where the adaptation's fit toward the meta-model loses to the ARX "
+                         "on the samples, fly the ARX's head (default: a fit toward it)")
     ap.add_argument('--cache', help='a folder where meta-models are kept and read back (the '
                     'same source systems, sizes and settings: the same file)')
     ap.add_argument('--out', help='write the rows as JSON to this file (refused if it exists)')
@@ -80,6 +90,10 @@ def main(argv=None) -> int:
         print('nonlinear_regime: --seeds and --iterations must be >= 1, --features >= 0',
               file=sys.stderr)
         return 2
+    if not 0.0 <= args.closed_loop < 1.0 or not 0.0 <= args.exploration <= 1.0:
+        print('nonlinear_regime: --closed-loop must be in [0, 1), --exploration in [0, 1]',
+              file=sys.stderr)
+        return 2
     import torch
     from metampc_bringup.studies.nonlinear_regime import RegimeConfig, run, summary
     from metampc_learner.narx_learning import NARX_METHODS, NarxMetaConfig
@@ -92,7 +106,9 @@ def main(argv=None) -> int:
                           methods=tuple(methods), features=args.features,
                           meta=NarxMetaConfig(**({} if args.iterations is None
                                                  else {'iterations': args.iterations})),
-                          oracle=not args.no_oracle, overrides=overrides)
+                          oracle=not args.no_oracle, overrides=overrides,
+                          closed_loop=args.closed_loop, exploration=args.exploration,
+                          toward_arx=not args.arx_where_the_prior_loses)
     try:
         rows = run(config, log=lambda line: print(line, flush=True), cache=args.cache)
     except ValueError as err:        # a configuration or theta the family refuses

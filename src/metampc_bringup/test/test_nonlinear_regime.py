@@ -8,7 +8,8 @@ import torch
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.experiment_config import load
 from metampc_bringup.studies.nonlinear_regime import (
-    collect, experiment, meta_models, RegimeConfig, summary, targets, track)
+    closed_loop_record, collect, episode, experiment, meta_models, RegimeConfig, summary,
+    targets, track)
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.nmpc import Nmpc, NmpcConfig
 from metampc_controller.references import make_reference
@@ -71,12 +72,13 @@ def test_collection_is_the_simulators_episode_cut_before_an_escape():
 
 
 def test_the_summary_gives_median_worst_escapes_and_the_paired_claim():
-    rows = [dict(model=m, cost=c, ratio=c / 2.0, heldout=h) for m, c, h in
-            [('imaml', 2.0, 1e-3), ('arx', 4.0, 1e-2), ('imaml', 3.0, 2e-3),
-             ('arx', 2.5, 3e-2), ('imaml', float('inf'), 3e-3), ('arx', 9.0, 5e-2)]]
+    rows = [dict(model=m, cost=c, ratio=c / 2.0, heldout=h, heldout_loop=10 * h)
+            for m, c, h in [('imaml', 2.0, 1e-3), ('arx', 4.0, 1e-2), ('imaml', 3.0, 2e-3),
+                            ('arx', 2.5, 3e-2), ('imaml', float('inf'), 3e-3),
+                            ('arx', 9.0, 5e-2)]]
     lines = summary(rows)
-    assert lines[2] == '| imaml | 1.500 | inf | 1/3 | 2.00e-03 |'
-    assert lines[3] == '| arx | 2.000 | 4.500 | 0/3 | 3.00e-02 |'
+    assert lines[2] == '| imaml | 1.500 | inf | 1/3 | 2.00e-03 | 2.00e-02 |'
+    assert lines[3] == '| arx | 2.000 | 4.500 | 0/3 | 3.00e-02 | 3.00e-01 |'
     assert lines[4].startswith('\nimaml < arx (paired): 1/3; median ratio 1.2')
 
 
@@ -128,3 +130,100 @@ def test_the_pendulums_second_lags_fit_a_mode_its_plant_does_not_have():
         radius[p] = np.abs(np.linalg.eigvals(np.asarray(lin.A))).max()
     assert radius[1] == pytest.approx(true, abs=1e-3)
     assert radius[2] > 1.05
+
+
+class _Constant:
+    """A stand-in planner that always asks for the same input."""
+
+    def __init__(self, u, horizon=3):
+        self.u, self.config = np.array(u, float), type('C', (), {'horizon': horizon})()
+
+    def reset(self):
+        pass
+
+    def solve(self, state, u, r, y, k):
+        return type('S', (), {'u': self.u})()
+
+
+def test_an_episodes_record_is_what_the_plant_did_with_the_exploration_inside_the_bounds():
+    """u[k] is the planner's input plus the exploration, clipped to the bounds, and produced
+    y[k]; fails on an exploration added after the clip (inputs beyond the bounds) or left
+    out, and on a record shifted by one sample."""
+    explore = np.linspace(-1.0, 1.0, 30)[:, None]
+    ref = make_reference('setpoint_sequence', n_y=2, outputs=(0,), setpoints=(0.5,),
+                         segment=10.0)
+    cost, (u, y) = episode(_Constant([0.6]), PLANT, (1.0,), (0.5, 0.0), ref, 30, (0,),
+                           explore=explore)
+    np.testing.assert_allclose(u, np.clip(0.6 + explore, -1.0, 1.0))
+    _, y_sim, _ = simulate(np.array([[1.0]]), np.array([[0.5, 0.0]]), u[None], PLANT)
+    np.testing.assert_allclose(y, y_sim[0, 1:], atol=1e-9)
+    assert cost == pytest.approx(np.sum((y[:, 0] - 0.5) ** 2))
+    plain = episode(_Constant([0.6]), PLANT, (1.0,), (0.5, 0.0), ref, 30, (0,))
+    np.testing.assert_allclose(plain[1][0], 0.6)
+    assert plain[0] == track(_Constant([0.6]), PLANT, (1.0,), (0.5, 0.0), ref, 30, (0,))
+
+
+FAR = {'controller': {'reference_values': [1.2, -0.8, 0.4, -1.2]}}
+
+
+def test_the_closed_loop_record_visits_every_set_point_within_its_samples():
+    """The far-from-rest pendulum's 4 set-points (5 s each in the tracking run) in 120
+    samples (6 s): the segments shortened to 30 samples each, so each quarter of the record
+    ends nearest its own set-point; fails on the tracking run's segments (the first two
+    only)."""
+    tgt = targets(RegimeConfig(experiment='config/pendulum.yaml', thetas=((0.5, 0.5, 0.05),),
+                               seeds=(100,), overrides=FAR))[0]
+    recs = [collect(tgt.controller().excitation, tgt.plant(), tgt.theta,
+                    tgt.experiment.collect_x0, 150, 100)]
+    norm = Normalisation(np.zeros(1), np.ones(1), np.zeros(2), np.ones(2))
+    shape = NarxShape(1, 2, 2, 0, ())
+    model = arx_model(FeatureNarx(shape, norm, init_params(shape, 0)), recs)
+    u, y = closed_loop_record(model, tgt, 120, 0.0)
+    assert u.shape == (120, 1) and y.shape == (120, 2)
+    points = np.array([1.2, -0.8, 0.4, -1.2])
+    for i, quarter in enumerate(np.split(y[:, 0], 4)):
+        assert np.argmin(np.abs(quarter[15:].mean() - points)) == i
+
+
+def test_the_closed_loop_share_is_taken_from_the_target_samples_not_added(monkeypatch):
+    """With closed_loop 0.3 of 100 samples: 70 collected open loop, then per model (the
+    method's and the ARX's) 30 in closed loop by the model fitted to those 70, and every
+    model fitted again on the 100; fails on a study that collects 100 open loop and adds the
+    closed-loop part."""
+    import metampc_bringup.studies.nonlinear_regime as study
+    seen = {'open': [], 'closed': [], 'fitted': []}
+    real_collect, real_closed = study.collect, study.closed_loop_record
+    real_adapt, real_arx = study.adapt, study.arx_model
+
+    def counted_fit(real):
+        def fit(meta, records, *args):
+            seen['fitted'].append(sum(len(y) for _, y in records))
+            return real(meta, records, *args)
+        return fit
+
+    def counted_collect(exc, plant, theta, x0, samples, seed):
+        if seed < 10_000:
+            seen['open'].append(samples)
+        return real_collect(exc, plant, theta, x0, samples, seed)
+
+    def counted_closed(model, tgt, samples, exploration):
+        seen['closed'].append(samples)
+        return real_closed(model, tgt, samples, exploration)
+
+    monkeypatch.setattr(study, 'collect', counted_collect)
+    monkeypatch.setattr(study, 'closed_loop_record', counted_closed)
+    monkeypatch.setattr(study, 'adapt', counted_fit(real_adapt))
+    monkeypatch.setattr(study, 'arx_model', counted_fit(real_arx))
+    config = RegimeConfig(thetas=((1.0,),), seeds=(0,), features=2, hidden=(3,),
+                          meta=NarxMetaConfig(iterations=1, batch_size=2, windows=4),
+                          oracle=False, closed_loop=0.3,
+                          overrides={'target_samples': 100, 'track_duration': 3.0})
+    rows = study.run(config, log=lambda line: None)
+    assert seen == {'open': [70], 'closed': [30, 30], 'fitted': [70, 100, 70, 100]}
+    assert [r['model'] for r in rows] == ['imaml', 'arx']
+    # the error where the controller operates is scored on the NMPC's episode, not the
+    # open-loop held-out samples
+    assert all(np.isfinite(r['heldout_loop']) and r['heldout_loop'] != r['heldout']
+               for r in rows)
+    with pytest.raises(ValueError):
+        RegimeConfig(closed_loop=1.0)

@@ -233,14 +233,17 @@ def arx_model(meta: FeatureNarx, records: Sequence[Record]) -> FeatureNarx:
                                                'head': _arx_head(meta.shape, phi, y)})
 
 
-def _fit(meta: FeatureNarx, phi: torch.Tensor, y: torch.Tensor, gamma: float
-         ) -> Tuple[torch.Tensor, str, float, torch.Tensor, float]:
+def _fit(meta: FeatureNarx, phi: torch.Tensor, y: torch.Tensor, gamma: float,
+         toward_arx: bool = True) -> Tuple[torch.Tensor, str, float, torch.Tensor, float]:
     """(head, rule, its loss, the ARX's head, its loss) on the one-step equations (phi, y):
-    the ridge fit toward the meta-model, toward the ARX's head where that loses to the ARX."""
+    the ridge fit toward the meta-model; where that loses to the ARX, the fit toward the ARX's
+    head (`toward_arx`) or the ARX's head itself (rule 'arx')."""
     arx_head = _arx_head(meta.shape, phi, y)
     arx_loss = float(mean_loss(phi, y, arx_head))
     head, rule = ridge(phi, y, meta.params['head'], gamma), 'ridge'
     loss = float(mean_loss(phi, y, head))
+    if loss > arx_loss and not toward_arx:
+        return arx_head, 'arx', arx_loss, arx_head, arx_loss
     if loss > arx_loss:
         # Toward the ARX's head instead: the minimum of loss + gamma/2 ||Theta - Theta_arx||^2
         # is at most the ARX's loss (Theta_arx is a candidate), and gamma keeps it
@@ -253,8 +256,11 @@ def _fit(meta: FeatureNarx, phi: torch.Tensor, y: torch.Tensor, gamma: float
     return head, rule, loss, arx_head, arx_loss
 
 
-def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> AdaptedNarx:
+def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float,
+          toward_arx: bool = True) -> AdaptedNarx:
     """Algorithm 2 for the feature NARX (module docstring) on the target `records`.
+    `toward_arx` False: where the fit toward the meta-model loses to the ARX on the samples,
+    the ARX's head flies (rule 'arx') instead of a fit toward it with the features free.
 
     Then the validation in time: both fits (this rule and the ARX's) again on each record's
     first VALIDATION_SHARE-complement, their VALIDATION_HORIZON-step rollout loss on its last
@@ -266,11 +272,11 @@ def adapt(meta: FeatureNarx, records: Sequence[Record], gamma: float) -> Adapted
         ValueError: no one-step equation in the records.
     """
     phi, y = _data(meta, records)
-    head, rule, loss, arx_head, arx_loss = _fit(meta, phi, y, gamma)
+    head, rule, loss, arx_head, arx_loss = _fit(meta, phi, y, gamma, toward_arx)
     fit_part, check_part = _split(records, VALIDATION_SHARE)
     windows = _windows(meta.shape, meta.norm, check_part, VALIDATION_HORIZON)
     if rule != 'arx' and len(windows[0]) and len(_data(meta, fit_part)[1]):
-        part_head, _, _, part_arx, _ = _fit(meta, *_data(meta, fit_part), gamma)
+        part_head, _, _, part_arx, _ = _fit(meta, *_data(meta, fit_part), gamma, toward_arx)
         s, u, y_check = (torch.from_numpy(a) for a in windows)
         with torch.no_grad():
             own, arx = ((rollout(meta.shape, meta.params, s, u, h) - y_check)

@@ -74,6 +74,24 @@ def test_a_strong_prior_that_loses_to_the_arx_is_dropped():
     assert adapted.rule in ('ridge', 'ridge_to_arx')
 
 
+def test_without_the_fit_toward_the_arx_a_losing_prior_flies_the_arxs_own_head():
+    """toward_arx False: where the fit toward the meta-model loses to the ARX on the samples
+    the head is the least-squares ARX's, its feature columns zero (fails on a version that
+    still fits toward the ARX with the features free: rule 'ridge_to_arx'); elsewhere the
+    rule is the same."""
+    records, _ = _arx2_records(0)
+    shape = NarxShape(1, 2, order=2, features=3, hidden=(4,))
+    adapted = adapt(_random_meta(shape, 0), records, gamma=1e3, toward_arx=False)
+    assert adapted.rule == 'arx'
+    torch.testing.assert_close(adapted.model.params['head'],
+                               arx_model(_random_meta(shape, 0), records).params['head'])
+    assert adapted.train_loss == pytest.approx(adapted.arx_loss, rel=1e-12)
+    noisy, _ = _arx2_records(1, noise=1e-2)
+    both = [adapt(_random_meta(shape, 1), noisy, gamma=1e-12, toward_arx=flag).rule
+            for flag in (True, False)]
+    assert both[0] != 'ridge_to_arx' and both[0] == both[1]
+
+
 def test_the_ridge_to_arx_stays_regularised_where_features_are_collinear_with_the_lags():
     """Features that are (nearly) linear in the lags on the samples: plain least squares
     gives a head whose feature and lag columns cancel on the data with large weights; the
