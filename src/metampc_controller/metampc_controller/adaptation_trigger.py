@@ -45,7 +45,7 @@ class TriggerConfig:
                                      'counts as motion)', gt=0, live=True)
     posterior_window: int = param(20, 'posterior: ticks of normalised innovations summed in '
                                       'the chi-square test', ge=1, live=True)
-    posterior_alpha: float = param(1e-3, 'posterior: false-alarm probability per tick of the '
+    posterior_alpha: float = param(1e-6, 'posterior: false-alarm probability per tick of the '
                                          'chi-square test (its tail at the threshold)', gt=0,
                                    lt=1, live=True)
     swap_delay: int = param(10, 'lockstep: the answer of step request + swap_delay waits for '

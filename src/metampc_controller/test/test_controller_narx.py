@@ -137,7 +137,7 @@ def test_with_rls_the_tick_adapts_the_head_and_publishes_its_one_step_std():
 
 def test_the_posterior_trigger_asks_and_the_answer_flies_at_its_swap_step_untried():
     """RLS with adaptation posterior on the plant whose theta drops at 5 s (a lockstep plant):
-    the core asks (trigger 'posterior'; at steps 43 and 109), the learner in the loop adapts on
+    the core asks (trigger 'posterior'; at steps 43 and 110), the learner in the loop adapts on
     the latest 60 samples and offers the answer naming the request, and it flies at request +
     swap_delay without a trial (the check is the NSSM's), its head the RLS's new prior. Fails
     where the core does not feed a feature NARX's innovations to the trigger, or the gate puts
