@@ -6,11 +6,10 @@ of step r + swap_delay under lockstep (that tick waits for it), for the next tic
 time; with a trial of P samples it is tried from then (the model in use goes on) and judged P
 samples later; flown with a probation of Q samples it is judged again Q samples later on its
 own loop against the model it replaced, which comes back if it fails (a feature NARX's answer:
-neither, the check is the NSSM's; it flies at its step). The request is pending
-until the last verdict; a refusal ends it. Each decision is a :class:`ModelEvent` that the
-controller applies and publishes as it is (MpcStatus.model_events). Pure Python (no rclpy):
-:meth:`ModelGate.offer` and :meth:`~ModelGate.retune` run on the builder thread, the rest on
-the executor thread; answers are handed over under a lock. Why: docs/controller.md.
+neither, the check is the NSSM's). The request is pending until the last verdict; a refusal
+ends it. Each decision is a :class:`ModelEvent`, applied and published as it is
+(MpcStatus.model_events). Pure Python: :meth:`ModelGate.offer` and :meth:`~ModelGate.retune`
+run on the builder thread, the rest on the executor thread. Why: docs/controller.md.
 """
 from dataclasses import dataclass
 from enum import Enum

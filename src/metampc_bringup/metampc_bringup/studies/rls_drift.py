@@ -8,9 +8,8 @@ retrack.fly`) under each variant's controller parameters, while theta* changes a
 experiment's ``drift.schedule`` says (or, with ``centre_step``, each component moves by that
 toward the middle of its prior's support at mid-run); the true-model NMPC, told theta at every
 step, is the yardstick. Costs before and after the change; the same at constant theta*. A
-variant whose ``adaptation`` is not off has its requests answered in the loop by the learner's
-closed-form adaptation of the meta-model (``narx_learning.adapt``) on the latest
-``loop_window`` samples, offered to the core's model gate (:func:`answer_requests`).
+variant whose ``adaptation`` is not off has its requests answered in the loop by the
+learner's closed-form adaptation on the latest ``loop_window`` samples (:func:`answer_requests`).
 """
 from dataclasses import dataclass, field
 import math
