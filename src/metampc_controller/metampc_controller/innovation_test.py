@@ -14,7 +14,7 @@ from collections import deque
 from typing import Deque
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri   # the chi-square quantile (scipy.stats imports torch)
 
 
 class InnovationTest:
@@ -31,7 +31,7 @@ class InnovationTest:
             raise ValueError(f'need window >= 1, alpha in (0, 1) and n_y >= 1, got {window}, '
                              f'{alpha}, {n_y}')
         self.window, self.alpha, self.n_y = window, alpha, n_y
-        self.threshold = float(chi2.isf(alpha, window * n_y))
+        self.threshold = float(chdtri(window * n_y, alpha))     # its upper alpha quantile
         self._terms: Deque[float] = deque(maxlen=window)
         self.statistic = 0.0
 
