@@ -4,12 +4,15 @@ from dataclasses import replace
 import math
 import os
 
+import numpy as np
 import pytest
 
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.studies import rls_drift
 from metampc_bringup.studies.nonlinear_regime import experiment, meta_models, RegimeConfig
-from metampc_learner.narx_learning import NarxMetaConfig
+from metampc_controller.adaptation_trigger import Request
+from metampc_controller.controller_params import parse_params, PARAMETERS
+from metampc_learner.narx_learning import adapt, NarxMetaConfig
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__)))))
@@ -66,3 +69,38 @@ def test_paired_divides_a_variant_by_the_baseline_seed_by_seed():
     rows.append(dict(seed=3, run='drift', variant='rls', after=math.inf))
     rows.append(dict(seed=3, run='drift', variant='none', after=1.0))
     assert rls_drift.paired(rows, 'rls')[3] == math.inf
+
+
+def test_a_variant_with_adaptation_has_its_requests_answered_by_the_meta_models_fit():
+    """CI drift (12 s, adapt_period 4 s of the configuration, loop_window 40): periodic requests
+    at 4 and 8 s are answered in the loop, each by adapt(meta, the latest 40 samples): the row
+    lists them and their rules, the flown model after the last is that fit (its head), and the
+    variant's cost differs from none's. Fails where the answer fits the whole episode, or where
+    a request is not answered."""
+    config = rls_drift.RlsDriftConfig(
+        regime=_regime(CI), seeds=(0,), constant=False, nmpc=False,
+        variants={'none': {}, 'periodic': {'adaptation': 'periodic'}})
+    meta = meta_models(config.regime, lambda line: None)['imaml']
+    rows = rls_drift.run_seed(config, 0, meta, log=lambda line: None)
+    none, periodic = rows
+    assert none['requests'] == [] and periodic['requests'] == [40, 80]
+    assert len(periodic['answers']) == 2 and periodic['after'] != none['after']
+    # the answer by hand: one learner, one request at step 80 on samples 41..80
+    seen = []
+
+    class Core:
+        model, n_u, n_y = None, 1, 2
+
+        def offer(self, bundle, step):
+            seen.append((bundle, step))
+
+    Core.config = parse_params({name: spec.default for name, spec in PARAMETERS.items()})
+    rules = []
+    learner = rls_drift.answer_requests(meta, 1e-5, 40, rules)
+    rng = np.random.default_rng(0)
+    u, y = rng.uniform(-1, 1, (81, 1)), rng.uniform(-1, 1, (81, 2))
+    learner(Core(), Request(80, 90, 'periodic', 1), u, y)
+    by_hand = adapt(meta, [(u[41:], y[41:])], 1e-5)
+    (bundle, step), = seen
+    assert step == 80 and rules == [by_hand.rule] and bundle.version == 2
+    assert np.allclose(bundle.predictor.head, by_hand.model.params['head'].numpy(), atol=1e-6)

@@ -1,14 +1,14 @@
 """When to ask the learner for a model adapted to the latest samples (adaptation in the loop).
 
-Pure Python (no rclpy). Two rules, fed once per tick: ``periodic`` (every ``adapt_period`` s
-of the episode's plant time) and ``triggered``, a CUSUM on the relative T-step prediction
-error e_k = E_k / (D_k + error_floor) (:mod:`~metampc_controller.prediction_error`) against
-its median b over the model's first ``baseline_s`` s: s_k = max(0, s_{k-1} + log(e_k / b) -
-cusum_drift), a request when s_k > cusum_threshold. Hysteresis: one request at a time, then
-nothing until the answering model is in use and its baseline measured; a request never
-answered is given up after ``adapt_timeout`` s of wall time. A plant reset forgets the
-baseline, the statistic and the request. The settings are live controller parameters.
-Why these rules and defaults (measured): docs/adaptation.md.
+Pure Python (no rclpy). Three rules, fed once per tick: ``periodic`` (every ``adapt_period`` s
+of the episode's plant time); ``triggered``, a CUSUM on the NSSM's relative T-step error e_k =
+E_k / (D_k + error_floor) (:mod:`~metampc_controller.prediction_error`) against its median b
+over the model's first ``baseline_s`` s: s_k = max(0, s_{k-1} + log(e_k / b) - cusum_drift), a
+request when s_k > cusum_threshold; ``posterior``, a feature NARX under the in-loop RLS: the
+windowed chi-square test of its normalised innovations (:mod:`.innovation_test`). Hysteresis:
+one request at a time, then nothing until the answering model is in use (and its baseline
+measured); a request never answered is given up after ``adapt_timeout`` s of wall time. A plant
+reset forgets baseline, statistic and request. Live parameters. Why: docs/adaptation.md.
 """
 from dataclasses import dataclass
 import math
@@ -17,8 +17,9 @@ from typing import List, Optional
 import numpy as np
 
 from metampc_common.params import check_fields, param
+from metampc_controller.innovation_test import InnovationTest
 
-MODES = ('off', 'periodic', 'triggered')
+MODES = ('off', 'periodic', 'triggered', 'posterior')
 
 
 @dataclass
@@ -26,7 +27,9 @@ class TriggerConfig:
     """The adaptation-in-the-loop settings of the controller (see the module docstring)."""
 
     adaptation: str = param('off', 'adaptation in the loop: off, periodic (every adapt_period '
-                                   's) or triggered (CUSUM on the prediction error)',
+                                   's), triggered (CUSUM on the prediction error) or posterior '
+                                   "(a feature NARX under the in-loop RLS: its posterior's "
+                                   'innovations fail a chi-square test)',
                             choices=MODES, live=True)
     adapt_period: float = param(10.0, 'periodic: plant time between requests, s', gt=0,
                                 live=True)
@@ -40,6 +43,11 @@ class TriggerConfig:
     error_floor: float = param(0.01, 'triggered: added to the outputs\' T-step change in the '
                                      'relative error (normalised units: a change of 0.1 std '
                                      'counts as motion)', gt=0, live=True)
+    posterior_window: int = param(20, 'posterior: ticks of normalised innovations summed in '
+                                      'the chi-square test', ge=1, live=True)
+    posterior_alpha: float = param(1e-6, 'posterior: false-alarm probability per tick of the '
+                                         'chi-square test (its tail at the threshold)', gt=0,
+                                   lt=1, live=True)
     swap_delay: int = param(10, 'lockstep: the answer of step request + swap_delay waits for '
                                 'the requested model (realtime: used on arrival)', ge=1,
                             live=True)
@@ -54,7 +62,7 @@ class TriggerConfig:
 @dataclass
 class Request:
     """A request for adaptation: made at `step` (the samples up to it), by `trigger`
-    ('periodic' or 'triggered'), with the model `version` in use; the answer to
+    ('periodic', 'triggered' or 'posterior'), with the model `version` in use; the answer to
     `swap_step` waits for it under a lockstep plant."""
 
     step: int
@@ -75,6 +83,7 @@ class AdaptationTrigger:
         self._since: Optional[int] = None   # first step of that model's baseline window
         self._errors: List[float] = []
         self._next_period = config.adapt_period
+        self._test: Optional[InnovationTest] = None     # posterior's, built at its first use
 
     def new_episode(self) -> None:
         """A plant reset: forget the baseline, the statistic and any request."""
@@ -85,6 +94,8 @@ class AdaptationTrigger:
     def _restart(self, version: int) -> None:
         self._version, self._since, self._errors = version, None, []
         self.baseline, self.statistic = math.nan, 0.0
+        if self._test is not None:
+            self._test.clear()
 
     def answered(self, version: int) -> None:
         """The requested model (`version`) is in use: the request is done."""
@@ -96,11 +107,12 @@ class AdaptationTrigger:
         self.pending = None
         self._restart(self._version)
 
-    def update(self, step: int, dt: float, error_t: float, change_t: float, version: int
-               ) -> Optional[Request]:
+    def update(self, step: int, dt: float, error_t: float, change_t: float, version: int,
+               innovation: Optional[np.ndarray] = None) -> Optional[Request]:
         """The tick of `step` (plant time step x dt) measured the T-step error `error_t` and
-        output change `change_t` (NaN: none yet) with model `version` (0: none); returns the
-        request it makes, if any."""
+        output change `change_t` (NaN: none yet) with model `version` (0: none), and the RLS
+        posterior's normalised innovation (n_y,) (None: no RLS; NaN: none this tick); returns
+        the request it makes, if any."""
         cfg = self.config
         if cfg.adaptation == 'off' or version == 0 or self.pending is not None:
             return None
@@ -112,6 +124,8 @@ class AdaptationTrigger:
             while self._next_period <= step * dt + 1e-9:
                 self._next_period += cfg.adapt_period
             return self._request(step, 'periodic', version)
+        if cfg.adaptation == 'posterior':
+            return self._posterior(step, version, innovation)
         if not (math.isfinite(error_t) and math.isfinite(change_t)) or error_t <= 0:
             return None
         error_t = error_t / (change_t + cfg.error_floor)
@@ -127,6 +141,20 @@ class AdaptationTrigger:
         if self.statistic > cfg.cusum_threshold:
             return self._request(step, 'triggered', version)
         return None
+
+    def _posterior(self, step: int, version: int, innovation: Optional[np.ndarray]
+                   ) -> Optional[Request]:
+        """The posterior rule: statistic the window's sum, baseline the test's threshold."""
+        if innovation is None:
+            return None
+        cfg, test = self.config, self._test
+        key = (cfg.posterior_window, len(innovation))
+        if test is None or (test.window, test.n_y) != key or test.alpha != cfg.posterior_alpha:
+            test = self._test = InnovationTest(cfg.posterior_window, cfg.posterior_alpha,
+                                               len(innovation))
+        rejects = test.update(innovation)
+        self.statistic, self.baseline = test.statistic, test.threshold
+        return self._request(step, 'posterior', version) if rejects else None
 
     def _request(self, step: int, trigger: str, version: int) -> Request:
         self.pending = Request(step, step + self.config.swap_delay, trigger, version)

@@ -10,12 +10,16 @@ score controller settings in seconds (scripts/retrack.py), by the tests as the l
 nodes, and by Algorithm 1's online collection (warm-up inputs, eq. (ub)'s noise on answers).
 """
 from dataclasses import dataclass
-from typing import List, Optional, Sequence
+from typing import Callable, List, Optional, Sequence
 
 import numpy as np
 
+from metampc_controller.adaptation_trigger import Request
 from metampc_controller.controller_core import ControllerCore, TickResult
 from metampc_plant.simulator import Plant
+
+# run_episode's learner in one process: (core, request, u_0..u_k, y_0..y_k) -> None.
+Learner = Callable[[ControllerCore, Request, np.ndarray, np.ndarray], None]
 
 
 @dataclass
@@ -47,7 +51,8 @@ def run_episode(core: ControllerCore, plant: Plant, steps: int,
                 theta: Optional[Sequence[float]] = None,
                 x0: Optional[Sequence[float]] = None,
                 warmup: Optional[np.ndarray] = None,
-                noise: Optional[np.ndarray] = None) -> Episode:
+                noise: Optional[np.ndarray] = None,
+                learner: Optional[Learner] = None) -> Episode:
     """Reset `plant` to (theta, x0) and let `core` answer `steps` samples (module docstring).
 
     The core keeps its model and tuning across episodes; a plant reset is a new episode for it
@@ -58,6 +63,10 @@ def run_episode(core: ControllerCore, plant: Plant, steps: int,
             observes samples 0..W-1 without a tick and answers from step W on.
         noise: (steps - W, n_u) added to the answers of steps W, W + 1, ... in turn before
             the plant clips them (eq. (ub)'s exploration).
+        learner: called with the core, each adaptation request a tick makes and the samples
+            u_0..u_k, y_0..y_k up to its step k: the learner in one process, which offers its
+            answer to the core (``ControllerCore.offer``) or refuses
+            (``core.gate.learner_refused``) before the next sample.
     """
     y0 = plant.reset(theta, x0)
     n_u = plant.family.n_u
@@ -79,6 +88,8 @@ def run_episode(core: ControllerCore, plant: Plant, steps: int,
             ticks.append(res)
             refs.append(res.y_ref[0] if len(res.y_ref) else no_ref)
             u_next = res.u if noise is None else res.u + noise[k - n_warm]
+            if learner is not None and res.request is not None:
+                learner(core, res.request, u[:k + 1], y[:k + 1])
         u[k + 1], _ = plant.saturate(u_next)
         y[k + 1] = plant.step(u[k + 1])
         theta_k = plant.theta

@@ -247,8 +247,8 @@ class ModelBundle:
     @property
     def latent(self) -> Optional[LatentModel]:
         """The NSSM's latent model (fixed), or None for a feature NARX, whose linearisation
-        changes every tick: the model check, the prediction-error monitor (and adaptation
-        requests) and offset-free tracking are the NSSM's."""
+        changes every tick: the model check, the prediction-error monitor (and the triggered
+        rule's requests) and offset-free tracking are the NSSM's."""
         return getattr(self.predictor, 'latent', None)
 
     @property
@@ -263,7 +263,8 @@ class ModelBundle:
             sh = p.shape
             return (f'feature NARX p={sh.order}, F={sh.features}, features {list(sh.hidden)}; '
                     'planned on its linearisation at each tick (offset-free none; no model '
-                    'check, prediction-error monitor or adaptation request: the NSSM\'s)')
+                    'check or prediction-error monitor: the NSSM\'s; adaptation requests '
+                    'periodic, or posterior under the in-loop RLS)')
         cfg, term = p.config, self.mpc.terminal
         return (f'H={cfg.history}, n_z={cfg.n_z}, encoder {list(cfg.hidden)}'
                 + (f'; terminal cost fallback: {term.reason}' if term.dare_unusable else '')
@@ -445,7 +446,8 @@ class TickResult:
     failed_linearisations: the model in use's ticks whose linearisation failed (a feature
         NARX's planner; 0 otherwise).
     events: the model gate's decisions since the previous answer (:mod:`model_gate`).
-    detector: the adaptation trigger's CUSUM statistic and baseline after this tick.
+    detector: the adaptation trigger's statistic and baseline after this tick (triggered: the
+        CUSUM and the baseline error; posterior: the chi-square window's sum and threshold).
     one_step_std: (n_y,) with rls_forgetting on a feature NARX: the std its head's posterior
         gave y_k's one-step prediction (:mod:`narx_rls`; NaN: none yet); empty otherwise.
     rls_event: what :mod:`narx_rls` did this tick that the log says ('' nothing).
@@ -796,13 +798,16 @@ class ControllerCore:
             if model is not None:
                 u_hist, y_hist = history.window(model.history)
                 state = model.predictor.encode(u_hist, y_hist)
+                innovation = None
                 if self.rls is not None and model.latent is None:
                     spread = self.rls.tick(model.predictor, step, state, u_prev, history.y,
                                            tuning.u_min, tuning.u_max)
+                    innovation = self.rls.innovation
                 if model.prediction is not None:
                     errors = model.prediction.update(step, u_prev, history.y, state)
+                if model.prediction is not None or model.latent is None:
                     request = self.trigger.update(step, self.dt, errors[1], errors[2],
-                                                  model.version)
+                                                  model.version, innovation)
                 planner, version = model.mpc, model.version
         else:
             planner = self._true.planner

@@ -5,11 +5,11 @@ except the answer to the pending adaptation request (``request_step`` r): queued
 of step r + swap_delay under lockstep (that tick waits for it), for the next tick in real
 time; with a trial of P samples it is tried from then (the model in use goes on) and judged P
 samples later; flown with a probation of Q samples it is judged again Q samples later on its
-own loop against the model it replaced, which comes back if it fails. The request is pending
-until the last verdict; a refusal ends it. Each decision is a :class:`ModelEvent` that the
-controller applies and publishes as it is (MpcStatus.model_events). Pure Python (no rclpy):
-:meth:`ModelGate.offer` and :meth:`~ModelGate.retune` run on the builder thread, the rest on
-the executor thread; answers are handed over under a lock. Why: docs/controller.md.
+own loop against the model it replaced, which comes back if it fails (a feature NARX's answer:
+neither, the check is the NSSM's). The request is pending until the last verdict; a refusal
+ends it. Each decision is a :class:`ModelEvent`, applied and published as it is
+(MpcStatus.model_events). Pure Python: :meth:`ModelGate.offer` and :meth:`~ModelGate.retune`
+run on the builder thread, the rest on the executor thread. Why: docs/controller.md.
 """
 from dataclasses import dataclass
 from enum import Enum
@@ -186,14 +186,14 @@ class ModelGate(Generic[Model]):
         """A new model naming `request_step` (0: none), `in_use` flying: FLEW (from the next
         tick), QUEUED (the answer to the pending request) or REFUSED (by the check; an answer
         to the pending request so refused ends it)."""
-        trial = self.tried(request_step, in_use, settings)
+        trial = self.tried(request_step, in_use, settings) if model.latent is not None else 0
         verdict = None
         if not trial and settings.gate.checks(bool(request_step)):
             verdict, event = self._arrival_check(model, request_step, in_use, settings)
             if event is not None:
                 return event
-        start = self._queue(model, request_step, trial, self._probation_of(request_step,
-                                                                           settings))
+        probation = self._probation_of(request_step, settings) if model.latent is not None else 0
+        start = self._queue(model, request_step, trial, probation)
         if start is not None:
             return ModelEvent(Outcome.QUEUED, model.version, request_step, verdict,
                               start=start, trial=trial, at_arrival=True)

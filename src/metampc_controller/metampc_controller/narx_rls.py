@@ -6,8 +6,10 @@ the model came with, precision r0 = rls_prior_gamma / (2 (1 - lam)): the learner
 forgetting's window; g stays). Not taken, counted: a non-finite sample, a saturated u_k (at the
 input bounds), a step whose linearisation at (s_k, u_k) leaves the family :func:`accepted`
 describes. A new episode or model starts from the prior. :meth:`NarxRls.tick` returns the
-a-priori one-step std of y_k per output (physical; ``MpcStatus.one_step_std``). Numpy only; what
-it measured: docs/adaptation.md#recursive-least-squares-on-the-feature-narx.
+a-priori one-step std of y_k per output (physical; ``MpcStatus.one_step_std``) and keeps the
+normalised innovation (the a-priori error over that std, the posterior trigger's input; NaN
+until 1 / (1 - lam) samples were taken since the prior: the noise estimate's memory). Numpy
+only; measured: docs/adaptation.md#recursive-least-squares-on-the-feature-narx.
 """
 from dataclasses import dataclass
 from typing import Optional
@@ -77,8 +79,11 @@ class NarxRls:
                              f'got {lam}, {config.rls_prior_gamma}')
         self.config = config
         self.precision = config.rls_prior_gamma / 2 / (1 - lam)
+        self.memory = int(round(1 / (1 - lam)))     # samples before an innovation is kept
         self.counts = RlsCounts()
         self.event = ''       # what the latest tick did that a log should say ('' nothing)
+        # the latest tick's (y_k - y_hat_k) / std per output, before y_k was taken (NaN: none)
+        self.innovation = np.zeros(0)
         self._predictor: Optional[NarxPredictor] = None
         self._rls: Optional[HeadRls] = None
         self._prior = np.zeros((0, 0))
@@ -116,6 +121,7 @@ class NarxRls:
             self._bind(predictor)
         rls, last, nm, cols = self._rls, self._last, predictor.norm, self._cols
         self._last = (step, np.array(s, dtype=np.float64))
+        self.innovation = np.full(predictor.shape.n_y, np.nan)
         if last is None or last[0] != step - 1:     # a new episode: from the prior
             rls.reset()
             predictor.set_head(self._prior)
@@ -126,10 +132,13 @@ class NarxRls:
         y_n = ((np.asarray(y, np.float64) - nm.y_mean) / nm.y_std
                - self._prior[:, ~cols] @ phi_all[~cols])
         finite = bool(np.all(np.isfinite(phi_all)) and np.all(np.isfinite(y_n)))
-        std = rls.predictive_std(phi) * nm.y_std if finite else np.full(len(y_n), np.nan)
         if not finite:
             self.counts.nonfinite += 1
-            return std
+            return np.full(len(y_n), np.nan)
+        std_n = rls.predictive_std(phi)
+        if rls.since_prior >= self.memory:
+            self.innovation = (y_n - rls.head @ phi) / std_n
+        std = std_n * nm.y_std
         if np.any(u <= u_min + SATURATION_TOL) or np.any(u >= u_max - SATURATION_TOL):
             self.counts.saturated += 1
             return std

@@ -92,9 +92,33 @@ def test_a_new_model_or_episode_restarts_the_baseline_and_off_asks_nothing():
     assert feed(off, [1.0] * 30 + [1e6] * 50) == []
 
 
+def test_posterior_requests_when_the_chi_square_window_rejects_and_starts_again_after():
+    """W 5, alpha 1e-3, 2 outputs: threshold chi2.isf(1e-3, 10) = 29.59 (tables). Unit
+    innovations sum to 10 per window: no request; innovations of 2.5 per output (12.5 per
+    tick) after 10 unit ticks: the sum is 2 (5 - j) + 12.5 j, above 29.59 at j = 2 (31). None
+    (no RLS) asks nothing; the model answering the request starts an empty window. Fails on
+    a posterior rule that reads the T-step error or keeps the window across models."""
+    cfg = TriggerConfig(adaptation='posterior', posterior_window=5, posterior_alpha=1e-3)
+    trigger = AdaptationTrigger(cfg)
+    for k in range(20):
+        assert trigger.update(k, DT, 1e6, 0.0, 1, None) is None
+    steps = []
+    for k, nu in enumerate([1.0] * 10 + [2.5] * 3):
+        request = trigger.update(20 + k, DT, 1e6, 0.0, 1, np.full(2, nu))
+        if request is not None:
+            steps.append((request.step, request.trigger))
+    assert steps == [(31, 'posterior')]
+    assert trigger.baseline == pytest.approx(29.588, abs=1e-3)
+    assert trigger.statistic == pytest.approx(3 * 2 + 2 * 12.5)
+    trigger.answered(2)
+    assert trigger.update(40, DT, 1.0, 1.0, 2, np.full(2, 10.0)) is None   # 1 of 5 ticks
+    assert trigger.statistic == pytest.approx(200.0)
+
+
 def test_bad_settings_are_refused():
     for bad in (dict(adapt_period=0.0), dict(cusum_threshold=-1.0), dict(swap_delay=0),
-                dict(adaptation='sometimes')):
+                dict(adaptation='sometimes'), dict(posterior_window=0),
+                dict(posterior_alpha=1.0)):
         with pytest.raises(ValueError):
             TriggerConfig(**bad).validate()
 

@@ -9,6 +9,7 @@ import torch
 
 from metampc_bringup.studies.nonlinear_regime import collect, track
 from metampc_common.excitation import ExcitationConfig
+from metampc_controller.adaptation_trigger import TriggerConfig
 from metampc_controller.closed_loop import run_episode
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
@@ -20,6 +21,7 @@ from metampc_learner.narx_learning import adapt
 from metampc_model.feature_narx import FeatureNarx, init_params, NarxShape
 from metampc_model.normalisation import Normalisation
 from metampc_model.weights_codec import fields_from_narx, model_from_fields
+from metampc_plant.plant_description import PlantDescription
 from metampc_plant.simulator import Plant, PlantConfig
 
 THETA = (1.0,)
@@ -131,3 +133,38 @@ def test_with_rls_the_tick_adapts_the_head_and_publishes_its_one_step_std():
                                                 u[k + 1]) - y[k + 1]) ** 2
                                 for k in range(STEPS - 50, STEPS - 1)])
     assert errors['rls'] < 0.75 * errors['prior']
+
+
+def test_the_posterior_trigger_asks_and_the_answer_flies_at_its_swap_step_untried():
+    """RLS with adaptation posterior on the plant whose theta drops at 5 s (a lockstep plant):
+    the core asks (trigger 'posterior'; at steps 43 and 110), the learner in the loop adapts on
+    the latest 60 samples and offers the answer naming the request, and it flies at request +
+    swap_delay without a trial (the check is the NSSM's), its head the RLS's new prior. Fails
+    where the core does not feed a feature NARX's innovations to the trigger, or the gate puts
+    its answer on trial."""
+    model = _narx()
+    decoded = model_from_fields(fields_from_narx(model.shape, model.norm, model.params))
+    plant = replace(PLANT, theta_schedule=(5.0, 5.0, -0.5))
+    config = replace(CONTROLLER, rls=RlsConfig(rls_forgetting=0.95),
+                     trigger=TriggerConfig(adaptation='posterior'))
+    core = ControllerCore(config)
+    core.set_plant(PlantDescription('vanderpol', 0.1, (-1.0,), (1.0,), 2, True))  # lockstep
+    core.offer(build_model(decoded, 1, 'imaml', 'adapted', core.config.mpc, 1, 2))
+    answers = []
+
+    def learner(core, request, u, y):
+        fit = adapt(model, [(u[-60:], y[-60:])], 1e-5).model
+        weights = model_from_fields(fields_from_narx(fit.shape, fit.norm, fit.params))
+        answers.append((request, core.offer(build_model(
+            weights, request.version + 1, 'imaml', 'online', core.config.mpc, 1, 2),
+            request.step), weights.params['head']))
+
+    episode = run_episode(core, Plant(plant), STEPS, THETA, (0.0, 0.0), learner=learner)
+    assert answers and answers[0][0].trigger == 'posterior'
+    request, event, head = answers[0]
+    swap = request.step + config.trigger.swap_delay
+    versions = {t.step: t.model_version for t in episode.ticks}
+    assert event.outcome.value == 'queued' and versions[swap - 1] == 1 and versions[swap] == 2
+    flown = [e for t in episode.ticks for e in t.events if e.version == 2]
+    assert [e.outcome.value for e in flown] == ['queued', 'flew']
+    assert core.rls._prior.tolist() == answers[-1][2].tolist()

@@ -3,6 +3,7 @@ leaves out, where it starts again."""
 import numpy as np
 import pytest
 
+from metampc_controller.innovation_test import InnovationTest
 from metampc_controller.narx_rls import accepted, NarxRls, RlsConfig
 from metampc_model.feature_narx import init_params
 from metampc_model.head_rls import HeadRls
@@ -150,3 +151,38 @@ def test_bad_settings_are_refused():
         NarxRls(RlsConfig(rls_forgetting=0.0, rls_prior_gamma=1e-5))
     with pytest.raises(ValueError):
         NarxRls(RlsConfig(rls_forgetting=0.9, rls_prior_gamma=0.0))
+
+
+def test_the_innovation_is_the_a_priori_error_over_its_std_and_passes_a_chi_square_test():
+    """On a constant noisy plant the innovation is NaN until 1 / (1 - lam) = 100 samples were
+    taken, then times the published std it is y_k minus the prediction made before y_k (to
+    1e-12), and the chi-square test of it (W 20, alpha 0.01) alarms at 0.5-1.5 alpha of the
+    ticks; when the plant's input gain halves, within 10 ticks (seed 0: the 5th). Fails on the
+    a-posteriori error (the head after y_k), on the error in physical units over a normalised
+    std, on a std without the estimate's leverage, or on a test from the first samples (a
+    noise estimate of few samples)."""
+    plant, model = _model(STABLE), _model(STABLE)
+    changed = STABLE.copy()
+    changed[0, 7] = 0.3
+    rls = NarxRls(RlsConfig(rls_forgetting=0.99, rls_prior_gamma=1e-5))
+    test = InnovationTest(20, 0.01, 1)
+    rng = np.random.default_rng(0)
+    u_hist, y_hist, prev, alarms = [np.zeros(1)] * 2, [np.full(1, 0.5)] * 2, None, []
+    for k in range(8010):
+        if k == 8000:
+            plant = _model(changed)         # y_8001 on is the changed plant's
+        s = model.encode(np.array(u_hist), np.array(y_hist))
+        predicted = model.step(*prev) if prev is not None else None
+        std = rls.tick(model, k, s, u_hist[-1], y_hist[-1], U_MIN, U_MAX)
+        if k <= rls.memory:         # 100 samples taken from step 1: the noise's memory
+            assert np.isnan(rls.innovation).all()
+        else:
+            assert rls.innovation[0] * std[0] == pytest.approx(
+                y_hist[-1][0] - predicted[0], abs=1e-12)
+        alarms.append(k > 100 and test.update(rls.innovation))
+        u = rng.uniform(-0.9, 0.9, 1)
+        prev = (s, u)
+        y = plant.step(s, u) + 0.05 * rng.normal(size=1)
+        u_hist, y_hist = u_hist[1:] + [u], y_hist[1:] + [y]
+    assert 0.005 <= np.mean(alarms[200:8001]) <= 0.015
+    assert any(alarms[8001:8011])

@@ -447,7 +447,8 @@ class LearnerSession:
                    progress: Optional[ProgressFn] = None) -> AdaptOutcome:
         """Adaptation in the loop (``loop_adaptation``): eq. (infer) on `samples` (the latest
         window, all for training) from the model `version` in use, anchored to its method's
-        meta-model; a model of stage 'online'.
+        meta-model; a model of stage 'online'. A feature NARX: its method's meta-model adapted
+        in closed form on the window (:meth:`_loop_adapt_narx`).
 
         Raises:
             LearnerError: a version this learner did not make (or no longer keeps), or a
@@ -459,6 +460,8 @@ class LearnerSession:
             raise LearnerError(f'model version {version} is not one of the last '
                                f'{KEPT_RECORDS} models of this learner')
         meta = self.by_class.get(record.model_class, {}).get(record.method)
+        if isinstance(record.model, FeatureNarx):
+            return self._loop_adapt_narx(record, meta, samples)
         # A model the gain check replaced by the ARX has the ARX's architecture: its own anchor.
         anchor = (meta.params if meta is not None and meta.model.config == record.model.config
                   else record.params)
@@ -480,6 +483,32 @@ class LearnerSession:
                                train_steps=loop.steps, train_samples=samples_in(train),
                                seed=record.seed, train_time=result.elapsed)
         return AdaptOutcome(new, result, used, samples_in(train), 0)
+
+    def _loop_adapt_narx(self, record: ModelRecord, meta: Optional[ModelRecord],
+                         samples: TargetSamples) -> AdaptOutcome:
+        """A feature NARX in the loop: ``narx_learning.adapt`` (a new head by the closed-form
+        ridge toward the meta-model's at ``narx_gamma``, validated in time against the ARX;
+        g the meta-model's) of the method's meta-model (none: the model in use) on the
+        window. LearnerError: no one-step equation in the window."""
+        start = time.monotonic()
+        train, _, used = split_target(samples, 0, 0.0, self.config.source.state_bound)
+        records = [(t.u, t.y) for t in train]
+        base = (meta.model if meta is not None and isinstance(meta.model, FeatureNarx)
+                else record.model)
+        try:
+            adapted = narx_learning.adapt(base, records, self.config.narx_meta.gamma)
+        except ValueError as err:
+            raise LearnerError(f'too few samples: the window holds {len(samples)}: {err}'
+                               ) from None
+        model = adapted.model
+        loss = narx_learning.one_step_loss(model, records)
+        result = AdaptResult(params=model.params, train_loss=[loss], heldout_loss=[],
+                             elapsed=time.monotonic() - start)
+        new = self._new_record(model=model, params=model.params, method=record.method,
+                               stage='online', train_loss=loss, train_steps=1,
+                               train_samples=samples_in(train), seed=record.seed,
+                               train_time=result.elapsed)
+        return AdaptOutcome(new, result, used, samples_in(train), 0, rule=adapted.rule)
 
 
 __all__ = ['LearnerError', 'ModelRecord', 'MetaOutcome', 'AdaptOutcome', 'LearnerSession']

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from metampc_model.feature_narx import FeatureNarx, init_params as narx_init_params, NarxShape
 from metampc_model.normalisation import Normalisation
 from metampc_model.nssm import init_params, Nssm
 from metampc_model.nssm_config import NssmConfig
@@ -14,6 +15,7 @@ from metampc_learner.data import Windows
 from metampc_learner.learner_params import LearnerNodeConfig, parse_params, PARAMETERS
 from metampc_learner.learner_session import LearnerError, LearnerSession
 from metampc_learner.loop_adaptation import LoopConfig, RecentSamples
+from metampc_learner.narx_learning import one_step_loss
 from metampc_learner.target_buffer import split_target
 from metampc_plant.simulator import Plant, PlantConfig
 
@@ -152,3 +154,35 @@ def test_bad_loop_parameters_are_refused(overrides, match):
 def test_loop_config_defaults():
     assert dataclasses.asdict(LoopConfig()) == dict(adaptation=False, window=0, steps=10,
                                                     lr=0.0, gamma=1.0)
+
+
+def test_a_feature_narx_in_the_loop_is_its_meta_model_adapted_on_the_window():
+    """A feature NARX's answer: the meta-model's g, a new head by the closed-form adaptation of
+    the meta-model (not of the model in use: two models in use with other features and heads
+    get the same answer) that fits the window's one-step equations better than the model in
+    use. Fails
+    where the NARX goes the NSSM's way (gradient steps on Windows of an Nssm config) or starts
+    from the model in use."""
+    session = tiny_session()
+    shape = NarxShape(1, 2, order=2, features=8, hidden=(8,))
+    norm = Normalisation(np.zeros(1), np.full(1, 0.6), np.zeros(2), np.ones(2))
+    meta = FeatureNarx(shape, norm, narx_init_params(shape, 0))
+    record = dict(method='imaml', train_loss=0.0, train_steps=0, train_samples=0, seed=0)
+    session._new_record(model=meta, params=meta.params, stage='meta', **record)
+    heads = []
+    for seed in (1, 2):         # models in use with features and heads of their own
+        params = narx_init_params(shape, seed)
+        in_use = session._new_record(model=FeatureNarx(shape, norm, params), params=params,
+                                     stage='adapted', **record)
+        window = samples_of(-0.5).until(50, 40)
+        out = session.loop_adapt(in_use.version, window)
+        assert (out.record.stage, out.record.method) == ('online', 'imaml')
+        new = out.record.model
+        assert all(torch.equal(new.params[k], meta.params[k]) for k in meta.params
+                   if k != 'head')
+        train, _, _ = split_target(window, 0, 0.0, 1e9)
+        records = [(t.u, t.y) for t in train]
+        assert (one_step_loss(new, records)
+                < 0.5 * one_step_loss(in_use.model, records)), seed
+        heads.append(new.params['head'])
+    assert torch.equal(heads[0], heads[1])

@@ -49,6 +49,7 @@ class HeadRls:
         self._chol = (np.sqrt(self.precision) * np.eye(n), True)
         self.noise = np.full(n_y, np.nan)                     # s2 per output
         self._weight = 0.0
+        self.since_prior = 0      # samples taken since this reset
 
     def leverage(self, phi: np.ndarray) -> float:
         """phi' R^{-1} phi of the current estimate."""
@@ -98,6 +99,7 @@ class HeadRls:
         noise = np.where(np.isfinite(self.noise), self.noise, 0.0)
         self.noise = noise + (scaled - noise) / self._weight
         self.updates += 1
+        self.since_prior += 1
         return 'taken'
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from metampc_bringup.analysis.paired_stats import paired_claim
 from metampc_bringup.experiment_config import (experiment_method, ExperimentConfig,
                                                from_mapping)
-from metampc_controller.closed_loop import Episode, run_episode
+from metampc_controller.closed_loop import Episode, Learner, run_episode
 from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_controller.controller_params import ControllerConfig
 from metampc_controller.controller_params import parse_params as parse_controller
@@ -125,12 +125,14 @@ def plant_config(plant: Mapping[str, Any], theta: Sequence[float]) -> PlantConfi
 
 def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence[float],
         x0: Sequence[float], steps: int,
-        weights: Optional[Union[DecodedWeights, DecodedNarx]] = None) -> Episode:
+        weights: Optional[Union[DecodedWeights, DecodedNarx]] = None,
+        learner: Optional[Learner] = None) -> Episode:
     """One tracking episode in one process (no ROS): the controller node's parameter values
     `controller` (its declared defaults filled in), its latent MPC on `weights` (a feature
     NARX's: relinearised each tick) or, with
     None, its true-model NMPC, against the plant core of the plant node's parameter values
-    `plant` at `theta`, from `x0` for `steps` samples (:func:`closed_loop.run_episode`).
+    `plant` at `theta`, from `x0` for `steps` samples (:func:`closed_loop.run_episode`, whose
+    `learner` answers adaptation requests).
 
     Raises:
         WeightsError: the controller rejects the weights (one line).
@@ -144,7 +146,7 @@ def fly(controller: Mapping[str, Any], plant: Mapping[str, Any], theta: Sequence
     if weights is not None:
         core.offer(build_model(weights, 1, 'retrack', 'adapted', core.config.mpc, core.n_u,
                                core.n_y, core.config.history))
-    return run_episode(core, Plant(plant_cfg), steps, theta, x0)
+    return run_episode(core, Plant(plant_cfg), steps, theta, x0, learner=learner)
 
 
 def _with_defaults(table: Mapping[str, Any], values: Mapping[str, Any]) -> Dict[str, Any]:

@@ -7,7 +7,9 @@ weights message's fields, and flown by the controller core (:func:`~metampc_brin
 retrack.fly`) under each variant's controller parameters, while theta* changes as the
 experiment's ``drift.schedule`` says (or, with ``centre_step``, each component moves by that
 toward the middle of its prior's support at mid-run); the true-model NMPC, told theta at every
-step, is the yardstick. Costs before and after the change; the same at constant theta*.
+step, is the yardstick. Costs before and after the change; the same at constant theta*. A
+variant whose ``adaptation`` is not off has its requests answered in the loop by the
+learner's closed-form adaptation on the latest ``loop_window`` samples (:func:`answer_requests`).
 """
 from dataclasses import dataclass, field
 import math
@@ -18,7 +20,11 @@ import numpy as np
 from metampc_bringup.analysis.retrack import fly, plant_config
 from metampc_bringup.studies.nonlinear_regime import (collect, experiment, meta_models,
                                                       RegimeConfig)
+from metampc_controller.adaptation_trigger import Request
+from metampc_controller.closed_loop import Learner
+from metampc_controller.controller_core import build_model, ControllerCore
 from metampc_learner.narx_learning import adapt
+from metampc_model.feature_narx import FeatureNarx
 from metampc_model.weights_codec import fields_from_narx, model_from_fields
 
 
@@ -58,6 +64,33 @@ def schedule(config: RlsDriftConfig, theta: Sequence[float], steps: int, dt: flo
     return [t, t, *moved]
 
 
+def decoded(model: FeatureNarx):
+    """A feature NARX as the controller receives it (through the weights message's fields)."""
+    return model_from_fields(fields_from_narx(model.shape, model.norm, model.params))
+
+
+def answer_requests(meta: FeatureNarx, gamma: float, window: int, rules: List[str]
+                    ) -> Learner:
+    """The learner in one process: each request of step k is answered by ``adapt(meta,
+    [the latest `window` samples up to k], gamma)`` (stage 'online', the next version), offered
+    to the core's gate naming the request; its rule is appended to `rules` ('refused: ...' where
+    adapt raises)."""
+    def learner(core: ControllerCore, request: Request, u: np.ndarray, y: np.ndarray) -> None:
+        first = max(0, len(y) - window)
+        try:
+            model = adapt(meta, [(u[first:], y[first:])], gamma)
+        except ValueError as err:
+            rules.append(f'refused: {err}')
+            core.gate.learner_refused(request.step)
+            return
+        rules.append(model.rule)
+        version = max(request.version, core.model.version if core.model else 0) + 1
+        core.offer(build_model(decoded(model.model), version, 'imaml', 'online',
+                               core.config.mpc, core.n_u, core.n_y, core.config.history),
+                   request.step)
+    return learner
+
+
 def _costs(episode, tracked: Sequence[int], change: int) -> Dict[str, float]:
     """Sums of squared tracking errors up to sample `change` and after it (inf: escaped)."""
     if episode.escaped_at is not None:
@@ -75,9 +108,12 @@ def run_seed(config: RlsDriftConfig, seed: int, meta, log: Callable[[str], None]
     ctrl = exp.node_config('controller', seed)
     plant = plant_config(exp.node_parameters('plant', seed), theta)
     record = collect(ctrl.excitation, plant, theta, exp.collect_x0, exp.target_samples, seed)
-    adapted = adapt(meta, [record], config.regime.meta.gamma)
-    model = adapted.model
-    weights = model_from_fields(fields_from_narx(model.shape, model.norm, model.params))
+    gamma = config.regime.meta.gamma
+    adapted = adapt(meta, [record], gamma)
+    weights = decoded(adapted.model)
+    learner_params = exp.node_parameters('learner', seed)
+    window = (learner_params.get('loop_window')
+              or learner_params.get('target_buffer_size', exp.target_samples))
     duration = exp.drift_config().duration if config.centre_step is None else (
         exp.track_duration)
     steps = int(round(duration / exp.dt))
@@ -92,18 +128,24 @@ def run_seed(config: RlsDriftConfig, seed: int, meta, log: Callable[[str], None]
         nmpc = (_costs(fly(controller, plant_params, theta, exp.track_x0, steps), tracked,
                        change) if config.nmpc else {'before': math.nan, 'after': math.nan})
         for name, overrides in config.variants.items():
-            episode = fly({**controller, **overrides}, plant_params, theta, exp.track_x0,
-                          steps, weights)
+            values = {**controller, **overrides}
+            rules: List[str] = []
+            learner = (answer_requests(meta, gamma, window, rules)
+                       if values.get('adaptation', 'off') != 'off' else None)
+            episode = fly(values, plant_params, theta, exp.track_x0, steps, weights, learner)
             cost = _costs(episode, tracked, change)
             counts = episode.ticks[-1].rls_counts if episode.ticks else None
+            requests = [t.step for t in episode.ticks if t.request is not None]
             rows.append(dict(seed=seed, theta=list(theta), run=run, variant=name,
                              rule=adapted.rule, escaped=episode.escaped_at is not None,
                              nmpc_before=nmpc['before'], nmpc_after=nmpc['after'], **cost,
                              ratio_before=cost['before'] / nmpc['before'],
                              ratio_after=cost['after'] / nmpc['after'],
-                             counts=dict(counts.__dict__) if counts is not None else None))
+                             counts=dict(counts.__dict__) if counts is not None else None,
+                             requests=requests, answers=rules))
             log(f'seed {seed} {run:>8} {name:>16}: after / NMPC {rows[-1]["ratio_after"]:.4f}'
-                f' before {rows[-1]["ratio_before"]:.4f} {rows[-1]["counts"] or ""}')
+                f' before {rows[-1]["ratio_before"]:.4f} {rows[-1]["counts"] or ""}'
+                + (f' requests at {requests}: {rules}' if requests else ''))
     return rows
 
 
@@ -122,4 +164,5 @@ def paired(rows: Sequence[Dict[str, Any]], variant: str, baseline: str = 'none',
     return {s: own[s] / base[s] for s in sorted(own) if s in base}
 
 
-__all__ = ['RlsDriftConfig', 'schedule', 'run_seed', 'run', 'paired']
+__all__ = ['RlsDriftConfig', 'schedule', 'decoded', 'answer_requests', 'run_seed', 'run',
+           'paired']
