@@ -6,12 +6,10 @@ with the meta-model's head Theta_bar as prior mean (Bertinetto et al., ICLR 2019
     Theta* = (Y'Phi / M + gamma/2 Theta_bar) (Phi'Phi / M + gamma/2 I)^{-1}
 
 Solved as the stacked least squares [Phi / sqrt(M); sqrt(lambda) I] Theta' = [Y / sqrt(M);
-gamma/2 / sqrt(lambda) Theta_bar'] by QR, never through Phi'Phi, whose condition number is the
-square of Phi's: the lags of outputs that are a state and its derivative are nearly collinear
-(van der Pol: cond(Phi) ~ 3e5), where the normal equations lost the least-squares fit. gamma = 0
-is least squares; lambda = max(gamma/2, RIDGE_FLOOR times Phi'Phi/M's mean diagonal) keeps an
-exactly singular Phi (collinear samples, a constant input) solvable, with one warning.
-Differentiable (torch): autograd through it is the exact meta-gradient of eq. (outer).
+gamma/2 / sqrt(lambda) Theta_bar'] by QR, never through Phi'Phi (cond squared: van der Pol's
+nearly collinear lags, cond(Phi) ~ 3e5, lost the least-squares fit there). gamma = 0 is least
+squares; lambda = max(gamma/2, RIDGE_FLOOR x Phi'Phi/M's mean diagonal) keeps a singular Phi
+solvable, with one warning. Differentiable: autograd through it is eq. (outer)'s meta-gradient.
 """
 import warnings
 
