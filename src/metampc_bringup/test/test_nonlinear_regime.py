@@ -113,8 +113,9 @@ def test_the_pendulums_second_lags_fit_a_mode_its_plant_does_not_have():
     """Why the pendulum's p is 1 (docs/studies/2026-12-08-pendulum-lags.md): its outputs are
     its state, so the second lags are redundant in the one-step equations and the least
     squares sets them by the noise: on validation seed 109's 300 samples ARX(2) has an
-    eigenvalue 1.076 (unstable; its MPC tracked at 2.8x the NMPC) where the plant's are
-    exp(-b dt / (2 m l^2)) = 0.9994 and ARX(1)'s 0.9995 (it tracked at 1.0x)."""
+    eigenvalue 1.021 (unstable; 1.076 through the normal equations, where its MPC tracked at
+    2.8x the NMPC) where the plant's are exp(-b dt / (2 m l^2)) = 0.9994 and ARX(1)'s 0.9995
+    (it tracked at 1.0x)."""
     tgt = targets(RegimeConfig(experiment='config/pendulum.yaml', seeds=(109,)))[0]
     plant = tgt.plant()
     records = [collect(tgt.controller().excitation, plant, tgt.theta,
@@ -129,7 +130,7 @@ def test_the_pendulums_second_lags_fit_a_mode_its_plant_does_not_have():
         lin = arx.linearise(arx.state(np.zeros((p, 1)), np.zeros((p, 2))), np.zeros(1))
         radius[p] = np.abs(np.linalg.eigvals(np.asarray(lin.A))).max()
     assert radius[1] == pytest.approx(true, abs=1e-3)
-    assert radius[2] > 1.05
+    assert radius[2] > 1.01
 
 
 class _Constant:
