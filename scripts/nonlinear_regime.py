@@ -45,8 +45,9 @@ def main(argv=None) -> int:
     ap.add_argument('--arx-where-the-prior-loses', action='store_true',
                     help="where the adaptation's fit toward the meta-model loses to the ARX "
                          "on the samples, fly the ARX's head (default: a fit toward it)")
-    ap.add_argument('--cache', help='a folder where meta-models are kept and read back (the '
-                    'same source systems, sizes and settings: the same file)')
+    ap.add_argument('--cache', help="a folder where meta-models and each target's rows are "
+                    'kept and read back (the same settings: the same file), so a stopped study '
+                    'resumes where it stopped')
     ap.add_argument('--out', help='write the rows as JSON to this file (refused if it exists)')
     args = ap.parse_args(argv)
     try:

@@ -1,4 +1,5 @@
 """The nonlinear-regime study's pieces (nonlinear_regime): its loop, targets and collection."""
+from dataclasses import replace
 import time
 
 import numpy as np
@@ -7,8 +8,9 @@ import torch
 
 from metampc_bringup.analysis.retrack import fly
 from metampc_bringup.experiment_config import load
+from metampc_bringup.studies import nonlinear_regime
 from metampc_bringup.studies.nonlinear_regime import (
-    closed_loop_record, collect, episode, experiment, meta_models, RegimeConfig, summary,
+    closed_loop_record, collect, episode, experiment, meta_models, RegimeConfig, run, summary,
     targets, track)
 from metampc_common.excitation import ExcitationConfig
 from metampc_controller.nmpc import Nmpc, NmpcConfig
@@ -95,6 +97,28 @@ def test_the_cache_gives_back_the_same_meta_model_and_keys_on_its_settings(tmp_p
                          meta=NarxMetaConfig(iterations=3, batch_size=2, windows=4))
     meta_models(other, said.append, str(tmp_path))
     assert said[2].startswith('meta-trained') and len(list(tmp_path.iterdir())) == 2
+
+
+def test_a_stopped_study_resumes_from_the_rows_it_kept(tmp_path, monkeypatch):
+    """Each target's rows are kept in the cache and read back, not flown again; fails on a
+    key that leaves out the seed (the second target would get the first's rows) or on rows
+    not kept."""
+    config = RegimeConfig(seeds=(0, 1), thetas=((1.5,),), features=2, hidden=(3,),
+                          oracle=False, overrides={'track_duration': 3.0},
+                          meta=NarxMetaConfig(iterations=2, batch_size=2, windows=4))
+    first = run(config, print, str(tmp_path))
+    assert len(list(tmp_path.glob('rows_*.json'))) == 2
+
+    def flown(*args):
+        raise AssertionError('a kept target was flown again')
+    monkeypatch.setattr(nonlinear_regime, 'target_rows', flown)
+    again = run(config, print, str(tmp_path))
+    assert [r['seed'] for r in again] == [0, 0, 1, 1]
+    assert again == first
+    with pytest.raises(AssertionError, match='flown again'):   # another target: not kept
+        run(replace(config, seeds=(2,)), print, str(tmp_path))
+    with pytest.raises(AssertionError, match='flown again'):   # other settings: not kept
+        run(replace(config, closed_loop=0.5), print, str(tmp_path))
 
 
 def test_the_lags_are_the_familys_learner_narx_order():

@@ -13,6 +13,7 @@ experiment's (sum of squared tracking errors; an escape costs inf). Protocol: do
 from dataclasses import dataclass, field, replace
 from functools import partial
 import hashlib
+import json
 import math
 import os
 import time
@@ -253,61 +254,93 @@ def run(config: RegimeConfig, log: Callable[[str], None] = print,
     """Every row of the study (module docstring): one dict per (target, model) with the
     tracking cost, its ratio to the NMPC's, held-out and training losses (``heldout``: the
     HELDOUT_HORIZON-step loss on open-loop samples; ``heldout_loop``: along the NMPC's own
-    episode at the target, near the set-points, where the controller operates)."""
+    episode at the target, near the set-points, where the controller operates). With
+    `cache` (a folder) each target's rows are kept there too, under a hash of the
+    meta-models' weights, the target's configuration, theta*, seed and the study's settings,
+    and read back when present: a study stopped part way resumes at its first target
+    without rows."""
     metas = meta_models(config, log, cache)
+    weights = hashlib.sha256()
+    for method, meta in metas.items():
+        weights.update(method.encode())
+        for name, value in sorted(meta.params.items()):
+            weights.update(name.encode() + value.detach().cpu().numpy().tobytes())
+    settings = replace(config, thetas=(), seeds=())
     rows = []
     for tgt in targets(config):
-        exp, ctrl, plant = tgt.experiment, tgt.controller(), tgt.plant()
-        steps, tracked = exp.track_steps(), list(exp.tracked_outputs)
-        nmpc = fly(exp.node_parameters('controller', tgt.seed),
-                   exp.node_parameters('plant', tgt.seed), tgt.theta, exp.track_x0, steps)
-        c_nmpc = (math.inf if nmpc.escaped_at is not None
-                  else nmpc.tracking_cost(tracked))
-        log(f'theta* {list(tgt.theta)} seed {tgt.seed}: NMPC cost {c_nmpc:.4g}')
-        # where the controller operates: the NMPC's own episode (u[k] produced y[k]), before
-        # any escape
-        end = len(nmpc.y) if nmpc.escaped_at is None else nmpc.escaped_at
-        loop = [(nmpc.u[1:end], nmpc.y[1:end])]
-        closed = round(config.closed_loop * exp.target_samples)
-        recs = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0,
-                        exp.target_samples - closed, tgt.seed)]
-        held = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0, HELDOUT_SAMPLES,
-                        10_000 + tgt.seed)]
-        first = next(iter(metas.values()))
-        fits = {method: partial(_adapted, meta, config.meta.gamma, config.toward_arx)
-                for method, meta in metas.items()}
-        fits['arx'] = partial(_least_squares, first)
-        models = {}
-        for name, fit in fits.items():
-            models[name] = fit(recs)
-            if closed:
-                more = closed_loop_record(models[name][0], tgt, closed, config.exploration)
-                models[name] = fit(recs + [more])
-        if config.oracle:
-            fam = exp.plant_family
-            starts = np.random.default_rng([tgt.seed, 77]).uniform(
-                fam.x0_low, fam.x0_high, (ORACLE_EPISODES, fam.n_x))
-            # as the source set keeps them: whole episodes only, an escaping one dropped
-            many = [r for r in (collect(ctrl.excitation, plant, tgt.theta, x0,
-                                        ORACLE_SAMPLES, 20_000 + i)
-                                for i, x0 in enumerate(starts))
-                    if len(r[1]) == ORACLE_SAMPLES]
-            for method, meta in metas.items():
-                oracle = adapt(meta, many, config.meta.gamma, config.toward_arx)
-                models[f'oracle_{method}'] = (oracle.model, math.nan, f'oracle {oracle.rule}')
-        reference = make_reference(ctrl.reference_kind, **ctrl.reference_params)
-        for name, (model, train, rule) in models.items():
-            planner = LocalLinearMpc(ctrl.mpc, model)
-            cost = track(planner, plant, tgt.theta, exp.track_x0, reference, steps, tracked,
-                         model.state, model.shape.order)
-            row = dict(theta=list(tgt.theta), seed=tgt.seed, model=name, rule=rule,
-                       cost=cost, nmpc=c_nmpc, ratio=cost / c_nmpc, train_loss=train,
-                       heldout=heldout_loss(model, held, HELDOUT_HORIZON),
-                       heldout_loop=heldout_loss(model, loop, HELDOUT_HORIZON),
-                       failed_linearisations=planner.failed_linearisations)
-            rows.append(row)
-            log(f'  {name:>13}: cost {cost:9.4g} ratio {cost / c_nmpc:7.3f} held-out '
-                f'{row["heldout"]:.2e}, along the NMPC {row["heldout_loop"]:.2e} ({rule})')
+        key = hashlib.sha256(repr((weights.hexdigest(), tgt.experiment, tgt.theta, tgt.seed,
+                                   settings)).encode()).hexdigest()
+        path = cache and os.path.join(cache, f'rows_{key[:16]}.json')
+        if path and os.path.exists(path):
+            with open(path) as f:
+                own = json.load(f)
+            log(f'theta* {list(tgt.theta)} seed {tgt.seed}: rows {path}')
+        else:
+            own = target_rows(tgt, metas, config, log)
+            if path:
+                with open(path + '.part', 'w') as f:
+                    json.dump(own, f)
+                os.replace(path + '.part', path)
+        rows += own
+    return rows
+
+
+def target_rows(tgt: Target, metas: Dict[str, FeatureNarx], config: RegimeConfig,
+                log: Callable[[str], None] = print) -> List[Dict]:
+    """The rows of one target (:func:`run`): the NMPC's episode, then each model adapted to
+    the target's samples (and the oracles) flown by the locally linear MPC."""
+    rows = []
+    exp, ctrl, plant = tgt.experiment, tgt.controller(), tgt.plant()
+    steps, tracked = exp.track_steps(), list(exp.tracked_outputs)
+    nmpc = fly(exp.node_parameters('controller', tgt.seed),
+               exp.node_parameters('plant', tgt.seed), tgt.theta, exp.track_x0, steps)
+    c_nmpc = (math.inf if nmpc.escaped_at is not None
+              else nmpc.tracking_cost(tracked))
+    log(f'theta* {list(tgt.theta)} seed {tgt.seed}: NMPC cost {c_nmpc:.4g}')
+    # where the controller operates: the NMPC's own episode (u[k] produced y[k]), before
+    # any escape
+    end = len(nmpc.y) if nmpc.escaped_at is None else nmpc.escaped_at
+    loop = [(nmpc.u[1:end], nmpc.y[1:end])]
+    closed = round(config.closed_loop * exp.target_samples)
+    recs = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0,
+                    exp.target_samples - closed, tgt.seed)]
+    held = [collect(ctrl.excitation, plant, tgt.theta, exp.collect_x0, HELDOUT_SAMPLES,
+                    10_000 + tgt.seed)]
+    first = next(iter(metas.values()))
+    fits = {method: partial(_adapted, meta, config.meta.gamma, config.toward_arx)
+            for method, meta in metas.items()}
+    fits['arx'] = partial(_least_squares, first)
+    models = {}
+    for name, fit in fits.items():
+        models[name] = fit(recs)
+        if closed:
+            more = closed_loop_record(models[name][0], tgt, closed, config.exploration)
+            models[name] = fit(recs + [more])
+    if config.oracle:
+        fam = exp.plant_family
+        starts = np.random.default_rng([tgt.seed, 77]).uniform(
+            fam.x0_low, fam.x0_high, (ORACLE_EPISODES, fam.n_x))
+        # as the source set keeps them: whole episodes only, an escaping one dropped
+        many = [r for r in (collect(ctrl.excitation, plant, tgt.theta, x0,
+                                    ORACLE_SAMPLES, 20_000 + i)
+                            for i, x0 in enumerate(starts))
+                if len(r[1]) == ORACLE_SAMPLES]
+        for method, meta in metas.items():
+            oracle = adapt(meta, many, config.meta.gamma, config.toward_arx)
+            models[f'oracle_{method}'] = (oracle.model, math.nan, f'oracle {oracle.rule}')
+    reference = make_reference(ctrl.reference_kind, **ctrl.reference_params)
+    for name, (model, train, rule) in models.items():
+        planner = LocalLinearMpc(ctrl.mpc, model)
+        cost = track(planner, plant, tgt.theta, exp.track_x0, reference, steps, tracked,
+                     model.state, model.shape.order)
+        row = dict(theta=list(tgt.theta), seed=tgt.seed, model=name, rule=rule,
+                   cost=cost, nmpc=c_nmpc, ratio=cost / c_nmpc, train_loss=train,
+                   heldout=heldout_loss(model, held, HELDOUT_HORIZON),
+                   heldout_loop=heldout_loss(model, loop, HELDOUT_HORIZON),
+                   failed_linearisations=planner.failed_linearisations)
+        rows.append(row)
+        log(f'  {name:>13}: cost {cost:9.4g} ratio {cost / c_nmpc:7.3f} held-out '
+            f'{row["heldout"]:.2e}, along the NMPC {row["heldout_loop"]:.2e} ({rule})')
     return rows
 
 
@@ -337,4 +370,4 @@ def summary(rows: Sequence[Dict]) -> List[str]:
 
 
 __all__ = ['RegimeConfig', 'Target', 'collect', 'episode', 'track', 'closed_loop_record',
-           'targets', 'meta_models', 'run', 'summary']
+           'targets', 'meta_models', 'run', 'target_rows', 'summary']
