@@ -122,12 +122,15 @@ def test_a_stopped_study_resumes_from_the_rows_it_kept(tmp_path, monkeypatch):
 
 
 def test_the_lags_are_the_familys_learner_narx_order():
-    """The study's p is the experiment's learner ``narx_order`` (the pendulum's 1, van der
-    Pol's default 2) unless given; fails on a study that fixes p = 2."""
+    """The study's p is the experiment's learner ``narx_order`` (the pendulum's and
+    Duffing's 1, van der Pol's default 2) unless given; fails on a study that fixes p = 2 and
+    on a Duffing configuration with p = 2 (first-order MAML's spurious unstable mode there:
+    docs/studies/2026-12-08-duffing-regime.md)."""
     tiny = dict(seeds=(0,), features=2, hidden=(3,),
                 meta=NarxMetaConfig(iterations=1, batch_size=2, windows=4))
     pend = RegimeConfig(experiment='config/pendulum.yaml', **tiny)
     assert load('config/pendulum.yaml').node_config('learner', 0).narx.order == 1
+    assert load('config/duffing.yaml').node_config('learner', 0).narx.order == 1
     assert meta_models(pend, print)['imaml'].shape.order == 1
     assert meta_models(RegimeConfig(**tiny), print)['imaml'].shape.order == 2
     assert meta_models(RegimeConfig(order=3, **tiny), print)['imaml'].shape.order == 3
