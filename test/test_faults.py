@@ -370,8 +370,13 @@ def test_controller_rejects_malformed_nan_and_wrong_shape_weights(procs, probe, 
     for version, (change, reason) in enumerate(BAD_WEIGHTS, start=2):
         pub.publish(change(weights(version)))
         st = rig.wait_status(lambda s: reason in s.model_status, f'version {version} rejected')
-        events = [e for s in rig.heard['mpc_status'] for e in s.model_events
-                  if e.version == version]
+
+        def heard_events():
+            return [e for s in list(rig.heard['mpc_status']) for e in s.model_events
+                    if e.version == version]
+        # the event may ride on a later status than the first that names the refusal
+        rig.probe.wait_for(lambda: heard_events(), 60.0, f'version {version} event')
+        events = heard_events()
         assert [(e.outcome, e.cause) for e in events] == [('refused', 'weights')], events
         assert st.model_status == f'rejected: {events[0].reason}' and st.model_version == 1, st
         rig.wait_steps(3)
